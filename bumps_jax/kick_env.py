@@ -1,0 +1,364 @@
+"""The kick task as a functional MJX environment: the NAO kicks a ball to a target distance.
+
+One episode = a kick phase of `horizon_s` seconds at 50 Hz, after which the ball rolls to
+rest. The rolling tail is not simulated step by step (a kicked ball rolls for 20-40 s): the
+resting point follows from the ball's state at the end of the kick phase in closed form
+(`rest_point`), which a test checks against the full simulation.
+
+The target distance lives in the state, so one compiled `step` serves a batch of episodes of
+different tasks: `jax.vmap(env.reset)(rngs, targets)`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import mujoco
+import numpy as np
+from brax.envs.base import Env, State
+from mujoco import mjx
+
+from bumps_jax import scene
+
+GRAVITY = 9.81
+
+
+def meta_train_tasks() -> tuple[float, ...]:
+    """The paper's 23 meta-training targets: 7.0, 7.5, ..., 18.0 m."""
+    return tuple(round(7.0 + 0.5 * i, 1) for i in range(23))
+
+
+def meta_test_tasks() -> tuple[float, ...]:
+    """The paper's 110 meta-test targets: 7.1, 7.2, ..., 18.0 m."""
+    return tuple(round(7.1 + 0.1 * i, 1) for i in range(110))
+
+
+def default_config() -> ml_collections.ConfigDict:
+    """Every number of the task, in one place. See README of assets/nao_mjcf for the scene."""
+    cfg = ml_collections.ConfigDict()
+    cfg.ctrl_dt = 0.02  # 50 Hz, SimSpark's agent cycle
+    cfg.horizon_s = 1.5  # kick phase; the paper's kicks last 1.3-1.5 s
+    cfg.task_range = (7.0, 18.0)  # metres; targets outside are refused
+    cfg.tasks = meta_train_tasks()  # what brax-style `reset(rng)` draws from
+    cfg.ball_offset = 0.2  # ball centre ahead of the kicking foot's centre (m)
+    cfg.proprioception = False  # paper-faithful observation: (phase, target) only
+    cfg.fall_height = 0.22  # torso centre below this (m) = fallen; standing is 0.37
+    cfg.strike_speed = 0.5  # the ball must reach this speed (m/s) for a valid kick
+    cfg.blowup_speed = 100.0  # any qvel above this (or NaN) = physics blow-up
+    cfg.noise = ml_collections.ConfigDict()
+    cfg.noise.ball_xy = 0.01  # uniform +- (m) on the ball's start
+    cfg.noise.joint_angle = 0.01  # normal std (rad) on the initial joint angles
+    cfg.noise.friction = 0.1  # uniform +- (relative) on every contact's friction
+    cfg.noise.actuator_gain = 0.05  # uniform +- (relative) on the servo gains
+    cfg.reward = ml_collections.ConfigDict()
+    # The paper's per-step reward: the ball-target distance, scaled (paper: x 0.1).
+    cfg.reward.distance = 0.1
+    # Weight of the final resting error, paid at the last step: makes the return's maximum
+    # the kick that stops on the target, not the one that gets near it fastest.
+    cfg.reward.final_error = 10.0
+    return cfg
+
+
+def make_config(config=None, overrides: dict | None = None) -> ml_collections.ConfigDict:
+    """A locked copy of `config` (default: `default_config()`) with dotted `overrides`.
+
+    Unknown keys raise at once, naming the key.
+    """
+    cfg = ml_collections.ConfigDict(default_config() if config is None else config)
+    cfg.lock()
+    for key, value in (overrides or {}).items():
+        node = cfg
+        *parents, leaf = key.split(".")
+        for p in parents:
+            if p not in node:
+                raise ValueError(f"unknown config key {key!r}")
+            node = node[p]
+        if leaf not in node:
+            raise ValueError(f"unknown config key {key!r}")
+        node[leaf] = value
+    return cfg
+
+
+def validate_config(cfg: ml_collections.ConfigDict) -> None:
+    lo, hi = cfg.task_range
+    if not 0.0 < lo < hi:
+        raise ValueError(f"task_range must be 0 < low < high, got {tuple(cfg.task_range)}")
+    if cfg.ctrl_dt <= 0 or cfg.horizon_s < cfg.ctrl_dt:
+        raise ValueError(f"need 0 < ctrl_dt <= horizon_s, got {cfg.ctrl_dt}, {cfg.horizon_s}")
+    if len(cfg.tasks) == 0:
+        raise ValueError("tasks is empty: give at least one target distance")
+    check_targets(cfg.tasks, cfg.task_range)
+    for name, value in cfg.noise.items():
+        if value < 0:
+            raise ValueError(f"noise.{name} must be >= 0, got {value}")
+
+
+def check_targets(targets, task_range) -> np.ndarray:
+    """Targets as a float array, or ValueError naming the first one outside `task_range`."""
+    arr = np.asarray(targets, dtype=np.float64)
+    lo, hi = task_range
+    bad = ~np.isfinite(arr) | (arr < lo - 1e-9) | (arr > hi + 1e-9)
+    if bad.any():
+        raise ValueError(
+            f"target {arr[bad].flat[0]!r} m is outside the task range [{lo}, {hi}] m"
+        )
+    return arr
+
+
+def rest_point(pos, vel, angvel, decel_rate, radius=scene.BALL_RADIUS, rest_speed=scene.BALL_REST_SPEED):
+    """Where a ball in state (pos, vel, angvel) comes to rest on the floor.
+
+    pos, vel, angvel: (..., 3), world frame. Returns (..., 2), the resting x, y.
+
+    Three closed-form pieces, each exact for the model's ball:
+    1. a ball in the air flies ballistically until it touches the floor;
+    2. from then on, friction at the contact point (and the normal force through it) cannot
+       change the ball's angular momentum about that point, so slipping and bouncing end in
+       rolling at v = (m r v_h - I z x w_h) / (m r + I / r), I = 2/5 m r^2 (solid sphere);
+    3. rolling obeys dv/dt = -c v, so it covers (|v| - v_rest) / c more before resting.
+    """
+    height = jnp.maximum(pos[..., 2] - radius, 0.0)
+    vz = vel[..., 2]
+    t_land = (vz + jnp.sqrt(vz**2 + 2.0 * GRAVITY * height)) / GRAVITY
+    landing = pos[..., :2] + vel[..., :2] * t_land[..., None]
+    # z x w for horizontal components: (-w_y, w_x).
+    z_cross_w = jnp.stack([-angvel[..., 1], angvel[..., 0]], axis=-1)
+    roll_vel = (vel[..., :2] - 0.4 * radius * z_cross_w) / 1.4
+    speed = jnp.linalg.norm(roll_vel, axis=-1)
+    direction = roll_vel / jnp.maximum(speed, 1e-9)[..., None]
+    distance = jnp.maximum(speed - rest_speed, 0.0) / decel_rate
+    return landing + direction * distance[..., None]
+
+
+class KickEnv(Env):
+    """The NAO kicks a ball to a target distance.
+
+    reset(rng, target) -> State; step(state, action) -> State. `action` (22,) holds absolute
+    joint target angles (rad) in SimSpark order; they are clipped to the joint limits, and the
+    servo target moves toward them no faster than SimSpark's 6.1395 rad/s.
+    """
+
+    def __init__(self, config=None, config_overrides: dict | None = None):
+        self.config = make_config(config, config_overrides)
+        validate_config(self.config)
+        cfg = self.config
+        self.mj_model = scene.load_model()
+        self.ids = scene.scene_ids(self.mj_model)
+        physics_dt = float(self.mj_model.opt.timestep)
+        self.n_substeps = int(round(cfg.ctrl_dt / physics_dt))
+        if not math.isclose(self.n_substeps * physics_dt, cfg.ctrl_dt, rel_tol=1e-6):
+            raise ValueError(f"ctrl_dt {cfg.ctrl_dt} is not a multiple of the physics step {physics_dt}")
+        self.n_steps = int(round(cfg.horizon_s / cfg.ctrl_dt))
+        self.mjx_model = mjx.put_model(self.mj_model)
+        self.decel_rate = scene.rolling_decel_rate(self.mj_model)
+        self._qpos0 = jnp.asarray(scene.stance_qpos(self.mj_model))
+        self._stance = jnp.asarray(scene.STANCE)
+        self._lo = jnp.asarray(self.ids.joint_range[:, 0])
+        self._hi = jnp.asarray(self.ids.joint_range[:, 1])
+        self._max_delta = scene.MAX_JOINT_SPEED * cfg.ctrl_dt
+        self._tasks = jnp.asarray(cfg.tasks, dtype=jnp.float32)
+
+    # -- brax's Env interface ------------------------------------------------------------
+    @property
+    def observation_size(self) -> int:
+        return 2 + (50 if self.config.proprioception else 0)
+
+    @property
+    def action_size(self) -> int:
+        return scene.N_JOINTS
+
+    @property
+    def backend(self) -> str:
+        return "mjx"
+
+    @property
+    def dt(self) -> float:
+        return self.config.ctrl_dt
+
+    # -- the task --------------------------------------------------------------------------
+    def reset(self, rng: jax.Array, target=None) -> State:
+        """A new episode. target: scalar metres; default: drawn from `config.tasks`.
+
+        A concrete target outside `task_range` raises ValueError. A traced one cannot raise;
+        it is clipped into the range and `metrics['target_clipped']` is set to 1.
+        """
+        cfg = self.config
+        rng_task, rng_ball, rng_q, rng_f, rng_g = jax.random.split(rng, 5)
+        if target is None:
+            target = jax.random.choice(rng_task, self._tasks)
+        elif not isinstance(target, jax.core.Tracer):
+            check_targets(target, cfg.task_range)
+        target = jnp.asarray(target, dtype=jnp.float32)
+        lo, hi = cfg.task_range
+        clipped_target = jnp.clip(target, lo, hi)
+
+        qpos = self._qpos0
+        jitter = cfg.noise.ball_xy * jax.random.uniform(rng_ball, (2,), minval=-1.0, maxval=1.0)
+        ball_xy = qpos[self.ids.ball_qpos : self.ids.ball_qpos + 2]
+        qpos = qpos.at[self.ids.ball_qpos : self.ids.ball_qpos + 2].add(jitter)
+        joint_noise = cfg.noise.joint_angle * jax.random.normal(rng_q, (scene.N_JOINTS,))
+        qpos = qpos.at[self.ids.joint_qpos].set(jnp.clip(self._stance + joint_noise, self._lo, self._hi))
+
+        data = mjx.make_data(self.mjx_model).replace(qpos=qpos, ctrl=self._stance)
+        info = {
+            "target": clipped_target,
+            # The target point: `target` metres ahead of the nominal ball start.
+            "target_xy": ball_xy + jnp.array([1.0, 0.0]) * clipped_target,
+            "step": jnp.zeros((), jnp.int32),
+            "command": self._stance,
+            "friction_scale": 1.0 + cfg.noise.friction * jax.random.uniform(rng_f, (), minval=-1.0, maxval=1.0),
+            "gain_scale": 1.0 + cfg.noise.actuator_gain * jax.random.uniform(rng_g, (), minval=-1.0, maxval=1.0),
+            "max_ball_speed": jnp.zeros(()),
+            "min_torso_z": jnp.full((), jnp.inf),
+            "blown_up": jnp.zeros((), bool),
+            "nan_action": jnp.zeros((), bool),
+        }
+        data = mjx.forward(self._episode_model(info), data)
+        metrics = self._outcome(data, info)
+        metrics["target_clipped"] = (clipped_target != target).astype(jnp.float32)
+        return State(
+            pipeline_state=data,
+            obs=self._observe(data, info),
+            reward=jnp.zeros(()),
+            done=jnp.zeros(()),
+            metrics=metrics,
+            info=info,
+        )
+
+    def step(self, state: State, action: jax.Array) -> State:
+        """One 20 ms control step. action: (22,) joint targets (rad).
+
+        A NaN in the action holds the previous servo target for that joint and marks the
+        episode as an invalid kick (`metrics['valid'] = 0`).
+        """
+        if action.shape[-1:] != (scene.N_JOINTS,) or action.ndim != 1:
+            raise ValueError(f"action must have shape ({scene.N_JOINTS},), got {action.shape}")
+        info = dict(state.info)
+        nan = jnp.isnan(action)
+        wanted = jnp.clip(jnp.where(nan, info["command"], action), self._lo, self._hi)
+        command = info["command"] + jnp.clip(wanted - info["command"], -self._max_delta, self._max_delta)
+        model = self._episode_model(info)
+
+        def substep(data, _):
+            return mjx.step(model, data), None
+
+        data, _ = jax.lax.scan(substep, state.pipeline_state.replace(ctrl=command), None, self.n_substeps)
+
+        ball_vel = data.qvel[self.ids.ball_qvel : self.ids.ball_qvel + 3]
+        finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
+        blown_up = info["blown_up"] | ~finite | (jnp.max(jnp.abs(jnp.nan_to_num(data.qvel))) > self.config.blowup_speed)
+        info.update(
+            step=info["step"] + 1,
+            command=command,
+            max_ball_speed=jnp.maximum(info["max_ball_speed"], jnp.linalg.norm(ball_vel)),
+            min_torso_z=jnp.minimum(info["min_torso_z"], data.xpos[self.ids.torso_body, 2]),
+            blown_up=blown_up,
+            nan_action=info["nan_action"] | jnp.any(nan),
+        )
+        done = info["step"] >= self.n_steps
+        metrics = self._outcome(data, info)
+        metrics["target_clipped"] = state.metrics["target_clipped"]
+        reward = self._reward(data, info, metrics, done)
+        return State(
+            pipeline_state=data,
+            obs=self._observe(data, info),
+            reward=reward,
+            done=done.astype(jnp.float32),
+            metrics=metrics,
+            info=info,
+        )
+
+    # -- pieces ------------------------------------------------------------------------------
+    def _episode_model(self, info) -> mjx.Model:
+        """The MJX model with this episode's friction and servo-gain jitter applied."""
+        m = self.mjx_model
+        kp_scale = jnp.ones_like(m.actuator_gainprm).at[:, 0].set(info["gain_scale"])
+        bias_scale = jnp.ones_like(m.actuator_biasprm).at[:, 1].set(info["gain_scale"])
+        return m.replace(
+            pair_friction=m.pair_friction * info["friction_scale"],
+            actuator_gainprm=m.actuator_gainprm * kp_scale,
+            actuator_biasprm=m.actuator_biasprm * bias_scale,
+        )
+
+    def _ball_state(self, data):
+        q, v = self.ids.ball_qpos, self.ids.ball_qvel
+        pos = data.qpos[q : q + 3]
+        # MuJoCo's free-joint angular velocity is in the body frame: rotate it to the world.
+        quat = data.qpos[q + 3 : q + 7]
+        angvel = _rotate(data.qvel[v + 3 : v + 6], quat)
+        return pos, data.qvel[v : v + 3], angvel
+
+    def _outcome(self, data, info) -> dict:
+        """What the kick would score if the kick phase ended now (final at `done`)."""
+        cfg = self.config
+        pos, vel, angvel = self._ball_state(data)
+        rest = rest_point(pos, vel, angvel, self.decel_rate)
+        error = jnp.linalg.norm(rest - info["target_xy"])
+        # A blown-up simulation scores as a ball that never moved: error = the target distance.
+        error = jnp.where(info["blown_up"], info["target"], jnp.nan_to_num(error, nan=info["target"]))
+        struck = info["max_ball_speed"] >= cfg.strike_speed
+        fallen = info["min_torso_z"] < cfg.fall_height
+        valid = struck & ~fallen & ~info["blown_up"] & ~info["nan_action"]
+        return {
+            "final_error": error,
+            "rel_error": error / info["target"],
+            "valid": valid.astype(jnp.float32),
+            "struck": struck.astype(jnp.float32),
+            "fallen": fallen.astype(jnp.float32),
+            "blown_up": info["blown_up"].astype(jnp.float32),
+            "rest_x": jnp.nan_to_num(rest[0]),
+            "rest_y": jnp.nan_to_num(rest[1]),
+        }
+
+    def _reward(self, data, info, metrics, done) -> jax.Array:
+        """Paper's per-step term: -scale * |ball - target|; at the end, -w * final error."""
+        w = self.config.reward
+        ball_xy = data.qpos[self.ids.ball_qpos : self.ids.ball_qpos + 2]
+        distance = jnp.linalg.norm(ball_xy - info["target_xy"])
+        distance = jnp.where(info["blown_up"], info["target"], jnp.nan_to_num(distance, nan=info["target"]))
+        return -w.distance * distance - jnp.where(done, w.final_error * metrics["final_error"], 0.0)
+
+    def _observe(self, data, info) -> jax.Array:
+        lo, hi = self.config.task_range
+        phase = info["step"].astype(jnp.float32) / self.n_steps
+        context = (info["target"] - lo) / (hi - lo)
+        obs = jnp.stack([phase, context])
+        if not self.config.proprioception:
+            return obs
+        torso_quat = data.qpos[3:7]
+        gravity = _rotate(jnp.array([0.0, 0.0, -1.0]), _conjugate(torso_quat))
+        ball_rel = data.qpos[self.ids.ball_qpos : self.ids.ball_qpos + 3] - data.qpos[:3]
+        extra = jnp.concatenate([
+            data.qpos[self.ids.joint_qpos],
+            0.1 * data.qvel[self.ids.joint_qvel],
+            gravity,
+            ball_rel,
+        ])  # fmt: skip
+        return jnp.nan_to_num(jnp.concatenate([obs, extra]))
+
+
+def _conjugate(quat):
+    return quat * jnp.array([1.0, -1.0, -1.0, -1.0])
+
+
+def _rotate(vec, quat):
+    """vec (3,) rotated by the unit quaternion quat (4,), MuJoCo's (w, x, y, z) order."""
+    w, u = quat[0], quat[1:]
+    return vec + 2.0 * jnp.cross(u, jnp.cross(u, vec) + w * vec)
+
+
+def stance_command() -> np.ndarray:
+    """The 22 joint targets that hold the stance (an action that stands still)."""
+    return scene.STANCE.copy()
+
+
+def mj_data_for(model: mujoco.MjModel) -> mujoco.MjData:
+    """A C MuJoCo MjData in the stance, for the viewer, tests and rendering."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = scene.stance_qpos(model)
+    data.ctrl[:] = scene.STANCE
+    mujoco.mj_forward(model, data)
+    return data
