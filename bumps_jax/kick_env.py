@@ -113,12 +113,14 @@ def rest_point(pos, vel, angvel, decel_rate, radius=scene.BALL_RADIUS, rest_spee
 
     pos, vel, angvel: (..., 3), world frame. Returns (..., 2), the resting x, y.
 
-    Three closed-form pieces, each exact for the model's ball:
-    1. a ball in the air flies ballistically until it touches the floor;
-    2. from then on, friction at the contact point (and the normal force through it) cannot
+    1. A ball in the air flies ballistically until it touches the floor.
+    2. From then on, friction at the contact point and the normal force through it cannot
        change the ball's angular momentum about that point, so slipping and bouncing end in
-       rolling at v = (m r v_h - I z x w_h) / (m r + I / r), I = 2/5 m r^2 (solid sphere);
-    3. rolling obeys dv/dt = -c v, so it covers (|v| - v_rest) / c more before resting.
+       rolling at v = (m r v_h - I z x w_h) / (m r + I / r), I = 2/5 m r^2 (solid sphere).
+    3. Rolling obeys dv/dt = -c v: it covers (|v| - v_rest) / c more before resting.
+    Exact (to the simulator's accuracy) for a rolling ball, which is what a kick leaves at the
+    end of the kick phase; for a ball still slipping or in flight it ignores the distance
+    gained while slipping (tests/test_scene.py measures both).
     """
     height = jnp.maximum(pos[..., 2] - radius, 0.0)
     vz = vel[..., 2]
@@ -131,6 +133,16 @@ def rest_point(pos, vel, angvel, decel_rate, radius=scene.BALL_RADIUS, rest_spee
     direction = roll_vel / jnp.maximum(speed, 1e-9)[..., None]
     distance = jnp.maximum(speed - rest_speed, 0.0) / decel_rate
     return landing + direction * distance[..., None]
+
+
+def rolling(vel, angvel, radius=scene.BALL_RADIUS, tolerance=0.05):
+    """Whether the ball rolls without slipping (contact-point speed under `tolerance` m/s).
+
+    vel, angvel: (..., 3) world frame. Returns (...) bool.
+    """
+    z_cross_w = jnp.stack([-angvel[..., 1], angvel[..., 0]], axis=-1)
+    slip = vel[..., :2] + radius * z_cross_w
+    return (jnp.linalg.norm(slip, axis=-1) < tolerance) & (jnp.abs(vel[..., 2]) < tolerance)
 
 
 class KickEnv(Env):
@@ -153,7 +165,7 @@ class KickEnv(Env):
             raise ValueError(f"ctrl_dt {cfg.ctrl_dt} is not a multiple of the physics step {physics_dt}")
         self.n_steps = int(round(cfg.horizon_s / cfg.ctrl_dt))
         self.mjx_model = mjx.put_model(self.mj_model)
-        self.decel_rate = scene.rolling_decel_rate(self.mj_model)
+        self.decel_rate = scene.rolling_decel_rate()
         self._qpos0 = jnp.asarray(scene.stance_qpos(self.mj_model))
         self._stance = jnp.asarray(scene.STANCE)
         self._lo = jnp.asarray(self.ids.joint_range[:, 0])
@@ -238,14 +250,15 @@ class KickEnv(Env):
             raise ValueError(f"action must have shape ({scene.N_JOINTS},), got {action.shape}")
         info = dict(state.info)
         nan = jnp.isnan(action)
-        wanted = jnp.clip(jnp.where(nan, info["command"], action), self._lo, self._hi)
-        command = info["command"] + jnp.clip(wanted - info["command"], -self._max_delta, self._max_delta)
+        wanted = jnp.where(nan, info["command"], action)
+        ramp = servo_ramp(info["command"], wanted, self._lo, self._hi, self._max_delta, self.n_substeps)
+        command = ramp[-1]
         model = self._episode_model(info)
 
-        def substep(data, _):
-            return mjx.step(model, data), None
+        def substep(data, ctrl):
+            return mjx.step(model, data.replace(ctrl=ctrl)), None
 
-        data, _ = jax.lax.scan(substep, state.pipeline_state.replace(ctrl=command), None, self.n_substeps)
+        data, _ = jax.lax.scan(substep, state.pipeline_state, ramp)
 
         ball_vel = data.qvel[self.ids.ball_qvel : self.ids.ball_qvel + 3]
         finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
@@ -309,6 +322,8 @@ class KickEnv(Env):
             "struck": struck.astype(jnp.float32),
             "fallen": fallen.astype(jnp.float32),
             "blown_up": info["blown_up"].astype(jnp.float32),
+            # 1 when the ball rolls: then the resting point is exact, not an approximation.
+            "ball_rolling": rolling(vel, angvel).astype(jnp.float32),
             "rest_x": jnp.nan_to_num(rest[0]),
             "rest_y": jnp.nan_to_num(rest[1]),
         }
@@ -338,6 +353,21 @@ class KickEnv(Env):
             ball_rel,
         ])  # fmt: skip
         return jnp.nan_to_num(jnp.concatenate([obs, extra]))
+
+
+def servo_ramp(command, wanted, low, high, max_delta, n_substeps):
+    """The servo targets for each physics substep of one control step: (n_substeps, 22).
+
+    SimSpark's motors turn at most 6.1395 rad/s. We emulate that on the target: it moves from
+    `command` toward `wanted` (clipped to the joint limits) by at most `max_delta` per control
+    step, as a ramp over the substeps rather than a jump, so that the servo tracks a target
+    moving at the speed limit instead of chasing steps (which made joints overshoot it).
+    Works on numpy and jax arrays alike.
+    """
+    xp = jnp if isinstance(command, jax.Array) or isinstance(wanted, jax.Array) else np
+    delta = xp.clip(xp.clip(wanted, low, high) - command, -max_delta, max_delta)
+    fractions = xp.arange(1, n_substeps + 1) / n_substeps
+    return command + fractions[:, None] * delta
 
 
 def _conjugate(quat):
