@@ -1,0 +1,428 @@
+"""A parametrised keyframe kick for the left leg, and its CMA-ES optimisation in MJX.
+
+The kick is a handful of key poses, each held as a joint-target vector and reached by linear
+interpolation at 50 Hz (the environment then rate-limits the targets as SimSpark's servos do):
+
+    stance -> lean (weight over the right foot) -> lift -> wind back -> swing -> lift
+           -> lean -> stance (held to the end of the kick phase)
+
+Fourteen numbers describe it (`PARAM_NAMES`): the lean, how the support leg carries the body
+forward, the wind-back and swing poses of the kicking leg, the segment durations, and a
+`strength` in (0, 1] that sets how fast the swing runs as a fraction of the servos' speed
+limit. Strength is the knob that sets the distance: a sweep over it turns one prior into
+kicks from ~6 m upwards (`sweep`).
+
+`optimise` tunes the prior for one target with evosax's CMA-ES; each generation's whole
+population x repetitions runs as one jitted, vmapped MJX program. The result is a small
+versioned JSON (`save_prior` / `load_prior`) that later stages replay without optimising.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from bumps_jax import kick_env, scene
+
+FORMAT_VERSION = 1
+PRIOR_JSON = Path(__file__).resolve().parent.parent / "assets" / "kick_prior.json"
+
+# Angles in degrees (offsets from the stance unless noted), times in seconds.
+PARAM_NAMES = (
+    "lean",  # hip roll on both legs (feet kept flat): shifts the torso over the right foot
+    "support_hip",  # right hip pitch offset while on one foot
+    "support_ankle",  # right ankle pitch offset: positive carries the body forward
+    "t_shift",  # time to lean over (s)
+    "t_lift",  # lean -> lifted kicking foot (s)
+    "back_hip",  # kicking leg at the end of the wind-back
+    "back_knee",
+    "back_ankle",
+    "t_back",  # lift -> wound back (s)
+    "swing_hip",  # kicking leg at the end of the swing
+    "swing_knee",
+    "swing_ankle",
+    "t_swing",  # shortest swing duration (s); a low strength stretches it
+    "strength",  # swing speed as a fraction of the servo speed limit, (0, 1]
+)
+N_PARAMS = len(PARAM_NAMES)
+
+# The hand-found starting point (C MuJoCo grid search): hits the ball to ~8-11 m standing.
+DEFAULT_PARAMS = np.array(
+    [13.0, 0.0, 8.0, 0.3, 0.15, 0.0, -90.0, 10.0, 0.15, 50.0, 40.0, 0.0, 0.12, 1.0]
+)
+# CMA-ES searches z with params = start + SCALE * z: one unit of z is a comparable change
+# (a few degrees, a few control steps) in every coordinate.
+PARAM_SCALE = np.array([1.0, 3.0, 3.0, 0.04, 0.04, 5.0, 8.0, 5.0, 0.04, 5.0, 8.0, 5.0, 0.03, 0.1])
+# Hard bounds: durations positive, and every key pose inside the joint ranges (the stance
+# knee is -40 deg, so the wind-back knee offset stops at -90 = the -130 deg limit).
+PARAM_LOW = np.array(
+    [5.0, -20.0, -15.0, 0.1, 0.04, -30.0, -90.0, -30.0, 0.04, 10.0, -20.0, -40.0, 0.04, 0.1]
+)
+PARAM_HIGH = np.array([25.0, 25.0, 20.0, 0.6, 0.4, 30.0, 0.0, 50.0, 0.4, 80.0, 40.0, 40.0, 0.3, 1.0])
+
+# The lifted kicking leg between wind-back and recovery (fixed: the search tunes the rest).
+_LIFT = {"llj3": 10.0, "llj4": -40.0, "llj5": 20.0}
+# Recovery after the swing: back to the lift, then the lean, then the stance (s after it).
+_RECOVER = (0.2, 0.45, 0.7)
+
+_J = {name: i for i, name in enumerate(scene.JOINTS)}
+
+
+def _pose(lean=0.0, support=(0.0, 0.0), kick=(0.0, 0.0, 0.0)) -> jax.Array:
+    """Joint targets (22,) rad: the stance plus offsets in degrees."""
+    offset = jnp.zeros(scene.N_JOINTS)
+    # Equal hip roll on both legs tilts the body over the right foot; the ankle rolls undo
+    # it at the soles so both feet stay flat.
+    offset = offset.at[jnp.array([_J["llj2"], _J["rlj2"]])].set(lean)
+    offset = offset.at[jnp.array([_J["llj6"], _J["rlj6"]])].set(-lean)
+    offset = offset.at[jnp.array([_J["rlj3"], _J["rlj5"]])].set(jnp.stack(support))
+    offset = offset.at[jnp.array([_J["llj3"], _J["llj4"], _J["llj5"]])].set(jnp.stack(kick))
+    return jnp.asarray(scene.STANCE) + jnp.deg2rad(offset)
+
+
+def keyframes(params) -> tuple[jax.Array, jax.Array]:
+    """The kick's key poses. params: (14,). Returns times (K,) s, increasing, and poses (K, 22) rad."""
+    p = dict(zip(PARAM_NAMES, jnp.asarray(params, jnp.float32), strict=True))
+    support = (p["support_hip"], p["support_ankle"])
+    lift = tuple(jnp.float32(_LIFT[n]) for n in ("llj3", "llj4", "llj5"))
+    back = (p["back_hip"], p["back_knee"], p["back_ankle"])
+    swing = (p["swing_hip"], p["swing_knee"], p["swing_ankle"])
+    stance = _pose()
+    lean = _pose(p["lean"], support)
+    lifted = _pose(p["lean"], support, lift)
+    wound = _pose(p["lean"], support, back)
+    swung = _pose(p["lean"], support, swing)
+    # The swing's hip target moves at `strength` x the speed limit, or slower if t_swing asks.
+    # (The hip, not the knee: the hip drives the foot; the knee target runs ahead of the
+    # rate-limited servo and only sets how straight the leg is at the ball.)
+    amplitude = jnp.deg2rad(jnp.abs(p["swing_hip"] - p["back_hip"]))
+    strength = jnp.clip(p["strength"], 0.05, 1.0)
+    t_swing = jnp.maximum(p["t_swing"], amplitude / (strength * scene.MAX_JOINT_SPEED))
+    # Segment durations, floored at 10 ms so the times stay strictly increasing.
+    durations = jnp.maximum(
+        jnp.stack([p["t_shift"], p["t_lift"], p["t_back"], t_swing, *map(jnp.float32, _steps(_RECOVER))]),
+        0.01,
+    )
+    times = jnp.concatenate([jnp.zeros(1), jnp.cumsum(durations)])
+    poses = jnp.stack([stance, lean, lifted, wound, swung, lifted, lean, stance])
+    return times, poses
+
+
+def _steps(marks):
+    """Absolute marks after the swing -> the durations between them."""
+    return (marks[0], marks[1] - marks[0], marks[2] - marks[1])
+
+
+def keyframes_to_actions(params, n_steps: int, ctrl_dt: float = 0.02) -> jax.Array:
+    """Joint targets (n_steps, 22) rad at each control step, interpolated from the key poses.
+
+    Step k's action is the interpolated pose at time (k + 1) * ctrl_dt (the pose the servos
+    should be heading for by the end of that step); after the last key pose it is held.
+    Pure and jittable; vmap over params (P, 14) for a population.
+    """
+    times, poses = keyframes(params)
+    t = (jnp.arange(n_steps, dtype=jnp.float32) + 1.0) * ctrl_dt
+    interp = jax.vmap(lambda column: jnp.interp(t, times, column), in_axes=1, out_axes=1)
+    return interp(poses)
+
+
+def clip_params(params) -> jax.Array:
+    """Params (..., 14) clipped into [PARAM_LOW, PARAM_HIGH]."""
+    return jnp.clip(params, PARAM_LOW, PARAM_HIGH)
+
+
+# -- configuration ----------------------------------------------------------------------------
+
+
+def default_config() -> ml_collections.ConfigDict:
+    """Every number of the prior's optimisation, in one place."""
+    cfg = ml_collections.ConfigDict()
+    cfg.target = 12.0  # metres: the prior is tuned for the middle of the task range
+    cfg.population_size = 16
+    cfg.generations = 30
+    cfg.repetitions = 4  # noisy episodes (env noise) per candidate per generation
+    cfg.sigma_init = 1.0  # CMA-ES step in units of PARAM_SCALE
+    cfg.seed = 0
+    # Names of the parameters CMA-ES moves; the rest stay at the start point. Strength is held
+    # (below 1) so that the optimised kick keeps headroom for longer kicks in the sweep.
+    cfg.free_params = tuple(n for n in PARAM_NAMES if n != "strength")
+    cfg.start_strength = 0.75
+    cfg.eval_repetitions = 32  # noisy episodes for the final evaluation of the best kick
+    cfg.fitness = ml_collections.ConfigDict()
+    cfg.fitness.distance = 1.0  # per metre of resting error along the kick direction
+    cfg.fitness.lateral = 2.0  # per metre of sideways error: the ball must go straight
+    cfg.fitness.invalid = 20.0  # a fall, a miss or a blow-up
+    return cfg
+
+
+def make_config(config=None, overrides: dict | None = None) -> ml_collections.ConfigDict:
+    """A locked copy of `config` (default: `default_config()`) with dotted `overrides`."""
+    return kick_env.make_config(default_config() if config is None else config, overrides)
+
+
+def validate_config(cfg: ml_collections.ConfigDict) -> None:
+    """ValueError naming the first bad value; called before anything compiles."""
+    for key in ("population_size", "generations", "repetitions", "eval_repetitions"):
+        value = cfg[key]
+        if not isinstance(value, int | np.integer) or value < 1:
+            raise ValueError(f"{key} must be a positive integer, got {value!r}")
+    if cfg.population_size < 2:
+        raise ValueError(f"population_size must be >= 2 for CMA-ES, got {cfg.population_size}")
+    if not np.isfinite(cfg.sigma_init) or cfg.sigma_init <= 0:
+        raise ValueError(f"sigma_init must be > 0, got {cfg.sigma_init!r}")
+    if not 0.0 < cfg.start_strength <= 1.0:
+        raise ValueError(f"start_strength must be in (0, 1], got {cfg.start_strength!r}")
+    unknown = [n for n in cfg.free_params if n not in PARAM_NAMES]
+    if unknown or not cfg.free_params:
+        raise ValueError(f"free_params must name parameters of {PARAM_NAMES}, got {tuple(cfg.free_params)!r}")
+    for name, value in cfg.fitness.items():
+        if not np.isfinite(value) or value < 0:
+            raise ValueError(f"fitness.{name} must be >= 0, got {value!r}")
+    # The kick is tuned in the default task (its noise included): the target must be one of it.
+    kick_env.check_targets(cfg.target, kick_env.default_config().task_range)
+
+
+# -- rollouts and fitness ---------------------------------------------------------------------
+
+
+def make_rollout(env: kick_env.KickEnv):
+    """A jitted fn (params (P, 14), keys (P, R) PRNG keys, target) -> outcome dict of (P, R).
+
+    One XLA program for the whole batch: vmap over candidates and repetitions of
+    reset + a lax.scan of `env.step` over the kick phase. Besides the env's final metrics the
+    outcome holds `distance` (m the ball rests ahead of its nominal start) and `lateral`
+    (m it rests to the left of the kick line).
+    """
+
+    def episode(params, key, target):
+        actions = keyframes_to_actions(params, env.n_steps, env.dt)
+        state = env.reset(key, target)
+        state, _ = jax.lax.scan(lambda s, a: (env.step(s, a), None), state, actions)
+        out = dict(state.metrics)
+        target_xy = state.info["target_xy"]
+        out["distance"] = out["rest_x"] - (target_xy[0] - state.info["target"])
+        out["lateral"] = out["rest_y"] - target_xy[1]
+        return out
+
+    over_reps = jax.vmap(episode, in_axes=(None, 0, None))
+    return jax.jit(jax.vmap(over_reps, in_axes=(0, 0, None)))
+
+
+def fitness(outcome: dict, target, weights) -> jax.Array:
+    """Cost to minimise, (...,) from an outcome of (...,): distance error, sideways error, validity.
+
+    An invalid kick still pays its distance error, so a near miss ranks above a wild one.
+    """
+    along = jnp.abs(outcome["distance"] - target)
+    invalid = 1.0 - outcome["valid"]
+    lateral = jnp.abs(outcome["lateral"])
+    return weights.distance * along + weights.lateral * lateral + weights.invalid * invalid
+
+
+# -- optimisation -----------------------------------------------------------------------------
+
+
+def _env_for(cfg) -> kick_env.KickEnv:
+    del cfg  # one env for every prior config: the default task, noise included
+    return kick_env.KickEnv()
+
+
+def _free_mask(cfg) -> np.ndarray:
+    return np.array([n in cfg.free_params for n in PARAM_NAMES])
+
+
+def evaluate(params, config=None, repetitions=None, seed: int = 1, env=None, rollout=None) -> dict:
+    """Replay one kick over `repetitions` noisy episodes (default: config.eval_repetitions).
+
+    Returns plain floats: mean and std of the resting error, mean distance and sideways
+    offset, valid / struck / fallen fractions, mean fitness.
+    """
+    cfg = make_config(config)
+    validate_config(cfg)
+    reps = cfg.eval_repetitions if repetitions is None else repetitions
+    env = env or _env_for(cfg)
+    rollout = rollout or make_rollout(env)
+    keys = jax.random.split(jax.random.key(seed), reps)[None]
+    out = rollout(clip_params(jnp.asarray(params, jnp.float32))[None], keys, cfg.target)
+    cost = fitness(out, cfg.target, cfg.fitness)
+    summary = {
+        "repetitions": int(reps),
+        "target": float(cfg.target),
+        "mean_error": float(jnp.mean(out["final_error"])),
+        "std_error": float(jnp.std(out["final_error"])),
+        "mean_distance": float(jnp.mean(out["distance"])),
+        "mean_lateral": float(jnp.mean(out["lateral"])),
+        "mean_fitness": float(jnp.mean(cost)),
+    }
+    for key in ("valid", "struck", "fallen"):
+        summary[f"{key}_fraction"] = float(jnp.mean(out[key]))
+    return summary
+
+
+def optimise(config=None, out_dir: str | Path = "runs/prior", start=None, verbose: bool = True) -> dict:
+    """CMA-ES on the kick for `config.target`; writes out_dir/{progress.csv, kick_prior.json}.
+
+    start: params (14,) to start from (default: the committed prior if there is one, else
+    DEFAULT_PARAMS), with strength set to config.start_strength. Returns the saved record.
+    """
+    from evosax.algorithms import CMA_ES  # heavy import, only needed here
+
+    cfg = make_config(config)
+    validate_config(cfg)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if start is None:
+        start = load_prior()["params"] if PRIOR_JSON.exists() else DEFAULT_PARAMS
+    x0 = np.array(start, dtype=np.float32)
+    x0[PARAM_NAMES.index("strength")] = cfg.start_strength
+    free = _free_mask(cfg)
+    scale = jnp.asarray(PARAM_SCALE[free], jnp.float32)
+
+    env = _env_for(cfg)
+    rollout = make_rollout(env)
+    P, R = cfg.population_size, cfg.repetitions
+
+    def to_params(z):  # (P, F) search coordinates -> (P, 14) clipped params
+        return clip_params(jnp.tile(x0, (z.shape[0], 1)).at[:, free].add(scale * z))
+
+    @jax.jit
+    def generation_cost(z, key):
+        # Common random numbers: every candidate meets the same R noisy episodes, so the
+        # ranking compares kicks, not luck.
+        keys = jnp.broadcast_to(jax.random.split(key, R), (P, R) + key.shape)
+        out = rollout(to_params(z), keys, cfg.target)
+        return jnp.mean(fitness(out, cfg.target, cfg.fitness), axis=1), out
+
+    es = CMA_ES(population_size=P, solution=jnp.zeros(int(free.sum())))
+    es_params = es.default_params.replace(std_init=jnp.asarray(cfg.sigma_init))
+    key = jax.random.key(cfg.seed)
+    key, init_key = jax.random.split(key)
+    state = es.init(init_key, jnp.zeros(int(free.sum())), es_params)
+
+    csv_path = out_dir / "progress.csv"
+    fields = ["generation", "best_fitness", "mean_fitness", "best_so_far", "valid_fraction", "seconds"]
+    with open(csv_path, "w", newline="") as f:
+        csv.writer(f).writerow(fields)
+    best_cost, best_z = np.inf, np.zeros(int(free.sum()), np.float32)
+    for gen in range(cfg.generations):
+        t0 = time.perf_counter()
+        key, ask_key, eval_key, tell_key = jax.random.split(key, 4)
+        z, state = es.ask(ask_key, state, es_params)
+        cost, out = generation_cost(z, eval_key)
+        cost = jax.block_until_ready(cost)
+        state, _ = es.tell(tell_key, z, cost, state, es_params)
+        i = int(jnp.argmin(cost))
+        if float(cost[i]) < best_cost:
+            best_cost, best_z = float(cost[i]), np.asarray(z[i])
+        row = [gen, float(cost[i]), float(jnp.mean(cost)), best_cost, float(jnp.mean(out["valid"])),
+               time.perf_counter() - t0]
+        with open(csv_path, "a", newline="") as f:
+            csv.writer(f).writerow(row)
+        if verbose:
+            print(f"gen {gen:3d}  best {row[1]:8.3f}  mean {row[2]:8.3f}  best so far {best_cost:8.3f}"
+                  f"  valid {row[4]:.2f}  {row[5]:6.1f} s", flush=True)
+
+    best = np.asarray(to_params(jnp.asarray(best_z)[None])[0])
+    numbers = evaluate(best, cfg, env=env, rollout=rollout)
+    record = prior_record(best, cfg, numbers, generations_run=cfg.generations)
+    save_prior(record, out_dir / "kick_prior.json")
+    return record
+
+
+def sweep(params, strengths, config=None, repetitions: int = 8, seed: int = 2) -> list[dict]:
+    """The kick at each strength: resting distance and valid fraction over noisy repetitions.
+
+    One rollout program for all strengths x repetitions. Returns one dict per strength.
+    """
+    cfg = make_config(config)
+    validate_config(cfg)
+    strengths = np.asarray(strengths, np.float32)
+    if strengths.ndim != 1 or not np.all((strengths > 0) & (strengths <= 1)):
+        raise ValueError(f"strengths must be a 1-d list in (0, 1], got {strengths.tolist()!r}")
+    batch = np.tile(np.asarray(params, np.float32), (len(strengths), 1))
+    batch[:, PARAM_NAMES.index("strength")] = strengths
+    env = _env_for(cfg)
+    keys = jax.random.split(jax.random.key(seed), repetitions)
+    keys = jnp.broadcast_to(keys, (len(strengths), repetitions))
+    out = make_rollout(env)(clip_params(jnp.asarray(batch)), keys, cfg.target)
+    rows = []
+    for i, s in enumerate(strengths):
+        rows.append({
+            "strength": float(s),
+            "mean_distance": float(jnp.mean(out["distance"][i])),
+            "std_distance": float(jnp.std(out["distance"][i])),
+            "mean_lateral": float(jnp.mean(out["lateral"][i])),
+            "valid_fraction": float(jnp.mean(out["valid"][i])),
+        })  # fmt: skip
+    return rows
+
+
+# -- the saved prior --------------------------------------------------------------------------
+
+
+def prior_record(params, cfg, numbers: dict, **extra) -> dict:
+    """The JSON-able record of a prior: params, names, config, evaluation, format version."""
+    return {
+        "format_version": FORMAT_VERSION,
+        "param_names": list(PARAM_NAMES),
+        "params": [float(x) for x in np.asarray(params)],
+        "config": json.loads(cfg.to_json()),
+        "evaluation": numbers,
+        **extra,
+    }
+
+
+def save_prior(record: dict, path: str | Path = PRIOR_JSON) -> None:
+    Path(path).write_text(json.dumps(record, indent=2) + "\n")
+
+
+def load_prior(path: str | Path = PRIOR_JSON) -> dict:
+    """The saved prior as a dict; record['params'] is a float32 array (14,), in PARAM_NAMES order.
+
+    ValueError if the file's format version or parameter names do not match this code.
+    """
+    record = json.loads(Path(path).read_text())
+    if record.get("format_version") != FORMAT_VERSION:
+        version = record.get("format_version")
+        raise ValueError(f"{path}: format_version {version!r}, expected {FORMAT_VERSION}")
+    if tuple(record.get("param_names", ())) != PARAM_NAMES:
+        raise ValueError(f"{path}: param_names {record.get('param_names')!r} do not match {PARAM_NAMES}")
+    record["params"] = np.asarray(record["params"], np.float32)
+    return record
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description="Optimise, evaluate or sweep the keyframe kick prior.")
+    parser.add_argument("command", choices=("optimise", "evaluate", "sweep"))
+    parser.add_argument("--out", default="runs/prior", help="output folder of `optimise`")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="config overrides, e.g. population_size=64 generations=100")
+    parser.add_argument("--strengths", default="0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0")
+    args = parser.parse_args(argv)
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        overrides[key] = json.loads(value)
+    cfg = make_config(None, overrides)
+    validate_config(cfg)
+    if args.command == "optimise":
+        record = optimise(cfg, args.out)
+        print(json.dumps(record["evaluation"], indent=2))
+    elif args.command == "evaluate":
+        print(json.dumps(evaluate(load_prior()["params"], cfg), indent=2))
+    else:
+        rows = sweep(load_prior()["params"], [float(s) for s in args.strengths.split(",")], cfg)
+        for row in rows:
+            print("  ".join(f"{k} {v:7.3f}" for k, v in row.items()))
+
+
+if __name__ == "__main__":
+    main()
