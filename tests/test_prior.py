@@ -1,0 +1,98 @@
+"""The keyframe kick prior: key poses, config checks, a tiny CMA-ES run, the committed prior."""
+
+import csv
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from bumps_jax import prior, scene
+
+
+@pytest.fixture(scope="module")
+def rollout(env):
+    return prior.make_rollout(env)
+
+
+def test_actions_shape_and_joint_limits():
+    rng = np.random.default_rng(0)
+    batch = rng.uniform(prior.PARAM_LOW, prior.PARAM_HIGH, size=(64, prior.N_PARAMS))
+    batch = np.concatenate([batch, prior.DEFAULT_PARAMS[None], prior.PARAM_LOW[None], prior.PARAM_HIGH[None]])
+    actions = np.asarray(jax.vmap(lambda p: prior.keyframes_to_actions(p, 75))(batch))
+    assert actions.shape == (len(batch), 75, scene.N_JOINTS)
+    assert np.isfinite(actions).all()
+    ids = scene.scene_ids(scene.load_model())
+    lo, hi = ids.joint_range[:, 0], ids.joint_range[:, 1]
+    # Inside the bounds every key pose, so every interpolated target, is a reachable pose.
+    assert (actions >= lo - 1e-5).all() and (actions <= hi + 1e-5).all()
+    # The kick starts from the stance and, with the default timings, ends back in it.
+    default = actions[-3]
+    np.testing.assert_allclose(default[-1], scene.STANCE, atol=1e-6)
+    assert np.abs(default[0] - scene.STANCE).max() < np.deg2rad(2.0)
+
+
+def test_strength_slows_the_swing():
+    times = {s: np.asarray(prior.keyframes(np.r_[prior.DEFAULT_PARAMS[:-1], s])[0]) for s in (0.3, 1.0)}
+    swing = {s: t[4] - t[3] for s, t in times.items()}
+    assert swing[0.3] > 2.5 * swing[1.0]
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("population_size", 1),
+        ("generations", 0),
+        ("repetitions", -2),
+        ("sigma_init", 0.0),
+        ("target", 30.0),
+        ("start_strength", 1.5),
+        ("fitness.invalid", -1.0),
+        ("free_params", ("lean", "no_such_param")),
+    ],
+)
+def test_bad_config_values_raise_naming_them(key, value):
+    cfg = prior.make_config(None, {key: value})
+    with pytest.raises(ValueError, match=key.split(".")[-1]):
+        prior.validate_config(cfg)
+
+
+def test_unknown_config_key_raises():
+    with pytest.raises(ValueError, match="popsize"):
+        prior.make_config(None, {"popsize": 8})
+
+
+def test_tiny_optimisation_improves(tmp_path):
+    # Start from a poor kick (swing too weak for 12 m) so there is something to improve.
+    start = prior.load_prior()["params"]
+    cfg = prior.make_config(None, {
+        "population_size": 6, "generations": 4, "repetitions": 1, "eval_repetitions": 2,
+        "start_strength": 0.45, "free_params": ("strength", "swing_hip", "back_knee"), "sigma_init": 1.5,
+    })  # fmt: skip
+    record = prior.optimise(cfg, tmp_path, start=start, verbose=False)
+    with open(tmp_path / "progress.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 4
+    first_mean = float(rows[0]["mean_fitness"])
+    assert float(rows[-1]["best_so_far"]) < first_mean
+    saved = prior.load_prior(tmp_path / "kick_prior.json")
+    np.testing.assert_allclose(saved["params"], record["params"], rtol=1e-6)
+    assert saved["evaluation"]["repetitions"] == 2
+
+
+def test_committed_prior_kicks_the_ball(env, rollout):
+    record = prior.load_prior()
+    assert record["params"].shape == (prior.N_PARAMS,)
+    result = prior.evaluate(record["params"], record["config"], repetitions=4, env=env, rollout=rollout)
+    assert result["struck_fraction"] == 1.0
+    assert result["fallen_fraction"] == 0.0
+    assert result["mean_distance"] > 3.0
+
+
+def test_load_prior_refuses_other_formats(tmp_path):
+    record = json.loads(prior.PRIOR_JSON.read_text())
+    record["format_version"] = 99
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="format_version"):
+        prior.load_prior(path)
