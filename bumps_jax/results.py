@@ -1,0 +1,54 @@
+"""Provenance for every results file: device, package versions, date, command, wall time."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import sys
+from importlib import metadata
+from pathlib import Path
+
+import jax
+
+PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "optax", "orbax-checkpoint", "evosax")
+
+
+def device_name() -> str:
+    """e.g. 'NVIDIA H100 80GB HBM3', or 'cpu'."""
+    dev = jax.devices()[0]
+    return "cpu" if dev.platform == "cpu" else str(dev.device_kind)
+
+
+def versions() -> dict:
+    out = {}
+    for name in PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    out["python"] = sys.version.split()[0]
+    return out
+
+
+def provenance(preset: str, wall_s: float, command: str | None = None) -> dict:
+    """The keys every results file carries (see the results contract in docs/)."""
+    return {
+        "device": device_name(),
+        "n_devices": jax.device_count(),
+        "versions": versions(),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "command": command or " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "preset": preset,
+        "wall_s": round(float(wall_s), 3),
+    }
+
+
+def write_json(path: str | os.PathLike, payload: dict) -> Path:
+    """Write atomically (temp file + rename): a killed run never leaves half a file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=2, default=float) + "\n")
+    tmp.replace(path)
+    return path

@@ -1,0 +1,201 @@
+"""The MJX kick environment: shapes, determinism, noise, reward and metrics, bad inputs."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bumps_jax import kick_env, scene
+
+STAND = jnp.asarray(kick_env.stance_command())
+
+
+@pytest.fixture(scope="module")
+def episode(env):
+    """A whole standing-still episode in one compiled scan: (final state, rewards, dones)."""
+
+    def run(rng, target):
+        def body(state, _):
+            state = env.step(state, STAND)
+            return state, (state.reward, state.done, state.metrics["final_error"])
+
+        return jax.lax.scan(body, env.reset(rng, target), None, env.n_steps)
+
+    return jax.jit(run)
+
+
+def test_reset_and_step_shapes(env, jit_env):
+    reset, step = jit_env
+    state = reset(jax.random.PRNGKey(0), 12.0)
+    assert state.obs.shape == (env.observation_size,) == (2,)
+    assert env.action_size == 22
+    np.testing.assert_allclose(state.obs, [0.0, (12.0 - 7.0) / 11.0], rtol=1e-6)
+    nxt = step(state, STAND)
+    assert nxt.obs.shape == (2,)
+    assert float(nxt.obs[0]) == pytest.approx(1.0 / env.n_steps)
+    assert np.isfinite(float(nxt.reward))
+    assert not bool(nxt.done)
+    for value in nxt.metrics.values():
+        assert np.isfinite(np.asarray(value)).all()
+
+
+def test_episode_ends_after_horizon_with_final_reward(env, episode):
+    """Standing still never strikes the ball: invalid kick, error = distance from the ball's
+    start to the target; the last reward adds the weighted final error to the step term."""
+    last, (rewards, dones, errors) = episode(jax.random.PRNGKey(1), 10.0)
+    dones = np.asarray(dones)
+    assert np.all(dones[:-1] == 0.0) and dones[-1] == 1.0
+    assert float(last.metrics["valid"]) == 0.0 and float(last.metrics["struck"]) == 0.0
+    assert float(last.metrics["fallen"]) == 0.0
+    assert float(last.metrics["final_error"]) == pytest.approx(10.0, abs=0.03)
+    ball = np.asarray(last.pipeline_state.qpos[env.ids.ball_qpos : env.ids.ball_qpos + 2])
+    step_term = -0.1 * np.linalg.norm(ball - np.asarray(last.info["target_xy"]))
+    expected = step_term - 10.0 * float(last.metrics["final_error"])
+    assert float(rewards[-1]) == pytest.approx(expected, rel=1e-4)
+    # Before the end only the per-step term is paid; the ball stood still all along.
+    assert float(rewards[-2]) == pytest.approx(step_term, rel=1e-3)
+
+
+def test_a_rolling_ball_scores_its_resting_point(env, jit_env):
+    """Give the ball a rolling velocity by hand: the metrics report where it will rest."""
+    reset, step = jit_env
+    state = reset(jax.random.PRNGKey(2), 12.0)
+    v0 = 1.8
+    data = state.pipeline_state
+    qvel = data.qvel.at[env.ids.ball_qvel].set(v0).at[env.ids.ball_qvel + 4].set(v0 / scene.BALL_RADIUS)
+    state = state.replace(pipeline_state=data.replace(qvel=qvel))
+    state = step(step(state, STAND), STAND)
+    m = state.metrics
+    assert float(m["struck"]) == 1.0 and float(m["valid"]) == 1.0 and float(m["ball_rolling"]) == 1.0
+    start_x = float(state.info["target_xy"][0]) - 12.0
+    expected_x = start_x + (v0 - scene.BALL_REST_SPEED) / env.decel_rate
+    assert float(m["rest_x"]) == pytest.approx(expected_x, abs=0.1)
+    assert float(m["final_error"]) == pytest.approx(abs(expected_x - start_x - 12.0), abs=0.1)
+    assert float(m["rel_error"]) == pytest.approx(float(m["final_error"]) / 12.0)
+
+
+def test_same_rng_same_episode_bit_for_bit(episode):
+    a, ra = episode(jax.random.PRNGKey(3), 9.0)
+    b, rb = episode(jax.random.PRNGKey(3), 9.0)
+    np.testing.assert_array_equal(a.pipeline_state.qpos, b.pipeline_state.qpos)
+    np.testing.assert_array_equal(ra[0], rb[0])
+
+
+def test_noise_differs_across_rngs(env, jit_env):
+    reset, _ = jit_env
+    s1, s2 = reset(jax.random.PRNGKey(4), 9.0), reset(jax.random.PRNGKey(5), 9.0)
+    b = env.ids.ball_qpos
+    assert not np.allclose(s1.pipeline_state.qpos[b : b + 2], s2.pipeline_state.qpos[b : b + 2])
+    assert not np.allclose(s1.pipeline_state.qpos[env.ids.joint_qpos], s2.pipeline_state.qpos[env.ids.joint_qpos])
+    assert float(s1.info["friction_scale"]) != float(s2.info["friction_scale"])
+    assert float(s1.info["gain_scale"]) != float(s2.info["gain_scale"])
+    ball_offset = np.abs(np.asarray(s1.pipeline_state.qpos[b : b + 2]) - np.asarray(s2.pipeline_state.qpos[b : b + 2]))
+    assert ball_offset.max() <= 2 * env.config.noise.ball_xy + 1e-6
+
+
+def test_no_noise_config_gives_identical_starts():
+    env = kick_env.KickEnv(
+        config_overrides={"noise.ball_xy": 0.0, "noise.joint_angle": 0.0, "noise.friction": 0.0, "noise.actuator_gain": 0.0}
+    )
+    reset = jax.jit(env.reset)
+    s1, s2 = reset(jax.random.PRNGKey(4), 9.0), reset(jax.random.PRNGKey(5), 9.0)
+    np.testing.assert_array_equal(s1.pipeline_state.qpos, s2.pipeline_state.qpos)
+
+
+def test_vmapped_episodes_carry_their_own_targets(env):
+    targets = jnp.array([7.0, 12.5, 18.0])
+    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(6), 3), targets)
+    np.testing.assert_allclose(states.info["target"], targets)
+    np.testing.assert_allclose(states.obs[:, 1], (targets - 7.0) / 11.0, rtol=1e-6)
+
+
+def test_brax_style_reset_draws_from_configured_tasks(env):
+    state = jax.jit(env.reset)(jax.random.PRNGKey(7))
+    assert min(abs(float(state.info["target"]) - t) for t in env.config.tasks) < 1e-5
+
+
+def test_servo_target_moves_at_most_the_speed_limit(env, jit_env):
+    reset, step = jit_env
+    state = reset(jax.random.PRNGKey(8), 12.0)
+    far = jnp.asarray(scene.STANCE).at[scene.JOINTS.index("llj3")].set(1.5)
+    nxt = step(state, far)
+    moved = np.abs(np.asarray(nxt.info["command"] - state.info["command"]))
+    assert moved.max() == pytest.approx(scene.MAX_JOINT_SPEED * 0.02, rel=1e-5)
+
+
+def test_actions_are_clipped_to_joint_limits(env, jit_env):
+    reset, step = jit_env
+    state = reset(jax.random.PRNGKey(9), 12.0)
+    state = jax.jit(lambda s: jax.lax.fori_loop(0, 30, lambda _, s: env.step(s, jnp.full((22,), 10.0)), s))(state)
+    np.testing.assert_allclose(state.info["command"], env.ids.joint_range[:, 1], atol=1e-6)
+
+
+def test_proprioception_option_adds_state(jit_env):
+    env = kick_env.KickEnv(config_overrides={"proprioception": True})
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0), 12.0)
+    assert state.obs.shape == (env.observation_size,) == (52,)
+    np.testing.assert_allclose(state.obs[46:49], [0.0, 0.0, -1.0], atol=0.05)  # gravity, torso frame
+
+
+# -- bad input ---------------------------------------------------------------------------
+
+
+def test_target_outside_range_is_refused(env):
+    with pytest.raises(ValueError, match="25.0"):
+        env.reset(jax.random.PRNGKey(0), 25.0)
+    with pytest.raises(ValueError, match="outside the task range"):
+        env.reset(jax.random.PRNGKey(0), float("nan"))
+
+
+def test_traced_target_outside_range_is_clipped_and_flagged(env):
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0), 30.0)
+    assert float(state.info["target"]) == 18.0
+    assert float(state.metrics["target_clipped"]) == 1.0
+
+
+def test_wrong_action_shape_is_refused(env, jit_env):
+    reset, _ = jit_env
+    state = reset(jax.random.PRNGKey(0), 12.0)
+    with pytest.raises(ValueError, match=r"shape \(22,\)"):
+        env.step(state, jnp.zeros(21))
+
+
+def test_nan_action_holds_and_invalidates(env, jit_env):
+    reset, step = jit_env
+    state = reset(jax.random.PRNGKey(0), 12.0)
+    nxt = step(state, STAND.at[3].set(jnp.nan))
+    assert np.isfinite(np.asarray(nxt.info["command"])).all()
+    assert float(nxt.info["command"][3]) == float(state.info["command"][3])
+    assert float(nxt.metrics["valid"]) == 0.0
+
+
+def test_physics_blowup_is_a_failed_kick(env, jit_env):
+    reset, step = jit_env
+    state = reset(jax.random.PRNGKey(0), 12.0)
+    qvel = state.pipeline_state.qvel.at[:].set(1e6)
+    state = state.replace(pipeline_state=state.pipeline_state.replace(qvel=qvel))
+    nxt = step(state, STAND)
+    assert float(nxt.metrics["blown_up"]) == 1.0
+    assert float(nxt.metrics["valid"]) == 0.0
+    assert float(nxt.metrics["final_error"]) == pytest.approx(12.0)
+    assert np.isfinite(float(nxt.reward))
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        ({"task_range": (18.0, 7.0)}, "task_range"),
+        ({"tasks": ()}, "tasks is empty"),
+        ({"tasks": (5.0,)}, "5.0"),
+        ({"noise.friction": -0.1}, "noise.friction"),
+        ({"ctrl_dt": 0.013}, "multiple of the physics step"),
+    ],
+)
+def test_bad_config_is_refused_by_name(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        kick_env.KickEnv(config_overrides=overrides)
+
+
+def test_unknown_config_key_is_refused():
+    with pytest.raises(ValueError, match="noise.frction"):
+        kick_env.KickEnv(config_overrides={"noise.frction": 0.1})
