@@ -7,6 +7,8 @@ what policy filtering needs (a meta-policy asked for 11.3 m may kick best for 11
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -82,3 +84,42 @@ def repetition_keys(seed: int, n_tasks: int, n_reps: int) -> jax.Array:
 
 def stack_contexts(contexts, targets) -> tuple[jax.Array, jax.Array]:
     return jnp.asarray(contexts, jnp.float32), jnp.asarray(targets, jnp.float32)
+
+
+# -- batched programs (added for meta-training and policy filtering) ---------------------------
+
+
+def _recording_step(env, apply_fn, params, ctx, state, _):
+    """One control step that also returns what the policy saw and did: (obs (2,), action (22,))."""
+    obs = state.obs.at[1].set(ctx)
+    action = apply_fn(params, obs)
+    return env.step(state, action), (obs, action)
+
+
+def trajectory_fn(env: kick_env.KickEnv, apply_fn):
+    """A pure fn (params, context, target, key) -> (obs (T, obs_size), actions (T, 22), metrics).
+
+    Like `episode_fn`, but it also records each step's observation (with the context in
+    obs[1], as the policy saw it) and the policy's action: the behaviour-cloning data.
+    """
+    lo, hi = env.config.task_range
+
+    def trajectory(params, context, target, key):
+        ctx = (context - lo) / (hi - lo)
+        body = functools.partial(_recording_step, env, apply_fn, params, ctx)
+        state, (obs, actions) = jax.lax.scan(body, env.reset(key, target), None, env.n_steps)
+        return obs, actions, state.metrics
+
+    return trajectory
+
+
+def grid_fn(env: kick_env.KickEnv, apply_fn):
+    """Jitted (params (P, ...), contexts (n,), targets (n,), keys (n, R)) -> metrics of (P, n, R).
+
+    Every policy of a stack (seeds, networks of one architecture) on every (context, target)
+    pair, R noisy repetitions each: one XLA program.
+    """
+    episode = episode_fn(env, apply_fn)
+    over_reps = jax.vmap(episode, in_axes=(None, None, None, 0))
+    over_pairs = jax.vmap(over_reps, in_axes=(None, 0, 0, 0))
+    return jax.jit(jax.vmap(over_pairs, in_axes=(0, None, None, None)))
