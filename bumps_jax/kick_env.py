@@ -102,9 +102,7 @@ def check_targets(targets, task_range) -> np.ndarray:
     lo, hi = task_range
     bad = ~np.isfinite(arr) | (arr < lo - 1e-9) | (arr > hi + 1e-9)
     if bad.any():
-        raise ValueError(
-            f"target {arr[bad].flat[0]!r} m is outside the task range [{lo}, {hi}] m"
-        )
+        raise ValueError(f"target {arr[bad].flat[0]!r} m is outside the task range [{lo}, {hi}] m")
     return arr
 
 

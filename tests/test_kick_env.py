@@ -95,7 +95,12 @@ def test_noise_differs_across_rngs(env, jit_env):
 
 def test_no_noise_config_gives_identical_starts():
     env = kick_env.KickEnv(
-        config_overrides={"noise.ball_xy": 0.0, "noise.joint_angle": 0.0, "noise.friction": 0.0, "noise.actuator_gain": 0.0}
+        config_overrides={
+            "noise.ball_xy": 0.0,
+            "noise.joint_angle": 0.0,
+            "noise.friction": 0.0,
+            "noise.actuator_gain": 0.0,
+        }
     )
     reset = jax.jit(env.reset)
     s1, s2 = reset(jax.random.PRNGKey(4), 9.0), reset(jax.random.PRNGKey(5), 9.0)
