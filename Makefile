@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install test lint demo render bench-scene clean
+.PHONY: install test lint demo render bench-scene meta-train filter clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,19 @@ render: $(STAMP)
 
 bench-scene: $(STAMP)
 	$(PY) benchmarks/scene_bench.py --out benchmarks/results/scene.json
+
+# Meta-training (behaviour cloning of the experts) and policy filtering. PRESET=tiny runs on a
+# CPU in minutes with synthetic prior-based experts; PRESET=paper is the GPU run
+# (EXPERTS=module:function EXPERTS_PATH=... EXPERTS_JSON=... select the trained PPO experts).
+PRESET ?= tiny
+EXPERTS ?= synthetic
+META_ARGS = --preset $(PRESET) --out runs/meta/$(PRESET) --experts $(EXPERTS) \
+	$(if $(EXPERTS_PATH),--experts-path $(EXPERTS_PATH)) $(if $(EXPERTS_JSON),--experts-json $(EXPERTS_JSON))
+meta-train: $(STAMP)
+	$(PY) -m bumps_jax.meta $(META_ARGS)
+
+filter: $(STAMP)
+	$(PY) -m bumps_jax.filtering --preset $(PRESET) --meta runs/meta/$(PRESET) --out runs/filter/$(PRESET)
 
 clean:
 	rm -rf $(VENV) runs
