@@ -27,15 +27,21 @@ BATCHES = (1024, 4096, 8192, 16384)
 def variant_model(name: str) -> mujoco.MjModel:
     """The scene with one design choice changed (name 'default' = as committed)."""
     spec = mujoco.MjSpec.from_file(str(scene.SCENE_XML))
-    if name == "no_fall_contacts":
-        for pair in list(spec.pairs):
-            if pair.name in ("torso_floor", "head_floor"):
-                spec.delete(pair)
+    if name == "with_fall_and_r_foot_contacts":  # the contacts we dropped, put back
+        for geom in ("torso", "r_foot"):
+            other = "floor" if geom == "torso" else "ball"
+            spec.add_pair(name=f"{geom}_{other}", geomname1=geom, geomname2=other, condim=3)
+    if name == "with_joint_limits":
+        spec.option.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
     model = spec.compile()
     if name == "iterations_1":
         model.opt.iterations, model.opt.ls_iterations = 1, 4
     elif name == "iterations_4":
         model.opt.iterations, model.opt.ls_iterations = 4, 8
+    elif name == "ls_iterations_2":
+        model.opt.ls_iterations = 2
+    elif name == "cg_4":
+        model.opt.solver, model.opt.iterations, model.opt.ls_iterations = int(mujoco.mjtSolver.mjSOL_CG), 4, 4
     elif name == "eulerdamp_on":
         model.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
     elif name == "elliptic_cone":
@@ -45,14 +51,16 @@ def variant_model(name: str) -> mujoco.MjModel:
         model.pair_dim[ball_pairs] = 6
     elif name == "timestep_4ms":
         model.opt.timestep = 0.004
-    elif name != "default" and name != "no_fall_contacts":
+    elif name == "converged":  # the reference the others are judged against
+        model.opt.iterations, model.opt.ls_iterations = 20, 20
+    elif name not in ("default", "with_fall_and_r_foot_contacts", "with_joint_limits"):
         raise ValueError(f"unknown variant {name!r}")
     return model
 
 
 VARIANTS = (
-    "default", "iterations_1", "iterations_4", "eulerdamp_on", "elliptic_cone",
-    "ball_condim_6", "no_fall_contacts", "timestep_4ms",
+    "default", "converged", "iterations_1", "iterations_4", "ls_iterations_2", "cg_4", "eulerdamp_on",
+    "elliptic_cone", "ball_condim_6", "timestep_4ms", "with_fall_and_r_foot_contacts", "with_joint_limits",
 )  # fmt: skip
 
 

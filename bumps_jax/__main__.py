@@ -1,0 +1,3 @@
+from bumps_jax.cli import main
+
+main()
