@@ -1,0 +1,401 @@
+"""A pure, vmappable PPO trainer for one kick task, built from Brax's PPO pieces.
+
+PureJaxRL pattern: `make_train(config, env)` returns pure functions; the whole training loop is
+a `lax.scan` over updates with no host round-trip inside, so `jax.vmap` over tasks trains every
+expert in one compiled program. From Brax we take the networks (`ppo.networks`), the loss
+(`ppo.losses.compute_ppo_loss`, which computes GAE itself), the observation normaliser
+(`acme.running_statistics`) and the gradient step (`gradients.gradient_update_fn`); we do not
+use `ppo.train` (it replicates over devices with `jax.device_put_replicated` and cannot be
+vmapped).
+
+Rollouts are whole episodes: every update resets `num_envs` episodes and runs the env's 75
+steps, so the batch is (num_envs, 75) and minibatches are whole episodes. The only randomness
+comes from `TrainState.rng`, split once per update: a run cut into chunks of any size, or
+killed and resumed from a checkpoint, takes exactly the same path as one uninterrupted scan.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import optax
+from brax.training import gradients, types
+from brax.training.acme import running_statistics
+from brax.training.agents.ppo import losses as ppo_losses
+from brax.training.agents.ppo import networks as ppo_networks
+from flax import linen
+
+from bumps_jax import kick_env
+
+PPONetworkParams = ppo_losses.PPONetworkParams
+
+
+def default_config() -> ml_collections.ConfigDict:
+    """PPO hyperparameters; the paper's value (Table of PPO hyperparameters) beside each."""
+    cfg = ml_collections.ConfigDict()
+    cfg.num_envs = 16  # episodes per update; paper: 4096 steps per batch (~55 episodes of 75)
+    cfg.num_minibatches = 4  # whole episodes per minibatch = num_envs / this; paper: 1024 steps
+    cfg.num_epochs = 4  # paper: 30
+    cfg.total_env_steps = 12_000  # per expert; paper: 12M
+    cfg.learning_rate = 3e-4  # policy; paper: 1e-6
+    # The value net must first learn returns of order -150 by phase: until it does, the
+    # normalised advantages rank actions by time step instead of by quality. Paper: 1e-6 (one
+    # Adam for both nets, over 12M steps); ours lets the critic keep up with short runs.
+    cfg.value_learning_rate = 1e-3
+    cfg.max_grad_norm = 1.0  # paper (Baselines PPO1): none; a guard against one bad batch
+    cfg.discount = 0.999  # paper: 0.999
+    cfg.gae_lambda = 1.0  # paper: 1.0
+    cfg.clip_epsilon = 0.29  # paper: 0.29
+    cfg.entropy_cost = 0.01  # paper: 0.01
+    cfg.vf_coefficient = 0.5  # paper (Baselines PPO1): 1.0 on a separate value loss
+    # On top of the env's 0.1 per-step factor (kick_env's reward.distance, the paper's "x 0.1"):
+    # the value net then fits returns of order -1.5 instead of -150 within a few updates (the
+    # policy gradient is unaffected: advantages are normalised). CPU trial on 16 m, 8 updates:
+    # 1.0 left the critic far behind and the return fell (-157 -> -166); 0.01 raised it
+    # (-157 -> -155). Paper: 0.1 in all, which the env already applies.
+    cfg.reward_scaling = 0.01
+    cfg.normalize_advantage = True  # paper (Baselines PPO1): yes
+    # Observations are (phase, context) in [0, 1] already, and an expert's context never
+    # varies: running statistics would divide its zero variance by std_min. Off by default.
+    cfg.normalize_observations = False
+    cfg.policy_hidden = (64, 64)  # paper: 64-64 tanh
+    cfg.value_hidden = (64, 64)  # paper: 64-64 tanh
+    cfg.init_log_std = -6.0  # paper: state-independent log-std initialised at -6
+    return cfg
+
+
+def make_config(config=None, overrides: dict | None = None) -> ml_collections.ConfigDict:
+    """A locked copy of `config` (default: `default_config()`) with dotted `overrides`."""
+    return kick_env.make_config(default_config() if config is None else config, overrides)
+
+
+def validate_config(cfg: ml_collections.ConfigDict, n_steps: int) -> None:
+    """ValueError naming the first bad value; `n_steps` is the env's episode length."""
+    for key in ("num_envs", "num_minibatches", "num_epochs", "total_env_steps"):
+        value = cfg[key]
+        if not isinstance(value, int | np.integer) or value < 1:
+            raise ValueError(f"ppo.{key} must be a positive integer, got {value!r}")
+    if cfg.num_envs % cfg.num_minibatches:
+        raise ValueError(
+            f"ppo.num_minibatches {cfg.num_minibatches} must divide ppo.num_envs {cfg.num_envs}"
+            " (minibatches are whole episodes)"
+        )
+    if cfg.total_env_steps < cfg.num_envs * n_steps:
+        raise ValueError(
+            f"ppo.total_env_steps {cfg.total_env_steps} is less than one update "
+            f"(num_envs {cfg.num_envs} x {n_steps} steps)"
+        )
+    for key in ("learning_rate", "value_learning_rate", "max_grad_norm", "clip_epsilon", "reward_scaling"):
+        if not np.isfinite(cfg[key]) or cfg[key] <= 0:
+            raise ValueError(f"ppo.{key} must be > 0, got {cfg[key]!r}")
+    for key in ("discount", "gae_lambda"):
+        if not 0.0 <= cfg[key] <= 1.0:
+            raise ValueError(f"ppo.{key} must be in [0, 1], got {cfg[key]!r}")
+    if cfg.entropy_cost < 0 or cfg.vf_coefficient < 0:
+        raise ValueError(
+            f"ppo.entropy_cost and vf_coefficient must be >= 0, got {cfg.entropy_cost}, {cfg.vf_coefficient}"
+        )
+    for key in ("policy_hidden", "value_hidden"):
+        if not cfg[key] or any(int(h) < 1 for h in cfg[key]):
+            raise ValueError(f"ppo.{key} must be positive layer sizes, got {tuple(cfg[key])!r}")
+
+
+def n_updates(cfg: ml_collections.ConfigDict, n_steps: int) -> int:
+    """Updates that fit in `total_env_steps` (whole updates only)."""
+    return int(cfg.total_env_steps // (cfg.num_envs * n_steps))
+
+
+# -- state ------------------------------------------------------------------------------------
+
+
+class TrainState(NamedTuple):
+    """Everything a run carries from one update to the next (one expert; vmap adds a task axis)."""
+
+    params: PPONetworkParams  # policy and value network params
+    opt_state: Any  # optax state of the Adam optimiser
+    normalizer: running_statistics.RunningStatisticsState  # observation statistics
+    rng: jax.Array  # (2,) uint32 raw key: the only source of randomness
+    update: jax.Array  # () int32, updates done
+    env_steps: jax.Array  # () int32, env steps taken
+
+
+class UpdateMetrics(NamedTuple):
+    """What one update reports (each a scalar; a scan stacks them to (n_updates,))."""
+
+    episode_return: jax.Array  # mean over the batch's episodes
+    final_error: jax.Array  # mean final resting error (m)
+    valid: jax.Array  # fraction of valid kicks
+    total_loss: jax.Array  # mean over the update's minibatch steps
+    policy_loss: jax.Array
+    v_loss: jax.Array
+    kl_mean: jax.Array
+    policy_std: jax.Array  # mean action std (rad)
+
+
+class Trainer(NamedTuple):
+    """The pure functions of one PPO configuration (from `make_train`).
+
+    init(rng, policy_params=None) -> TrainState
+    run_updates(state, target, n) -> (TrainState, UpdateMetrics of (n,)); n static
+    train(rng, target, policy_params=None) -> (TrainState, UpdateMetrics of (n_updates,))
+    """
+
+    networks: ppo_networks.PPONetworks
+    init: Any
+    run_updates: Any
+    train: Any
+    n_updates: int
+    steps_per_update: int
+
+
+class _Context(NamedTuple):
+    """The static pieces the scan bodies need, bound with functools.partial."""
+
+    env: kick_env.KickEnv
+    networks: ppo_networks.PPONetworks
+    optimizer: optax.GradientTransformation
+    config: ml_collections.ConfigDict
+
+
+# -- networks ---------------------------------------------------------------------------------
+
+
+def make_networks(cfg: ml_collections.ConfigDict, obs_size: int, action_size: int) -> ppo_networks.PPONetworks:
+    """Brax's PPO networks: Gaussian policy (tanh MLP mean, state-independent trainable log-std).
+
+    Brax 0.14's `distribution_type='normal'` with `noise_std_type='log'` and
+    `state_dependent_std=False` is exactly the paper's policy: the std is a learned vector
+    `exp(log_std)` (22,), unbounded Gaussian actions (the env clips joint targets itself).
+    """
+    preprocess = running_statistics.normalize if cfg.normalize_observations else types.identity_observation_preprocessor
+    return ppo_networks.make_ppo_networks(
+        obs_size,
+        action_size,
+        preprocess_observations_fn=preprocess,
+        policy_hidden_layer_sizes=tuple(int(h) for h in cfg.policy_hidden),
+        value_hidden_layer_sizes=tuple(int(h) for h in cfg.value_hidden),
+        activation=linen.tanh,
+        distribution_type="normal",
+        noise_std_type="log",
+        init_noise_std=math.exp(cfg.init_log_std),
+        state_dependent_std=False,
+    )
+
+
+def policy_mean(networks: ppo_networks.PPONetworks, normalizer, policy_params, obs: jax.Array) -> jax.Array:
+    """Deterministic action: the Gaussian's mean. obs (..., obs_size) -> (..., action_size)."""
+    loc, _ = networks.policy_network.apply(normalizer, policy_params, obs)
+    return loc
+
+
+def init_normalizer(obs_size: int) -> running_statistics.RunningStatisticsState:
+    return running_statistics.init_state(jnp.zeros((obs_size,)))
+
+
+# -- GAE as the loss sees it ------------------------------------------------------------------
+
+
+def advantages(rewards, values, dones, bootstrap_value, discount: float, gae_lambda: float):
+    """Brax's GAE with our episode ends: returns (value targets, advantages), both (T, B).
+
+    rewards, values, dones: (T, B); bootstrap_value: (B,). A done step is a termination (the
+    kick phase is over), never a truncation. This is the mapping `compute_ppo_loss` applies
+    to our transitions (`discount = 1 - done`, truncation 0), exposed for testing.
+    """
+    zeros = jnp.zeros_like(rewards)
+    return ppo_losses.compute_gae(
+        truncation=zeros,
+        termination=dones,
+        rewards=rewards,
+        values=values,
+        bootstrap_value=bootstrap_value,
+        lambda_=gae_lambda,
+        discount=discount,
+    )
+
+
+# -- rollout ----------------------------------------------------------------------------------
+
+
+class _RolloutCarry(NamedTuple):
+    env_state: Any  # brax State batched over (num_envs,)
+    rng: jax.Array
+
+
+def _env_step(ctx: _Context, normalizer, policy_params, carry: _RolloutCarry, _unused):
+    """One control step of every episode in the batch: (carry, None) -> (carry, Transition)."""
+    rng, key = jax.random.split(carry.rng)
+    dist = ctx.networks.parametric_action_distribution
+    state = carry.env_state
+    logits = ctx.networks.policy_network.apply(normalizer, policy_params, state.obs)
+    raw = dist.sample_no_postprocessing(logits, key)
+    log_prob = dist.log_prob(logits, raw)
+    nxt = jax.vmap(ctx.env.step)(state, dist.postprocess(raw))
+    transition = types.Transition(
+        observation=state.obs,
+        action=raw,
+        reward=nxt.reward,
+        discount=1.0 - nxt.done,
+        next_observation=nxt.obs,
+        extras={
+            "policy_extras": {"log_prob": log_prob, "raw_action": raw, "distribution_params": logits},
+            "state_extras": {"truncation": jnp.zeros_like(nxt.done)},
+        },
+    )
+    return _RolloutCarry(nxt, rng), transition
+
+
+def rollout(ctx: _Context, normalizer, policy_params, target, rng):
+    """`num_envs` whole episodes at `target` m. Returns (final env State (B,), Transition (B, T))."""
+    rng_reset, rng_steps = jax.random.split(rng)
+    keys = jax.random.split(rng_reset, ctx.config.num_envs)
+    env_state = jax.vmap(ctx.env.reset, in_axes=(0, None))(keys, target)
+    body = functools.partial(_env_step, ctx, normalizer, policy_params)
+    carry, data = jax.lax.scan(body, _RolloutCarry(env_state, rng_steps), None, ctx.env.n_steps)
+    # (T, B) -> (B, T): Brax's loss takes batch-major data and swaps it back itself.
+    return carry.env_state, jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), data)
+
+
+# -- one update -------------------------------------------------------------------------------
+
+
+class _SGDCarry(NamedTuple):
+    params: PPONetworkParams
+    opt_state: Any
+    rng: jax.Array
+
+
+def _loss(ctx: _Context, params, normalizer, data, rng):
+    cfg = ctx.config
+    return ppo_losses.compute_ppo_loss(
+        params,
+        normalizer,
+        data,
+        rng,
+        ctx.networks,
+        entropy_cost=cfg.entropy_cost,
+        discounting=cfg.discount,
+        reward_scaling=cfg.reward_scaling,
+        gae_lambda=cfg.gae_lambda,
+        clipping_epsilon=cfg.clip_epsilon,
+        normalize_advantage=cfg.normalize_advantage,
+        vf_coefficient=cfg.vf_coefficient,
+    )
+
+
+def _minibatch_step(ctx: _Context, normalizer, carry: _SGDCarry, minibatch):
+    """One gradient step on one minibatch of whole episodes (M, T): -> (carry, loss metrics)."""
+    rng, key = jax.random.split(carry.rng)
+    step = gradients.gradient_update_fn(functools.partial(_loss, ctx), ctx.optimizer, pmap_axis_name=None, has_aux=True)
+    (_, metrics), params, opt_state = step(carry.params, normalizer, minibatch, key, optimizer_state=carry.opt_state)
+    return _SGDCarry(params, opt_state, rng), metrics
+
+
+def _epoch(ctx: _Context, normalizer, data, carry: _SGDCarry, _unused):
+    """One pass over the batch (B, T) in shuffled minibatches of whole episodes."""
+    rng, key = jax.random.split(carry.rng)
+    cfg = ctx.config
+    order = jax.random.permutation(key, cfg.num_envs)
+
+    def to_minibatches(x):
+        return x[order].reshape((cfg.num_minibatches, -1) + x.shape[1:])
+
+    minibatches = jax.tree_util.tree_map(to_minibatches, data)
+    body = functools.partial(_minibatch_step, ctx, normalizer)
+    carry, metrics = jax.lax.scan(body, carry._replace(rng=rng), minibatches)
+    return carry, metrics
+
+
+def _update_step(ctx: _Context, target, state: TrainState, _unused):
+    """Collect one batch at `target` and run the PPO epochs on it: (state, None) -> (state, metrics)."""
+    cfg = ctx.config
+    rng, rng_rollout, rng_sgd = jax.random.split(state.rng, 3)
+    final, data = rollout(ctx, state.normalizer, state.params.policy, target, rng_rollout)
+    normalizer = state.normalizer
+    if cfg.normalize_observations:
+        normalizer = running_statistics.update(normalizer, data.observation)
+    body = functools.partial(_epoch, ctx, normalizer, data)
+    sgd, losses = jax.lax.scan(body, _SGDCarry(state.params, state.opt_state, rng_sgd), None, cfg.num_epochs)
+    _, std = ctx.networks.policy_network.apply(normalizer, sgd.params.policy, data.observation[0, :1])
+    metrics = UpdateMetrics(
+        episode_return=data.reward.sum(axis=1).mean(),
+        final_error=final.metrics["final_error"].mean(),
+        valid=final.metrics["valid"].mean(),
+        total_loss=losses["total_loss"].mean(),
+        policy_loss=losses["policy_loss"].mean(),
+        v_loss=losses["v_loss"].mean(),
+        kl_mean=losses["kl_mean"].mean(),
+        policy_std=std.mean(),
+    )
+    new_state = TrainState(
+        params=sgd.params,
+        opt_state=sgd.opt_state,
+        normalizer=normalizer,
+        rng=rng,
+        update=state.update + 1,
+        env_steps=state.env_steps + cfg.num_envs * ctx.env.n_steps,
+    )
+    return new_state, metrics
+
+
+# -- the trainer ------------------------------------------------------------------------------
+
+
+def _labels(params: PPONetworkParams) -> PPONetworkParams:
+    return PPONetworkParams(
+        policy=jax.tree_util.tree_map(lambda _: "policy", params.policy),
+        value=jax.tree_util.tree_map(lambda _: "value", params.value),
+    )
+
+
+def make_optimizer(cfg: ml_collections.ConfigDict) -> optax.GradientTransformation:
+    """Adam with separate learning rates for the policy and the value net, after norm clipping."""
+    adam = optax.multi_transform(
+        {"policy": optax.adam(cfg.learning_rate), "value": optax.adam(cfg.value_learning_rate)}, _labels
+    )
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), adam)
+
+
+def make_train(config, env: kick_env.KickEnv) -> Trainer:
+    """Validate `config` (a PPO ConfigDict) and build the pure trainer for `env`.
+
+    All returned functions are pure and unjitted: jit / vmap them as needed. The target is a
+    traced argument, so one compiled program serves any task (and a vmapped batch of tasks).
+    """
+    cfg = make_config(config)
+    validate_config(cfg, env.n_steps)
+    networks = make_networks(cfg, env.observation_size, env.action_size)
+    optimizer = make_optimizer(cfg)
+    ctx = _Context(env, networks, optimizer, cfg)
+    total = n_updates(cfg, env.n_steps)
+
+    def init(rng: jax.Array, policy_params=None) -> TrainState:
+        """A fresh state; `policy_params` (e.g. from behaviour cloning) replace the random policy."""
+        rng, key_policy, key_value = jax.random.split(rng, 3)
+        policy = networks.policy_network.init(key_policy) if policy_params is None else policy_params
+        params = PPONetworkParams(policy=policy, value=networks.value_network.init(key_value))
+        return TrainState(
+            params=params,
+            opt_state=optimizer.init(params),
+            normalizer=init_normalizer(env.observation_size),
+            rng=rng,
+            update=jnp.zeros((), jnp.int32),
+            env_steps=jnp.zeros((), jnp.int32),
+        )
+
+    def run_updates(state: TrainState, target, n: int):
+        """`n` (static) PPO updates at `target` (scalar m)."""
+        body = functools.partial(_update_step, ctx, jnp.asarray(target, jnp.float32))
+        return jax.lax.scan(body, state, None, n)
+
+    def train(rng: jax.Array, target, policy_params=None):
+        """The whole budget in one scan: (final TrainState, UpdateMetrics of (n_updates,))."""
+        return run_updates(init(rng, policy_params), target, total)
+
+    return Trainer(networks, init, run_updates, train, total, cfg.num_envs * env.n_steps)
