@@ -123,3 +123,112 @@ def grid_fn(env: kick_env.KickEnv, apply_fn):
     over_reps = jax.vmap(episode, in_axes=(None, None, None, 0))
     over_pairs = jax.vmap(over_reps, in_axes=(None, 0, 0, 0))
     return jax.jit(jax.vmap(over_pairs, in_axes=(0, None, None, None)))
+
+
+def _return_step(env, apply_fn, params, ctx, carry, _):
+    """One control step that adds the reward to the carried return: ((state, ret), None)."""
+    state, ret = carry
+    state = env.step(state, apply_fn(params, state.obs.at[1].set(ctx)))
+    return (state, ret + state.reward), None
+
+
+def return_fn(env: kick_env.KickEnv, apply_fn):
+    """A pure fn (params, target, key) -> (undiscounted return, final metrics) of one episode.
+
+    The policy sees its own target as context; what PPO maximises, for learning curves.
+    """
+    lo, hi = env.config.task_range
+
+    def episode(params, target, key):
+        body = functools.partial(_return_step, env, apply_fn, params, (target - lo) / (hi - lo))
+        (state, ret), _ = jax.lax.scan(body, (env.reset(key, target), jnp.zeros(())), None, env.n_steps)
+        return ret, state.metrics
+
+    return episode
+
+
+# -- single-task experts (Table 1, first row) ------------------------------------------------
+
+
+def evaluate_experts(env: kick_env.KickEnv, apply_fn, params, tasks, n_reps: int = 100, seed: int = 0) -> dict:
+    """Each expert on its own task, `n_reps` noisy kicks each, in one vmapped program.
+
+    params: a pytree with a leading task axis (N, ...); tasks: (N,) m. Returns the final
+    metrics as numpy arrays of shape (N, n_reps).
+    """
+    tasks = np.asarray(tasks, np.float32)
+    if tasks.ndim != 1 or len(tasks) == 0:
+        raise ValueError(f"tasks must be a non-empty 1-d list of distances, got {tasks!r}")
+    if n_reps < 1:
+        raise ValueError(f"n_reps must be >= 1, got {n_reps!r}")
+    kick_env.check_targets(tasks, env.config.task_range)
+    # Expert i on task i only (grid_fn would score every expert on every task).
+    over_reps = jax.vmap(episode_fn(env, apply_fn), in_axes=(None, None, None, 0))
+    program = jax.jit(jax.vmap(over_reps, in_axes=(0, 0, 0, 0)))
+    targets = jnp.asarray(tasks)
+    metrics = program(params, targets, targets, repetition_keys(seed, len(tasks), n_reps))
+    return jax.tree_util.tree_map(np.asarray, metrics)
+
+
+def experts_record(tasks, metrics: dict, env_steps: int) -> dict:
+    """The results-contract record of `results/experts.json` (without provenance).
+
+    metrics: final metrics of shape (n_tasks, n_reps) from `evaluate_experts`; env_steps:
+    PPO env steps per expert.
+    """
+    per_task = summarise_tasks(metrics)
+    row = table_row(per_task)
+    return {
+        "tasks_m": [float(t) for t in tasks],
+        "per_task": [
+            {
+                "target_m": float(t),
+                "accuracy": float(per_task["accuracy"][i]),
+                "error_mean_m": float(per_task["error_mean_m"][i]),
+                "error_std_m": float(per_task["error_std_m"][i]),
+                "rel_error_mean": float(per_task["rel_error_mean"][i]),
+            }
+            for i, t in enumerate(tasks)
+        ],
+        **row,
+        "rel_error_mean": float(per_task["rel_error_mean"].mean()),
+        "n_reps": int(np.asarray(metrics["valid"]).shape[1]),
+        "env_steps": int(env_steps),
+    }
+
+
+def experts_markdown(record: dict) -> str:
+    """Table 1's first row (and the per-task numbers) as markdown."""
+    lines = [
+        "| model | accuracy | error mean (m) | error std (m) | rel. error |",
+        "|---|---|---|---|---|",
+        f"| single-task experts | {record['accuracy_mean']:.2f} +- {record['accuracy_std']:.2f} "
+        f"| {record['error_mean_m']:.2f} | {record['error_std_m']:.2f} | {100 * record['rel_error_mean']:.1f}% |",
+        "",
+        f"{record['tasks_above_threshold']}/{record['n_tasks']} tasks above accuracy {ACCURACY_THRESHOLD} "
+        f"(the error columns count only those); {record['n_reps']} kicks per task, "
+        f"{record['env_steps']} PPO env steps per expert.",
+        "",
+        "| target (m) | accuracy | error mean (m) | error std (m) |",
+        "|---|---|---|---|",
+    ]
+    for row in record["per_task"]:
+        lines.append(
+            f"| {row['target_m']:.1f} | {row['accuracy']:.2f} | {row['error_mean_m']:.2f} | {row['error_std_m']:.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_experts_table(record: dict, out_dir) -> tuple:
+    """Write out_dir/experts.json (atomically) and out_dir/experts.md. Returns both paths."""
+    from pathlib import Path
+
+    from bumps_jax import results
+
+    out_dir = Path(out_dir)
+    json_path = results.write_json(out_dir / "experts.json", record)
+    md_path = out_dir / "experts.md"
+    tmp = md_path.with_suffix(".md.tmp")
+    tmp.write_text(experts_markdown(record))
+    tmp.replace(md_path)
+    return json_path, md_path

@@ -1,0 +1,139 @@
+"""Expert training: config errors, vmapped = alone, checkpoint resume, Table-1 record."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bumps_jax import experts, prior
+
+N_STEPS = 75
+
+
+def _tiny_config(**extra):
+    """Two tasks, 4 episodes per update, 2 chunks of 2 updates: seconds per chunk on a CPU."""
+    base = {
+        "tasks": (8.0, 12.0),
+        "bc.steps": 300,
+        "ppo.num_envs": 4,
+        "ppo.num_minibatches": 2,
+        "ppo.num_epochs": 2,
+        "ppo.total_env_steps": 4 * N_STEPS * 4,
+        "ppo.init_log_std": -4.0,
+        "updates_per_chunk": 2,
+        "eval.repetitions": 2,
+    }
+    base.update(extra)
+    return experts.make_config(overrides=base)
+
+
+@pytest.fixture(scope="module")
+def programs(env):
+    return experts.compile_programs(_tiny_config(), env)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "named"),
+    [
+        ({"tasks": ()}, "tasks is empty"),
+        ({"tasks": (8.0, 19.5)}, "19.5"),
+        ({"updates_per_chunk": 3}, "updates_per_chunk 3"),
+        ({"updates_per_chunk": 0}, "updates_per_chunk"),
+        ({"bc.steps": 0}, "bc.steps"),
+        ({"ppo.total_env_steps": 0}, "total_env_steps"),
+        ({"ppo.num_envs": 5}, "num_minibatches 2 must divide ppo.num_envs 5"),
+    ],
+)
+def test_bad_config_names_the_value(env, overrides, named):
+    with pytest.raises(ValueError, match=named):
+        experts.compile_programs(_tiny_config(**overrides), env)
+
+
+def test_presets_validate(env):
+    for name in experts.PRESETS:
+        cfg = experts.preset_config(name)
+        experts.validate_config(cfg, env)
+    paper = experts.preset_config("paper")
+    assert len(paper.tasks) == 23 and paper.ppo.total_env_steps == 12_000_000
+    with pytest.raises(ValueError, match="huge"):
+        experts.preset_config("huge")
+
+
+def test_bc_dataset_is_the_prior_kick(env):
+    params = jnp.asarray(prior.load_prior()["params"], jnp.float32)
+    obs, actions = experts.bc_dataset(env, 12.0, params)
+    assert obs.shape == (N_STEPS, 2) and actions.shape == (N_STEPS, 22)
+    np.testing.assert_allclose(obs[:, 0], np.arange(N_STEPS) / N_STEPS, rtol=1e-6)
+    np.testing.assert_allclose(obs[:, 1], (12.0 - 7.0) / 11.0, rtol=1e-6)
+    np.testing.assert_allclose(actions, prior.keyframes_to_actions(params, N_STEPS, env.dt))
+
+
+def test_vmapped_training_equals_each_task_alone(programs):
+    """Two experts trained in one vmapped program = each trained alone, same rng."""
+    cfg = _tiny_config()
+    targets = jnp.asarray(cfg.tasks)
+    state, bc_losses = programs.init(experts.task_rngs(cfg.seed, 2), targets)
+    assert np.all(np.asarray(bc_losses[:, -1]) < 0.2 * np.asarray(bc_losses[:, 0]))
+    together, metrics = programs.chunk(state, targets)
+
+    alone = jax.jit(programs.trainer.run_updates, static_argnums=2)
+    for i, target in enumerate(cfg.tasks):
+        start = jax.tree_util.tree_map(lambda x, i=i: x[i], state)
+        single, single_metrics = alone(start, target, cfg.updates_per_chunk)
+        for a, b in zip(jax.tree_util.tree_leaves(single), jax.tree_util.tree_leaves(together), strict=True):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=2e-4, atol=1e-6)
+        np.testing.assert_allclose(single_metrics.episode_return, metrics.episode_return[i], rtol=1e-4)
+    assert int(together.env_steps[0]) == 2 * 4 * N_STEPS
+
+
+def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
+    cfg = _tiny_config()
+    whole = experts.train_experts(cfg, tmp_path / "whole", verbose=False, programs=programs)
+    assert whole["finished"]
+
+    part = experts.train_experts(cfg, tmp_path / "split", verbose=False, programs=programs, stop_after_chunks=1)
+    assert not part["finished"] and int(part["state"].update[0]) == 2
+    assert not (tmp_path / "split" / "final_params").exists()
+    resumed = experts.train_experts(cfg, tmp_path / "split", verbose=False, programs=programs)
+    assert resumed["finished"] and resumed["bc_losses"] is None  # BC came from the checkpoint
+
+    for a, b in zip(
+        jax.tree_util.tree_leaves(whole["state"]), jax.tree_util.tree_leaves(resumed["state"]), strict=True
+    ):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # The progress log is the same, row for row: one per update and task.
+    whole_csv = (tmp_path / "whole" / "progress.csv").read_text()
+    assert whole_csv == (tmp_path / "split" / "progress.csv").read_text()
+    assert len(whole_csv.strip().splitlines()) == 1 + 4 * 2
+
+    # Checkpoint round trip: the saved final params are the trained ones.
+    loaded = experts.load_final_params(tmp_path / "whole", programs, 2)
+    want = experts.expert_params(whole["state"])
+    for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(want), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    # Table 1's first row, under the run directory, with the results contract's keys.
+    record = experts.evaluate_run(cfg, tmp_path / "whole", whole["state"], programs, whole["wall_s"])
+    on_disk = json.loads((tmp_path / "whole" / "experts.json").read_text())
+    for key in (
+        "tasks_m",
+        "per_task",
+        "accuracy_mean",
+        "accuracy_std",
+        "error_mean_m",
+        "error_std_m",
+        "env_steps",
+        "device",
+        "versions",
+        "date",
+        "command",
+        "preset",
+        "wall_s",
+    ):
+        assert key in on_disk, key
+    assert on_disk["tasks_m"] == [8.0, 12.0] and on_disk["env_steps"] == 4 * 4 * N_STEPS
+    assert set(on_disk["per_task"][0]) >= {"target_m", "accuracy", "error_mean_m", "error_std_m"}
+    assert 0.0 <= record["accuracy_mean"] <= 1.0
+    assert "single-task experts" in (tmp_path / "whole" / "experts.md").read_text()
