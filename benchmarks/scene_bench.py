@@ -154,6 +154,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default="benchmarks/results/scene.json")
     parser.add_argument("--quick", action="store_true", help="small batches, for a CPU smoke test")
     parser.add_argument("--variant-batch", type=int, default=8192)
+    parser.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated subset of VARIANTS")
     args = parser.parse_args(argv)
     batches = (8, 16) if args.quick else BATCHES
     variant_batch = 8 if args.quick else args.variant_batch
@@ -168,8 +169,23 @@ def main(argv=None) -> None:
             f"batch {b:6d}: physics {physics[str(b)]:12,.0f} steps/s   env {env_steps[str(b)]:12,.0f} steps/s",
             flush=True,
         )
-    variants = {}
-    for name in VARIANTS:
+    payload = {
+        "physics_steps_per_s": physics,
+        "env_steps_per_s": env_steps,
+        "variants_batch": variant_batch,
+        "variants": {},
+        "scene": {
+            "timestep": float(model.opt.timestep),
+            "iterations": int(model.opt.iterations),
+            "ls_iterations": int(model.opt.ls_iterations),
+            "contact_pairs": int(model.npair),
+            "nv": int(model.nv),
+        },
+    }
+    preset = "quick" if args.quick else "paper"
+    results.write_json(args.out, {**results.provenance(preset, time.perf_counter() - t_start), **payload})
+    variants = payload["variants"]
+    for name in args.variants.split(","):
         m = variant_model(name)
         rate = physics_rate(m, variant_batch)
         row = {"physics_steps_per_s": rate, "sim_seconds_per_s": rate * m.opt.timestep, **replay_prior_in_c(m)}
@@ -179,21 +195,8 @@ def main(argv=None) -> None:
             f"rest {row['rest_x_m']:6.2f} m  stood {row['robot_stood']}",
             flush=True,
         )
-    payload = {
-        **results.provenance("quick" if args.quick else "paper", time.perf_counter() - t_start),
-        "physics_steps_per_s": physics,
-        "env_steps_per_s": env_steps,
-        "variants_batch": variant_batch,
-        "variants": variants,
-        "scene": {
-            "timestep": float(model.opt.timestep),
-            "iterations": int(model.opt.iterations),
-            "ls_iterations": int(model.opt.ls_iterations),
-            "contact_pairs": int(model.npair),
-            "nv": int(model.nv),
-        },
-    }
-    results.write_json(args.out, payload)
+        # Written after every variant: a run cut short still leaves what it measured.
+        results.write_json(args.out, {**results.provenance(preset, time.perf_counter() - t_start), **payload})
     print(f"wrote {args.out}")
 
 

@@ -19,7 +19,6 @@ versioned JSON (`save_prior` / `load_prior`) that later stages replay without op
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import time
@@ -133,6 +132,23 @@ def keyframes_to_actions(params, n_steps: int, ctrl_dt: float = 0.02) -> jax.Arr
 def clip_params(params) -> jax.Array:
     """Params (..., 14) clipped into [PARAM_LOW, PARAM_HIGH]."""
     return jnp.clip(params, PARAM_LOW, PARAM_HIGH)
+
+
+# The family of kicks that spans the reachable range: the short kick, the 12 m prior and the
+# long kick, each optimised on its own, at strength 0, 0.5 and 1; strengths in between
+# interpolate their parameters linearly. (The `strength` parameter of one kick alone only
+# caps the swing's speed: the optimised 12 m kick swings slower than every cap above 0.5.)
+ANCHORS = ("short", "main", "long")
+
+
+def blend_params(anchors, strength) -> jax.Array:
+    """Kick params (14,) at `strength` in [0, 1] along the anchors (3, 14): short, main, long."""
+    anchors = jnp.asarray(anchors, jnp.float32)
+    s = jnp.clip(jnp.asarray(strength, jnp.float32), 0.0, 1.0)
+    lower = jnp.where(s < 0.5, anchors[0], anchors[1])
+    upper = jnp.where(s < 0.5, anchors[1], anchors[2])
+    w = jnp.where(s < 0.5, 2.0 * s, 2.0 * s - 1.0)
+    return clip_params((1.0 - w) * lower + w * upper)
 
 
 # -- configuration ----------------------------------------------------------------------------
@@ -266,7 +282,9 @@ def evaluate(params, config=None, repetitions=None, seed: int = 1, env=None, rol
     return summary
 
 
-def optimise(config=None, out_dir: str | Path = "runs/prior", start=None, verbose: bool = True) -> dict:
+def optimise(
+    config=None, out_dir: str | Path = "runs/prior", start=None, verbose: bool = True, env=None, rollout=None
+) -> dict:
     """CMA-ES on the kick for `config.target`; writes out_dir/{progress.csv, kick_prior.json}.
 
     start: params (14,) to start from (default: the committed prior if there is one, else
@@ -285,14 +303,13 @@ def optimise(config=None, out_dir: str | Path = "runs/prior", start=None, verbos
     free = _free_mask(cfg)
     scale = jnp.asarray(PARAM_SCALE[free], jnp.float32)
 
-    env = _env_for(cfg)
-    rollout = make_rollout(env)
+    env = env or _env_for(cfg)
+    rollout = rollout or make_rollout(env)  # pass one in to share its compiled program
     P, R = cfg.population_size, cfg.repetitions
 
     def to_params(z):  # (P, F) search coordinates -> (P, 14) clipped params
         return clip_params(jnp.tile(x0, (z.shape[0], 1)).at[:, free].add(scale * z))
 
-    @jax.jit
     def generation_cost(z, key):
         # Common random numbers: every candidate meets the same R noisy episodes, so the
         # ranking compares kicks, not luck.
@@ -345,30 +362,30 @@ def optimise(config=None, out_dir: str | Path = "runs/prior", start=None, verbos
     return record
 
 
-def sweep(params, strengths, config=None, repetitions: int = 8, seed: int = 2) -> list[dict]:
-    """The kick at each strength: resting distance and valid fraction over noisy repetitions.
+def sweep(anchors, strengths, config=None, repetitions: int = 8, seed: int = 2, env=None, rollout=None) -> list[dict]:
+    """The blended kick at each strength: resting distance and valid fraction over noisy reps.
 
-    One rollout program for all strengths x repetitions. Returns one dict per strength.
+    anchors: (3, 14) short, main, long kicks. One rollout program for all strengths x reps.
     """
     cfg = make_config(config)
     validate_config(cfg)
     strengths = np.asarray(strengths, np.float32)
-    if strengths.ndim != 1 or not np.all((strengths > 0) & (strengths <= 1)):
-        raise ValueError(f"strengths must be a 1-d list in (0, 1], got {strengths.tolist()!r}")
-    batch = np.tile(np.asarray(params, np.float32), (len(strengths), 1))
-    batch[:, PARAM_NAMES.index("strength")] = strengths
-    env = _env_for(cfg)
+    if strengths.ndim != 1 or not np.all((strengths >= 0) & (strengths <= 1)):
+        raise ValueError(f"strengths must be a 1-d list in [0, 1], got {strengths.tolist()!r}")
+    batch = jax.vmap(blend_params, in_axes=(None, 0))(jnp.asarray(anchors), jnp.asarray(strengths))
+    rollout = rollout or make_rollout(env or _env_for(cfg))
     keys = jax.random.split(jax.random.key(seed), repetitions)
     keys = jnp.broadcast_to(keys, (len(strengths), repetitions))
-    out = make_rollout(env)(clip_params(jnp.asarray(batch)), keys, cfg.target)
+    out = rollout(batch, keys, cfg.target)
     rows = []
-    for i, s in enumerate(strengths):
+    for i, st in enumerate(strengths):
         rows.append({
-            "strength": float(s),
-            "mean_distance": float(jnp.mean(out["distance"][i])),
-            "std_distance": float(jnp.std(out["distance"][i])),
-            "mean_lateral": float(jnp.mean(out["lateral"][i])),
+            "strength": float(st),
+            "distance_m": float(jnp.mean(out["distance"][i])),
+            "distance_std_m": float(jnp.std(out["distance"][i])),
+            "lateral_m": float(jnp.mean(out["lateral"][i])),
             "valid_fraction": float(jnp.mean(out["valid"][i])),
+            "fallen_fraction": float(jnp.mean(out["fallen"][i])),
         })  # fmt: skip
     return rows
 
@@ -404,6 +421,8 @@ def load_prior(path: str | Path = PRIOR_JSON) -> dict:
     if tuple(record.get("param_names", ())) != PARAM_NAMES:
         raise ValueError(f"{path}: param_names {record.get('param_names')!r} do not match {PARAM_NAMES}")
     record["params"] = np.asarray(record["params"], np.float32)
+    if "anchors" in record:
+        record["anchors"] = np.asarray([record["anchors"][n] for n in ANCHORS], np.float32)
     return record
 
 
@@ -412,15 +431,15 @@ PRESETS = {
     "tiny": {"population_size": 8, "generations": 3, "repetitions": 2, "eval_repetitions": 8},
     "paper": {"population_size": 64, "generations": 80, "repetitions": 16, "eval_repetitions": 100},
 }
-SWEEP_STRENGTHS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+SWEEP_STRENGTHS = tuple(i / 8 for i in range(9))
 # The ends of the reachable range, each optimised on its own with every parameter free.
 EXTREMES = {"short": 6.0, "long": 21.0}
 
 
 def run_stage(preset: str, run_dir: str | Path, overrides: dict | None = None, publish: bool = False) -> dict:
-    """`make kick-prior`: optimise the 12 m prior, evaluate it, sweep its strength, optimise
-    the short and long extremes; write run_dir/kick_prior.json (results) and, if `publish`,
-    the prior itself to assets/ and the sweep figure to docs/.
+    """`make kick-prior`: optimise the 12 m prior (from the committed one), evaluate it, optimise
+    the short and long extremes from it, sweep the blended family over strength; write
+    run_dir/{kick_prior.json, kick_sweep.png} and, if `publish`, the prior to assets/.
     """
     from bumps_jax import results  # noqa: PLC0415 (keeps `import prior` light for tests)
 
@@ -430,26 +449,25 @@ def run_stage(preset: str, run_dir: str | Path, overrides: dict | None = None, p
     run_dir = Path(run_dir)
     cfg = make_config(None, {**PRESETS[preset], **(overrides or {})})
     validate_config(cfg)
-    record = optimise(cfg, run_dir / "main")
-    params = record["params"]
+    env = _env_for(cfg)
+    rollout = make_rollout(env)  # one jitted program, compiled once per batch shape
+    main_params = optimise(cfg, run_dir / "main", env=env, rollout=rollout)["params"]
     optimise_s = time.perf_counter() - t0
-    evaluation = evaluate(params, cfg, repetitions=cfg.eval_repetitions, seed=101)
-    sweep_reps = max(4, cfg.eval_repetitions // 4)
-    rows = sweep(params, SWEEP_STRENGTHS, cfg, repetitions=sweep_reps)
+    evaluation = evaluate(main_params, cfg, repetitions=cfg.eval_repetitions, seed=101, env=env, rollout=rollout)
+    anchors = {"main": np.asarray(main_params)}
     extremes = {}
     for name, target in EXTREMES.items():
         ext_cfg = make_config(cfg, {"target": target, "free_params": PARAM_NAMES})
-        ext = optimise(ext_cfg, run_dir / name, start=params)
-        ext_eval = evaluate(ext["params"], ext_cfg, repetitions=sweep_reps, seed=202)
-        extremes[name] = {"target_m": target, "params": ext["params"], **ext_eval}
-        rows.append({
-            "strength": float(ext["params"][PARAM_NAMES.index("strength")]),
-            "mean_distance": ext_eval["mean_distance"],
-            "std_distance": 0.0,
-            "mean_lateral": ext_eval["mean_lateral"],
-            "valid_fraction": ext_eval["valid_fraction"],
-            "kick": name,
-        })  # fmt: skip
+        ext = optimise(ext_cfg, run_dir / name, start=main_params, env=env, rollout=rollout)
+        anchors[name] = np.asarray(ext["params"])
+        ext_eval = evaluate(
+            anchors[name], ext_cfg, repetitions=cfg.eval_repetitions, seed=202, env=env, rollout=rollout
+        )
+        extremes[name] = {"target_m": target, "mean_error_m": ext_eval["mean_error"],
+                          "mean_distance_m": ext_eval["mean_distance"], "valid_fraction": ext_eval["valid_fraction"],
+                          "fallen_fraction": ext_eval["fallen_fraction"]}  # fmt: skip
+    stacked = np.stack([anchors[n] for n in ANCHORS])
+    rows = sweep(stacked, SWEEP_STRENGTHS, cfg, repetitions=max(4, cfg.eval_repetitions // 4), env=env, rollout=rollout)
     payload = {
         **results.provenance(preset, time.perf_counter() - t0),
         "target_m": float(cfg.target),
@@ -458,90 +476,56 @@ def run_stage(preset: str, run_dir: str | Path, overrides: dict | None = None, p
         "std_error_m": evaluation["std_error"],
         "valid_fraction": evaluation["valid_fraction"],
         "fallen_fraction": evaluation["fallen_fraction"],
+        "struck_fraction": evaluation["struck_fraction"],
         "optimise_wall_s": optimise_s,
         "generations": int(cfg.generations),
         "population_size": int(cfg.population_size),
-        "params": [float(x) for x in params],
-        "sweep": [
-            {"strength": r["strength"], "distance_m": r["mean_distance"], "valid_fraction": r["valid_fraction"],
-             "distance_std_m": r["std_distance"], "kick": r.get("kick", "12 m prior")}
-            for r in rows
-        ],
+        "repetitions_per_candidate": int(cfg.repetitions),
+        "sweep": rows,
         "extremes": extremes,
-    }  # fmt: skip
+        "anchors": {n: [float(x) for x in anchors[n]] for n in ANCHORS},
+    }
     results.write_json(run_dir / "kick_prior.json", payload)
     plot_sweep(payload, run_dir / "kick_sweep.png")
     if publish:
-        save_prior(prior_record(params, cfg, evaluation, generations_run=cfg.generations))
+        save_prior(
+            prior_record(main_params, cfg, evaluation, generations_run=cfg.generations,
+                         anchors=payload["anchors"], sweep=rows)
+        )  # fmt: skip
     return payload
 
 
 def plot_sweep(payload: dict, path: str | Path) -> None:
-    """Resting distance vs strength (the 12 m prior) and the two extremes, with the task range."""
+    """Resting distance vs strength along the short -> 12 m -> long family, with the task range."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    rows = payload["sweep"]
     fig, ax = plt.subplots(figsize=(6, 4))
-    sweep_rows = [r for r in payload["sweep"] if r["kick"] == "12 m prior"]
     ax.errorbar(
-        [r["strength"] for r in sweep_rows],
-        [r["distance_m"] for r in sweep_rows],
-        yerr=[r["distance_std_m"] for r in sweep_rows],
+        [r["strength"] for r in rows],
+        [r["distance_m"] for r in rows],
+        yerr=[r["distance_std_m"] for r in rows],
         marker="o",
-        label="12 m prior, strength varied",
+        capsize=3,
+        label="mean +- std over noisy kicks",
     )
-    for r in payload["sweep"]:
-        if r["kick"] != "12 m prior":
-            ax.scatter(
-                [r["strength"]],
-                [r["distance_m"]],
-                marker="*",
-                s=150,
-                zorder=3,
-                label=f"{r['kick']} kick (valid {r['valid_fraction']:.2f})",
-            )
+    for r in rows:
+        ax.annotate(
+            f"{r['valid_fraction']:.2f}",
+            (r["strength"], r["distance_m"]),
+            textcoords="offset points",
+            xytext=(4, -12),
+            fontsize=7,
+        )
     ax.axhspan(7.0, 18.0, color="green", alpha=0.1, label="task range 7-18 m")
-    ax.set_xlabel("strength (swing speed / servo speed limit)")
+    ax.set_xlabel("strength (0 = short kick, 0.5 = 12 m prior, 1 = long kick)")
     ax.set_ylabel("resting distance (m)")
-    ax.set_title(f"Reachable range ({payload['device']}, {payload['preset']})")
+    ax.set_title(f"Reachable range, valid fraction annotated ({payload['device']})", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
-
-
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description="Optimise, evaluate or sweep the keyframe kick prior.")
-    parser.add_argument("command", choices=("optimise", "evaluate", "sweep"))
-    parser.add_argument("--out", default="runs/prior", help="output folder of `optimise`")
-    parser.add_argument(
-        "--set",
-        nargs="*",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config overrides, e.g. population_size=64 generations=100",
-    )
-    parser.add_argument("--strengths", default="0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0")
-    args = parser.parse_args(argv)
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        overrides[key] = json.loads(value)
-    cfg = make_config(None, overrides)
-    validate_config(cfg)
-    if args.command == "optimise":
-        record = optimise(cfg, args.out)
-        print(json.dumps(record["evaluation"], indent=2))
-    elif args.command == "evaluate":
-        print(json.dumps(evaluate(load_prior()["params"], cfg), indent=2))
-    else:
-        rows = sweep(load_prior()["params"], [float(s) for s in args.strengths.split(",")], cfg)
-        for row in rows:
-            print("  ".join(f"{k} {v:7.3f}" for k, v in row.items()))
-
-
-if __name__ == "__main__":
-    main()
