@@ -29,7 +29,7 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 
-from bumps_jax import evaluate, kick_env, ppo, prior, results
+from bumps_jax import evaluate, kick_env, ppo, prior, results, synthetic_experts
 
 PRESETS = ("tiny", "paper")
 
@@ -48,6 +48,10 @@ def default_config() -> ml_collections.ConfigDict:
     # 1e-2 fit within 0.05 rad and kicked as the prior does (CPU trial, 4 s).
     cfg.bc.steps = 20000
     cfg.bc.learning_rate = 1e-2
+    # Clone the prior with its strength calibrated to each task (synthetic_experts'
+    # CPU sweep), so every expert starts near its own distance; False clones the one 12 m
+    # kick for all, as the paper's multi-task baseline did.
+    cfg.bc.per_task_strength = True
     cfg.ppo = ppo.default_config()
     cfg.ppo.num_envs = 8
     cfg.ppo.num_minibatches = 2
@@ -174,11 +178,18 @@ def behaviour_clone(networks, policy, obs, actions, steps: int, learning_rate: f
 
 def make_init(cfg: ml_collections.ConfigDict, env: kick_env.KickEnv, trainer: ppo.Trainer):
     """A pure fn (rng, target) -> (TrainState after behaviour cloning, BC losses (steps,)). vmap over tasks."""
-    prior_params = jnp.asarray(prior.load_prior()["params"], jnp.float32)
+    base = jnp.asarray(prior.load_prior()["params"], jnp.float32)
+    calibration = jnp.asarray(synthetic_experts.CALIBRATION, jnp.float32)  # rows (strength, distance)
+    strength_index = prior.PARAM_NAMES.index("strength")
 
     def init(rng, target):
         rng_state, rng_policy = jax.random.split(rng)
         policy = trainer.networks.policy_network.init(rng_policy)
+        prior_params = base
+        if cfg.bc.per_task_strength:
+            # synthetic_experts.strength_for, in jnp: the target is traced under vmap.
+            strength = jnp.clip(jnp.interp(target, calibration[:, 1], calibration[:, 0]), 0.1, 1.0)
+            prior_params = prior.clip_params(base.at[strength_index].set(strength))
         obs, actions = bc_dataset(env, target, prior_params)
         policy, losses = behaviour_clone(trainer.networks, policy, obs, actions, cfg.bc.steps, cfg.bc.learning_rate)
         return trainer.init(rng_state, policy), losses
@@ -326,6 +337,7 @@ def train_experts(
     total = trainer.n_updates
     start = time.perf_counter()
 
+    (run_dir / "config.json").write_text(cfg.to_json(indent=2) + "\n")
     manager = _checkpoint_manager(run_dir, cfg.keep_checkpoints)
     progress = run_dir / "progress.csv"
     abstract = jax.eval_shape(programs.init, task_rngs(cfg.seed, len(tasks)), targets)[0]
@@ -372,6 +384,19 @@ def load_final_params(run_dir, programs: Compiled, n_tasks: int) -> ExpertParams
     abstract = jax.eval_shape(programs.init, task_rngs(0, n_tasks), jnp.zeros(n_tasks))[0]
     final = (Path(run_dir) / "final_params").resolve()
     return ocp.StandardCheckpointer().restore(final, expert_params(abstract))
+
+
+def family(run_dir) -> synthetic_experts.ExpertFamily:
+    """The trained experts of `run_dir` for meta-training: `--experts bumps_jax.experts:family
+    --experts-path runs/experts/paper`."""
+    import json
+
+    cfg = make_config(ml_collections.ConfigDict(json.loads((Path(run_dir) / "config.json").read_text())))
+    programs = compile_programs(cfg)
+    params = load_final_params(run_dir, programs, len(cfg.tasks))
+    return synthetic_experts.ExpertFamily(
+        expert_policy(programs.trainer.networks), params, np.asarray(cfg.tasks, np.float64)
+    )
 
 
 def evaluate_run(config, run_dir, state: ppo.TrainState, programs: Compiled, wall_s: float) -> dict:

@@ -71,20 +71,29 @@ def test_bc_dataset_is_the_prior_kick(env):
 
 
 def test_vmapped_training_equals_each_task_alone(programs):
-    """Two experts trained in one vmapped program = each trained alone, same rng."""
+    """Experts in one vmapped program do not interact: expert 8 m trains bit-for-bit the same
+    next to 12 m or next to 16 m; and it matches training it alone up to float reassociation
+    (XLA fuses the batched program differently, and contact dynamics amplify the last bits)."""
     cfg = _tiny_config()
     targets = jnp.asarray(cfg.tasks)
     state, bc_losses = programs.init(experts.task_rngs(cfg.seed, 2), targets)
     assert np.all(np.asarray(bc_losses[:, -1]) < 0.2 * np.asarray(bc_losses[:, 0]))
     together, metrics = programs.chunk(state, targets)
 
+    other_targets = jnp.asarray([8.0, 16.0])
+    other_state, _ = programs.init(experts.task_rngs(cfg.seed, 2), other_targets)
+    other, _ = programs.chunk(other_state, other_targets)
+    for a, b in zip(jax.tree_util.tree_leaves(together), jax.tree_util.tree_leaves(other), strict=True):
+        np.testing.assert_array_equal(np.asarray(a)[0], np.asarray(b)[0])
+
     alone = jax.jit(programs.trainer.run_updates, static_argnums=2)
     for i, target in enumerate(cfg.tasks):
         start = jax.tree_util.tree_map(lambda x, i=i: x[i], state)
         single, single_metrics = alone(start, target, cfg.updates_per_chunk)
         for a, b in zip(jax.tree_util.tree_leaves(single), jax.tree_util.tree_leaves(together), strict=True):
-            np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=2e-4, atol=1e-6)
-        np.testing.assert_allclose(single_metrics.episode_return, metrics.episode_return[i], rtol=1e-4)
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=1e-2, atol=2e-3)
+        # The first batch is collected before any gradient step: the same episodes.
+        np.testing.assert_allclose(single_metrics.episode_return[0], metrics.episode_return[i, 0], rtol=1e-3)
     assert int(together.env_steps[0]) == 2 * 4 * N_STEPS
 
 
@@ -112,6 +121,12 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
     loaded = experts.load_final_params(tmp_path / "whole", programs, 2)
     want = experts.expert_params(whole["state"])
     for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(want), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    # The meta stage's loader rebuilds the same experts from the run directory alone.
+    fam = experts.family(tmp_path / "whole")
+    assert list(fam.tasks) == [8.0, 12.0]
+    for a, b in zip(jax.tree_util.tree_leaves(fam.params), jax.tree_util.tree_leaves(want), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
     # Table 1's first row, under the run directory, with the results contract's keys.
