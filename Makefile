@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install test lint demo render bench-scene meta-train filter clean
+.PHONY: install test lint demo render bench-scene train-experts bench-training meta-train filter clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,15 @@ render: $(STAMP)
 
 bench-scene: $(STAMP)
 	$(PY) benchmarks/scene_bench.py --out benchmarks/results/scene.json
+
+# Single-task experts: BC of the kick prior, then PPO, all tasks in one vmapped program.
+# PRESET=tiny runs on a CPU in minutes under runs/experts/tiny; PRESET=paper is the GPU run
+# (23 tasks, 12M env steps each). A killed run resumes from its last checkpoint.
+train-experts: $(STAMP)
+	$(PY) -m bumps_jax.experts --preset $(PRESET) --run-dir runs/experts/$(PRESET)
+
+bench-training: $(STAMP)
+	$(PY) benchmarks/training_bench.py --preset $(PRESET) --out runs/bench/training_$(PRESET).json
 
 # Meta-training (behaviour cloning of the experts) and policy filtering. PRESET=tiny runs on a
 # CPU in minutes with synthetic prior-based experts; PRESET=paper is the GPU run
