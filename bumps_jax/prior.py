@@ -486,6 +486,7 @@ def run_stage(preset: str, run_dir: str | Path, overrides: dict | None = None, p
         "anchors": {n: [float(x) for x in anchors[n]] for n in ANCHORS},
     }
     results.write_json(run_dir / "kick_prior.json", payload)
+    results.write_json(run_dir / "kick_prior_timing.json", timing_record(payload))
     plot_sweep(payload, run_dir / "kick_sweep.png")
     if publish:
         save_prior(
@@ -493,6 +494,18 @@ def run_stage(preset: str, run_dir: str | Path, overrides: dict | None = None, p
                          anchors=payload["anchors"], sweep=rows)
         )  # fmt: skip
     return payload
+
+
+def timing_record(payload: dict) -> dict:
+    """The benchmark view of a kick-prior run: its provenance and wall times, nothing else."""
+    keys = ("device", "n_devices", "versions", "date", "command", "preset", "wall_s", "optimise_wall_s",
+            "generations", "population_size", "repetitions_per_candidate")  # fmt: skip
+    episodes = payload["generations"] * payload["population_size"] * payload["repetitions_per_candidate"]
+    return {
+        **{k: payload[k] for k in keys},
+        "episodes_per_optimisation": episodes,
+        "episodes_per_s": episodes / payload["optimise_wall_s"],
+    }
 
 
 def plot_sweep(payload: dict, path: str | Path) -> None:

@@ -38,7 +38,7 @@ def provenance(preset: str, wall_s: float, command: str | None = None) -> dict:
         "n_devices": jax.device_count(),
         "versions": versions(),
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "command": command or " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "command": command or _command_line(),
         "preset": preset,
         "wall_s": round(float(wall_s), 3),
     }
@@ -52,3 +52,10 @@ def write_json(path: str | os.PathLike, payload: dict) -> Path:
     tmp.write_text(json.dumps(payload, indent=2, default=float) + "\n")
     tmp.replace(path)
     return path
+
+
+def _command_line() -> str:
+    """How this process was started, as a user would type it."""
+    script = Path(sys.argv[0])
+    head = f"python -m {script.parent.name}" if script.name == "__main__.py" else f"python {script.as_posix()}"
+    return " ".join([head, *sys.argv[1:]])
