@@ -151,6 +151,28 @@ def blend_params(anchors, strength) -> jax.Array:
     return clip_params((1.0 - w) * lower + w * upper)
 
 
+def calibration(record: dict) -> np.ndarray:
+    """(n, 2) rows (strength, mean resting distance m) from a prior record's sweep, kept only
+    where the distance rises (np.interp needs it increasing; the blend is not monotone
+    everywhere: a dip is dropped, not smoothed)."""
+    rows = sorted((r["strength"], r["distance_m"]) for r in record["sweep"])
+    kept = [rows[0]]
+    for s, d in rows[1:]:
+        if d > kept[-1][1]:
+            kept.append((s, d))
+    return np.asarray(kept, np.float32)
+
+
+def kick_for(anchors, table, target) -> jax.Array:
+    """The blended kick params (14,) expected to rest near `target` m (jittable in target).
+
+    anchors: (3, 14); table: `calibration(...)` rows (strength, distance).
+    """
+    table = jnp.asarray(table)
+    strength = jnp.interp(jnp.asarray(target, jnp.float32), table[:, 1], table[:, 0])
+    return blend_params(anchors, strength)
+
+
 # -- configuration ----------------------------------------------------------------------------
 
 

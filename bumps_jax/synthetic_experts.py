@@ -3,14 +3,14 @@
 Not learned policies: they exist so that behaviour cloning and policy filtering can be tested
 and demonstrated on a CPU before the real experts (`bumps_jax.experts`) are trained.
 
-- `synthetic_experts(tasks)`: one "expert" per task = the prior's keyframe actions (T, 22) at a
-  strength chosen for that task, looked up by the observation's phase. Params stacked over
-  experts: (E, T, 22). Same interface as the PPO experts: `apply_fn(params, obs) -> (22,)`.
-- `synthetic_contextual_policy()`: one policy for every context: the keyframe kick at the
-  strength the context asks for. Its context -> distance map is the prior's strength sweep.
-
-The task -> strength map is a rough calibration of the committed prior (a CPU strength sweep
-in MJX, noisy, 8 repetitions): the experts kick roughly, not exactly, to their task.
+- `synthetic_experts(tasks)`: one "expert" per task = the keyframe actions (T, 22) of the
+  prior's blended kick family (short -> 12 m -> long) at the strength calibrated for that task,
+  looked up by the observation's phase. Params stacked over experts: (E, T, 22). Same
+  interface as the PPO experts: `apply_fn(params, obs) -> (22,)`.
+- `synthetic_contextual_params()` / `contextual_apply`: one policy for every context: the
+  blended kick at a strength linear in the context.
+The task -> strength map is the committed prior's GPU sweep (`prior.calibration`), so these
+experts kick roughly, not exactly, to their task.
 """
 
 from __future__ import annotations
@@ -23,16 +23,9 @@ import numpy as np
 
 from bumps_jax import kick_env, prior
 
-# (strength, mean resting distance m) of the committed prior; see the module docstring.
-# Below ~0.6 the swing mostly misses the ball; 7-18 m needs strengths of about 0.64-0.77.
-CALIBRATION = (
-    (0.6, 3.9),
-    (0.7, 12.2),
-    (0.8, 20.4),
-    (0.9, 21.5),
-    (1.0, 25.5),
-)
-_STRENGTH = prior.PARAM_NAMES.index("strength")
+# (strength, mean resting distance m) along the committed prior's short -> 12 m -> long family,
+# from its GPU sweep (assets/kick_prior.json): the experts kick roughly, not exactly, to their task.
+CALIBRATION = tuple(map(tuple, prior.calibration(prior.load_prior()).tolist()))
 
 
 class ExpertFamily(NamedTuple):
@@ -44,9 +37,9 @@ class ExpertFamily(NamedTuple):
 
 
 def strength_for(targets) -> np.ndarray:
-    """The calibrated strength (..,) for target distances (..,) m, clipped to [0.1, 1]."""
+    """The calibrated strength (..,) for target distances (..,) m, in [0, 1]."""
     s, d = np.asarray(CALIBRATION, np.float64).T
-    return np.clip(np.interp(np.asarray(targets, np.float64), d, s), 0.1, 1.0)
+    return np.interp(np.asarray(targets, np.float64), d, s)
 
 
 def lookup_action(table: jax.Array, obs: jax.Array) -> jax.Array:
@@ -57,20 +50,18 @@ def lookup_action(table: jax.Array, obs: jax.Array) -> jax.Array:
 
 
 def synthetic_experts(tasks, n_steps: int = 75, ctrl_dt: float = 0.02) -> ExpertFamily:
-    """SYNTHETIC experts, one per task: params (E, n_steps, 22), the prior's actions per task."""
+    """SYNTHETIC experts, one per task: params (E, n_steps, 22), the blended kick's actions per task."""
     tasks = np.asarray(tasks, np.float64)
-    base = np.asarray(prior.load_prior()["params"], np.float32)
-    batch = np.tile(base, (len(tasks), 1))
-    batch[:, _STRENGTH] = strength_for(tasks)
-    to_actions = jax.vmap(lambda p: prior.keyframes_to_actions(p, n_steps, ctrl_dt))
-    tables = to_actions(prior.clip_params(jnp.asarray(batch)))
+    anchors = jnp.asarray(prior.load_prior()["anchors"])
+    kicks = jax.vmap(prior.blend_params, in_axes=(None, 0))(anchors, jnp.asarray(strength_for(tasks), jnp.float32))
+    tables = jax.vmap(lambda p: prior.keyframes_to_actions(p, n_steps, ctrl_dt))(kicks)
     return ExpertFamily(lookup_action, tables, tasks)
 
 
 class ContextualParams(NamedTuple):
     """Params of the synthetic contextual policy (leaves may carry a leading stacking axis)."""
 
-    kick: jax.Array  # (14,) prior params; strength is replaced per context
+    anchors: jax.Array  # (3, 14) the short, 12 m and long kicks
     slope: jax.Array  # () strength per normalised context unit
     offset: jax.Array  # () strength at normalised context 0
 
@@ -80,7 +71,7 @@ def synthetic_contextual_params(task_range=(7.0, 18.0)) -> ContextualParams:
     lo, hi = task_range
     s_lo, s_hi = strength_for([lo, hi])
     return ContextualParams(
-        kick=jnp.asarray(prior.load_prior()["params"], jnp.float32),
+        anchors=jnp.asarray(prior.load_prior()["anchors"]),
         slope=jnp.float32(s_hi - s_lo),
         offset=jnp.float32(s_lo),
     )
@@ -88,8 +79,7 @@ def synthetic_contextual_params(task_range=(7.0, 18.0)) -> ContextualParams:
 
 def contextual_apply(params: ContextualParams, obs: jax.Array, n_steps: int = 75, ctrl_dt: float = 0.02):
     """SYNTHETIC contextual policy: obs (2,) = (phase, normalised context) -> action (22,)."""
-    strength = jnp.clip(params.offset + params.slope * obs[1], 0.1, 1.0)
-    kick = prior.clip_params(params.kick.at[_STRENGTH].set(strength))
+    kick = prior.blend_params(params.anchors, params.offset + params.slope * obs[1])
     return lookup_action(prior.keyframes_to_actions(kick, n_steps, ctrl_dt), obs)
 
 
