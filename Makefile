@@ -4,8 +4,10 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# tiny: CPU-sized, minutes; paper: the paper's budgets, for a GPU.
+PRESET ?= tiny
 
-.PHONY: install test lint demo render bench-scene train-experts bench-training meta-train filter clean
+.PHONY: install test lint demo render bench-scene kick-prior train-experts bench-training meta-train filter clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +30,10 @@ lint: $(STAMP)
 demo: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m bumps_jax showcase
 
+# The paper preset also publishes: assets/kick_prior.json, results/, benchmarks/results/, docs/.
+kick-prior: $(STAMP)
+	$(PY) -m bumps_jax kick-prior --preset $(PRESET) --run-dir runs/$(PRESET)/prior $(if $(filter paper,$(PRESET)),--publish,)
+
 render: $(STAMP)
 	$(PY) -m bumps_jax render --out docs/stance.png
 
@@ -46,7 +52,6 @@ bench-training: $(STAMP)
 # Meta-training (behaviour cloning of the experts) and policy filtering. PRESET=tiny runs on a
 # CPU in minutes with synthetic prior-based experts; PRESET=paper is the GPU run
 # (EXPERTS=module:function EXPERTS_PATH=... EXPERTS_JSON=... select the trained PPO experts).
-PRESET ?= tiny
 EXPERTS ?= synthetic
 META_ARGS = --preset $(PRESET) --out runs/meta/$(PRESET) --experts $(EXPERTS) \
 	$(if $(EXPERTS_PATH),--experts-path $(EXPERTS_PATH)) $(if $(EXPERTS_JSON),--experts-json $(EXPERTS_JSON))

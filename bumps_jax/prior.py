@@ -510,7 +510,11 @@ def run_stage(preset: str, run_dir: str | Path, overrides: dict | None = None, p
     results.write_json(run_dir / "kick_prior.json", payload)
     results.write_json(run_dir / "kick_prior_timing.json", timing_record(payload))
     plot_sweep(payload, run_dir / "kick_sweep.png")
-    if publish:
+    if publish:  # the committed copies: results/, benchmarks/results/, docs/ and the asset
+        root = PRIOR_JSON.parent.parent
+        results.write_json(root / "results" / "kick_prior.json", payload)
+        results.write_json(root / "benchmarks" / "results" / "kick_prior.json", timing_record(payload))
+        plot_sweep(payload, root / "docs" / "kick_sweep.png")
         save_prior(
             prior_record(main_params, cfg, evaluation, generations_run=cfg.generations,
                          anchors=payload["anchors"], sweep=rows)
