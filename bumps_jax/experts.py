@@ -48,9 +48,9 @@ def default_config() -> ml_collections.ConfigDict:
     # 1e-2 fit within 0.05 rad and kicked as the prior does (CPU trial, 4 s).
     cfg.bc.steps = 20000
     cfg.bc.learning_rate = 1e-2
-    # Clone the prior with its strength calibrated to each task (synthetic_experts'
-    # CPU sweep), so every expert starts near its own distance; False clones the one 12 m
-    # kick for all, as the paper's multi-task baseline did.
+    # Clone the prior's blended kick at the strength calibrated for each task (its committed
+    # sweep, `prior.kick_for`), so every expert starts near its own distance; False clones the
+    # one 12 m kick for all, as the paper's multi-task baseline did.
     cfg.bc.per_task_strength = True
     cfg.ppo = ppo.default_config()
     cfg.ppo.num_envs = 8
@@ -178,18 +178,15 @@ def behaviour_clone(networks, policy, obs, actions, steps: int, learning_rate: f
 
 def make_init(cfg: ml_collections.ConfigDict, env: kick_env.KickEnv, trainer: ppo.Trainer):
     """A pure fn (rng, target) -> (TrainState after behaviour cloning, BC losses (steps,)). vmap over tasks."""
-    base = jnp.asarray(prior.load_prior()["params"], jnp.float32)
-    calibration = jnp.asarray(synthetic_experts.CALIBRATION, jnp.float32)  # rows (strength, distance)
-    strength_index = prior.PARAM_NAMES.index("strength")
+    record = prior.load_prior()
+    base = jnp.asarray(record["params"], jnp.float32)  # the 12 m kick
+    anchors = jnp.asarray(record["anchors"], jnp.float32)  # short, 12 m, long
+    table = jnp.asarray(prior.calibration(record))  # (strength, distance) from the prior's sweep
 
     def init(rng, target):
         rng_state, rng_policy = jax.random.split(rng)
         policy = trainer.networks.policy_network.init(rng_policy)
-        prior_params = base
-        if cfg.bc.per_task_strength:
-            # synthetic_experts.strength_for, in jnp: the target is traced under vmap.
-            strength = jnp.clip(jnp.interp(target, calibration[:, 1], calibration[:, 0]), 0.1, 1.0)
-            prior_params = prior.clip_params(base.at[strength_index].set(strength))
+        prior_params = prior.kick_for(anchors, table, target) if cfg.bc.per_task_strength else base
         obs, actions = bc_dataset(env, target, prior_params)
         policy, losses = behaviour_clone(trainer.networks, policy, obs, actions, cfg.bc.steps, cfg.bc.learning_rate)
         return trainer.init(rng_state, policy), losses

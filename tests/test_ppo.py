@@ -96,6 +96,7 @@ def test_tiny_ppo_improves_return():
             "ppo.num_minibatches": 4,
             "ppo.num_epochs": 4,
             "ppo.total_env_steps": 16 * N_STEPS * n_updates,
+            "ppo.learning_rate": 1e-5,
             "updates_per_chunk": n_updates,
         }
     )
