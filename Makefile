@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # tiny: CPU-sized, minutes; paper: the paper's budgets, for a GPU.
 PRESET ?= tiny
 
-.PHONY: install test lint demo render bench-scene kick-prior train-experts bench-training meta-train filter clean
+.PHONY: install test lint demo reproduce report render bench-scene kick-prior train-experts bench-training meta-train filter clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,13 +26,21 @@ lint: $(STAMP)
 	$(PY) -m ruff check bumps_jax tests benchmarks experiments
 	$(PY) -m ruff format --check bumps_jax tests benchmarks experiments
 
-# Until the later stages land, the demo is the scene showcase: a batch of noisy episodes.
+# The whole pipeline at CPU size (prior from assets/, 3 experts, short BC, a few test tasks),
+# ending with runs/demo/report.md.
 demo: $(STAMP)
-	JAX_PLATFORMS=cpu $(PY) -m bumps_jax showcase
+	JAX_PLATFORMS=cpu $(PY) -m bumps_jax demo
+
+# The paper preset end to end on a GPU: runs/paper/report.md; finished stages are skipped.
+reproduce: $(STAMP)
+	$(PY) -m bumps_jax reproduce
+
+report: $(STAMP)
+	$(PY) -m bumps_jax report --preset $(PRESET)
 
 # The paper preset also publishes: assets/kick_prior.json, results/, benchmarks/results/, docs/.
 kick-prior: $(STAMP)
-	$(PY) -m bumps_jax kick-prior --preset $(PRESET) --run-dir runs/$(PRESET)/prior $(if $(filter paper,$(PRESET)),--publish,)
+	$(PY) -m bumps_jax kick-prior --preset $(PRESET) $(if $(filter paper,$(PRESET)),--publish,)
 
 render: $(STAMP)
 	$(PY) -m bumps_jax render --out docs/stance.png
@@ -41,25 +49,19 @@ bench-scene: $(STAMP)
 	$(PY) benchmarks/scene_bench.py --out benchmarks/results/scene.json
 
 # Single-task experts: BC of the kick prior, then PPO, all tasks in one vmapped program.
-# PRESET=tiny runs on a CPU in minutes under runs/experts/tiny; PRESET=paper is the GPU run
-# (23 tasks, 12M env steps each). A killed run resumes from its last checkpoint.
+# A killed run resumes from its last checkpoint. Outputs go to runs/$(PRESET)/<stage>/.
 train-experts: $(STAMP)
-	$(PY) -m bumps_jax.experts --preset $(PRESET) --run-dir runs/experts/$(PRESET)
+	$(PY) -m bumps_jax train-experts --preset $(PRESET)
 
 bench-training: $(STAMP)
 	$(PY) benchmarks/training_bench.py --preset $(PRESET) --out runs/bench/training_$(PRESET).json
 
-# Meta-training (behaviour cloning of the experts) and policy filtering. PRESET=tiny runs on a
-# CPU in minutes with synthetic prior-based experts; PRESET=paper is the GPU run
-# (EXPERTS=module:function EXPERTS_PATH=... EXPERTS_JSON=... select the trained PPO experts).
-EXPERTS ?= synthetic
-META_ARGS = --preset $(PRESET) --out runs/meta/$(PRESET) --experts $(EXPERTS) \
-	$(if $(EXPERTS_PATH),--experts-path $(EXPERTS_PATH)) $(if $(EXPERTS_JSON),--experts-json $(EXPERTS_JSON))
+# Behaviour cloning of the experts (runs/$(PRESET)/experts) into the two meta-policies.
 meta-train: $(STAMP)
-	$(PY) -m bumps_jax.meta $(META_ARGS)
+	$(PY) -m bumps_jax meta-train --preset $(PRESET)
 
 filter: $(STAMP)
-	$(PY) -m bumps_jax.filtering --preset $(PRESET) --meta runs/meta/$(PRESET) --out runs/filter/$(PRESET)
+	$(PY) -m bumps_jax filter --preset $(PRESET)
 
 clean:
 	rm -rf $(VENV) runs

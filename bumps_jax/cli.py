@@ -1,5 +1,8 @@
-"""`python -m bumps_jax <stage> --preset P --run-dir D --set key=value ...`: every stage of the
-pipeline from one command line. The only module that parses arguments or reads the environment.
+"""Every stage of the BUMPS pipeline from one command line.
+
+    python -m bumps_jax <stage> --preset tiny|paper --run-dir D --set key=value ...
+
+The only module that parses arguments or touches the environment.
 """
 
 from __future__ import annotations
@@ -25,21 +28,97 @@ def parse_overrides(items: list[str]) -> dict:
     return {k: tuple(v) if isinstance(v, list) else v for k, v in out.items()}
 
 
-def _kick_prior(args) -> None:
+# -- the stages: each reads and writes under the run directory -------------------------------
+
+
+def _kick_prior(run_dir: Path, preset: str, overrides: dict, publish: bool = False) -> None:
     from bumps_jax import prior
 
-    payload = prior.run_stage(args.preset, args.run_dir, parse_overrides(args.set), publish=args.publish)
+    payload = prior.run_stage(preset, run_dir / "prior", overrides, publish=publish)
     print(json.dumps({k: payload[k] for k in ("mean_error_m", "valid_fraction", "wall_s")}, indent=2))
 
 
-def _render(args) -> None:
-    os.environ.setdefault("MUJOCO_GL", "egl" if args.gl == "egl" else "osmesa")
+def _train_experts(run_dir: Path, preset: str, overrides: dict) -> None:
+    from bumps_jax import experts
+
+    cfg = experts.make_config(experts.preset_config(preset), overrides)
+    programs = experts.compile_programs(cfg)
+    out = experts.train_experts(cfg, run_dir / "experts", programs=programs)
+    experts.evaluate_run(cfg, run_dir / "experts", out["state"], programs, out["wall_s"])
+    print((run_dir / "experts" / "experts.md").read_text())
+
+
+def _meta_train(run_dir: Path, preset: str, overrides: dict, synthetic_experts: bool = False) -> None:
+    from bumps_jax import experts, meta
+
+    cfg = meta.make_config(preset, overrides)
+    experts_dir = run_dir / "experts"
+    if synthetic_experts:
+        family, experts_json = meta.load_experts("synthetic", None), None
+    elif (experts_dir / "final_params").exists():
+        family, experts_json = experts.family(experts_dir), experts_dir / "experts.json"
+    else:
+        raise ValueError(f"no trained experts in {experts_dir}: run train-experts first, or pass --synthetic-experts")
+    payload = meta.run(cfg, run_dir / "meta", family, experts_json)
+    print(meta.table1_markdown(payload["rows"]))
+
+
+def _filter(run_dir: Path, preset: str, overrides: dict) -> None:
+    from bumps_jax import filtering
+
+    payload = filtering.run(filtering.make_config(preset, overrides), run_dir / "meta", run_dir / "filter")
+    print(filtering.table2_markdown(payload["rows"]))
+
+
+def _report(run_dir: Path, preset: str, overrides: dict) -> None:
+    from bumps_jax import report
+
+    path = report.write(run_dir)
+    print(path.read_text())
+    print(f"wrote {path}")
+
+
+# Each stage's output file, for `reproduce` to skip what is done and up to date.
+OUTPUTS = {
+    "kick-prior": "prior/kick_prior.json",
+    "train-experts": "experts/experts.json",
+    "meta-train": "meta/table1.json",
+    "filter": "filter/table2.json",
+}
+
+
+def _pipeline(run_dir: Path, preset: str, stages: tuple[str, ...]) -> None:
+    """Run `stages` in order, skipping one whose output exists and is newer than its input's."""
+    previous = None
+    for stage in stages:
+        out = run_dir / OUTPUTS[stage]
+        fresh = out.exists() and (previous is None or out.stat().st_mtime >= previous.stat().st_mtime)
+        if fresh:
+            print(f"== {stage}: up to date ({out})")
+        else:
+            print(f"== {stage}", flush=True)
+            STAGES[stage][0](run_dir, preset, {}, **({"publish": True} if stage == "kick-prior" else {}))
+        previous = out
+    _report(run_dir, preset, {})
+
+
+def _demo(run_dir: Path, preset: str, overrides: dict) -> None:
+    """The pipeline at CPU size; the kick prior is the committed one (assets/)."""
+    _pipeline(run_dir, "tiny", ("train-experts", "meta-train", "filter"))
+
+
+def _reproduce(run_dir: Path, preset: str, overrides: dict) -> None:
+    """The paper preset end to end (a GPU job); a rerun resumes or skips finished stages."""
+    _pipeline(run_dir, "paper", ("kick-prior", "train-experts", "meta-train", "filter"))
+
+
+def _render(run_dir: Path, preset: str, overrides: dict, out: str = "docs/stance.png") -> None:
     from bumps_jax import render
 
-    print(render.stance_picture(args.out))
+    print(render.stance_picture(out))
 
 
-def _showcase(args) -> None:
+def _showcase(run_dir: Path, preset: str, overrides: dict, episodes: int = 16) -> None:
     """A batch of noisy episodes of the committed prior: the scene and env at a glance."""
     import jax
     import numpy as np
@@ -47,17 +126,22 @@ def _showcase(args) -> None:
     from bumps_jax import kick_env, prior
 
     env = kick_env.KickEnv()
-    params = prior.load_prior()["params"]
     rollout = prior.make_rollout(env)
-    keys = jax.random.split(jax.random.key(0), args.episodes)[None]
-    out = rollout(prior.clip_params(params)[None], keys, 12.0)
-    print(f"{args.episodes} noisy kicks of the committed 12 m prior:")
+    keys = jax.random.split(jax.random.key(0), episodes)[None]
+    out = rollout(prior.clip_params(prior.load_prior()["params"])[None], keys, 12.0)
+    print(f"{episodes} noisy kicks of the committed 12 m prior:")
     print(f"  resting distance {np.mean(out['distance']):.2f} +- {np.std(out['distance']):.2f} m")
     print(f"  final error      {np.mean(out['final_error']):.2f} m, valid {np.mean(out['valid']):.2f}")
 
 
 STAGES = {
     "kick-prior": (_kick_prior, "optimise the keyframe kick prior (CMA-ES), evaluate and sweep it"),
+    "train-experts": (_train_experts, "train one PPO expert per task, all in one vmapped program"),
+    "meta-train": (_meta_train, "behaviour-clone the experts into the two contextual meta-policies"),
+    "filter": (_filter, "policy filtering: pick each test task's best context; Table 2"),
+    "report": (_report, "write report.md: our tables beside the paper's, figures, timings"),
+    "demo": (_demo, "the whole pipeline at CPU size (tiny preset), ending with a report"),
+    "reproduce": (_reproduce, "the whole pipeline at the paper's size (a GPU), resumable"),
     "render": (_render, "render the robot in its stance to a PNG"),
     "showcase": (_showcase, "replay the committed prior over a batch of noisy episodes"),
 }
@@ -69,24 +153,31 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (_, help_text) in STAGES.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         p.add_argument("--preset", default="tiny", choices=("tiny", "paper"))
-        p.add_argument("--run-dir", default=None, type=Path, help="default: runs/<preset>")
-        p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides")
+        p.add_argument("--run-dir", default=None, type=Path, help="default: runs/<preset> (runs/demo for demo)")
+        p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides, JSON values")
         if name == "kick-prior":
-            p.add_argument("--publish", action="store_true", help="also write assets/kick_prior.json")
+            p.add_argument("--publish", action="store_true", help="also write the committed copies (assets, results)")
+        if name == "meta-train":
+            p.add_argument("--synthetic-experts", action="store_true", help="clone the prior-based stand-in experts")
         if name == "render":
             p.add_argument("--out", default="docs/stance.png")
-            p.add_argument("--gl", default=os.environ.get("MUJOCO_GL", "egl"), choices=("egl", "osmesa"))
         if name == "showcase":
             p.add_argument("--episodes", type=int, default=16)
     return parser
 
 
+EXTRA_ARGS = {"kick-prior": ("publish",), "meta-train": ("synthetic_experts",), "render": ("out",),
+              "showcase": ("episodes",)}  # fmt: skip
+
+
 def main(argv=None) -> None:
     args = build_parser().parse_args(argv)
-    if args.run_dir is None:
-        args.run_dir = Path("runs") / args.preset
+    run_dir = args.run_dir or Path("runs") / ("demo" if args.stage == "demo" else args.preset)
+    # Offscreen rendering needs a GL backend before mujoco loads one: EGL unless told otherwise.
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    extra = {k: getattr(args, k) for k in EXTRA_ARGS.get(args.stage, ())}
     try:
-        STAGES[args.stage][0](args)
+        STAGES[args.stage][0](run_dir, args.preset, parse_overrides(args.set), **extra)
     except ValueError as err:  # bad config values: one clear line, not a traceback
         sys.exit(f"error: {err}")
 

@@ -15,7 +15,6 @@ comes from the carried `TrainState.rng`.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import functools
 import time
@@ -411,22 +410,3 @@ def evaluate_run(config, run_dir, state: ppo.TrainState, programs: Compiled, wal
     record["eval_repetitions"] = int(cfg.eval.repetitions)
     evaluate.write_experts_table(record, run_dir)
     return record
-
-
-def main(argv=None) -> dict:
-    """`python -m bumps_jax.experts --preset tiny --run-dir runs/experts_tiny`"""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", choices=PRESETS, default="tiny")
-    parser.add_argument("--run-dir", default=None, help="default: runs/experts_<preset>")
-    args = parser.parse_args(argv)
-    cfg = preset_config(args.preset)
-    run_dir = Path(args.run_dir or f"runs/experts_{args.preset}")
-    programs = compile_programs(cfg)
-    out = train_experts(cfg, run_dir, programs=programs)
-    record = evaluate_run(cfg, run_dir, out["state"], programs, out["wall_s"])
-    print((run_dir / "experts.md").read_text())
-    return record
-
-
-if __name__ == "__main__":
-    main()

@@ -20,7 +20,6 @@ evaluation is the matching net's evaluation, task by task); 4 x 256 at a high sa
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
@@ -422,24 +421,3 @@ def _unfiltered_curves(meta_dir: Path) -> dict:
         if net in per_task:
             curves[f"{net} unfiltered"] = (per_task["tasks"], per_task[net]["error_mean_m"])
     return curves
-
-
-def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description="Policy filtering of the meta-policies and Table 2.")
-    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS))
-    p.add_argument("--meta", default=None, help="meta-training run folder (default runs/meta/<preset>)")
-    p.add_argument("--out", default=None, help="output folder (default runs/filter/<preset>)")
-    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides (JSON values)")
-    return p.parse_args(argv)
-
-
-def main(argv=None) -> None:
-    args = parse_args(argv)
-    overrides = {k: json.loads(v) for k, _, v in (item.partition("=") for item in args.set)}
-    cfg = make_config(args.preset, overrides)
-    payload = run(cfg, args.meta or f"runs/meta/{cfg.preset}", args.out or f"runs/filter/{cfg.preset}")
-    print(table2_markdown(payload["rows"]))
-
-
-if __name__ == "__main__":
-    main()

@@ -20,7 +20,6 @@ table1.json, table1.md.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import functools
 import importlib
@@ -496,28 +495,3 @@ def _check_same_config(path: Path, cfg) -> None:
     if path.exists() and json.loads(path.read_text()) != json.loads(text):
         raise ValueError(f"{path} holds a different config; use a new --out or the same preset/overrides")
     path.write_text(text + "\n")
-
-
-def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description="Meta-train the contextual meta-policies by behaviour cloning.")
-    p.add_argument("--preset", default="tiny", choices=sorted(PRESETS))
-    p.add_argument("--out", default=None, help="run folder (default runs/meta/<preset>)")
-    p.add_argument("--experts", default="synthetic", help="'synthetic' or module:function(path)")
-    p.add_argument("--experts-path", default=None, help="passed to the experts loader")
-    p.add_argument("--experts-json", default=None, help="the experts' evaluation JSON (Table 1 row)")
-    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides (JSON values)")
-    return p.parse_args(argv)
-
-
-def main(argv=None) -> None:
-    args = parse_args(argv)
-    overrides = {k: json.loads(v) for k, _, v in (item.partition("=") for item in args.set)}
-    cfg = make_config(args.preset, overrides)
-    experts = load_experts(args.experts, args.experts_path)
-    out = args.out or f"runs/meta/{cfg.preset}"
-    payload = run(cfg, out, experts, args.experts_json)
-    print(table1_markdown(payload["rows"]))
-
-
-if __name__ == "__main__":
-    main()

@@ -55,7 +55,16 @@ def write_json(path: str | os.PathLike, payload: dict) -> Path:
 
 
 def _command_line() -> str:
-    """How this process was started, as a user would type it."""
-    script = Path(sys.argv[0])
-    head = f"python -m {script.parent.name}" if script.name == "__main__.py" else f"python {script.as_posix()}"
+    """How this process was started, as a user would type it (no absolute paths)."""
+    script = Path(sys.argv[0]).resolve()
+    package = Path(__file__).resolve().parent
+    if script.parent == package:  # python -m bumps_jax[.module]
+        head = "python -m bumps_jax" + ("" if script.stem == "__main__" else f".{script.stem}")
+    elif sys.argv[0] in ("-c", ""):
+        head = "python -c <inline>"
+    else:
+        try:
+            head = f"python {script.relative_to(Path.cwd()).as_posix()}"
+        except ValueError:
+            head = f"python {script.name}"
     return " ".join([head, *sys.argv[1:]])
