@@ -23,6 +23,13 @@ STAGES = {
     "meta": "meta/table1.json",
     "filter": "filter/table2.json",
 }
+# The committed GPU results, relative to the repository root (docs/results.md is built from them).
+COMMITTED = {
+    "prior": "results/kick_prior.json",
+    "experts": "results/experts.json",
+    "meta": "results/table1.json",
+    "filter": "results/table2.json",
+}
 
 
 def _load(run_dir: Path, rel: str) -> dict | None:
@@ -67,12 +74,12 @@ def table2(rows: dict) -> list[str]:
     return lines
 
 
-def build(run_dir: str | Path) -> str:
-    """The report's markdown for `run_dir`."""
+def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*", title: str | None = None) -> str:
+    """The report's markdown for `run_dir` (stage files `STAGES`, or `files` relative to it)."""
     run_dir = Path(run_dir)
-    found = {name: _load(run_dir, rel) for name, rel in STAGES.items()}
+    found = {name: _load(run_dir, rel) for name, rel in (files or STAGES).items()}
     first = next((v for v in found.values() if v), None)
-    lines = [f"# BUMPS on the simulated NAO: run `{run_dir.name}`", ""]
+    lines = [f"# {title or f'BUMPS on the simulated NAO: run `{run_dir.name}`'}", ""]
     if first is None:
         return "\n".join([*lines, "No stage has written results in this directory yet.", ""])
     presets = sorted({v["preset"] for v in found.values() if v})
@@ -113,7 +120,7 @@ def build(run_dir: str | Path) -> str:
         lines += [f"Experts: {found['experts']['env_steps']:,} PPO env steps each.", ""]
     rows2 = found["filter"]["rows"] if found["filter"] else {}
     lines += ["## Table 2: BUMPS after policy filtering", "", *table2(rows2), ""]
-    figures = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.glob("*/*.png"))
+    figures = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.glob(f"{figures_dir}/*.png"))
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
@@ -122,4 +129,18 @@ def build(run_dir: str | Path) -> str:
 def write(run_dir: str | Path) -> Path:
     path = Path(run_dir) / "report.md"
     path.write_text(build(run_dir))
+    return path
+
+
+def write_committed(root: str | Path = ".") -> Path:
+    """docs/results.md from the committed GPU results (results/, figures in docs/)."""
+    root = Path(root)
+    text = build(root, COMMITTED, figures_dir="docs", title="BUMPS on the simulated NAO: committed GPU results")
+    path = root / "docs" / "results.md"
+    note = (
+        "The stages ran one by one on the GPU, not as one `make reproduce`; the experts' PPO budget was "
+        "cut (see the experts row's env steps). Each file under results/ names the command that made it.\n\n"
+    )
+    head, _, rest = text.partition("\n\n")
+    path.write_text(head + "\n\n" + note + rest.replace("](docs/", "]("))  # figures sit beside the report
     return path
