@@ -80,9 +80,7 @@ PRESETS = {"paper": default_config, "tiny": tiny_config}
 
 
 def make_config(preset: str = "paper", overrides: dict | None = None) -> ml_collections.ConfigDict:
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
-    cfg = kick_env.make_config(PRESETS[preset](), overrides)
+    cfg = kick_env.make_preset_config(PRESETS, preset, overrides)
     validate_config(cfg)
     return cfg
 
@@ -172,8 +170,9 @@ def select_contexts(scores, contexts, tasks, width) -> np.ndarray:
     tasks = np.asarray(tasks, np.float64)
     scores = np.asarray(scores, np.float64)
     if scores.shape != (len(tasks), len(contexts)):
-        raise ValueError(f"scores must have shape (tasks, contexts) = {(len(tasks), len(contexts))}, "
-                         f"got {scores.shape}")
+        raise ValueError(
+            f"scores must have shape (tasks, contexts) = {(len(tasks), len(contexts))}, got {scores.shape}"
+        )
     gap = np.abs(contexts[None, :] - tasks[:, None])
     own = (gap < 1e-6).any(axis=1)
     if not own.all():
@@ -209,8 +208,9 @@ def run_blocked(grid, params, contexts, targets, keys, block: int | None) -> dic
     for start in range(0, n, size):
         idx = np.arange(start, start + size)
         idx = np.where(idx < n, idx, start)
-        m = grid(params, jnp.asarray(contexts[idx], jnp.float32), jnp.asarray(targets[idx], jnp.float32),
-                 keys[idx][:, None])
+        m = grid(
+            params, jnp.asarray(contexts[idx], jnp.float32), jnp.asarray(targets[idx], jnp.float32), keys[idx][:, None]
+        )
         out.append({k: np.asarray(v)[0, :, 0] for k, v in m.items()})
     return {k: np.concatenate([o[k] for o in out])[:n] for k in out[0]}
 
@@ -249,8 +249,9 @@ def evaluate_chosen(grid, params, chosen_contexts, tasks, repetitions, key, bloc
     """Fresh noisy episodes of each task's chosen context: metrics of (T, repetitions)."""
     tasks = np.asarray(tasks, np.float64)
     T, R = len(tasks), int(repetitions)
-    m = run_blocked(grid, params, np.repeat(np.asarray(chosen_contexts), R), np.repeat(tasks, R),
-                    stage_keys(key, T, R), block)
+    m = run_blocked(
+        grid, params, np.repeat(np.asarray(chosen_contexts), R), np.repeat(tasks, R), stage_keys(key, T, R), block
+    )
     return {k: v.reshape(T, R) for k, v in m.items()}
 
 
@@ -280,16 +281,21 @@ def table2_row(metrics: dict, n_contexts: int) -> dict:
 
 
 def table2_markdown(rows: dict) -> str:
-    lines = ["# Table 2: BUMPS after policy filtering (this run vs the paper)", "",
-             "| variant | contexts | error m | paper error m | rel. error | paper rel. error |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        "# Table 2: BUMPS after policy filtering (this run vs the paper)",
+        "",
+        "| variant | contexts | error m | paper error m | rel. error | paper rel. error |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, r in rows.items():
         p = PAPER_TABLE2.get(name)
         paper_err = f"{p[0]:.2f} +- {p[1]:.2f}" if p else "-"
         paper_rel = f"{100 * p[2]:.1f}% +- {100 * p[3]:.1f}" if p else "-"
-        lines.append(f"| {name} | {r['n_contexts']} | {r['error_mean_m']:.2f} +- {r['error_std_m']:.2f} | "
-                     f"{paper_err} | {100 * r['rel_error_mean']:.1f}% +- {100 * r['rel_error_std']:.1f} | "
-                     f"{paper_rel} |")
+        lines.append(
+            f"| {name} | {r['n_contexts']} | {r['error_mean_m']:.2f} +- {r['error_std_m']:.2f} | "
+            f"{paper_err} | {100 * r['rel_error_mean']:.1f}% +- {100 * r['rel_error_std']:.1f} | "
+            f"{paper_rel} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -310,12 +316,7 @@ def plot_error_vs_target(path, curves: dict) -> Path:
     ax.set_ylabel("mean final error (m)")
     ax.grid(alpha=0.3)
     ax.legend()
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return results.save_figure(fig, path)
 
 
 def plot_context_map(path, maps: dict) -> Path:
@@ -335,12 +336,7 @@ def plot_context_map(path, maps: dict) -> Path:
     ax.set_ylabel("achieved distance (m)")
     ax.grid(alpha=0.3)
     ax.legend()
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return results.save_figure(fig, path)
 
 
 # -- the stage --------------------------------------------------------------------------------
@@ -370,14 +366,18 @@ def run(cfg, meta_dir, out_dir, verbose: bool = True) -> dict:
             variants.append(("high_sample_rate_4x256", high))
         for name, contexts in variants:
             t0 = time.perf_counter()
-            sel = filter_policy(grid, params, contexts, tasks, cfg.width, cfg.selection_repetitions, sel_key,
-                                ball_xy, cfg.block)
-            m = evaluate_chosen(grid, params, sel.contexts[sel.chosen], tasks, cfg.eval_repetitions, eval_key,
-                                cfg.block)
+            sel = filter_policy(
+                grid, params, contexts, tasks, cfg.width, cfg.selection_repetitions, sel_key, ball_xy, cfg.block
+            )
+            m = evaluate_chosen(
+                grid, params, sel.contexts[sel.chosen], tasks, cfg.eval_repetitions, eval_key, cfg.block
+            )
             selections[name], evals[name] = sel, m
             rows[name] = table2_row(m, len(contexts))
-            say(f"{name}: {len(contexts)} contexts, error {rows[name]['error_mean_m']:.2f} m"
-                f" ({100 * rows[name]['rel_error_mean']:.1f}%) in {time.perf_counter() - t0:.1f} s")
+            say(
+                f"{name}: {len(contexts)} contexts, error {rows[name]['error_mean_m']:.2f} m"
+                f" ({100 * rows[name]['rel_error_mean']:.1f}%) in {time.perf_counter() - t0:.1f} s"
+            )
     a, b = selections["filtered_4x256"], selections["filtered_11x128"]
     use_b, m = ensemble_metrics(a, b, evals["filtered_4x256"], evals["filtered_11x128"])
     rows["filtered_ensemble"] = table2_row(m, len(a.contexts) + len(b.contexts))
@@ -391,8 +391,7 @@ def run(cfg, meta_dir, out_dir, verbose: bool = True) -> dict:
         "paper": {k: dict(zip(TABLE2_COLUMNS, v, strict=True)) for k, v in PAPER_TABLE2.items()},
         "tasks": tasks.tolist(),
         "chosen_contexts": chosen,
-        "per_task_error_m": {k: evaluate.summarise_tasks(v)["error_mean_m"].tolist()
-                             for k, v in evals.items()},
+        "per_task_error_m": {k: evaluate.summarise_tasks(v)["error_mean_m"].tolist() for k, v in evals.items()},
         "config": json.loads(cfg.to_json()),
         "meta_run": str(meta_dir),
         **results.provenance(cfg.preset, time.perf_counter() - t_start),

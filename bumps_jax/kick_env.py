@@ -82,6 +82,14 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
     return cfg
 
 
+def make_preset_config(presets: dict, name: str, overrides: dict | None = None) -> ml_collections.ConfigDict:
+    """`make_config` of the named preset (presets: name -> fn() -> ConfigDict); ValueError naming
+    an unknown preset or key."""
+    if name not in presets:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(presets)}")
+    return make_config(presets[name](), overrides)
+
+
 def validate_config(cfg: ml_collections.ConfigDict) -> None:
     lo, hi = cfg.task_range
     if not 0.0 < lo < hi:

@@ -85,9 +85,7 @@ PRESETS = {"paper": default_config, "tiny": tiny_config}
 
 def make_config(preset: str = "paper", overrides: dict | None = None) -> ml_collections.ConfigDict:
     """The locked preset with dotted overrides; ValueError naming an unknown preset or key."""
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
-    cfg = kick_env.make_config(PRESETS[preset](), overrides)
+    cfg = kick_env.make_preset_config(PRESETS, preset, overrides)
     validate_config(cfg)
     return cfg
 
@@ -256,8 +254,7 @@ def make_trainer(model: MetaPolicy, train_cfg):
         return TrainState(params, opt_state, jnp.zeros((), jnp.int32))
 
     def chunk_one(params, opt_state, seed_key, obs, actions, steps):
-        body = functools.partial(_train_step, apply_fn, optimizer, train_cfg.batch_size, obs, actions,
-                                 seed_key)
+        body = functools.partial(_train_step, apply_fn, optimizer, train_cfg.batch_size, obs, actions, seed_key)
         carry, losses = jax.lax.scan(body, SeedCarry(params, opt_state), steps)
         return carry.params, carry.opt_state, losses
 
@@ -312,15 +309,24 @@ def train(
             state, losses = chunk(state, obs, actions, keys)
             losses = np.asarray(losses)  # the host sync of this chunk
             step = int(state.step)
-            row = [step, float(schedule(step - 1)), float(losses.mean()), float(losses[:, -1].mean()),
-                   float(losses.mean(axis=1).min()), round(time.perf_counter() - t0, 3)]
+            row = [
+                step,
+                float(schedule(step - 1)),
+                float(losses.mean()),
+                float(losses[:, -1].mean()),
+                float(losses.mean(axis=1).min()),
+                round(time.perf_counter() - t0, 3),
+            ]
             with open(csv_path, "a", newline="") as f:
                 csv.writer(f).writerow(row)
             manager.save(step, args=ocp.args.StandardSave(state))
             done_chunks += 1
             if verbose:
-                print(f"  step {step:7d}/{train_cfg.epochs}  lr {row[1]:.2e}  loss {row[2]:.4f}"
-                      f"  (last {row[3]:.4f})  {row[5]:.1f} s", flush=True)
+                print(
+                    f"  step {step:7d}/{train_cfg.epochs}  lr {row[1]:.2e}  loss {row[2]:.4f}"
+                    f"  (last {row[3]:.4f})  {row[5]:.1f} s",
+                    flush=True,
+                )
         manager.wait_until_finished()
     return state
 
@@ -373,8 +379,10 @@ def experts_row_from_json(path) -> tuple[dict, dict | None]:
             row = {k: candidate[k] for k in keys if k in candidate}
             per_task = None
             if isinstance(payload.get("per_task"), list):
-                per_task = {"tasks": [r["target_m"] for r in payload["per_task"]],
-                            "error_mean_m": [r["error_mean_m"] for r in payload["per_task"]]}
+                per_task = {
+                    "tasks": [r["target_m"] for r in payload["per_task"]],
+                    "error_mean_m": [r["error_mean_m"] for r in payload["per_task"]],
+                }
             return {**row, "source": str(path)}, per_task
     raise ValueError(f"{path}: no experts row (need accuracy_mean at the top level or rows.experts)")
 
@@ -383,8 +391,7 @@ TABLE1_COLUMNS = ("accuracy_mean", "accuracy_std", "error_mean_m", "error_std_m"
 
 
 def table1_markdown(rows: dict) -> str:
-    head = ("| policy | accuracy | error (acc > 0.7) m | error (all tasks) m | tasks > 0.7 |\n"
-            "|---|---|---|---|---|\n")
+    head = "| policy | accuracy | error (acc > 0.7) m | error (all tasks) m | tasks > 0.7 |\n|---|---|---|---|---|\n"
     lines = []
     for name, r in rows.items():
         lines.append(
@@ -426,9 +433,11 @@ def run(cfg, out_dir, experts, experts_json=None, verbose: bool = True) -> dict:
         env = dataset_env(cfg.dataset.repetitions)
         data, rec = collect_dataset(env, experts, cfg.dataset.repetitions, cfg.dataset.seed)
         save_dataset(ds_path, data)
-        say(f"dataset: {len(data.obs)} pairs from {len(experts.tasks)} experts x {cfg.dataset.repetitions}"
+        say(
+            f"dataset: {len(data.obs)} pairs from {len(experts.tasks)} experts x {cfg.dataset.repetitions}"
             f" in {time.perf_counter() - t0:.1f} s; expert error in the recording env"
-            f" {rec['final_error'].mean():.2f} m")
+            f" {rec['final_error'].mean():.2f} m"
+        )
 
     env = kick_env.KickEnv()
     rows, per_task = {}, {"tasks": [float(t) for t in cfg.eval.tasks]}
@@ -438,11 +447,14 @@ def run(cfg, out_dir, experts, experts_json=None, verbose: bool = True) -> dict:
             per_task["experts"] = experts_per_task
     else:
         t0 = time.perf_counter()
-        m = evaluate.evaluate_experts(env, experts.apply_fn, experts.params, experts.tasks,
-                                      cfg.eval.repetitions, cfg.eval.seed)
+        m = evaluate.evaluate_experts(
+            env, experts.apply_fn, experts.params, experts.tasks, cfg.eval.repetitions, cfg.eval.seed
+        )
         rows["experts"] = {**evaluate.table_row(evaluate.summarise_tasks(m)), "source": "evaluated here"}
-        per_task["experts"] = {"tasks": [float(t) for t in experts.tasks],
-                               "error_mean_m": evaluate.summarise_tasks(m)["error_mean_m"].tolist()}
+        per_task["experts"] = {
+            "tasks": [float(t) for t in experts.tasks],
+            "error_mean_m": evaluate.summarise_tasks(m)["error_mean_m"].tolist(),
+        }
         say(f"experts: evaluated on their own tasks in {time.perf_counter() - t0:.1f} s")
 
     seeds_rows = {}
@@ -453,17 +465,26 @@ def run(cfg, out_dir, experts, experts_json=None, verbose: bool = True) -> dict:
         say(f"{name}: {depth} x {width}, {cfg.train.epochs} epochs, {cfg.train.n_seeds} seed(s)")
         state = train(MetaPolicy(depth, width), data, cfg.train, out_dir / name, verbose=verbose)
         t0 = time.perf_counter()
-        m = evaluate_unfiltered(env, policy_apply(MetaPolicy(depth, width)), state.params, cfg.eval.tasks,
-                                cfg.eval.repetitions, cfg.eval.seed)
-        summaries = [evaluate.summarise_tasks({k: v[s] for k, v in m.items()})
-                     for s in range(cfg.train.n_seeds)]
+        m = evaluate_unfiltered(
+            env,
+            policy_apply(MetaPolicy(depth, width)),
+            state.params,
+            cfg.eval.tasks,
+            cfg.eval.repetitions,
+            cfg.eval.seed,
+        )
+        summaries = [evaluate.summarise_tasks({k: v[s] for k, v in m.items()}) for s in range(cfg.train.n_seeds)]
         rows[name] = evaluate.table_row(summaries[0])
         seeds_rows[name] = [evaluate.table_row(s) for s in summaries]
-        per_task[name] = {"error_mean_m": summaries[0]["error_mean_m"].tolist(),
-                          "accuracy": summaries[0]["accuracy"].tolist()}
+        per_task[name] = {
+            "error_mean_m": summaries[0]["error_mean_m"].tolist(),
+            "accuracy": summaries[0]["accuracy"].tolist(),
+        }
         r = rows[name]
-        say(f"{name}: evaluated in {time.perf_counter() - t0:.1f} s: accuracy {r['accuracy_mean']:.2f},"
-            f" error {r['error_mean_m']:.2f} m")
+        say(
+            f"{name}: evaluated in {time.perf_counter() - t0:.1f} s: accuracy {r['accuracy_mean']:.2f},"
+            f" error {r['error_mean_m']:.2f} m"
+        )
 
     payload = {
         "rows": rows,

@@ -538,6 +538,8 @@ def plot_sweep(payload: dict, path: str | Path) -> None:
     """Resting distance vs strength along the short -> 12 m -> long family, with the task range."""
     import matplotlib
 
+    from bumps_jax import results  # noqa: PLC0415
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -564,7 +566,4 @@ def plot_sweep(payload: dict, path: str | Path) -> None:
     ax.set_ylabel("resting distance (m)")
     ax.set_title(f"Reachable range, valid fraction annotated ({payload['device']})", fontsize=9)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    results.save_figure(fig, path)

@@ -54,6 +54,18 @@ def write_json(path: str | os.PathLike, payload: dict) -> Path:
     return path
 
 
+def save_figure(fig, path: str | os.PathLike) -> Path:
+    """Save a matplotlib figure as PNG (tight layout, 120 dpi) and close it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def _command_line() -> str:
     """How this process was started, as a user would type it (no absolute paths)."""
     script = Path(sys.argv[0]).resolve()
