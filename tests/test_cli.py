@@ -1,0 +1,29 @@
+"""The command line: every stage has --help, overrides parse, bad keys fail with one clear line."""
+
+import pytest
+
+from bumps_jax import cli
+
+
+def test_every_stage_has_help(capsys):
+    for stage in cli.STAGES:
+        with pytest.raises(SystemExit) as exit_info:
+            cli.main([stage, "--help"])
+        assert exit_info.value.code == 0
+        assert "--preset" in capsys.readouterr().out
+
+
+def test_overrides_parse_json_values():
+    assert cli.parse_overrides(["a.b=1", "c=[7.0, 8.0]", "d=name"]) == {"a.b": 1, "c": (7.0, 8.0), "d": "name"}
+    with pytest.raises(SystemExit, match="key=value"):
+        cli.parse_overrides(["novalue"])
+
+
+def test_unknown_config_key_is_one_clear_line(tmp_path):
+    with pytest.raises(SystemExit, match="error: unknown config key 'filter.nope'"):
+        cli.main(["filter", "--run-dir", str(tmp_path), "--set", "filter.nope=1"])
+
+
+def test_meta_train_without_experts_says_what_to_do(tmp_path):
+    with pytest.raises(SystemExit, match="run train-experts first"):
+        cli.main(["meta-train", "--run-dir", str(tmp_path)])
