@@ -370,7 +370,9 @@ def train_experts(
     finished = int(np.asarray(state.update)[0]) >= total
     if finished:
         final = (run_dir / "final_params").resolve()
-        ocp.StandardCheckpointer().save(final, expert_params(state), force=True)
+        # The checkpointer writes asynchronously: leaving its context waits for the write.
+        with ocp.StandardCheckpointer() as checkpointer:
+            checkpointer.save(final, expert_params(state), force=True)
     manager.close()
     return {"state": state, "bc_losses": bc_losses, "finished": finished, "wall_s": time.perf_counter() - start}
 
