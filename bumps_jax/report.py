@@ -97,7 +97,8 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
     total = 0.0
     for name, payload in found.items():
         if payload is None:
-            lines.append(f"| {name} | not run | |")
+            used = " (the committed `assets/kick_prior.json` was used)" if name == "prior" else ""
+            lines.append(f"| {name} | not run{used} | |")
             continue
         total += payload["wall_s"]
         lines.append(f"| {name} | {payload['wall_s']:.0f} | `{payload['command']}` |")
