@@ -82,13 +82,6 @@ def repetition_keys(seed: int, n_tasks: int, n_reps: int) -> jax.Array:
     return jax.random.split(jax.random.key(seed), n_tasks * n_reps).reshape(n_tasks, n_reps)
 
 
-def stack_contexts(contexts, targets) -> tuple[jax.Array, jax.Array]:
-    return jnp.asarray(contexts, jnp.float32), jnp.asarray(targets, jnp.float32)
-
-
-# -- batched programs (added for meta-training and policy filtering) ---------------------------
-
-
 def _recording_step(env, apply_fn, params, ctx, state, _):
     """One control step that also returns what the policy saw and did: (obs (2,), action (22,))."""
     obs = state.obs.at[1].set(ctx)

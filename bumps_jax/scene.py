@@ -170,15 +170,6 @@ def rolling_decel_rate(path: str = str(SCENE_XML)) -> float:
     return float(np.log(v_start / data.qvel[0]) / 10.0)
 
 
-def rolling_distance(speed: np.ndarray, decel_rate: float, rest_speed: float = BALL_REST_SPEED):
-    """How far a ball rolling at `speed` (m/s, any shape) goes before it is under `rest_speed`.
-
-    Closed form of dv/dt = -c v: the distance covered while v falls from v0 to v1 is
-    (v0 - v1) / c.
-    """
-    return np.maximum(speed - rest_speed, 0.0) / decel_rate
-
-
 @functools.lru_cache(maxsize=4)
 def ball_only_model(path: str = str(SCENE_XML)) -> mujoco.MjModel:
     """The scene without the robot: the same ball, floor and ball-floor contact.
