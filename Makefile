@@ -42,8 +42,11 @@ report: $(STAMP)
 kick-prior: $(STAMP)
 	$(PY) -m bumps_jax kick-prior --preset $(PRESET) $(if $(filter paper,$(PRESET)),--publish,)
 
+# Offscreen rendering: EGL on a GPU host; on a CPU-only machine use MUJOCO_GL=osmesa
+# (Debian: apt-get install libosmesa6).
+MUJOCO_GL ?= egl
 render: $(STAMP)
-	$(PY) -m bumps_jax render --out docs/stance.png
+	MUJOCO_GL=$(MUJOCO_GL) $(PY) -m bumps_jax render --out docs/stance.png
 
 bench-scene: $(STAMP)
 	$(PY) benchmarks/scene_bench.py --out benchmarks/results/scene.json
