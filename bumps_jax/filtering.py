@@ -355,7 +355,7 @@ def run(cfg, meta_dir, out_dir, verbose: bool = True) -> dict:
     low = candidate_contexts(tasks, context_grid(*cfg.context_range, cfg.context_step))
     high = candidate_contexts(tasks, context_grid(*cfg.context_range, cfg.high_context_step))
 
-    selections, evals, rows = {}, {}, {}
+    selections, evals, rows, timings = {}, {}, {}, {}
     for net in meta.NETS:
         depth, width = meta_cfg.nets[net]
         apply_fn, params = meta.load_policy(meta_dir / net, depth, width, meta_cfg.train)
@@ -374,6 +374,9 @@ def run(cfg, meta_dir, out_dir, verbose: bool = True) -> dict:
             )
             selections[name], evals[name] = sel, m
             rows[name] = table2_row(m, len(contexts))
+            rollouts = len(contexts) * cfg.selection_repetitions + len(tasks) * cfg.eval_repetitions
+            wall = time.perf_counter() - t0  # selection + fresh evaluation, compiling included
+            timings[name] = {"wall_s": wall, "rollouts": rollouts, "rollouts_per_s": rollouts / wall}
             say(
                 f"{name}: {len(contexts)} contexts, error {rows[name]['error_mean_m']:.2f} m"
                 f" ({100 * rows[name]['rel_error_mean']:.1f}%) in {time.perf_counter() - t0:.1f} s"
@@ -394,6 +397,7 @@ def run(cfg, meta_dir, out_dir, verbose: bool = True) -> dict:
         "per_task_error_m": {k: evaluate.summarise_tasks(v)["error_mean_m"].tolist() for k, v in evals.items()},
         "config": json.loads(cfg.to_json()),
         "meta_run": str(meta_dir),
+        "timings": timings,
         **results.provenance(cfg.preset, time.perf_counter() - t_start),
     }
     results.write_json(out_dir / "table2.json", meta.json_safe(payload))

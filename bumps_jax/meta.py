@@ -457,13 +457,16 @@ def run(cfg, out_dir, experts, experts_json=None, verbose: bool = True) -> dict:
         }
         say(f"experts: evaluated on their own tasks in {time.perf_counter() - t0:.1f} s")
 
-    seeds_rows = {}
+    seeds_rows, timings = {}, {}
     # The paper's order first (ConfigDict sorts its keys), then any extra nets.
     names = [n for n in NETS if n in cfg.nets] + sorted(n for n in cfg.nets if n not in NETS)
     for name in names:
         depth, width = cfg.nets[name]
         say(f"{name}: {depth} x {width}, {cfg.train.epochs} epochs, {cfg.train.n_seeds} seed(s)")
+        t0 = time.perf_counter()
         state = train(MetaPolicy(depth, width), data, cfg.train, out_dir / name, verbose=verbose)
+        # Includes compiling and checkpoints; a resumed run times only what it trained.
+        timings[name] = {"train_wall_s": time.perf_counter() - t0}
         t0 = time.perf_counter()
         m = evaluate_unfiltered(
             env,
@@ -480,6 +483,7 @@ def run(cfg, out_dir, experts, experts_json=None, verbose: bool = True) -> dict:
             "error_mean_m": summaries[0]["error_mean_m"].tolist(),
             "accuracy": summaries[0]["accuracy"].tolist(),
         }
+        timings[name]["eval_wall_s"] = time.perf_counter() - t0
         r = rows[name]
         say(
             f"{name}: evaluated in {time.perf_counter() - t0:.1f} s: accuracy {r['accuracy_mean']:.2f},"
@@ -492,6 +496,7 @@ def run(cfg, out_dir, experts, experts_json=None, verbose: bool = True) -> dict:
         "per_task": per_task,
         "eval": {"repetitions": cfg.eval.repetitions, "n_tasks": len(cfg.eval.tasks), "seed": cfg.eval.seed},
         "dataset_pairs": len(data.obs),
+        "timings": timings,
         **results.provenance(cfg.preset, time.perf_counter() - t_start),
     }
     results.write_json(out_dir / "table1.json", json_safe(payload))
