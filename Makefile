@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # tiny: CPU-sized, minutes; paper: the paper's budgets, for a GPU.
 PRESET ?= tiny
 
-.PHONY: install test lint demo reproduce report render bench-scene kick-prior train-experts bench-training meta-train filter clean
+.PHONY: install test lint demo reproduce report baseline render bench-scene kick-prior train-experts bench-training meta-train filter clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -65,6 +65,10 @@ meta-train: $(STAMP)
 
 filter: $(STAMP)
 	$(PY) -m bumps_jax filter --preset $(PRESET)
+
+# The paper's Figure 1: plain multi-task PPO (one contextual policy, targets U[7, 18] m).
+baseline: $(STAMP)
+	$(PY) experiments/multitask_baseline.py --preset $(PRESET)
 
 clean:
 	rm -rf $(VENV) runs

@@ -67,6 +67,10 @@ def default_config() -> ml_collections.ConfigDict:
     cfg.policy_hidden = (64, 64)  # paper: 64-64 tanh
     cfg.value_hidden = (64, 64)  # paper: 64-64 tanh
     cfg.init_log_std = -6.0  # paper: state-independent log-std initialised at -6
+    # None: every episode of `train(rng, target)` kicks for `target` (an expert). (low, high):
+    # each episode draws its own target from U[low, high] and `target` is ignored: the paper's
+    # multi-task PPO baseline.
+    cfg.sample_task_range = None
     return cfg
 
 
@@ -104,6 +108,12 @@ def validate_config(cfg: ml_collections.ConfigDict, n_steps: int) -> None:
     for key in ("policy_hidden", "value_hidden"):
         if not cfg[key] or any(int(h) < 1 for h in cfg[key]):
             raise ValueError(f"ppo.{key} must be positive layer sizes, got {tuple(cfg[key])!r}")
+    if cfg.sample_task_range is not None:
+        low, high = cfg.sample_task_range
+        if not 0.0 < low < high:
+            raise ValueError(
+                f"ppo.sample_task_range must be (low, high) with 0 < low < high, got {cfg.sample_task_range}"
+            )
 
 
 def n_updates(cfg: ml_collections.ConfigDict, n_steps: int) -> int:
@@ -252,10 +262,19 @@ def _env_step(ctx: _Context, normalizer, policy_params, carry: _RolloutCarry, _u
 
 
 def rollout(ctx: _Context, normalizer, policy_params, target, rng):
-    """`num_envs` whole episodes at `target` m. Returns (final env State (B,), Transition (B, T))."""
+    """`num_envs` whole episodes at `target` m (or at sampled targets, see `sample_task_range`).
+
+    Returns (final env State (B,), Transition (B, T)).
+    """
     rng_reset, rng_steps = jax.random.split(rng)
     keys = jax.random.split(rng_reset, ctx.config.num_envs)
-    env_state = jax.vmap(ctx.env.reset, in_axes=(0, None))(keys, target)
+    if ctx.config.sample_task_range is None:
+        targets = jnp.broadcast_to(target, (ctx.config.num_envs,))
+    else:
+        low, high = ctx.config.sample_task_range
+        rng_task = jax.random.fold_in(rng_reset, 1)
+        targets = jax.random.uniform(rng_task, (ctx.config.num_envs,), minval=low, maxval=high)
+    env_state = jax.vmap(ctx.env.reset)(keys, targets)
     body = functools.partial(_env_step, ctx, normalizer, policy_params)
     carry, data = jax.lax.scan(body, _RolloutCarry(env_state, rng_steps), None, ctx.env.n_steps)
     # (T, B) -> (B, T): Brax's loss takes batch-major data and swaps it back itself.
