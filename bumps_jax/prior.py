@@ -473,18 +473,16 @@ def run_stage(preset: str, run_dir: str | Path, overrides: dict | None = None, p
     validate_config(cfg)
     env = _env_for(cfg)
     rollout = make_rollout(env)  # one jitted program, compiled once per batch shape
-    main_params = optimise(cfg, run_dir / "main", env=env, rollout=rollout)["params"]
+    # `optimise` already scores its best kick over eval_repetitions fresh noisy episodes.
+    main = optimise(cfg, run_dir / "main", env=env, rollout=rollout)
+    main_params, evaluation = main["params"], main["evaluation"]
     optimise_s = time.perf_counter() - t0
-    evaluation = evaluate(main_params, cfg, repetitions=cfg.eval_repetitions, seed=101, env=env, rollout=rollout)
     anchors = {"main": np.asarray(main_params)}
     extremes = {}
     for name, target in EXTREMES.items():
         ext_cfg = make_config(cfg, {"target": target, "free_params": PARAM_NAMES})
         ext = optimise(ext_cfg, run_dir / name, start=main_params, env=env, rollout=rollout)
-        anchors[name] = np.asarray(ext["params"])
-        ext_eval = evaluate(
-            anchors[name], ext_cfg, repetitions=cfg.eval_repetitions, seed=202, env=env, rollout=rollout
-        )
+        anchors[name], ext_eval = np.asarray(ext["params"]), ext["evaluation"]
         extremes[name] = {"target_m": target, "mean_error_m": ext_eval["mean_error"],
                           "mean_distance_m": ext_eval["mean_distance"], "valid_fraction": ext_eval["valid_fraction"],
                           "fallen_fraction": ext_eval["fallen_fraction"]}  # fmt: skip
