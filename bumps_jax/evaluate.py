@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import kick_env
+from bumps_jax import kick_env, sharding
 
 # The paper counts a meta-policy's error only on tasks where it kicks validly this often.
 ACCURACY_THRESHOLD = 0.7
@@ -106,16 +106,20 @@ def trajectory_fn(env: kick_env.KickEnv, apply_fn):
     return trajectory
 
 
-def grid_fn(env: kick_env.KickEnv, apply_fn):
+def grid_fn(env: kick_env.KickEnv, apply_fn, mesh=None):
     """Jitted (params (P, ...), contexts (n,), targets (n,), keys (n, R)) -> metrics of (P, n, R).
 
     Every policy of a stack (seeds, networks of one architecture) on every (context, target)
-    pair, R noisy repetitions each: one XLA program.
+    pair, R noisy repetitions each: one XLA program. With a `mesh` the pairs are split over
+    its devices (n must then be a multiple of the mesh size; `filtering.run_blocked` pads).
     """
     episode = episode_fn(env, apply_fn)
     over_reps = jax.vmap(episode, in_axes=(None, None, None, 0))
     over_pairs = jax.vmap(over_reps, in_axes=(None, 0, 0, 0))
-    return jax.jit(jax.vmap(over_pairs, in_axes=(0, None, None, None)))
+    over_policies = jax.vmap(over_pairs, in_axes=(0, None, None, None))
+    if mesh is None:
+        return jax.jit(over_policies)
+    return sharding.over_batch(over_policies, mesh, (False, True, True, True), out_axis=1)
 
 
 def _return_step(env, apply_fn, params, ctx, carry, _):

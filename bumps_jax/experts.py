@@ -28,7 +28,7 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 
-from bumps_jax import evaluate, kick_env, ppo, prior, results, synthetic_experts
+from bumps_jax import evaluate, kick_env, ppo, prior, results, sharding, synthetic_experts
 
 PRESETS = ("tiny", "paper")
 
@@ -227,19 +227,40 @@ class Compiled(NamedTuple):
 
     env: kick_env.KickEnv
     trainer: ppo.Trainer
+    mesh: Any  # the devices the task axis is split over (`sharding.device_mesh`)
+    # Both take and return batches whose task axis N is a multiple of the mesh size (`run_init`
+    # and `train_experts` pad and unpad):
     init: Any  # (rngs (N, 2), targets (N,)) -> (TrainState (N,...), BC losses (N, steps))
     chunk: Any  # (TrainState (N,...), targets (N,)) -> (TrainState, UpdateMetrics (N, chunk))
 
 
-def compile_programs(cfg: ml_collections.ConfigDict, env: kick_env.KickEnv | None = None) -> Compiled:
-    """Validate `cfg` and build the jitted vmapped programs (compiled on first call)."""
+def compile_programs(cfg: ml_collections.ConfigDict, env: kick_env.KickEnv | None = None, mesh=None) -> Compiled:
+    """Validate `cfg` and build the jitted task-vmapped programs, split over `mesh` (default:
+    every device) along the task axis; compiled on first call."""
     env = env or kick_env.KickEnv()
     validate_config(cfg, env)
+    mesh = mesh or sharding.device_mesh()
     trainer = ppo.make_train(cfg.ppo, env)
-    init = jax.jit(jax.vmap(make_init(cfg, env, trainer)))
+    init = sharding.over_batch(jax.vmap(make_init(cfg, env, trainer)), mesh, (True, True))
     n = int(cfg.updates_per_chunk)
-    chunk = jax.jit(jax.vmap(lambda state, target: trainer.run_updates(state, target, n)))
-    return Compiled(env, trainer, init, chunk)
+    chunk = jax.vmap(lambda state, target: trainer.run_updates(state, target, n))
+    return Compiled(env, trainer, mesh, init, sharding.over_batch(chunk, mesh, (True, True)))
+
+
+def run_init(programs: Compiled, rngs, targets):
+    """BC initial states for any number of tasks: (TrainState (N, ...), BC losses (N, steps))."""
+    n = len(targets)
+    size = sharding.padded_size(n, programs.mesh)
+    out = programs.init(sharding.pad(rngs, size), sharding.pad(jnp.asarray(targets, jnp.float32), size))
+    return sharding.unpad(out, n)
+
+
+def run_chunk(programs: Compiled, state: ppo.TrainState, targets):
+    """One chunk of PPO updates for any number of tasks: (TrainState (N, ...), UpdateMetrics (N, chunk))."""
+    n = len(targets)
+    size = sharding.padded_size(n, programs.mesh)
+    out = programs.chunk(sharding.pad(state, size), sharding.pad(jnp.asarray(targets, jnp.float32), size))
+    return sharding.unpad(out, n)
 
 
 def task_rngs(seed: int, n_tasks: int) -> jax.Array:
@@ -330,13 +351,14 @@ def train_experts(
     run_dir.mkdir(parents=True, exist_ok=True)
     tasks = tuple(float(t) for t in cfg.tasks)
     targets = jnp.asarray(tasks, jnp.float32)
+    n_tasks = len(tasks)
     total = trainer.n_updates
     start = time.perf_counter()
 
     (run_dir / "config.json").write_text(cfg.to_json(indent=2) + "\n")
     manager = _checkpoint_manager(run_dir, cfg.keep_checkpoints)
     progress = run_dir / "progress.csv"
-    abstract = jax.eval_shape(programs.init, task_rngs(cfg.seed, len(tasks)), targets)[0]
+    abstract = jax.eval_shape(functools.partial(run_init, programs), task_rngs(cfg.seed, n_tasks), targets)[0]
     bc_losses = None
     if manager.latest_step() is not None:
         state = manager.restore(manager.latest_step(), args=ocp.args.StandardRestore(abstract))
@@ -344,7 +366,7 @@ def train_experts(
         if verbose:
             print(f"resumed from update {manager.latest_step()} in {run_dir}")
     else:
-        state, bc_losses = programs.init(task_rngs(cfg.seed, len(tasks)), targets)
+        state, bc_losses = run_init(programs, task_rngs(cfg.seed, n_tasks), targets)
         manager.save(0, args=ocp.args.StandardSave(state))
         manager.wait_until_finished()
         progress.unlink(missing_ok=True)
@@ -356,7 +378,7 @@ def train_experts(
         if stop_after_chunks is not None and chunks >= stop_after_chunks:
             break
         before = state
-        state, metrics = programs.chunk(state, targets)
+        state, metrics = run_chunk(programs, state, targets)
         update = int(np.asarray(state.update)[0])
         # The CSV rows go first: if the run dies before the checkpoint lands, the resume trims
         # them and redoes the chunk, so the file never misses or repeats an update.
@@ -379,7 +401,7 @@ def train_experts(
 
 def load_final_params(run_dir, programs: Compiled, n_tasks: int) -> ExpertParams:
     """The ExpertParams (N tasks, ...) that `train_experts` saved under run_dir/final_params."""
-    abstract = jax.eval_shape(programs.init, task_rngs(0, n_tasks), jnp.zeros(n_tasks))[0]
+    abstract = jax.eval_shape(functools.partial(run_init, programs), task_rngs(0, n_tasks), jnp.zeros(n_tasks))[0]
     final = (Path(run_dir) / "final_params").resolve()
     return ocp.StandardCheckpointer().restore(final, expert_params(abstract))
 

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from bumps_jax import evaluate, kick_env, meta, results, scene
+from bumps_jax import evaluate, kick_env, meta, results, scene, sharding
 
 # The paper's Table 2: (error mean m, error std m, relative error mean, relative error std).
 PAPER_TABLE2 = {
@@ -195,15 +195,16 @@ class Selection(NamedTuple):
     best_score: np.ndarray  # (T,) the chosen context's selection score (m)
 
 
-def run_blocked(grid, params, contexts, targets, keys, block: int | None) -> dict:
+def run_blocked(grid, params, contexts, targets, keys, block: int | None, multiple: int = 1) -> dict:
     """Episodes (policy params shared, P = 1 stack) for flat (B,) contexts, targets, keys.
 
     block None: one program call for the batch; else calls of exactly `block` episodes (the
-    last padded by repeating its first episode), so one compiled program serves any B.
+    last padded by repeating its first episode), so one compiled program serves any B. Either
+    size is rounded up to a multiple of `multiple` (the devices a sharded grid splits over).
     Returns metrics of (B,).
     """
     n = len(contexts)
-    size = n if block is None else int(block)
+    size = -(-(n if block is None else int(block)) // multiple) * multiple
     out = []
     for start in range(0, n, size):
         idx = np.arange(start, start + size)
@@ -220,7 +221,9 @@ def stage_keys(key, n: int, reps: int) -> jax.Array:
     return jax.random.split(key, n * reps)
 
 
-def filter_policy(grid, params, contexts, tasks, width, repetitions, key, ball_xy, block=None) -> Selection:
+def filter_policy(
+    grid, params, contexts, tasks, width, repetitions, key, ball_xy, block=None, multiple: int = 1
+) -> Selection:
     """Roll every candidate context out `repetitions` times and choose one per task.
 
     The env needs a target to score against; any in-range one gives the same resting points,
@@ -230,7 +233,7 @@ def filter_policy(grid, params, contexts, tasks, width, repetitions, key, ball_x
     check_width(width)
     C, R = len(contexts), int(repetitions)
     flat_ctx = np.repeat(contexts, R)
-    m = run_blocked(grid, params, flat_ctx, flat_ctx, stage_keys(key, C, R), block)
+    m = run_blocked(grid, params, flat_ctx, flat_ctx, stage_keys(key, C, R), block, multiple)
     m = {k: v.reshape(C, R) for k, v in m.items()}
     rest = np.stack([m["rest_x"], m["rest_y"]], axis=-1)
     scores = score_matrix(rest, m["blown_up"] > 0, tasks, ball_xy)
@@ -245,13 +248,12 @@ def filter_policy(grid, params, contexts, tasks, width, repetitions, key, ball_x
     )
 
 
-def evaluate_chosen(grid, params, chosen_contexts, tasks, repetitions, key, block=None) -> dict:
+def evaluate_chosen(grid, params, chosen_contexts, tasks, repetitions, key, block=None, multiple: int = 1) -> dict:
     """Fresh noisy episodes of each task's chosen context: metrics of (T, repetitions)."""
     tasks = np.asarray(tasks, np.float64)
     T, R = len(tasks), int(repetitions)
-    m = run_blocked(
-        grid, params, np.repeat(np.asarray(chosen_contexts), R), np.repeat(tasks, R), stage_keys(key, T, R), block
-    )
+    flat_ctx, flat_tasks = np.repeat(np.asarray(chosen_contexts), R), np.repeat(tasks, R)
+    m = run_blocked(grid, params, flat_ctx, flat_tasks, stage_keys(key, T, R), block, multiple)
     return {k: v.reshape(T, R) for k, v in m.items()}
 
 
@@ -352,6 +354,9 @@ def run(cfg, meta_dir, out_dir, verbose: bool = True) -> dict:
     ball_xy = ball_start_xy(env)
     tasks = np.asarray(cfg.tasks, np.float64)
     sel_key, eval_key = noise_keys(cfg.seed)
+    # Episodes are split over every device (a mesh of one on a single GPU: the same program).
+    mesh = sharding.device_mesh()
+    n_dev = mesh.size
     low = candidate_contexts(tasks, context_grid(*cfg.context_range, cfg.context_step))
     high = candidate_contexts(tasks, context_grid(*cfg.context_range, cfg.high_context_step))
 
@@ -360,18 +365,17 @@ def run(cfg, meta_dir, out_dir, verbose: bool = True) -> dict:
         depth, width = meta_cfg.nets[net]
         apply_fn, params = meta.load_policy(meta_dir / net, depth, width, meta_cfg.train)
         params = jax.tree.map(lambda a: a[cfg.net_seed : cfg.net_seed + 1], params)
-        grid = evaluate.grid_fn(env, apply_fn)
+        grid = evaluate.grid_fn(env, apply_fn, mesh)
         variants = [(f"filtered_{net[5:]}", low)]
         if net == "meta_4x256":
             variants.append(("high_sample_rate_4x256", high))
         for name, contexts in variants:
             t0 = time.perf_counter()
             sel = filter_policy(
-                grid, params, contexts, tasks, cfg.width, cfg.selection_repetitions, sel_key, ball_xy, cfg.block
+                grid, params, contexts, tasks, cfg.width, cfg.selection_repetitions, sel_key, ball_xy, cfg.block, n_dev
             )
-            m = evaluate_chosen(
-                grid, params, sel.contexts[sel.chosen], tasks, cfg.eval_repetitions, eval_key, cfg.block
-            )
+            chosen = sel.contexts[sel.chosen]
+            m = evaluate_chosen(grid, params, chosen, tasks, cfg.eval_repetitions, eval_key, cfg.block, n_dev)
             selections[name], evals[name] = sel, m
             rows[name] = table2_row(m, len(contexts))
             rollouts = len(contexts) * cfg.selection_repetitions + len(tasks) * cfg.eval_repetitions

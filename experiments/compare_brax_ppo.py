@@ -114,9 +114,9 @@ def compare(
     env = kick_env.KickEnv(config_overrides={"tasks": (target,)})
     programs = experts.compile_programs(cfg, env)
     targets = jnp.asarray([target], jnp.float32)
-    state0, _ = programs.init(experts.task_rngs(seed, 1), targets)
+    state0, _ = experts.run_init(programs, experts.task_rngs(seed, 1), targets)
     t0 = time.perf_counter()
-    ours, metrics = programs.chunk(state0, targets)
+    ours, metrics = experts.run_chunk(programs, state0, targets)
     jax.block_until_ready(ours)
     ours_wall = time.perf_counter() - t0
 

@@ -78,13 +78,13 @@ def test_vmapped_training_equals_each_task_alone(programs):
     policy-param differences of 1e-3 after two updates)."""
     cfg = _tiny_config()
     targets = jnp.asarray(cfg.tasks)
-    state, bc_losses = programs.init(experts.task_rngs(cfg.seed, 2), targets)
+    state, bc_losses = experts.run_init(programs, experts.task_rngs(cfg.seed, 2), targets)
     assert np.all(np.asarray(bc_losses[:, -1]) < 0.2 * np.asarray(bc_losses[:, 0]))
-    together, metrics = programs.chunk(state, targets)
+    together, metrics = experts.run_chunk(programs, state, targets)
 
     other_targets = jnp.asarray([8.0, 16.0])
-    other_state, _ = programs.init(experts.task_rngs(cfg.seed, 2), other_targets)
-    other, _ = programs.chunk(other_state, other_targets)
+    other_state, _ = experts.run_init(programs, experts.task_rngs(cfg.seed, 2), other_targets)
+    other, _ = experts.run_chunk(programs, other_state, other_targets)
     for a, b in zip(jax.tree_util.tree_leaves(together), jax.tree_util.tree_leaves(other), strict=True):
         np.testing.assert_array_equal(np.asarray(a)[0], np.asarray(b)[0])
 

@@ -101,8 +101,8 @@ def test_tiny_ppo_improves_return():
         }
     )
     programs = experts.compile_programs(cfg, env)
-    state, _ = programs.init(experts.task_rngs(cfg.seed, 1), jnp.asarray(cfg.tasks))
-    trained, _ = programs.chunk(state, jnp.asarray(cfg.tasks))
+    state, _ = experts.run_init(programs, experts.task_rngs(cfg.seed, 1), jnp.asarray(cfg.tasks))
+    trained, _ = experts.run_chunk(programs, state, jnp.asarray(cfg.tasks))
     episode = evaluate.return_fn(env, experts.expert_policy(programs.trainer.networks))
     episode = jax.jit(jax.vmap(episode, in_axes=(None, None, 0)))
     keys = jax.random.split(jax.random.PRNGKey(99), 4)

@@ -1,0 +1,79 @@
+"""Spreading a batch axis (experts, episodes) over devices with JAX's own sharding.
+
+Every batched program of the pipeline is a `vmap` over independent items: experts in
+training, episodes in filtering. `over_batch` wraps such a function in `jax.shard_map` over a
+one-axis `Mesh`: each device runs the same vmapped program on its slice, with no
+communication. On one device the mesh has one member and the program is the one that runs
+everywhere else, so there is a single code path.
+
+The batch must divide evenly over the devices: `pad` repeats the last item up to a multiple
+of the mesh size and callers drop the copies (`unpad`) before anything is saved, so
+checkpoints and results do not depend on how many devices made them.
+
+Several hosts: start one process per host and call `jax.distributed.initialize()` before
+anything else (see README, "Several GPUs and hosts"); `jax.devices()` then lists every
+host's devices and `device_mesh()` spans them all.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+AXIS = "batch"
+
+
+def device_mesh(n_devices: int | None = None) -> Mesh:
+    """A one-axis mesh over the first `n_devices` devices (default: all of them)."""
+    devices = jax.devices()
+    n = len(devices) if n_devices is None else int(n_devices)
+    if not 1 <= n <= len(devices):
+        raise ValueError(f"n_devices must be in [1, {len(devices)}] (the devices visible), got {n_devices!r}")
+    return Mesh(np.asarray(devices[:n]), (AXIS,))
+
+
+def padded_size(n: int, mesh: Mesh) -> int:
+    """The smallest multiple of the mesh size that holds `n` items."""
+    return -(-int(n) // mesh.size) * mesh.size
+
+
+def pad(tree, size: int):
+    """Every leaf's leading axis grown to `size` by repeating its last row."""
+
+    def grow(x):
+        extra = size - x.shape[0]
+        if extra < 0:
+            raise ValueError(f"cannot pad a batch of {x.shape[0]} down to {size}")
+        if extra == 0:
+            return x
+        tail = jax.numpy.repeat(x[-1:], extra, axis=0)
+        return jax.numpy.concatenate([x, tail], axis=0)
+
+    return jax.tree.map(grow, tree)
+
+
+def unpad(tree, n: int):
+    """Every leaf's first `n` rows (the real items; the rest are `pad`'s copies)."""
+    return jax.tree.map(lambda x: x[:n], tree)
+
+
+def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0):
+    """`jit(shard_map(fn))`: the arguments flagged in `batched` split on their leading axis,
+    the others replicated; every output split on axis `out_axis`.
+
+    `fn` must treat the items of its batch independently (a vmap), so each device's slice
+    gives what the whole batch would.
+    """
+    in_specs = tuple(P(AXIS) if b else P() for b in batched)
+    # check_vma off: the vmapped simulators draw randomness and scan with carries that the
+    # varying-axis checker cannot always type; nothing here communicates across devices.
+    out_specs = P(*([None] * out_axis), AXIS)
+    mapped = jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False)
+    return jax.jit(mapped)
+
+
+def place(tree, mesh: Mesh):
+    """Put a batch (leading axis a multiple of the mesh size) split over the mesh's devices."""
+    return jax.device_put(tree, NamedSharding(mesh, P(AXIS)))
