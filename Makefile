@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # tiny: CPU-sized, minutes; paper: the paper's budgets, for a GPU.
 PRESET ?= tiny
 
-.PHONY: install test lint demo reproduce report baseline render bench-scene kick-prior train-experts bench-training meta-train filter clean
+.PHONY: install test lint demo reproduce report baseline render video publish bench-scene kick-prior train-experts bench meta-train filter clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +48,10 @@ MUJOCO_GL ?= egl
 render: $(STAMP)
 	MUJOCO_GL=$(MUJOCO_GL) $(PY) -m bumps_jax render --out docs/stance.png
 
+# A GIF of filtered kicks at three distances from a finished run (runs/$(PRESET)/filtered_kicks.gif).
+video: $(STAMP)
+	MUJOCO_GL=$(MUJOCO_GL) $(PY) -m bumps_jax video --preset $(PRESET)
+
 bench-scene: $(STAMP)
 	$(PY) benchmarks/scene_bench.py --out benchmarks/results/scene.json
 
@@ -56,8 +60,11 @@ bench-scene: $(STAMP)
 train-experts: $(STAMP)
 	$(PY) -m bumps_jax train-experts --preset $(PRESET)
 
-bench-training: $(STAMP)
-	$(PY) benchmarks/training_bench.py --preset $(PRESET) --out runs/bench/training_$(PRESET).json
+# Every speed side by side on this device: physics, env, experts vs Brax PPO, BC, filtering.
+# PRESET=paper (a GPU) writes benchmarks/results/training.json, and with more than one GPU
+# visible also scaling.json (one GPU vs all); the tiny preset is a CPU smoke test in runs/bench.
+bench: $(STAMP)
+	$(PY) benchmarks/bench.py --preset $(PRESET) $(if $(filter paper,$(PRESET)),,--out-dir runs/bench)
 
 # Behaviour cloning of the experts (runs/$(PRESET)/experts) into the two meta-policies.
 meta-train: $(STAMP)

@@ -87,8 +87,35 @@ OUTPUTS = {
 }
 
 
-def _pipeline(run_dir: Path, preset: str, stages: tuple[str, ...]) -> None:
-    """Run `stages` in order, skipping one whose output exists and is newer than its input's."""
+# `--set` keys of the whole pipeline name their stage first: experts.ppo.total_env_steps=...
+PREFIXES = {"prior": "kick-prior", "experts": "train-experts", "meta": "meta-train", "filter": "filter"}
+
+
+def split_overrides(overrides: dict, stages: tuple[str, ...]) -> dict:
+    """{'experts.ppo.lr': x} -> {'train-experts': {'ppo.lr': x}}; SystemExit naming a bad key."""
+    out = {stage: {} for stage in stages}
+    for key, value in overrides.items():
+        prefix, _, rest = key.partition(".")
+        stage = PREFIXES.get(prefix)
+        if stage not in out or not rest:
+            names = ", ".join(f"{p}." for p, s in PREFIXES.items() if s in stages)
+            raise SystemExit(f"--set {key!r}: pipeline overrides start with a stage ({names})")
+        out[stage][rest] = value
+    return out
+
+
+def _pipeline(run_dir: Path, preset: str, stages: tuple[str, ...], overrides: dict | None = None) -> None:
+    """Run `stages` in order, skipping one whose output exists and is newer than its input's.
+
+    Writes run_dir/pipeline.json: each stage's wall time in this call and the total.
+    """
+    import time
+
+    from bumps_jax import results
+
+    per_stage = split_overrides(overrides or {}, stages)
+    timing_path = run_dir / "pipeline.json"
+    timing = json.loads(timing_path.read_text()) if timing_path.exists() else {"stages": {}}
     previous = None
     for stage in stages:
         out = run_dir / OUTPUTS[stage]
@@ -97,25 +124,66 @@ def _pipeline(run_dir: Path, preset: str, stages: tuple[str, ...]) -> None:
             print(f"== {stage}: up to date ({out})")
         else:
             print(f"== {stage}", flush=True)
-            STAGES[stage][0](run_dir, preset, {}, **({"publish": True} if stage == "kick-prior" else {}))
+            t0 = time.perf_counter()
+            extra = {"publish": True} if stage == "kick-prior" else {}
+            try:
+                STAGES[stage][0](run_dir, preset, per_stage[stage], **extra)
+            finally:  # also when interrupted (Ctrl-C, `timeout -s INT`): a resumed stage adds up its parts
+                timing["stages"][stage] = timing["stages"].get(stage, 0.0) + time.perf_counter() - t0
+                total = sum(timing["stages"].values())
+                timing.update(results.provenance(preset, total))
+                timing.update({"overrides": {k: str(v) for k, v in (overrides or {}).items()}, "total_wall_s": total})
+                results.write_json(timing_path, timing)
         previous = out
     _report(run_dir, preset, {})
 
 
 def _demo(run_dir: Path, preset: str, overrides: dict) -> None:
     """The pipeline at CPU size; the kick prior is the committed one (assets/)."""
-    _pipeline(run_dir, "tiny", ("train-experts", "meta-train", "filter"))
+    _pipeline(run_dir, "tiny", ("train-experts", "meta-train", "filter"), overrides)
 
 
 def _reproduce(run_dir: Path, preset: str, overrides: dict) -> None:
     """The paper preset end to end (a GPU job); a rerun resumes or skips finished stages."""
-    _pipeline(run_dir, "paper", ("kick-prior", "train-experts", "meta-train", "filter"))
+    _pipeline(run_dir, "paper", ("kick-prior", "train-experts", "meta-train", "filter"), overrides)
+
+
+def _publish(run_dir: Path, preset: str, overrides: dict) -> None:
+    from bumps_jax import report
+
+    for path in report.publish(run_dir):
+        print(f"wrote {path}")
 
 
 def _render(run_dir: Path, preset: str, overrides: dict, out: str = "docs/stance.png") -> None:
     from bumps_jax import render
 
     print(render.stance_picture(out))
+
+
+def _video(run_dir: Path, preset: str, overrides: dict, out: str | None = None) -> None:
+    """A GIF of filtered kicks of a finished run: the (4, 256) net at three test tasks."""
+    import jax
+    import ml_collections
+    import numpy as np
+
+    from bumps_jax import kick_env, meta, render
+
+    table2 = run_dir / "filter" / "table2.json"
+    if not table2.exists():
+        raise ValueError(f"no {table2}: run the filter stage first")
+    payload = json.loads(table2.read_text())
+    tasks, chosen = np.asarray(payload["tasks"]), np.asarray(payload["chosen_contexts"]["filtered_4x256"])
+    picks = [int(np.argmin(np.abs(tasks - t))) for t in (8.0, 12.0, 16.0)]
+    picks = sorted(set(picks))
+    meta_cfg = ml_collections.ConfigDict(json.loads((run_dir / "meta" / "config.json").read_text()))
+    depth, width = meta_cfg.nets["meta_4x256"]
+    apply_fn, params = meta.load_policy(run_dir / "meta" / "meta_4x256", depth, width, meta_cfg.train)
+    params = jax.tree.map(lambda a: a[0], params)
+    path = render.kick_gif(
+        out or run_dir / "filtered_kicks.gif", kick_env.KickEnv(), apply_fn, params, chosen[picks], tasks[picks]
+    )
+    print(f"wrote {path}")
 
 
 def _showcase(run_dir: Path, preset: str, overrides: dict, episodes: int = 16) -> None:
@@ -142,7 +210,9 @@ STAGES = {
     "report": (_report, "write report.md: our tables beside the paper's, figures, timings"),
     "demo": (_demo, "the whole pipeline at CPU size (tiny preset), ending with a report"),
     "reproduce": (_reproduce, "the whole pipeline at the paper's size (a GPU), resumable"),
+    "publish": (_publish, "copy a finished run's results and figures into results/, docs/; rebuild docs/results.md"),
     "render": (_render, "render the robot in its stance to a PNG"),
+    "video": (_video, "render a GIF of filtered kicks at three distances from a finished run"),
     "showcase": (_showcase, "replay the committed prior over a batch of noisy episodes"),
 }
 
@@ -155,27 +225,39 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--preset", default="tiny", choices=("tiny", "paper"))
         p.add_argument("--run-dir", default=None, type=Path, help="default: runs/<preset> (runs/demo for demo)")
         p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides, JSON values")
+        p.add_argument(
+            "--distributed", action="store_true", help="one process per host of a multi-host job (jax.distributed)"
+        )
         if name == "kick-prior":
             p.add_argument("--publish", action="store_true", help="also write the committed copies (assets, results)")
         if name == "meta-train":
             p.add_argument("--synthetic-experts", action="store_true", help="clone the prior-based stand-in experts")
         if name == "render":
             p.add_argument("--out", default="docs/stance.png")
+        if name == "video":
+            p.add_argument("--out", default=None, help="default: <run-dir>/filtered_kicks.gif")
         if name == "showcase":
             p.add_argument("--episodes", type=int, default=16)
     return parser
 
 
-EXTRA_ARGS = {"kick-prior": ("publish",), "meta-train": ("synthetic_experts",), "render": ("out",),
+EXTRA_ARGS = {"kick-prior": ("publish",), "meta-train": ("synthetic_experts",), "render": ("out",), "video": ("out",),
               "showcase": ("episodes",)}  # fmt: skip
 
 
 def main(argv=None) -> None:
     args = build_parser().parse_args(argv)
     run_dir = args.run_dir or Path("runs") / ("demo" if args.stage == "demo" else args.preset)
-    # Offscreen rendering needs a GL backend before mujoco loads one: EGL unless told otherwise.
-    os.environ.setdefault("MUJOCO_GL", "egl")
+    if args.stage in ("render", "video"):
+        # Offscreen rendering needs a GL backend before mujoco loads one: EGL unless told
+        # otherwise. Only here: with MUJOCO_GL set, importing mujoco loads that GL library, and
+        # a host without one (a CPU box, a bare GPU node) could then not even simulate.
+        os.environ.setdefault("MUJOCO_GL", "egl")
     extra = {k: getattr(args, k) for k in EXTRA_ARGS.get(args.stage, ())}
+    if args.distributed:
+        from bumps_jax import sharding
+
+        sharding.initialize_distributed()
     try:
         STAGES[args.stage][0](run_dir, args.preset, parse_overrides(args.set), **extra)
     except ValueError as err:  # bad config values: one clear line, not a traceback

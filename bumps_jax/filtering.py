@@ -58,9 +58,11 @@ def default_config() -> ml_collections.ConfigDict:
     cfg.eval_repetitions = 100  # fresh noisy rollouts of each task's chosen policy
     cfg.seed = 0  # split into independent selection and evaluation noise
     cfg.net_seed = 0  # which network of a seed ensemble is filtered
-    # Episodes per program call: None runs each stage as one batch; an int pads and blocks
-    # every stage to that size, so one compiled program serves all of them (CPU).
-    cfg.block = ml_collections.config_dict.placeholder(int)
+    # Episodes per program call: None runs each stage as one batch (a compile per batch size);
+    # an int pads and blocks every stage to that size, so one compiled program per net serves
+    # all of them. 4096 episodes keep a GPU busy (the env runs at ~0.4M steps/s from a batch
+    # of 4096 on an H200) and compile once instead of six times.
+    cfg.block = ml_collections.config_dict.FieldReference(4096, field_type=int)
     return cfg
 
 
@@ -97,7 +99,7 @@ def validate_config(cfg) -> None:
     for key in ("selection_repetitions", "eval_repetitions"):
         if not isinstance(cfg[key], int) or cfg[key] < 1:
             raise ValueError(f"{key} must be a positive integer, got {cfg[key]!r}")
-    if cfg.block is not None and cfg.block < 1:
+    if cfg.block is not None and (not isinstance(cfg.block, int) or cfg.block < 1):
         raise ValueError(f"block must be None or a positive integer, got {cfg.block!r}")
 
 
@@ -212,7 +214,7 @@ def run_blocked(grid, params, contexts, targets, keys, block: int | None, multip
         m = grid(
             params, jnp.asarray(contexts[idx], jnp.float32), jnp.asarray(targets[idx], jnp.float32), keys[idx][:, None]
         )
-        out.append({k: np.asarray(v)[0, :, 0] for k, v in m.items()})
+        out.append({k: np.asarray(v)[0, :, 0] for k, v in sharding.gather(m).items()})
     return {k: np.concatenate([o[k] for o in out])[:n] for k in out[0]}
 
 

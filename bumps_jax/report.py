@@ -7,6 +7,7 @@ Reads whatever stages a run directory holds (prior/, experts/, meta/, filter/) a
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 from bumps_jax.filtering import PAPER_TABLE2
@@ -23,12 +24,33 @@ STAGES = {
     "meta": "meta/table1.json",
     "filter": "filter/table2.json",
 }
+# Besides the stages: the multi-task PPO baseline and the pipeline's own timing (`reproduce`).
+EXTRAS = {"baseline": "baseline/baseline.json", "pipeline": "pipeline.json"}
 # The committed GPU results, relative to the repository root (docs/results.md is built from them).
 COMMITTED = {
     "prior": "results/kick_prior.json",
     "experts": "results/experts.json",
     "meta": "results/table1.json",
     "filter": "results/table2.json",
+    "baseline": "results/baseline.json",
+    "pipeline": "results/pipeline.json",
+}
+BENCH = "benchmarks/results/training.json"
+SCALING = "benchmarks/results/scaling.json"
+# What `publish` copies from a finished paper run into the repository: run file -> committed path.
+PUBLISHED = {
+    "experts/experts.json": "results/experts.json",
+    "experts/experts.md": "docs/experts.md",
+    "meta/table1.json": "results/table1.json",
+    "meta/table1.md": "docs/table1.md",
+    "filter/table2.json": "results/table2.json",
+    "filter/table2.md": "docs/table2.md",
+    "filter/error_vs_target.png": "docs/error_vs_target.png",
+    "filter/context_map.png": "docs/context_map.png",
+    "baseline/baseline.json": "results/baseline.json",
+    "baseline/baseline_curve.png": "docs/baseline_curve.png",
+    "pipeline.json": "results/pipeline.json",
+    "filtered_kicks.gif": "docs/filtered_kicks.gif",
 }
 
 
@@ -77,7 +99,8 @@ def table2(rows: dict) -> list[str]:
 def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*", title: str | None = None) -> str:
     """The report's markdown for `run_dir` (stage files `STAGES`, or `files` relative to it)."""
     run_dir = Path(run_dir)
-    found = {name: _load(run_dir, rel) for name, rel in (files or STAGES).items()}
+    found = {name: _load(run_dir, rel) for name, rel in (files or {**STAGES, **EXTRAS}).items()}
+    extras = {name: found.pop(name, None) for name in EXTRAS}
     first = next((v for v in found.values() if v), None)
     lines = [f"# {title or f'BUMPS on the simulated NAO: run `{run_dir.name}`'}", ""]
     if first is None:
@@ -102,7 +125,16 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
             continue
         total += payload["wall_s"]
         lines.append(f"| {name} | {payload['wall_s']:.0f} | `{payload['command']}` |")
-    lines += [f"| **total** | **{total:.0f}** | |", ""]
+    lines += [f"| **sum of the stages' own wall times** | **{total:.0f}** | |", ""]
+    lines += pipeline_lines(extras["pipeline"])
+    if found["experts"]:
+        e = found["experts"]
+        rate = e["env_steps"] * len(e["tasks_m"]) / e["wall_s"]
+        lines += [
+            f"Experts: {len(e['tasks_m'])} x {e['env_steps']:,} PPO env steps in {e['wall_s']:.0f} s "
+            f"({rate / 1e3:.0f}k env-steps/s aggregate, tuning, cloning and evaluation included).",
+            "",
+        ]
     if found["prior"]:
         p = found["prior"]
         lines += [
@@ -121,10 +153,90 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
         lines += [f"Experts: {found['experts']['env_steps']:,} PPO env steps each.", ""]
     rows2 = found["filter"]["rows"] if found["filter"] else {}
     lines += ["## Table 2: BUMPS after policy filtering", "", *table2(rows2), ""]
+    lines += baseline_lines(extras["baseline"], found["experts"])
     figures = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.glob(f"{figures_dir}/*.png"))
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
+
+
+def pipeline_lines(pipeline: dict | None) -> list[str]:
+    if not pipeline:
+        return []
+    parts = ", ".join(f"{k} {v:.0f} s" for k, v in pipeline["stages"].items())
+    return [
+        f"One `reproduce` of the pipeline: **{pipeline['total_wall_s'] / 60:.1f} min** in all ({parts}; "
+        f"on {pipeline.get('device', 'the device above')}, resumed across calls where a stage was cut).",
+        "",
+    ]
+
+
+def baseline_lines(baseline: dict | None, experts: dict | None) -> list[str]:
+    lines = ["## Multi-task PPO baseline (the paper's Figure 1)", ""]
+    if not baseline:
+        return [*lines, "Not run (`make baseline`).", ""]
+    lines += [
+        f"One contextual policy trained by PPO on targets drawn from U[7, 18] m, {baseline['seeds']} seeds, "
+        f"{baseline['env_steps']:,} env steps per seed: meta-test error {baseline['error_mean_m']:.2f} m over all "
+        f"{len(baseline['eval_tasks'])} tasks, accuracy {baseline['accuracy_mean']:.2f} ({baseline['preset']} preset).",
+    ]
+    if experts:
+        total = experts["env_steps"] * len(experts["tasks_m"])
+        lines.append(f"BUMPS's experts used {total:,} PPO env steps in all ({len(experts['tasks_m'])} experts).")
+    return [*lines, ""]
+
+
+def speed_lines(bench: dict | None, scaling: dict | None) -> list[str]:
+    if not bench:
+        return []
+    g = bench.get
+    lines = [
+        "## Speed (`make bench`)",
+        "",
+        f"On {bench['device']}, one device, {bench['date'][:10]}:",
+        "",
+        "| measure | value |",
+        "|---|---|",
+    ]
+    rows = [
+        (f"physics steps/s (batch {g('scene_batch')})", g("physics_steps_per_s"), "{:,.0f}"),
+        ("env steps/s (same batch)", g("env_steps_per_s"), "{:,.0f}"),
+        ("PPO env-steps/s, all experts in one program", g("experts_env_steps_per_s"), "{:,.0f}"),
+        ("PPO env-steps/s, Brax ppo.train, one task", g("brax_ppo_env_steps_per_s"), "{:,.0f}"),
+        ("ours / Brax", g("experts_vs_brax"), "{:.1f}x"),
+        ("ours / env-only rate", g("experts_vs_env_rate"), "{:.2f}"),
+        ("BC gradient steps/s (slower net)", g("bc_steps_per_s"), "{:,.0f}"),
+        ("BC, both nets' full schedules (s)", g("bc_wall_s"), "{:.0f}"),
+        ("filtering rollouts/s", g("filter_rollouts_per_s"), "{:,.0f}"),
+        ("high-sample-rate filtering (s)", g("filter_high_sample_wall_s"), "{:.1f}"),
+    ]
+    lines += [f"| {name} | {fmt.format(v)} |" for name, v, fmt in rows if v is not None]
+    if scaling:
+        n = str(scaling["devices"])
+        lines += [
+            "",
+            f"Scale-out on {scaling['device']}: experts {scaling['experts_env_steps_per_s'][n]:,.0f} env-steps/s on "
+            f"{n} devices vs {scaling['experts_env_steps_per_s']['1']:,.0f} on one "
+            f"({scaling['experts_env_steps_per_s_speedup']:.2f}x); filtering "
+            f"{scaling['filter_rollouts_per_s_speedup']:.2f}x.",
+        ]
+    return [*lines, ""]
+
+
+def publish(run_dir: str | Path, root: str | Path = ".") -> list[Path]:
+    """Copy a finished paper run's results, tables and figures into results/ and docs/, then
+    rebuild docs/results.md. Returns the paths written."""
+    run_dir, root = Path(run_dir), Path(root)
+    written = []
+    for rel, dest in PUBLISHED.items():
+        if (run_dir / rel).exists():
+            (root / dest).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(run_dir / rel, root / dest)
+            written.append(root / dest)
+    if not any(p.suffix == ".json" for p in written):
+        raise ValueError(f"{run_dir} holds no stage results to publish")
+    written.append(write_committed(root))
+    return written
 
 
 def write(run_dir: str | Path) -> Path:
@@ -138,10 +250,17 @@ def write_committed(root: str | Path = ".") -> Path:
     root = Path(root)
     text = build(root, COMMITTED, figures_dir="docs", title="BUMPS on the simulated NAO: committed GPU results")
     path = root / "docs" / "results.md"
-    note = (
-        "The stages ran one by one on the GPU, not as one `make reproduce`; the experts' PPO budget was "
-        "cut (see the experts row's env steps). Each file under results/ names the command that made it.\n\n"
-    )
+    pipeline = _load(root, COMMITTED["pipeline"])
+    if pipeline:
+        overrides = ", ".join(f"`{k}={v}`" for k, v in pipeline.get("overrides", {}).items()) or "none"
+        note = (
+            f"Made by one `python -m bumps_jax reproduce --preset paper` (overrides: {overrides}) and published with "
+            "`python -m bumps_jax publish`. Each file under results/ names the command that made it.\n\n"
+        )
+    else:
+        note = "The stages ran one by one. Each file under results/ names the command that made it.\n\n"
+    speed = speed_lines(_load(root, BENCH), _load(root, SCALING))
     head, _, rest = text.partition("\n\n")
-    path.write_text(head + "\n\n" + note + rest.replace("](docs/", "]("))  # figures sit beside the report
+    body = rest.replace("](docs/", "](")  # figures sit beside the report
+    path.write_text(head + "\n\n" + note + body + ("\n".join(speed) + "\n" if speed else ""))
     return path

@@ -55,8 +55,32 @@ def pad(tree, size: int):
 
 
 def unpad(tree, n: int):
-    """Every leaf's first `n` rows (the real items; the rest are `pad`'s copies)."""
-    return jax.tree.map(lambda x: x[:n], tree)
+    """Every leaf's first `n` rows (the real items; the rest are `pad`'s copies).
+
+    With several processes (hosts), each holds only its devices' rows: they are gathered first,
+    so every process gets the whole batch as host arrays and the host code after a program
+    call (progress, checkpoints, selection) runs the same everywhere.
+    """
+    return jax.tree.map(lambda x: x[:n], gather(tree))
+
+
+def gather(tree):
+    """The whole of every (possibly multi-host) array, on every process; as is with one process."""
+    if jax.process_count() == 1:
+        return tree
+    from jax.experimental import multihost_utils  # noqa: PLC0415
+
+    return multihost_utils.process_allgather(tree, tiled=True)
+
+
+def initialize_distributed() -> None:
+    """Join a multi-host job: one process per host, all running the same command.
+
+    Under SLURM (or on TPU pods) `jax.distributed.initialize()` finds the coordinator, process
+    count and id by itself; elsewhere set JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and
+    JAX_PROCESS_ID. Afterwards `jax.devices()` lists every host's devices.
+    """
+    jax.distributed.initialize()
 
 
 def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0):
@@ -75,5 +99,9 @@ def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0):
 
 
 def place(tree, mesh: Mesh):
-    """Put a batch (leading axis a multiple of the mesh size) split over the mesh's devices."""
+    """Put a batch (leading axis a multiple of the mesh size) split over the mesh's devices.
+
+    Calling a program always with inputs placed like this keeps jit's cache to one entry: an
+    input laid out differently (e.g. fresh from the host) would compile the program again.
+    """
     return jax.device_put(tree, NamedSharding(mesh, P(AXIS)))

@@ -141,9 +141,21 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
     parser.add_argument("--out", default=None, help="default: runs/<preset>/baseline")
+    parser.add_argument(
+        "--env-steps",
+        type=int,
+        default=None,
+        help="PPO env steps per seed (default: one expert's budget)",
+    )
     args = parser.parse_args(argv)
     cfg = PRESETS[args.preset]()
-    payload = run(cfg, args.out or f"runs/{args.preset}/baseline")
+    try:
+        if args.env_steps is not None:
+            cfg = kick_env.make_config(cfg, {"ppo.total_env_steps": args.env_steps})
+            ppo.validate_config(cfg.ppo, kick_env.KickEnv().n_steps)
+        payload = run(cfg, args.out or f"runs/{args.preset}/baseline")
+    except ValueError as err:  # a bad value: one line naming it, not a traceback
+        raise SystemExit(f"error: {err}") from None
     print(f"baseline: error {payload['error_mean_m']:.2f} m, accuracy {payload['accuracy_mean']:.2f}, "
           f"{payload['env_steps']:,} env steps per seed")  # fmt: skip
 

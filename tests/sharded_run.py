@@ -15,6 +15,7 @@ from bumps_jax import evaluate, experts, filtering, kick_env, sharding, syntheti
 TINY = {
     "tasks": (8.0, 12.0, 16.0),  # 3 tasks on 4 devices: one padded copy
     "bc.steps": 200,
+    "tune.generations": 0,  # the blended prior as it is (tuning costs two more compiles per mesh)
     "ppo.num_envs": 4,
     "ppo.num_minibatches": 2,
     "ppo.num_epochs": 1,

@@ -24,6 +24,7 @@ def _tiny_config(**extra):
         "ppo.init_log_std": -4.0,
         "updates_per_chunk": 2,
         "eval.repetitions": 2,
+        "tune.generations": 0,  # the blended prior as it is; tuning has its own test
     }
     base.update(extra)
     return experts.make_config(overrides=base)
@@ -78,12 +79,14 @@ def test_vmapped_training_equals_each_task_alone(programs):
     policy-param differences of 1e-3 after two updates)."""
     cfg = _tiny_config()
     targets = jnp.asarray(cfg.tasks)
-    state, bc_losses = experts.run_init(programs, experts.task_rngs(cfg.seed, 2), targets)
+    kicks, _ = experts.starting_kicks(cfg, verbose=False)
+    state, bc_losses = experts.run_init(programs, experts.task_rngs(cfg.seed, 2), targets, kicks)
     assert np.all(np.asarray(bc_losses[:, -1]) < 0.2 * np.asarray(bc_losses[:, 0]))
     together, metrics = experts.run_chunk(programs, state, targets)
 
     other_targets = jnp.asarray([8.0, 16.0])
-    other_state, _ = experts.run_init(programs, experts.task_rngs(cfg.seed, 2), other_targets)
+    other_kicks, _ = experts.starting_kicks(experts.make_config(cfg, {"tasks": (8.0, 16.0)}), verbose=False)
+    other_state, _ = experts.run_init(programs, experts.task_rngs(cfg.seed, 2), other_targets, other_kicks)
     other, _ = experts.run_chunk(programs, other_state, other_targets)
     for a, b in zip(jax.tree_util.tree_leaves(together), jax.tree_util.tree_leaves(other), strict=True):
         np.testing.assert_array_equal(np.asarray(a)[0], np.asarray(b)[0])
@@ -98,7 +101,9 @@ def test_vmapped_training_equals_each_task_alone(programs):
 
 
 def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
-    cfg = _tiny_config()
+    # One generation of tuning: the fresh run tunes and records its starting kicks, the resumed
+    # one must not tune again (its BC came from the checkpoint).
+    cfg = _tiny_config(**{"tune.generations": 1, "tune.eval_repetitions": 2})
     whole = experts.train_experts(cfg, tmp_path / "whole", verbose=False, programs=programs)
     assert whole["finished"]
 
@@ -107,6 +112,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
     assert not (tmp_path / "split" / "final_params").exists()
     resumed = experts.train_experts(cfg, tmp_path / "split", verbose=False, programs=programs)
     assert resumed["finished"] and resumed["bc_losses"] is None  # BC came from the checkpoint
+    record = json.loads((tmp_path / "split" / "starting_kicks.json").read_text())
+    assert record["tuned"] and np.asarray(record["params"]).shape == (2, prior.N_PARAMS)
 
     for a, b in zip(
         jax.tree_util.tree_leaves(whole["state"]), jax.tree_util.tree_leaves(resumed["state"]), strict=True

@@ -98,10 +98,12 @@ def test_tiny_ppo_improves_return():
             "ppo.total_env_steps": 16 * N_STEPS * n_updates,
             "ppo.learning_rate": 1e-5,
             "updates_per_chunk": n_updates,
+            "tune.generations": 0,
         }
     )
     programs = experts.compile_programs(cfg, env)
-    state, _ = experts.run_init(programs, experts.task_rngs(cfg.seed, 1), jnp.asarray(cfg.tasks))
+    kicks, _ = experts.starting_kicks(cfg, verbose=False)
+    state, _ = experts.run_init(programs, experts.task_rngs(cfg.seed, 1), jnp.asarray(cfg.tasks), kicks)
     trained, _ = experts.run_chunk(programs, state, jnp.asarray(cfg.tasks))
     episode = evaluate.return_fn(env, experts.expert_policy(programs.trainer.networks))
     episode = jax.jit(jax.vmap(episode, in_axes=(None, None, 0)))

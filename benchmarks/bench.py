@@ -1,0 +1,243 @@
+"""`make bench`: every speed of the pipeline, measured side by side in one run on one device.
+
+- raw MJX physics steps/s of our scene and env-steps/s of the kick task, at the experts' batch;
+- aggregate PPO env-steps/s of all experts in one vmapped program vs Brax's `ppo.train` on one
+  task (same env, same batch per task, same device);
+- BC (meta-training) gradient steps/s of both meta-policies;
+- filtering rollouts/s and the wall time of the high-sample-rate variant (1091 contexts).
+With more than one device visible it also measures the experts and filtering on a mesh of one
+device and on a mesh of all of them (`bumps_jax.sharding`) and writes the scaling record.
+
+Every time is a program's second call (its first compiles); compile times are reported apart.
+Results are written after each section, so a run cut short keeps what it measured.
+
+    python benchmarks/bench.py --preset paper                 # GPU: benchmarks/results/*.json
+    python benchmarks/bench.py --preset tiny --out-dir runs/bench   # CPU smoke test
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # `experiments`, `benchmarks` as scripts
+
+from benchmarks import scene_bench  # noqa: E402
+from bumps_jax import evaluate, experts, filtering, kick_env, meta, results, sharding, synthetic_experts  # noqa: E402
+
+# What each preset measures: the paper's sizes on a GPU; CPU-sized for a smoke test.
+SIZES = {
+    "paper": {"bench_updates": 2, "brax_epochs": 4, "bc_chunk": 5000, "filter_step": 0.01, "filter_reps": 10},
+    "tiny": {"bench_updates": 1, "brax_epochs": 2, "bc_chunk": 200, "filter_step": 2.0, "filter_reps": 1},
+}
+
+
+UPDATES_PER_BRAX_EPOCH = 10
+
+
+def timed(fn, *args):
+    """(output, first-call seconds, second-call seconds)."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return out, first, time.perf_counter() - t0
+
+
+def bench_scene(batch: int) -> dict:
+    env = kick_env.KickEnv()
+    return {
+        "scene_batch": batch,
+        "physics_steps_per_s": scene_bench.physics_rate(env.mj_model, batch),
+        "env_steps_per_s": scene_bench.env_rate(env, batch),
+    }
+
+
+def expert_config(preset: str, updates: int):
+    """The preset's experts with the budget cut to `updates` updates (one chunk)."""
+    cfg = experts.preset_config(preset)
+    steps = cfg.ppo.num_envs * kick_env.KickEnv().n_steps * updates
+    return experts.make_config(cfg, {"ppo.total_env_steps": steps, "updates_per_chunk": updates})
+
+
+def bench_experts(preset: str, updates: int, mesh) -> dict:
+    """One chunk of PPO updates of every task at once; aggregate env-steps/s over real tasks."""
+    cfg = expert_config(preset, updates)
+    programs = experts.compile_programs(cfg, mesh=mesh)
+    n = len(cfg.tasks)
+    kicks, _ = experts.starting_kicks(experts.make_config(cfg, {"tune.generations": 0}), verbose=False)
+    state, _ = experts.run_init(programs, experts.task_rngs(cfg.seed, n), cfg.tasks, kicks)
+    _, first, wall = timed(lambda s: experts.run_chunk(programs, s, cfg.tasks), state)
+    steps = n * updates * programs.trainer.steps_per_update
+    full = experts.preset_config(preset).ppo.total_env_steps * n
+    return {
+        "n_tasks": n,
+        "n_devices": mesh.size,
+        "experts_env_steps_per_s": steps / wall,
+        "experts_chunk_compile_s": first - wall,
+        # The preset's whole PPO budget at this rate (BC, tuning and host work between chunks aside).
+        "experts_wall_s": full / (steps / wall),
+    }
+
+
+def bench_brax(preset: str, epochs: int) -> dict:
+    """Brax's ppo.train on one task with the preset's per-task batch; its own post-compile sps."""
+    from experiments import compare_brax_ppo  # noqa: PLC0415 (installs the device_put_replicated shim)
+
+    cfg = experts.preset_config(preset)
+    target = float(cfg.tasks[len(cfg.tasks) // 2])
+    env = kick_env.KickEnv(config_overrides={"tasks": (target,)})
+    p = cfg.ppo
+    sps = []
+    start = time.perf_counter()
+    compare_brax_ppo.brax_ppo.train(
+        environment=env,
+        # Ten of our updates' worth of env steps per Brax training epoch, so that each epoch's
+        # own timing is long enough to mean something.
+        num_timesteps=epochs * UPDATES_PER_BRAX_EPOCH * p.num_envs * env.n_steps,
+        num_envs=int(p.num_envs),
+        episode_length=env.n_steps,
+        unroll_length=env.n_steps,
+        batch_size=int(p.num_envs // p.num_minibatches),
+        num_minibatches=int(p.num_minibatches),
+        num_updates_per_batch=int(p.num_epochs),
+        learning_rate=float(p.learning_rate),
+        discounting=float(p.discount),
+        gae_lambda=float(p.gae_lambda),
+        network_factory=compare_brax_ppo.brax_network_factory(p),
+        num_evals=epochs + 1,  # one report per training epoch; the first includes compiling
+        run_evals=False,
+        max_devices_per_host=1,  # one GPU, as our experts in this measurement
+        progress_fn=lambda step, metrics: sps.append(float(metrics.get("training/sps", float("nan")))),
+    )
+    return {"brax_ppo_env_steps_per_s": sps[-1], "brax_ppo_sps_per_epoch": sps, "brax_task_m": target,
+            "brax_ppo_wall_s": time.perf_counter() - start}  # fmt: skip
+
+
+def bench_bc(preset: str, chunk: int) -> dict:
+    """Gradient steps/s of each meta-policy's BC loop on a dataset of the experts' size."""
+    cfg = meta.make_config(preset, {"train.chunk": chunk})
+    n_rows = len(experts.preset_config(preset).tasks) * kick_env.KickEnv().n_steps
+    rng = np.random.default_rng(0)
+    obs = jnp.asarray(rng.uniform(size=(n_rows, 2)), jnp.float32)
+    actions = jnp.asarray(rng.normal(size=(n_rows, 22)), jnp.float32)
+    keys = meta.seed_keys(cfg.train)
+    out, total = {}, 0.0
+    for name, (depth, width) in cfg.nets.items():
+        init, step_chunk = meta.make_trainer(meta.MetaPolicy(depth, width), cfg.train)
+        state = init(keys)
+        _, first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), state)
+        rate = chunk * cfg.train.n_seeds / wall
+        out[f"bc_steps_per_s_{name}"] = rate
+        total += cfg.train.epochs / rate
+    out["bc_steps_per_s"] = min(v for k, v in out.items() if k.startswith("bc_steps_per_s_"))
+    # Both nets' full schedules (train.epochs steps each) at the measured rates.
+    out["bc_wall_s"] = total
+    return out
+
+
+def bench_filter(preset: str, step: float, reps: int, mesh) -> dict:
+    """The high-sample-rate variant end to end (selection over the fine context grid, then the
+    fresh evaluation of each test task), with the contextual stand-in policy: rollouts/s."""
+    cfg = filtering.make_config(preset)
+    env = kick_env.KickEnv()
+    params = jax.tree.map(lambda a: a[None], synthetic_experts.synthetic_contextual_params())
+    grid = evaluate.grid_fn(env, synthetic_experts.contextual_apply, mesh)
+    tasks = np.asarray(cfg.tasks)
+    contexts = filtering.candidate_contexts(tasks, filtering.context_grid(*cfg.context_range, step))
+    sel_key, eval_key = filtering.noise_keys(0)
+    ball = filtering.ball_start_xy(env)
+
+    def run(_):
+        sel = filtering.filter_policy(
+            grid, params, contexts, tasks, cfg.width, reps, sel_key, ball, cfg.block, mesh.size
+        )
+        chosen = sel.contexts[sel.chosen]
+        return filtering.evaluate_chosen(
+            grid, params, chosen, tasks, cfg.eval_repetitions, eval_key, cfg.block, mesh.size
+        )
+
+    _, first, wall = timed(run, None)
+    rollouts = len(contexts) * reps + len(tasks) * cfg.eval_repetitions
+    return {
+        "n_devices": mesh.size,
+        "filter_contexts": len(contexts),
+        "filter_rollouts": rollouts,
+        "filter_rollouts_per_s": rollouts / wall,
+        "filter_high_sample_wall_s": wall,
+        "filter_compile_s": first - wall,
+    }
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", choices=tuple(SIZES), default="paper")
+    parser.add_argument("--out-dir", default="benchmarks/results")
+    parser.add_argument(
+        "--skip", nargs="*", default=(), choices=("scene", "experts", "brax", "bc", "filter", "scaling")
+    )
+    args = parser.parse_args(argv)
+    size = SIZES[args.preset]
+    out_dir = Path(args.out_dir)
+    start = time.perf_counter()
+    one = sharding.device_mesh(1)
+    n_dev = len(jax.devices())
+    training: dict = {"n_devices_used": 1, "devices_visible": n_dev}
+    scaling: dict = {"devices": n_dev, "experts_env_steps_per_s": {}, "filter_rollouts_per_s": {}}
+
+    def save(section: str) -> None:
+        print(f"[bench] {section} done at {time.perf_counter() - start:.0f} s", flush=True)
+        prov = results.provenance(args.preset, time.perf_counter() - start)
+        results.write_json(out_dir / "training.json", {**training, **prov})
+        if n_dev > 1 and "scaling" not in args.skip:
+            results.write_json(out_dir / "scaling.json", {**scaling, **prov})
+
+    cfg = experts.preset_config(args.preset)
+    batch = len(cfg.tasks) * cfg.ppo.num_envs
+    sections = [
+        ("scene", lambda: bench_scene(batch)),
+        ("experts", lambda: bench_experts(args.preset, size["bench_updates"], one)),
+        ("brax", lambda: bench_brax(args.preset, size["brax_epochs"])),
+        ("bc", lambda: bench_bc(args.preset, size["bc_chunk"])),
+        ("filter", lambda: bench_filter(args.preset, size["filter_step"], size["filter_reps"], one)),
+    ]
+    for name, fn in sections:
+        if name in args.skip:
+            continue
+        part = fn()
+        part.pop("n_devices", None)
+        training.update(part)
+        print({k: v for k, v in part.items() if not isinstance(v, list)}, flush=True)
+        if "brax_ppo_env_steps_per_s" in training and "experts_env_steps_per_s" in training:
+            training["experts_vs_brax"] = training["experts_env_steps_per_s"] / training["brax_ppo_env_steps_per_s"]
+        if "env_steps_per_s" in training and "experts_env_steps_per_s" in training:
+            training["experts_vs_env_rate"] = training["experts_env_steps_per_s"] / training["env_steps_per_s"]
+        save(name)
+
+    if n_dev > 1 and "scaling" not in args.skip:
+        every = sharding.device_mesh()
+        for key, fn in (
+            ("experts_env_steps_per_s", lambda m: bench_experts(args.preset, size["bench_updates"], m)),
+            ("filter_rollouts_per_s", lambda m: bench_filter(args.preset, size["filter_step"], size["filter_reps"], m)),
+        ):
+            if "experts" in key and "experts_env_steps_per_s" in training:
+                scaling[key]["1"] = training[key]  # measured above, same program on a mesh of one
+            elif "filter" in key and "filter_rollouts_per_s" in training:
+                scaling[key]["1"] = training[key]
+            else:
+                scaling[key]["1"] = fn(one)[key]
+            scaling[key][str(n_dev)] = fn(every)[key]
+            scaling[key.replace("_per_s", "_speedup")] = scaling[key][str(n_dev)] / scaling[key]["1"]
+            save(f"scaling {key}")
+    return training
+
+
+if __name__ == "__main__":
+    main()
