@@ -196,46 +196,47 @@ def main(argv=None) -> dict:
         print(f"[bench] {section} done at {time.perf_counter() - start:.0f} s", flush=True)
         prov = results.provenance(args.preset, time.perf_counter() - start)
         results.write_json(out_dir / "training.json", {**training, **prov})
-        if n_dev > 1 and "scaling" not in args.skip:
+        if any(k.endswith("_speedup") for k in scaling):  # at least one ratio measured
             results.write_json(out_dir / "scaling.json", {**scaling, **prov})
 
     cfg = experts.preset_config(args.preset)
     batch = len(cfg.tasks) * cfg.ppo.num_envs
+    scale_out = n_dev > 1 and "scaling" not in args.skip
+    every = sharding.device_mesh() if scale_out else one
+
+    def experts_on(mesh):
+        return lambda: bench_experts(args.preset, size["bench_updates"], mesh)
+
+    def filter_on(mesh):
+        return lambda: bench_filter(args.preset, size["filter_step"], size["filter_reps"], mesh)
+
+    # The scale-out pairs come right after their one-device runs: a run cut short keeps both
+    # halves of each ratio it reached.
     sections = [
-        ("scene", lambda: bench_scene(batch)),
-        ("experts", lambda: bench_experts(args.preset, size["bench_updates"], one)),
-        ("brax", lambda: bench_brax(args.preset, size["brax_epochs"])),
-        ("bc", lambda: bench_bc(args.preset, size["bc_chunk"])),
-        ("filter", lambda: bench_filter(args.preset, size["filter_step"], size["filter_reps"], one)),
+        ("experts", experts_on(one), "training"),
+        ("scaling", experts_on(every), "experts_env_steps_per_s"),
+        ("filter", filter_on(one), "training"),
+        ("scaling", filter_on(every), "filter_rollouts_per_s"),
+        ("brax", lambda: bench_brax(args.preset, size["brax_epochs"]), "training"),
+        ("scene", lambda: bench_scene(batch), "training"),
+        ("bc", lambda: bench_bc(args.preset, size["bc_chunk"]), "training"),
     ]
-    for name, fn in sections:
-        if name in args.skip:
+    for name, fn, into in sections:
+        if name in args.skip or (name == "scaling" and not scale_out):
             continue
         part = fn()
-        part.pop("n_devices", None)
-        training.update(part)
         print({k: v for k, v in part.items() if not isinstance(v, list)}, flush=True)
+        if into == "training":
+            part.pop("n_devices", None)
+            training.update(part)
+        else:  # the same measurement on every device; its one-device value was taken just before
+            scaling[into] = {"1": training[into], str(n_dev): part[into]}
+            scaling[into.replace("_per_s", "_speedup")] = part[into] / training[into]
         if "brax_ppo_env_steps_per_s" in training and "experts_env_steps_per_s" in training:
             training["experts_vs_brax"] = training["experts_env_steps_per_s"] / training["brax_ppo_env_steps_per_s"]
         if "env_steps_per_s" in training and "experts_env_steps_per_s" in training:
             training["experts_vs_env_rate"] = training["experts_env_steps_per_s"] / training["env_steps_per_s"]
-        save(name)
-
-    if n_dev > 1 and "scaling" not in args.skip:
-        every = sharding.device_mesh()
-        for key, fn in (
-            ("experts_env_steps_per_s", lambda m: bench_experts(args.preset, size["bench_updates"], m)),
-            ("filter_rollouts_per_s", lambda m: bench_filter(args.preset, size["filter_step"], size["filter_reps"], m)),
-        ):
-            if "experts" in key and "experts_env_steps_per_s" in training:
-                scaling[key]["1"] = training[key]  # measured above, same program on a mesh of one
-            elif "filter" in key and "filter_rollouts_per_s" in training:
-                scaling[key]["1"] = training[key]
-            else:
-                scaling[key]["1"] = fn(one)[key]
-            scaling[key][str(n_dev)] = fn(every)[key]
-            scaling[key.replace("_per_s", "_speedup")] = scaling[key][str(n_dev)] / scaling[key]["1"]
-            save(f"scaling {key}")
+        save(name if into == "training" else f"scaling {into}")
     return training
 
 
