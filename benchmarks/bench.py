@@ -67,10 +67,10 @@ def expert_config(preset: str, updates: int):
     return experts.make_config(cfg, {"ppo.total_env_steps": steps, "updates_per_chunk": updates})
 
 
-def bench_experts(preset: str, updates: int, mesh) -> dict:
+def bench_experts(preset: str, updates: int, mesh, method: str = "shard_map") -> dict:
     """One chunk of PPO updates of every task at once; aggregate env-steps/s over real tasks."""
     cfg = expert_config(preset, updates)
-    programs = experts.compile_programs(cfg, mesh=mesh)
+    programs = experts.compile_programs(cfg, mesh=mesh, method=method)
     n = len(cfg.tasks)
     kicks, _ = experts.starting_kicks(experts.make_config(cfg, {"tune.generations": 0}), verbose=False)
     state, _ = experts.run_init(programs, experts.task_rngs(cfg.seed, n), cfg.tasks, kicks)
@@ -143,13 +143,13 @@ def bench_bc(preset: str, chunk: int) -> dict:
     return out
 
 
-def bench_filter(preset: str, step: float, reps: int, mesh) -> dict:
+def bench_filter(preset: str, step: float, reps: int, mesh, method: str = "shard_map") -> dict:
     """The high-sample-rate variant end to end (selection over the fine context grid, then the
     fresh evaluation of each test task), with the contextual stand-in policy: rollouts/s."""
     cfg = filtering.make_config(preset)
     env = kick_env.KickEnv()
     params = jax.tree.map(lambda a: a[None], synthetic_experts.synthetic_contextual_params())
-    grid = evaluate.grid_fn(env, synthetic_experts.contextual_apply, mesh)
+    grid = evaluate.grid_fn(env, synthetic_experts.contextual_apply, mesh, method)
     tasks = np.asarray(cfg.tasks)
     contexts = filtering.candidate_contexts(tasks, filtering.context_grid(*cfg.context_range, step))
     sel_key, eval_key = filtering.noise_keys(0)
@@ -183,14 +183,15 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--skip", nargs="*", default=(), choices=("scene", "experts", "brax", "bc", "filter", "scaling")
     )
+    parser.add_argument("--sharding", choices=sharding.METHODS, default="shard_map", help="how batches are split")
     args = parser.parse_args(argv)
     size = SIZES[args.preset]
     out_dir = Path(args.out_dir)
     start = time.perf_counter()
     one = sharding.device_mesh(1)
     n_dev = len(jax.devices())
-    training: dict = {"n_devices_used": 1, "devices_visible": n_dev}
-    scaling: dict = {"devices": n_dev, "experts_env_steps_per_s": {}, "filter_rollouts_per_s": {}}
+    training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": args.sharding}
+    scaling: dict = {"devices": n_dev, "sharding": args.sharding}
 
     def save(section: str) -> None:
         print(f"[bench] {section} done at {time.perf_counter() - start:.0f} s", flush=True)
@@ -205,24 +206,25 @@ def main(argv=None) -> dict:
     every = sharding.device_mesh() if scale_out else one
 
     def experts_on(mesh):
-        return lambda: bench_experts(args.preset, size["bench_updates"], mesh)
+        return lambda: bench_experts(args.preset, size["bench_updates"], mesh, args.sharding)
 
     def filter_on(mesh):
-        return lambda: bench_filter(args.preset, size["filter_step"], size["filter_reps"], mesh)
+        return lambda: bench_filter(args.preset, size["filter_step"], size["filter_reps"], mesh, args.sharding)
 
-    # The scale-out pairs come right after their one-device runs: a run cut short keeps both
-    # halves of each ratio it reached.
+    # Each scale-out measurement follows its one-device run (a run cut short keeps whole
+    # ratios); the experts' one comes last, as the program most likely to fail to compile.
     sections = [
         ("experts", experts_on(one), "training"),
-        ("scaling", experts_on(every), "experts_env_steps_per_s"),
         ("filter", filter_on(one), "training"),
-        ("scaling", filter_on(every), "filter_rollouts_per_s"),
+        ("scaling-filter", filter_on(every), "filter_rollouts_per_s"),
         ("brax", lambda: bench_brax(args.preset, size["brax_epochs"]), "training"),
         ("scene", lambda: bench_scene(batch), "training"),
         ("bc", lambda: bench_bc(args.preset, size["bc_chunk"]), "training"),
+        ("scaling-experts", experts_on(every), "experts_env_steps_per_s"),
     ]
     for name, fn, into in sections:
-        if name in args.skip or (name == "scaling" and not scale_out):
+        source = name.removeprefix("scaling-")
+        if name in args.skip or source in args.skip or (name != source and not scale_out):
             continue
         part = fn()
         print({k: v for k, v in part.items() if not isinstance(v, list)}, flush=True)
@@ -230,7 +232,7 @@ def main(argv=None) -> dict:
             part.pop("n_devices", None)
             training.update(part)
         else:  # the same measurement on every device; its one-device value was taken just before
-            scaling[into] = {"1": training[into], str(n_dev): part[into]}
+            scaling[into] = {"1": training[into], str(n_dev): part[into]}  # {n_devices: value}
             scaling[into.replace("_per_s", "_speedup")] = part[into] / training[into]
         if "brax_ppo_env_steps_per_s" in training and "experts_env_steps_per_s" in training:
             training["experts_vs_brax"] = training["experts_env_steps_per_s"] / training["brax_ppo_env_steps_per_s"]

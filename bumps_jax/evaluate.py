@@ -106,7 +106,7 @@ def trajectory_fn(env: kick_env.KickEnv, apply_fn):
     return trajectory
 
 
-def grid_fn(env: kick_env.KickEnv, apply_fn, mesh=None):
+def grid_fn(env: kick_env.KickEnv, apply_fn, mesh=None, method: str = "shard_map"):
     """Jitted (params (P, ...), contexts (n,), targets (n,), keys (n, R)) -> metrics of (P, n, R).
 
     Every policy of a stack (seeds, networks of one architecture) on every (context, target)
@@ -119,7 +119,7 @@ def grid_fn(env: kick_env.KickEnv, apply_fn, mesh=None):
     over_policies = jax.vmap(over_pairs, in_axes=(0, None, None, None))
     if mesh is None:
         return jax.jit(over_policies)
-    return sharding.over_batch(over_policies, mesh, (False, True, True, True), out_axis=1)
+    return sharding.over_batch(over_policies, mesh, (False, True, True, True), out_axis=1, method=method)
 
 
 def _return_step(env, apply_fn, params, ctx, carry, _):

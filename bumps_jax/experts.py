@@ -281,17 +281,19 @@ class Compiled(NamedTuple):
     chunk: Any  # (TrainState (N,...), targets (N,)) -> (TrainState, UpdateMetrics (N, chunk))
 
 
-def compile_programs(cfg: ml_collections.ConfigDict, env: kick_env.KickEnv | None = None, mesh=None) -> Compiled:
+def compile_programs(
+    cfg: ml_collections.ConfigDict, env: kick_env.KickEnv | None = None, mesh=None, method: str = "shard_map"
+) -> Compiled:
     """Validate `cfg` and build the jitted task-vmapped programs, split over `mesh` (default:
-    every device) along the task axis; compiled on first call."""
+    every device) along the task axis (`sharding.over_batch`'s `method`); compiled on first call."""
     env = env or kick_env.KickEnv()
     validate_config(cfg, env)
     mesh = mesh or sharding.device_mesh()
     trainer = ppo.make_train(cfg.ppo, env)
-    init = sharding.over_batch(jax.vmap(make_init(cfg, env, trainer)), mesh, (True, True, True))
+    init = sharding.over_batch(jax.vmap(make_init(cfg, env, trainer)), mesh, (True, True, True), method=method)
     n = int(cfg.updates_per_chunk)
     chunk = jax.vmap(lambda state, target: trainer.run_updates(state, target, n))
-    return Compiled(env, trainer, mesh, init, sharding.over_batch(chunk, mesh, (True, True)))
+    return Compiled(env, trainer, mesh, init, sharding.over_batch(chunk, mesh, (True, True), method=method))
 
 
 def run_init(programs: Compiled, rngs, targets, kicks):
