@@ -27,3 +27,18 @@ def test_unknown_config_key_is_one_clear_line(tmp_path):
 def test_meta_train_without_experts_says_what_to_do(tmp_path):
     with pytest.raises(SystemExit, match="run train-experts first"):
         cli.main(["meta-train", "--run-dir", str(tmp_path)])
+
+
+def test_pipeline_overrides_name_their_stage():
+    stages = ("train-experts", "filter")
+    split = cli.split_overrides({"experts.ppo.learning_rate": 1e-5, "filter.block": 8}, stages)
+    assert split == {"train-experts": {"ppo.learning_rate": 1e-5}, "filter": {"block": 8}}
+    with pytest.raises(SystemExit, match="start with a stage"):
+        cli.split_overrides({"ppo.learning_rate": 1e-5}, stages)
+    with pytest.raises(SystemExit, match="start with a stage"):
+        cli.split_overrides({"meta.train.epochs": 5}, stages)  # meta-train is not in this pipeline
+
+
+def test_video_without_a_filtered_run_says_what_to_do(tmp_path):
+    with pytest.raises(SystemExit, match="run the filter stage first"):
+        cli.main(["video", "--run-dir", str(tmp_path)])

@@ -96,3 +96,13 @@ def test_load_prior_refuses_other_formats(tmp_path):
     path.write_text(json.dumps(record))
     with pytest.raises(ValueError, match="format_version"):
         prior.load_prior(path)
+
+
+def test_tuning_for_tasks_rejects_bad_inputs_before_compiling():
+    starts = np.tile(prior.DEFAULT_PARAMS, (2, 1))
+    with pytest.raises(ValueError, match="starts"):
+        prior.tune_for_tasks([8.0, 12.0], starts[:1])
+    with pytest.raises(ValueError, match="generations"):
+        prior.tune_for_tasks([8.0, 12.0], starts, generations=-1)
+    with pytest.raises(ValueError, match="40.0"):
+        prior.tune_for_tasks([8.0, 40.0], starts)

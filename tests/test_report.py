@@ -26,3 +26,54 @@ def test_report_fills_tables_and_names_missing_stages(tmp_path):
 
 def test_empty_run_dir_says_so(tmp_path):
     assert "No stage has written results" in report.build(tmp_path)
+
+
+def _paper_run(tmp_path):
+    """A run directory with every stage's results, a pipeline record and a baseline."""
+    run = tmp_path / "run"
+    for sub in ("experts", "meta", "filter", "baseline"):
+        (run / sub).mkdir(parents=True)
+    common = _common("paper")
+    experts = {**common, "tasks_m": [7.0, 7.5], "env_steps": 1000, "wall_s": 10.0, "accuracy_mean": 1.0,
+               "accuracy_std": 0.0, "error_mean_m": 0.8, "error_std_m": 0.3, "per_task": []}  # fmt: skip
+    (run / "experts" / "experts.json").write_text(json.dumps(experts))
+    row = {"accuracy_mean": 0.9, "accuracy_std": 0.05, "error_mean_m": 0.5, "error_std_m": 0.1, "error_mean_all_m": 0.6}
+    (run / "meta" / "table1.json").write_text(json.dumps({**common, "rows": {"meta_4x256": row}}))
+    row2 = {"error_mean_m": 0.9, "error_std_m": 0.4, "rel_error_mean": 0.07, "rel_error_std": 0.02, "n_contexts": 110}
+    (run / "filter" / "table2.json").write_text(json.dumps({**common, "rows": {"filtered_ensemble": row2}}))
+    (run / "filter" / "context_map.png").write_bytes(b"\x89PNG fake")
+    baseline = {**common, "seeds": 6, "env_steps": 2000, "error_mean_m": 3.5, "accuracy_mean": 0.8,
+                "eval_tasks": [7.1, 7.2]}  # fmt: skip
+    (run / "baseline" / "baseline.json").write_text(json.dumps(baseline))
+    pipeline = {**common, "stages": {"train-experts": 60.0, "filter": 30.0}, "total_wall_s": 90.0,
+                "overrides": {"experts.ppo.total_env_steps": "1000"}}  # fmt: skip
+    (run / "pipeline.json").write_text(json.dumps(pipeline))
+    return run
+
+
+def test_report_shows_pipeline_time_baseline_and_experts_rate(tmp_path):
+    text = report.build(_paper_run(tmp_path))
+    assert "**1.5 min** in all (train-experts 60 s, filter 30 s" in text
+    assert "6 seeds, 2,000 env steps per seed: meta-test error 3.50 m" in text
+    assert "BUMPS's experts used 2,000 PPO env steps in all (2 experts)" in text
+    assert "| filtered_ensemble | 110 | 0.90 +- 0.40 | 0.40 +- 0.11 | 7.0% +- 2.0 |" in text
+
+
+def test_publish_copies_a_run_and_rebuilds_results_md(tmp_path):
+    run = _paper_run(tmp_path)
+    root = tmp_path / "repo"
+    written = {p.relative_to(root).as_posix() for p in report.publish(run, root)}
+    assert {"results/experts.json", "results/table1.json", "results/table2.json", "results/baseline.json",
+            "results/pipeline.json", "docs/context_map.png", "docs/results.md"} <= written  # fmt: skip
+    text = (root / "docs" / "results.md").read_text()
+    assert "one `python -m bumps_jax reproduce --preset paper`" in text
+    assert "`experts.ppo.total_env_steps=1000`" in text
+    assert "![docs/context_map.png](context_map.png)" in text
+
+
+def test_publish_refuses_an_empty_run(tmp_path):
+    import pytest
+
+    (tmp_path / "run").mkdir()
+    with pytest.raises(ValueError, match="no stage results"):
+        report.publish(tmp_path / "run", tmp_path / "repo")
