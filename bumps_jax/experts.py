@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import json
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -395,7 +396,8 @@ def train_experts(
     Writes run_dir/checkpoints/<update>/ (orbax), run_dir/progress.csv (one row per update and
     task) and, when done, run_dir/final_params/. `stop_after_chunks` stops early after that
     many chunks in this call (to test resuming). Returns {"state": TrainState (N, ...),
-    "bc_losses": (N, steps) or None when resumed, "finished": bool, "wall_s": float}.
+    "bc_losses": (N, steps) or None when resumed, "finished": bool, "wall_s": seconds of training
+    over every call of the run}.
     """
     cfg = make_config(config)
     programs = programs or compile_programs(cfg)
@@ -414,7 +416,14 @@ def train_experts(
     no_kicks = jnp.zeros((n_tasks, prior.N_PARAMS))
     abstract = jax.eval_shape(functools.partial(run_init, programs), task_rngs(cfg.seed, n_tasks), targets, no_kicks)[0]
     bc_losses = None
+    # Training seconds up to each checkpoint, carried across resumes: a resumed run reports
+    # the time its checkpoints cost, not just its last call's (work redone after a kill is
+    # counted once).
+    clock_path = run_dir / "wall_time.json"
+    clock = json.loads(clock_path.read_text()) if clock_path.exists() else {}
+    previous = 0.0
     if manager.latest_step() is not None:
+        previous = float(clock.get(str(manager.latest_step()), float("nan")))
         state = manager.restore(manager.latest_step(), args=ocp.args.StandardRestore(abstract))
         _trim_csv(progress, manager.latest_step())
         if verbose:
@@ -425,6 +434,8 @@ def train_experts(
         state, bc_losses = run_init(programs, task_rngs(cfg.seed, n_tasks), targets, kicks)
         manager.save(0, args=ocp.args.StandardSave(state))
         manager.wait_until_finished()
+        clock = {"0": time.perf_counter() - start}
+        results.write_json(clock_path, clock)
         progress.unlink(missing_ok=True)
         if verbose:
             print(f"behaviour cloning: final mse per task {np.asarray(bc_losses[:, -1]).round(6).tolist()} rad^2")
@@ -441,6 +452,8 @@ def train_experts(
         _write_csv(progress, chunk_rows(before, metrics, tasks, trainer.steps_per_update), "a")
         manager.save(update, args=ocp.args.StandardSave(state))
         manager.wait_until_finished()
+        clock[str(update)] = previous + time.perf_counter() - start
+        results.write_json(clock_path, clock)
         chunks += 1
         if verbose:
             print_progress(tasks, metrics, update, total, time.perf_counter() - start)
@@ -452,7 +465,9 @@ def train_experts(
         with ocp.StandardCheckpointer() as checkpointer:
             checkpointer.save(final, expert_params(state), force=True)
     manager.close()
-    return {"state": state, "bc_losses": bc_losses, "finished": finished, "wall_s": time.perf_counter() - start}
+    # NaN when resumed from a checkpoint without a recorded time (a run older than this record).
+    wall_s = previous + time.perf_counter() - start
+    return {"state": state, "bc_losses": bc_losses, "finished": finished, "wall_s": wall_s}
 
 
 def load_final_params(run_dir, programs: Compiled, n_tasks: int) -> ExpertParams:
@@ -466,7 +481,6 @@ def load_final_params(run_dir, programs: Compiled, n_tasks: int) -> ExpertParams
 def family(run_dir) -> synthetic_experts.ExpertFamily:
     """The trained experts of `run_dir` for meta-training: `--experts bumps_jax.experts:family
     --experts-path runs/experts/paper`."""
-    import json
 
     cfg = make_config(ml_collections.ConfigDict(json.loads((Path(run_dir) / "config.json").read_text())))
     programs = compile_programs(cfg)

@@ -127,14 +127,7 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
         lines.append(f"| {name} | {payload['wall_s']:.0f} | `{payload['command']}` |")
     lines += [f"| **sum of the stages' own wall times** | **{total:.0f}** | |", ""]
     lines += pipeline_lines(extras["pipeline"])
-    if found["experts"]:
-        e = found["experts"]
-        rate = e["env_steps"] * len(e["tasks_m"]) / e["wall_s"]
-        lines += [
-            f"Experts: {len(e['tasks_m'])} x {e['env_steps']:,} PPO env steps in {e['wall_s']:.0f} s "
-            f"({rate / 1e3:.0f}k env-steps/s aggregate, tuning, cloning and evaluation included).",
-            "",
-        ]
+
     if found["prior"]:
         p = found["prior"]
         lines += [
@@ -167,6 +160,7 @@ def pipeline_lines(pipeline: dict | None) -> list[str]:
     return [
         f"One `reproduce` of the pipeline: **{pipeline['total_wall_s'] / 60:.1f} min** in all ({parts}; "
         f"on {pipeline.get('device', 'the device above')}, resumed across calls where a stage was cut).",
+        *([f"Note: {pipeline['note']}"] if pipeline.get("note") else []),
         "",
     ]
 
@@ -262,5 +256,5 @@ def write_committed(root: str | Path = ".") -> Path:
     speed = speed_lines(_load(root, BENCH), _load(root, SCALING))
     head, _, rest = text.partition("\n\n")
     body = rest.replace("](docs/", "](")  # figures sit beside the report
-    path.write_text(head + "\n\n" + note + body + ("\n".join(speed) + "\n" if speed else ""))
+    path.write_text(head + "\n\n" + note + body + ("\n" + "\n".join(speed) + "\n" if speed else ""))
     return path

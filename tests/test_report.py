@@ -51,7 +51,7 @@ def _paper_run(tmp_path):
     return run
 
 
-def test_report_shows_pipeline_time_baseline_and_experts_rate(tmp_path):
+def test_report_shows_pipeline_time_and_baseline(tmp_path):
     text = report.build(_paper_run(tmp_path))
     assert "**1.5 min** in all (train-experts 60 s, filter 30 s" in text
     assert "6 seeds, 2,000 env steps per seed: meta-test error 3.50 m" in text
