@@ -67,7 +67,7 @@ def expert_config(preset: str, updates: int):
     return experts.make_config(cfg, {"ppo.total_env_steps": steps, "updates_per_chunk": updates})
 
 
-def bench_experts(preset: str, updates: int, mesh, method: str = "shard_map") -> dict:
+def bench_experts(preset: str, updates: int, mesh, method: str = "jit") -> dict:
     """One chunk of PPO updates of every task at once; aggregate env-steps/s over real tasks."""
     cfg = expert_config(preset, updates)
     programs = experts.compile_programs(cfg, mesh=mesh, method=method)
@@ -143,7 +143,7 @@ def bench_bc(preset: str, chunk: int) -> dict:
     return out
 
 
-def bench_filter(preset: str, step: float, reps: int, mesh, method: str = "shard_map") -> dict:
+def bench_filter(preset: str, step: float, reps: int, mesh, method: str = "jit") -> dict:
     """The high-sample-rate variant end to end (selection over the fine context grid, then the
     fresh evaluation of each test task), with the contextual stand-in policy: rollouts/s."""
     cfg = filtering.make_config(preset)
@@ -183,7 +183,7 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--skip", nargs="*", default=(), choices=("scene", "experts", "brax", "bc", "filter", "scaling")
     )
-    parser.add_argument("--sharding", choices=sharding.METHODS, default="shard_map", help="how batches are split")
+    parser.add_argument("--sharding", choices=sharding.METHODS, default="jit", help="how batches are split")
     args = parser.parse_args(argv)
     size = SIZES[args.preset]
     out_dir = Path(args.out_dir)

@@ -106,7 +106,7 @@ def trajectory_fn(env: kick_env.KickEnv, apply_fn):
     return trajectory
 
 
-def grid_fn(env: kick_env.KickEnv, apply_fn, mesh=None, method: str = "shard_map"):
+def grid_fn(env: kick_env.KickEnv, apply_fn, mesh=None, method: str = "jit"):
     """Jitted (params (P, ...), contexts (n,), targets (n,), keys (n, R)) -> metrics of (P, n, R).
 
     Every policy of a stack (seeds, networks of one architecture) on every (context, target)

@@ -283,7 +283,7 @@ class Compiled(NamedTuple):
 
 
 def compile_programs(
-    cfg: ml_collections.ConfigDict, env: kick_env.KickEnv | None = None, mesh=None, method: str = "shard_map"
+    cfg: ml_collections.ConfigDict, env: kick_env.KickEnv | None = None, mesh=None, method: str = "jit"
 ) -> Compiled:
     """Validate `cfg` and build the jitted task-vmapped programs, split over `mesh` (default:
     every device) along the task axis (`sharding.over_batch`'s `method`); compiled on first call."""

@@ -1,10 +1,12 @@
 """Spreading a batch axis (experts, episodes) over devices with JAX's own sharding.
 
 Every batched program of the pipeline is a `vmap` over independent items: experts in
-training, episodes in filtering. `over_batch` wraps such a function in `jax.shard_map` over a
-one-axis `Mesh`: each device runs the same vmapped program on its slice, with no
-communication. On one device the mesh has one member and the program is the one that runs
-everywhere else, so there is a single code path.
+training, episodes in filtering. `over_batch` jits such a function with its batch split over a
+one-axis `Mesh`: XLA's SPMD partitioner gives each device its slice, with no communication.
+(`method="shard_map"` writes the split out by hand instead; it gives the same results on CPU
+devices, but on two H200s with jax 0.11.2 XLA crashed compiling the expert-training program
+that way, so the partitioner is the default.) On one device the mesh has one member and the
+program is the one that runs everywhere else, so there is a single code path.
 
 The batch must divide evenly over the devices: `pad` repeats the last item up to a multiple
 of the mesh size and callers drop the copies (`unpad`) before anything is saved, so
@@ -86,13 +88,13 @@ def initialize_distributed() -> None:
 METHODS = ("shard_map", "jit")
 
 
-def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0, method: str = "shard_map"):
-    """`jit(shard_map(fn))`: the arguments flagged in `batched` split on their leading axis,
-    the others replicated; every output split on axis `out_axis`.
+def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0, method: str = "jit"):
+    """`fn` jitted with the arguments flagged in `batched` split on their leading axis over
+    `mesh`, the others replicated, and every output split on axis `out_axis`.
 
     `fn` must treat the items of its batch independently (a vmap), so each device's slice
-    gives what the whole batch would. method "jit" instead leaves the split to XLA's SPMD
-    partitioner (`jit` with in/out shardings): the same result by another compiler path.
+    gives what the whole batch would. method "jit": XLA's SPMD partitioner splits the program
+    (`jit` with in/out shardings); "shard_map": `jit(shard_map(fn))`, the split written out.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
