@@ -32,8 +32,13 @@ demo: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m bumps_jax demo
 
 # The paper preset end to end on a GPU: runs/paper/report.md; finished stages are skipped.
+# Overrides name their stage: make reproduce SET="experts.ppo.total_env_steps=2880000"
 reproduce: $(STAMP)
-	$(PY) -m bumps_jax reproduce
+	$(PY) -m bumps_jax reproduce --preset paper $(if $(SET),--set $(SET),)
+
+# Copy a finished paper run's results and figures into results/ and docs/ (docs/results.md).
+publish: $(STAMP)
+	$(PY) -m bumps_jax publish --run-dir runs/paper
 
 report: $(STAMP)
 	$(PY) -m bumps_jax report --preset $(PRESET)
