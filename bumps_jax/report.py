@@ -147,7 +147,8 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
     rows2 = found["filter"]["rows"] if found["filter"] else {}
     lines += ["## Table 2: BUMPS after policy filtering", "", *table2(rows2), ""]
     lines += baseline_lines(extras["baseline"], found["experts"])
-    figures = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.glob(f"{figures_dir}/*.png"))
+    pictures = [*run_dir.glob(f"{figures_dir}/*.png"), *run_dir.glob(f"{figures_dir}/*.gif")]
+    figures = sorted(p.relative_to(run_dir).as_posix() for p in pictures)
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
