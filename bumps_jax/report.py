@@ -41,6 +41,8 @@ SCALING = "benchmarks/results/scaling.json"
 PUBLISHED = {
     "experts/experts.json": "results/experts.json",
     "experts/experts.md": "docs/experts.md",
+    "experts/progress.csv": "docs/experts_progress.csv",
+    "experts/starting_kicks.json": "docs/experts_starting_kicks.json",
     "meta/table1.json": "results/table1.json",
     "meta/table1.md": "docs/table1.md",
     "filter/table2.json": "results/table2.json",
