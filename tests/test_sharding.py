@@ -2,20 +2,28 @@
 filtering selection on a mesh of 4 (host) devices equal those on one device."""
 
 import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
-import conftest
 import numpy as np
 import pytest
 
 from bumps_jax import sharding
 
+ROOT = Path(__file__).resolve().parents[1]
+
 
 @pytest.fixture(scope="module")
-def sharded_vs_single(request):
-    proc = request.config.stash[conftest.SHARDED]  # started by conftest.py at collection
-    stdout, stderr = proc.communicate()
-    assert proc.returncode == 0, stderr[-4000:]
-    out = json.loads(stdout.strip().splitlines()[-1])
+def sharded_vs_single():
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "tests" / "sharded_run.py")], env=env, capture_output=True, text=True, cwd=ROOT
+    )
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
     return out["1"], out["4"]
 
 
