@@ -98,20 +98,10 @@ def bench_brax(preset: str, epochs: int) -> dict:
     sps = []
     start = time.perf_counter()
     compare_brax_ppo.brax_ppo.train(
-        environment=env,
+        **compare_brax_ppo.brax_settings(p, env),
         # Ten of our updates' worth of env steps per Brax training epoch, so that each epoch's
         # own timing is long enough to mean something.
         num_timesteps=epochs * UPDATES_PER_BRAX_EPOCH * p.num_envs * env.n_steps,
-        num_envs=int(p.num_envs),
-        episode_length=env.n_steps,
-        unroll_length=env.n_steps,
-        batch_size=int(p.num_envs // p.num_minibatches),
-        num_minibatches=int(p.num_minibatches),
-        num_updates_per_batch=int(p.num_epochs),
-        learning_rate=float(p.learning_rate),
-        discounting=float(p.discount),
-        gae_lambda=float(p.gae_lambda),
-        network_factory=compare_brax_ppo.brax_network_factory(p),
         num_evals=epochs + 1,  # one report per training epoch; the first includes compiling
         run_evals=False,
         max_devices_per_host=1,  # one GPU, as our experts in this measurement

@@ -60,31 +60,37 @@ def brax_network_factory(cfg):
     return factory
 
 
+def brax_settings(p, env) -> dict:
+    """Our PPO config `p` as the keyword arguments of Brax's ppo.train (budget and logging aside)."""
+    return {
+        "environment": env,
+        "num_envs": int(p.num_envs),
+        "episode_length": env.n_steps,
+        "unroll_length": env.n_steps,  # one rollout = one whole episode per env, as ours
+        "batch_size": int(p.num_envs // p.num_minibatches),
+        "num_minibatches": int(p.num_minibatches),
+        "num_updates_per_batch": int(p.num_epochs),
+        "learning_rate": float(p.learning_rate),
+        "entropy_cost": float(p.entropy_cost),
+        "discounting": float(p.discount),
+        "gae_lambda": float(p.gae_lambda),
+        "clipping_epsilon": float(p.clip_epsilon),
+        "reward_scaling": float(p.reward_scaling),
+        "max_grad_norm": float(p.max_grad_norm),
+        "vf_loss_coefficient": float(p.vf_coefficient),
+        "normalize_observations": bool(p.normalize_observations),
+        "network_factory": brax_network_factory(p),
+    }
+
+
 def run_brax(cfg, env, init_state: ppo.TrainState, seed: int):
     """Brax's ppo.train with our hyperparameters, from our BC'd params. Returns (ExpertParams, wall_s)."""
-    p = cfg.ppo
     params = jax.tree_util.tree_map(lambda x: x[0], init_state.params)
     normalizer = jax.tree_util.tree_map(lambda x: x[0], init_state.normalizer)
     start = time.perf_counter()
     _, (norm, policy, _value), _ = brax_ppo.train(
-        environment=env,
-        num_timesteps=int(p.total_env_steps),
-        num_envs=int(p.num_envs),
-        episode_length=env.n_steps,
-        unroll_length=env.n_steps,  # one rollout = one whole episode per env, as ours
-        batch_size=int(p.num_envs // p.num_minibatches),
-        num_minibatches=int(p.num_minibatches),
-        num_updates_per_batch=int(p.num_epochs),
-        learning_rate=float(p.learning_rate),
-        entropy_cost=float(p.entropy_cost),
-        discounting=float(p.discount),
-        gae_lambda=float(p.gae_lambda),
-        clipping_epsilon=float(p.clip_epsilon),
-        reward_scaling=float(p.reward_scaling),
-        max_grad_norm=float(p.max_grad_norm),
-        vf_loss_coefficient=float(p.vf_coefficient),
-        normalize_observations=bool(p.normalize_observations),
-        network_factory=brax_network_factory(p),
+        **brax_settings(cfg.ppo, env),
+        num_timesteps=int(cfg.ppo.total_env_steps),
         restore_params=(normalizer, params.policy, params.value),
         seed=seed,
         num_evals=1,
