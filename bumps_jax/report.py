@@ -177,6 +177,12 @@ def baseline_lines(baseline: dict | None, experts: dict | None) -> list[str]:
         f"{baseline['env_steps']:,} env steps per seed: meta-test error {baseline['error_mean_m']:.2f} m over all "
         f"{len(baseline['eval_tasks'])} tasks, accuracy {baseline['accuracy_mean']:.2f} ({baseline['preset']} preset).",
     ]
+    if "start" in baseline:
+        start = baseline["start"]
+        lines.append(
+            f"Every seed started from the cloned 12 m kick: error {start['error_mean_all_m']:.2f} m, accuracy "
+            f"{start['accuracy_mean']:.2f} on the same tasks (clone's BC loss {baseline['bc_final_loss']:.1e})."
+        )
     if experts:
         total = experts["env_steps"] * len(experts["tasks_m"])
         lines.append(f"BUMPS's experts used {total:,} PPO env steps in all ({len(experts['tasks_m'])} experts).")
