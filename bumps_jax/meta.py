@@ -5,10 +5,12 @@
    context set to the expert's own task. X (N, 2) = (phase, normalised target), Y (N, 22).
 2. Meta-policy: an MLP (tanh hidden layers, linear output) maps X to the 22 joint targets.
    The paper's two nets: 4 x 256 and 11 x 128. Loss: mean absolute error; Adam at 3e-4,
-   x 0.8 every 5000 epochs (staircase); batch 128; 150,000 epochs (= gradient steps).
+   x 0.8 every 5000 epochs (staircase); batch 128; 150,000 epochs. An epoch is one pass over
+   the shuffled dataset in batches of 128, the last one partial (the original trains with
+   Keras `fit`): ceil(N / 128) gradient steps, 14 for the paper's 23 experts x 75 steps.
 3. Training runs on the device: the data stays there, each chunk of gradient steps is one
-   jitted lax.scan that samples its own minibatches (key = fold_in(seed key, step), so a
-   resumed run draws the same batches as an uninterrupted one); seeds are vmapped. The host
+   jitted lax.scan over epochs that shuffles with key fold_in(seed key, epoch) (a resumed run
+   draws the same batches as an uninterrupted one); seeds are vmapped. The host
    syncs once per chunk: progress line, CSV row, orbax checkpoint.
 4. Evaluation, unfiltered: every meta-policy on the 110 meta-test tasks x 100 noisy
    repetitions (context = target), one vmapped program; Table 1 rows 2-3 via
@@ -58,8 +60,8 @@ def default_config() -> ml_collections.ConfigDict:
     cfg.train.decay_rate = 0.8
     cfg.train.decay_every = 5000  # epochs
     cfg.train.batch_size = 128
-    cfg.train.epochs = 150_000  # one epoch = one gradient step on one minibatch (the paper's use)
-    cfg.train.chunk = 5000  # gradient steps per host sync (progress, CSV, checkpoint)
+    cfg.train.epochs = 150_000  # passes over the dataset (see `steps_per_epoch`)
+    cfg.train.chunk = 2500  # epochs per host sync (progress, CSV, checkpoint)
     cfg.train.n_seeds = 1  # vmapped ensemble of initialisations; row = seed 0, all seeds reported
     cfg.train.seed = 0
     cfg.eval = ml_collections.ConfigDict()
@@ -70,11 +72,12 @@ def default_config() -> ml_collections.ConfigDict:
 
 
 def tiny_config() -> ml_collections.ConfigDict:
-    """A CPU-sized run of the whole stage: a few hundred steps, 11 test tasks, 2 repetitions."""
+    """A CPU-sized run of the whole stage: a few thousand steps, 11 test tasks, 2 repetitions."""
     cfg = default_config()
     cfg.preset = "tiny"
-    cfg.train.epochs = 4000
-    cfg.train.chunk = 1000
+    cfg.train.epochs = 2000  # 3 experts x 75 steps: 2 steps per epoch
+    cfg.train.decay_every = 500
+    cfg.train.chunk = 500
     cfg.eval.tasks = kick_env.meta_test_tasks()[9::10]
     cfg.eval.repetitions = 2
     return cfg
@@ -199,19 +202,28 @@ def policy_apply(model: MetaPolicy):
     return apply_fn
 
 
-def lr_schedule(train_cfg) -> optax.Schedule:
-    """lr(epoch) = lr0 * decay ** floor(epoch / decay_every): the paper's staircase decay."""
+def steps_per_epoch(train_cfg, n_rows: int) -> int:
+    """Gradient steps in one pass over `n_rows` pairs in batches of train_cfg.batch_size."""
+    return -(-int(n_rows) // int(train_cfg.batch_size))
+
+
+def lr_schedule(train_cfg, epoch_steps: int = 1) -> optax.Schedule:
+    """lr(step) = lr0 * decay ** floor(epoch / decay_every), epoch = step // epoch_steps: the
+    paper's staircase decay, applied per epoch as its Keras scheduler did."""
     return optax.exponential_decay(
         init_value=train_cfg.learning_rate,
-        transition_steps=train_cfg.decay_every,
+        transition_steps=train_cfg.decay_every * epoch_steps,
         decay_rate=train_cfg.decay_rate,
         staircase=True,
     )
 
 
-def mae_loss(params, apply_fn, obs, actions) -> jax.Array:
-    """Mean absolute error over the batch (B, 22) and the joints."""
-    return jnp.mean(jnp.abs(apply_fn(params, obs) - actions))
+def mae_loss(params, apply_fn, obs, actions, weights=None) -> jax.Array:
+    """Mean absolute error over the joints and the batch's rows (those with weight 1)."""
+    per_row = jnp.mean(jnp.abs(apply_fn(params, obs) - actions), axis=-1)
+    if weights is None:
+        return jnp.mean(per_row)
+    return jnp.sum(per_row * weights) / jnp.sum(weights)
 
 
 class TrainState(NamedTuple):
@@ -229,20 +241,33 @@ class SeedCarry(NamedTuple):
     opt_state: Any
 
 
-def _train_step(apply_fn, optimizer, batch_size, obs, actions, seed_key, carry: SeedCarry, step):
-    """One gradient step of one seed on a minibatch drawn with key fold_in(seed_key, step)."""
-    idx = jax.random.randint(jax.random.fold_in(seed_key, step), (batch_size,), 0, obs.shape[0])
-    loss, grads = jax.value_and_grad(mae_loss)(carry.params, apply_fn, obs[idx], actions[idx])
-    updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
-    return SeedCarry(optax.apply_updates(carry.params, updates), opt_state), loss
+def _epoch(apply_fn, optimizer, batch_size, epoch_steps, obs, actions, seed_key, carry: SeedCarry, epoch):
+    """One pass over the dataset, shuffled with key fold_in(seed_key, epoch): (carry, losses)."""
+    n = obs.shape[0]
+    order = jax.random.permutation(jax.random.fold_in(seed_key, epoch), n)
+    # Static shapes: every batch takes batch_size slots; the last, partial one masks the
+    # slots past the end, so its loss is the mean over its own rows (as Keras computes it).
+    order = jnp.concatenate([order, jnp.zeros(epoch_steps * batch_size - n, order.dtype)])
+    slots = jnp.arange(epoch_steps * batch_size).reshape(epoch_steps, batch_size)
+
+    def step(carry: SeedCarry, batch):
+        idx, slot = batch
+        weights = (slot < n).astype(obs.dtype)
+        loss, grads = jax.value_and_grad(mae_loss)(carry.params, apply_fn, obs[idx], actions[idx], weights)
+        updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
+        return SeedCarry(optax.apply_updates(carry.params, updates), opt_state), loss
+
+    return jax.lax.scan(step, carry, (order.reshape(epoch_steps, batch_size), slots))
 
 
-def make_trainer(model: MetaPolicy, train_cfg):
-    """(init, chunk): init(seed_keys (S,)) -> TrainState; chunk(state, obs, actions, seed_keys)
-    -> (state after train_cfg.chunk more steps, losses (S, chunk)). Both jitted."""
-    optimizer = optax.adam(lr_schedule(train_cfg))
+def make_trainer(model: MetaPolicy, train_cfg, n_rows: int):
+    """(init, chunk) for a dataset of `n_rows` pairs: init(seed_keys (S,)) -> TrainState;
+    chunk(state, obs, actions, seed_keys) -> (state after train_cfg.chunk more epochs,
+    losses (S, chunk epochs x steps per epoch)). Both jitted."""
+    epoch_steps = steps_per_epoch(train_cfg, n_rows)
+    optimizer = optax.adam(lr_schedule(train_cfg, epoch_steps))
     apply_fn = policy_apply(model)
-    chunk_len = int(train_cfg.chunk)
+    chunk_epochs = int(train_cfg.chunk)
 
     def init_one(key):
         params = model.init(key, jnp.zeros((1, 2)))["params"]
@@ -253,18 +278,20 @@ def make_trainer(model: MetaPolicy, train_cfg):
         params, opt_state = jax.vmap(init_one)(seed_keys)
         return TrainState(params, opt_state, jnp.zeros((), jnp.int32))
 
-    def chunk_one(params, opt_state, seed_key, obs, actions, steps):
-        body = functools.partial(_train_step, apply_fn, optimizer, train_cfg.batch_size, obs, actions, seed_key)
-        carry, losses = jax.lax.scan(body, SeedCarry(params, opt_state), steps)
-        return carry.params, carry.opt_state, losses
+    def chunk_one(params, opt_state, seed_key, obs, actions, epochs):
+        body = functools.partial(_epoch, apply_fn, optimizer, train_cfg.batch_size, epoch_steps, obs, actions, seed_key)
+        carry, losses = jax.lax.scan(body, SeedCarry(params, opt_state), epochs)
+        return carry.params, carry.opt_state, losses.reshape(-1)
 
     @jax.jit
     def chunk(state: TrainState, obs, actions, seed_keys):
-        steps = state.step + jnp.arange(chunk_len, dtype=jnp.int32)
+        if obs.shape[0] != n_rows:
+            raise ValueError(f"the trainer was built for {n_rows} pairs, got {obs.shape[0]}")
+        epochs = state.step // epoch_steps + jnp.arange(chunk_epochs, dtype=jnp.int32)
         params, opt_state, losses = jax.vmap(chunk_one, in_axes=(0, 0, 0, None, None, None))(
-            state.params, state.opt_state, seed_keys, obs, actions, steps
+            state.params, state.opt_state, seed_keys, obs, actions, epochs
         )
-        return TrainState(params, opt_state, state.step + chunk_len), losses
+        return TrainState(params, opt_state, state.step + chunk_epochs * epoch_steps), losses
 
     return init, chunk
 
@@ -282,7 +309,8 @@ def train(
     max_chunks: int | None = None,
     trainer=None,
 ) -> TrainState:
-    """Train (or resume training) one architecture; returns the final TrainState.
+    """Train (or resume training) one architecture; returns the final TrainState (its `step`
+    counts gradient steps: train_cfg.epochs x `steps_per_epoch`).
 
     Writes out_dir/progress.csv and orbax checkpoints in out_dir/checkpoints after every chunk.
     A rerun resumes from the latest checkpoint and ends where an uninterrupted run would.
@@ -290,26 +318,29 @@ def train(
     """
     out_dir = Path(out_dir).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
-    init, chunk = trainer or make_trainer(model, train_cfg)
+    init, chunk = trainer or make_trainer(model, train_cfg, len(data.obs))
+    epoch_steps = steps_per_epoch(train_cfg, len(data.obs))
+    total_steps = train_cfg.epochs * epoch_steps
     keys = seed_keys(train_cfg)
     state = init(keys)
     options = ocp.CheckpointManagerOptions(max_to_keep=2, enable_async_checkpointing=False)
     csv_path = out_dir / "progress.csv"
-    fields = ["step", "lr", "loss_mean", "loss_last", "loss_best_seed", "seconds"]
+    fields = ["epoch", "step", "lr", "loss_mean", "loss_last", "loss_best_seed", "seconds"]
     with ocp.CheckpointManager(out_dir / "checkpoints", options=options) as manager:
         latest = manager.latest_step()
         if latest is not None:
             state = manager.restore(latest, args=ocp.args.StandardRestore(state))
         _truncate_csv(csv_path, fields, int(state.step))
         obs, actions = jnp.asarray(data.obs), jnp.asarray(data.actions)  # resident on the device
-        schedule = lr_schedule(train_cfg)
+        schedule = lr_schedule(train_cfg, epoch_steps)
         done_chunks = 0
-        while int(state.step) < train_cfg.epochs and (max_chunks is None or done_chunks < max_chunks):
+        while int(state.step) < total_steps and (max_chunks is None or done_chunks < max_chunks):
             t0 = time.perf_counter()
             state, losses = chunk(state, obs, actions, keys)
             losses = np.asarray(losses)  # the host sync of this chunk
             step = int(state.step)
             row = [
+                step // epoch_steps,
                 step,
                 float(schedule(step - 1)),
                 float(losses.mean()),
@@ -323,8 +354,8 @@ def train(
             done_chunks += 1
             if verbose:
                 print(
-                    f"  step {step:7d}/{train_cfg.epochs}  lr {row[1]:.2e}  loss {row[2]:.4f}"
-                    f"  (last {row[3]:.4f})  {row[5]:.1f} s",
+                    f"  epoch {row[0]:7d}/{train_cfg.epochs}  lr {row[2]:.2e}  loss {row[3]:.4f}"
+                    f"  (last {row[4]:.4f})  {row[6]:.1f} s",
                     flush=True,
                 )
         manager.wait_until_finished()
@@ -340,13 +371,13 @@ def _truncate_csv(path: Path, fields, step: int) -> None:
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(fields)
-        w.writerows(r for r in rows if r and int(r[0]) <= step)
+        w.writerows(r for r in rows if r and int(r[1]) <= step)
 
 
 def load_policy(net_dir, depth: int, width: int, train_cfg) -> tuple[Any, Any]:
     """(apply_fn, params stacked over seeds) from the latest checkpoint in net_dir/checkpoints."""
     model = MetaPolicy(depth, width)
-    init, _ = make_trainer(model, train_cfg)
+    init, _ = make_trainer(model, train_cfg, n_rows=1)  # the state's shapes do not depend on the data
     abstract = init(seed_keys(train_cfg))
     path = Path(net_dir).resolve() / "checkpoints"
     with ocp.CheckpointManager(path, options=ocp.CheckpointManagerOptions(read_only=True)) as manager:

@@ -19,9 +19,31 @@ def _train_cfg(**changes):
 
 
 def test_lr_schedule_matches_the_paper():
-    schedule = meta.lr_schedule(meta.default_config().train)
+    """3e-4 x 0.8 every 5000 epochs, an epoch being one pass: 14 steps for 23 experts x 75 steps."""
+    train = meta.default_config().train
+    epoch_steps = meta.steps_per_epoch(train, 23 * 75)
+    assert epoch_steps == 14  # 13 full batches of 128 and one of 61
+    schedule = meta.lr_schedule(train, epoch_steps)
     for epoch, lr in [(0, 3e-4), (4999, 3e-4), (5000, 2.4e-4), (12000, 1.92e-4), (149_999, 3e-4 * 0.8**29)]:
-        assert float(schedule(epoch)) == pytest.approx(lr, rel=1e-5), epoch
+        assert float(schedule(epoch * epoch_steps)) == pytest.approx(lr, rel=1e-5), epoch
+        assert float(schedule(epoch * epoch_steps + epoch_steps - 1)) == pytest.approx(lr, rel=1e-5), epoch
+
+
+def test_an_epoch_visits_every_row_once():
+    """The loss of one epoch at lr ~ 0 is the dataset's mean error, each row counted once."""
+    rng = np.random.default_rng(1)
+    obs = jnp.asarray(rng.uniform(size=(300, 2)), jnp.float32)  # 3 batches: 128, 128, 44 rows
+    actions = jnp.asarray(rng.normal(size=(300, 22)), jnp.float32)
+    cfg = _train_cfg(learning_rate=1e-12, epochs=1, chunk=1, batch_size=128)
+    model = meta.MetaPolicy(depth=1, width=8)
+    init, chunk = meta.make_trainer(model, cfg, 300)
+    state = init(meta.seed_keys(cfg))
+    params0 = jax.tree.map(lambda a: a[0], state.params)
+    per_row = np.abs(np.asarray(meta.policy_apply(model)(params0, obs)) - np.asarray(actions)).mean(axis=1)
+    state, losses = chunk(state, obs, actions, meta.seed_keys(cfg))
+    assert int(state.step) == 3 and losses.shape == (1, 3)
+    weighted = (128 * losses[0, 0] + 128 * losses[0, 1] + 44 * losses[0, 2]) / 300
+    assert float(weighted) == pytest.approx(per_row.mean(), rel=1e-4)
 
 
 def test_behaviour_cloning_recovers_a_linear_map(tmp_path):
@@ -30,7 +52,8 @@ def test_behaviour_cloning_recovers_a_linear_map(tmp_path):
     b = rng.normal(size=22).astype(np.float32) * 0.3
     x = rng.uniform(size=(4096, 2)).astype(np.float32)
     data = meta.Dataset(obs=x, actions=x @ w + b, task=np.zeros(len(x), np.float32))
-    cfg = _train_cfg(learning_rate=3e-3, decay_every=1000, epochs=3000, chunk=1000, batch_size=128)
+    # 4096 pairs: 32 steps per epoch, 2880 steps in all.
+    cfg = _train_cfg(learning_rate=3e-3, decay_every=30, epochs=90, chunk=30, batch_size=128)
     model = meta.MetaPolicy(depth=2, width=32)
     state = meta.train(model, data, cfg, tmp_path, verbose=False)
     x_test = rng.uniform(size=(256, 2)).astype(np.float32)
@@ -53,16 +76,19 @@ def _table_dataset(tasks) -> meta.Dataset:
 def test_loss_falls_on_the_tiny_preset(tmp_path):
     data = _table_dataset(kick_env.meta_train_tasks())
     cfg = meta.tiny_config()
+    # All 23 experts' rows (14 steps per epoch): the tiny schedule cut to 300 epochs.
+    cfg.train.unlock()
+    cfg.train.update(epochs=300, chunk=75, decay_every=100)
     depth, width = cfg.nets["meta_4x256"]
     model = meta.MetaPolicy(depth, width)
-    init, _ = meta.make_trainer(model, cfg.train)
+    init, _ = meta.make_trainer(model, cfg.train, len(data.obs))
     first = jax.tree.map(lambda a: a[0], init(meta.seed_keys(cfg.train)).params)
     initial = float(meta.mae_loss(first, meta.policy_apply(model), data.obs, data.actions))
     meta.train(model, data, cfg.train, tmp_path, verbose=False)
     with open(tmp_path / "progress.csv") as f:
         rows = list(csv.DictReader(f))
     chunk, epochs = cfg.train.chunk, cfg.train.epochs
-    assert [int(r["step"]) for r in rows] == list(range(chunk, epochs + 1, chunk))
+    assert [int(r["epoch"]) for r in rows] == list(range(chunk, epochs + 1, chunk))
     losses = [float(r["loss_mean"]) for r in rows]
     assert losses[-1] < losses[0] and losses[-1] < 0.3 * initial
 
@@ -71,16 +97,16 @@ def test_resume_equals_uninterrupted(tmp_path):
     data = _table_dataset((8.0, 12.0))
     cfg = _train_cfg(epochs=40, chunk=10, n_seeds=2)
     model = meta.MetaPolicy(depth=1, width=8)
-    trainer = meta.make_trainer(model, cfg)
+    trainer = meta.make_trainer(model, cfg, len(data.obs))  # 150 pairs: 2 steps per epoch
     whole = meta.train(model, data, cfg, tmp_path / "a", verbose=False, trainer=trainer)
     part = meta.train(model, data, cfg, tmp_path / "b", verbose=False, max_chunks=2, trainer=trainer)
-    assert int(part.step) == 20
+    assert int(part.step) == 2 * 20
     resumed = meta.train(model, data, cfg, tmp_path / "b", verbose=False, trainer=trainer)
-    assert int(resumed.step) == 40
+    assert int(resumed.step) == 2 * 40
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(resumed), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     with open(tmp_path / "b" / "progress.csv") as f:
-        assert [int(r["step"]) for r in csv.DictReader(f)] == [10, 20, 30, 40]
+        assert [int(r["epoch"]) for r in csv.DictReader(f)] == [10, 20, 30, 40]
     # The two seeds are different networks.
     w = jax.tree.leaves(whole.params)[0]
     assert not np.allclose(w[0], w[1])
