@@ -77,8 +77,12 @@ def run(cfg: ml_collections.ConfigDict, out_dir: str | Path) -> dict:
     kick_env.check_targets(cfg.ppo.sample_task_range, env.config.task_range)
     kick_env.check_targets(cfg.eval_tasks, env.config.task_range)
     trainer = ppo.make_train(cfg.ppo, env)
-    # Every seed starts from the same imitation of the 12 m prior (the paper's "fair init").
-    obs, actions = experts.bc_dataset(env, 12.0, jnp.asarray(prior.load_prior()["params"]))
+    # Every seed starts from the same imitation of the 12 m prior (the paper's "fair init"), for
+    # every context: the policy sees the target, and a clone fitted at the 12 m context alone
+    # kicks anything elsewhere (measured: accuracy 0.67 over the meta-test tasks).
+    kick = jnp.asarray(prior.load_prior()["params"])
+    pairs = [experts.bc_dataset(env, t, kick) for t in kick_env.meta_train_tasks()]
+    obs, actions = (jnp.concatenate(parts) for parts in zip(*pairs, strict=True))
     policy0 = trainer.networks.policy_network.init(jax.random.key(0))
     clone = jax.jit(lambda p: experts.behaviour_clone(trainer.networks, p, obs, actions, cfg.bc_steps,
                                                       cfg.bc_learning_rate))  # fmt: skip
