@@ -148,7 +148,7 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
         lines += [f"Experts: {found['experts']['env_steps']:,} PPO env steps each.", ""]
     rows2 = found["filter"]["rows"] if found["filter"] else {}
     lines += ["## Table 2: BUMPS after policy filtering", "", *table2(rows2), ""]
-    lines += baseline_lines(extras["baseline"], found["experts"])
+    lines += baseline_lines(extras["baseline"], found["experts"], rows2)
     pictures = [*run_dir.glob(f"{figures_dir}/*.png"), *run_dir.glob(f"{figures_dir}/*.gif")]
     figures = sorted(p.relative_to(run_dir).as_posix() for p in pictures)
     if figures:
@@ -168,14 +168,15 @@ def pipeline_lines(pipeline: dict | None) -> list[str]:
     ]
 
 
-def baseline_lines(baseline: dict | None, experts: dict | None) -> list[str]:
+def baseline_lines(baseline: dict | None, experts: dict | None, filtered: dict | None = None) -> list[str]:
     lines = ["## Multi-task PPO baseline (the paper's Figure 1)", ""]
     if not baseline:
         return [*lines, "Not run (`make baseline`).", ""]
     lines += [
         f"One contextual policy trained by PPO on targets drawn from U[7, 18] m, {baseline['seeds']} seeds, "
         f"{baseline['env_steps']:,} env steps per seed: meta-test error {baseline['error_mean_m']:.2f} m over all "
-        f"{len(baseline['eval_tasks'])} tasks, accuracy {baseline['accuracy_mean']:.2f} ({baseline['preset']} preset).",
+        f"{len(baseline['eval_tasks'])} tasks, accuracy {baseline['accuracy_mean']:.2f} ({baseline['preset']} preset, "
+        f"{baseline.get('device', 'device unknown')}).",
     ]
     if "start" in baseline:
         start = baseline["start"]
@@ -185,7 +186,16 @@ def baseline_lines(baseline: dict | None, experts: dict | None) -> list[str]:
         )
     if experts:
         total = experts["env_steps"] * len(experts["tasks_m"])
-        lines.append(f"BUMPS's experts used {total:,} PPO env steps in all ({len(experts['tasks_m'])} experts).")
+        lines.append(
+            f"BUMPS's experts used {total:,} PPO env steps in all ({len(experts['tasks_m'])} experts of "
+            f"{experts['env_steps']:,}); the baseline {baseline['seeds'] * baseline['env_steps']:,} over its seeds."
+        )
+    if filtered:
+        name, best = min(filtered.items(), key=lambda kv: kv[1]["error_mean_m"])
+        lines.append(
+            f"Best BUMPS variant ({name}): {best['error_mean_m']:.2f} m against the baseline's "
+            f"{baseline['error_mean_m']:.2f} m on the same meta-test tasks."
+        )
     return [*lines, ""]
 
 
