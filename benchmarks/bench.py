@@ -6,13 +6,16 @@
 - BC (meta-training) gradient steps/s of both meta-policies;
 - filtering rollouts/s and the wall time of the high-sample-rate variant (1091 contexts).
 With more than one device visible it also measures the experts and filtering on a mesh of one
-device and on a mesh of all of them (`bumps_jax.sharding`) and writes the scaling record.
+device and on a mesh of all of them (`bumps_jax.sharding`) and writes the scaling record;
+`--scale-workload K` runs those two on K times the preset's work (K copies of every expert,
+each its own seed; K times the filtering repetitions), for a lab that outgrows one device.
 
 Every time is a program's second call (its first compiles); compile times are reported apart.
 Results are written after each section, so a run cut short keeps what it measured.
 
     python benchmarks/bench.py --preset paper                 # GPU: benchmarks/results/*.json
     python benchmarks/bench.py --preset tiny --out-dir runs/bench   # CPU smoke test
+    python benchmarks/bench.py --only scaling --scale-workload 2    # several GPUs, twice the work
 """
 
 from __future__ import annotations
@@ -60,16 +63,18 @@ def bench_scene(batch: int) -> dict:
     }
 
 
-def expert_config(preset: str, updates: int):
-    """The preset's experts with the budget cut to `updates` updates (one chunk)."""
+def expert_config(preset: str, updates: int, workload: int = 1):
+    """The preset's experts with the budget cut to `updates` updates (one chunk); with
+    `workload` K, every task K times (K experts per task, each on its own seed)."""
     cfg = experts.preset_config(preset)
     steps = cfg.ppo.num_envs * kick_env.KickEnv().n_steps * updates
-    return experts.make_config(cfg, {"ppo.total_env_steps": steps, "updates_per_chunk": updates})
+    overrides = {"ppo.total_env_steps": steps, "updates_per_chunk": updates, "tasks": tuple(cfg.tasks) * workload}
+    return experts.make_config(cfg, overrides)
 
 
-def bench_experts(preset: str, updates: int, mesh, method: str = "jit") -> dict:
+def bench_experts(preset: str, updates: int, mesh, method: str = "jit", workload: int = 1) -> dict:
     """One chunk of PPO updates of every task at once; aggregate env-steps/s over real tasks."""
-    cfg = expert_config(preset, updates)
+    cfg = expert_config(preset, updates, workload)
     programs = experts.compile_programs(cfg, mesh=mesh, method=method)
     n = len(cfg.tasks)
     kicks, _ = experts.starting_kicks(experts.make_config(cfg, {"tune.generations": 0}), verbose=False)
@@ -79,6 +84,7 @@ def bench_experts(preset: str, updates: int, mesh, method: str = "jit") -> dict:
     full = experts.preset_config(preset).ppo.total_env_steps * n
     return {
         "n_tasks": n,
+        "workload": workload,
         "n_devices": mesh.size,
         "experts_env_steps_per_s": steps / wall,
         "experts_chunk_compile_s": first - wall,
@@ -135,10 +141,11 @@ def bench_bc(preset: str, chunk: int) -> dict:
     return out
 
 
-def bench_filter(preset: str, step: float, reps: int, mesh, method: str = "jit") -> dict:
+def bench_filter(preset: str, step: float, reps: int, mesh, method: str = "jit", workload: int = 1) -> dict:
     """The high-sample-rate variant end to end (selection over the fine context grid, then the
     fresh evaluation of each test task), with the contextual stand-in policy: rollouts/s."""
     cfg = filtering.make_config(preset)
+    reps *= workload
     env = kick_env.KickEnv()
     params = jax.tree.map(lambda a: a[None], synthetic_experts.synthetic_contextual_params())
     grid = evaluate.grid_fn(env, synthetic_experts.contextual_apply, mesh, method)
@@ -160,6 +167,7 @@ def bench_filter(preset: str, step: float, reps: int, mesh, method: str = "jit")
     rollouts = len(contexts) * reps + len(tasks) * cfg.eval_repetitions
     return {
         "n_devices": mesh.size,
+        "workload": workload,
         "filter_contexts": len(contexts),
         "filter_rollouts": rollouts,
         "filter_rollouts_per_s": rollouts / wall,
@@ -175,7 +183,14 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--skip", nargs="*", default=(), choices=("scene", "experts", "brax", "bc", "filter", "scaling")
     )
+    parser.add_argument("--only", nargs="*", default=(), choices=("scaling",), help="run only the scale-out sections")
     parser.add_argument("--sharding", choices=sharding.METHODS, default="jit", help="how batches are split")
+    parser.add_argument(
+        "--scale-workload",
+        type=int,
+        default=1,
+        help="the scale-out sections run K times the preset's work, on one device and on all",
+    )
     args = parser.parse_args(argv)
     size = SIZES[args.preset]
     out_dir = Path(args.out_dir)
@@ -188,7 +203,8 @@ def main(argv=None) -> dict:
     def save(section: str) -> None:
         print(f"[bench] {section} done at {time.perf_counter() - start:.0f} s", flush=True)
         prov = results.provenance(args.preset, time.perf_counter() - start)
-        results.write_json(out_dir / "training.json", {**training, **prov})
+        if "scaling" not in args.only:  # a scale-out-only run leaves the one-device record alone
+            results.write_json(out_dir / "training.json", {**training, **prov})
         if any(k.endswith("_speedup") for k in scaling):  # at least one ratio measured
             results.write_json(out_dir / "scaling.json", {**scaling, **prov})
 
@@ -197,35 +213,49 @@ def main(argv=None) -> dict:
     scale_out = n_dev > 1 and "scaling" not in args.skip
     every = sharding.device_mesh() if scale_out else one
 
-    def experts_on(mesh):
-        return lambda: bench_experts(args.preset, size["bench_updates"], mesh, args.sharding)
+    if args.scale_workload < 1:
+        parser.error(f"--scale-workload must be a positive integer, got {args.scale_workload}")
+    k = args.scale_workload
+    scaling["workload"] = k
 
-    def filter_on(mesh):
-        return lambda: bench_filter(args.preset, size["filter_step"], size["filter_reps"], mesh, args.sharding)
+    def experts_on(mesh, workload=1):
+        return lambda: bench_experts(args.preset, size["bench_updates"], mesh, args.sharding, workload)
+
+    def filter_on(mesh, workload=1):
+        return lambda: bench_filter(
+            args.preset, size["filter_step"], size["filter_reps"], mesh, args.sharding, workload
+        )
 
     # Each scale-out measurement follows its one-device run (a run cut short keeps whole
     # ratios); the experts' one comes last, as the program most likely to fail to compile.
+    # A scale-out section at the preset's own workload reuses the one-device value just measured;
+    # at a larger workload it measures one device itself, then all.
     sections = [
         ("experts", experts_on(one), "training"),
         ("filter", filter_on(one), "training"),
-        ("scaling-filter", filter_on(every), "filter_rollouts_per_s"),
+        ("scaling-filter", (filter_on(one, k), filter_on(every, k)), "filter_rollouts_per_s"),
         ("brax", lambda: bench_brax(args.preset, size["brax_epochs"]), "training"),
         ("scene", lambda: bench_scene(batch), "training"),
         ("bc", lambda: bench_bc(args.preset, size["bc_chunk"]), "training"),
-        ("scaling-experts", experts_on(every), "experts_env_steps_per_s"),
+        ("scaling-experts", (experts_on(one, k), experts_on(every, k)), "experts_env_steps_per_s"),
     ]
     for name, fn, into in sections:
         source = name.removeprefix("scaling-")
-        if name in args.skip or source in args.skip or (name != source and not scale_out):
+        if name in args.skip or (name == source and "scaling" in args.only):
             continue
-        part = fn()
-        print({k: v for k, v in part.items() if not isinstance(v, list)}, flush=True)
+        if name != source and (not scale_out or (k == 1 and source in args.skip)):
+            continue
         if into == "training":
+            part = fn()
             part.pop("n_devices", None)
             training.update(part)
-        else:  # the same measurement on every device; its one-device value was taken just before
-            scaling[into] = {"1": training[into], str(n_dev): part[into]}  # {n_devices: value}
-            scaling[into.replace("_per_s", "_speedup")] = part[into] / training[into]
+        else:  # the same measurement on one device and on every device
+            alone = training[into] if k == 1 and into in training else fn[0]()[into]
+            part = fn[1]()
+            scaling[into] = {"1": alone, str(n_dev): part[into]}  # {n_devices: value}
+            scaling[into.replace("_per_s", "_speedup")] = part[into] / alone
+            scaling[f"{source}_workload_detail"] = {kk: v for kk, v in part.items() if not isinstance(v, list)}
+        print({kk: v for kk, v in part.items() if not isinstance(v, list)}, flush=True)
         if "brax_ppo_env_steps_per_s" in training and "experts_env_steps_per_s" in training:
             training["experts_vs_brax"] = training["experts_env_steps_per_s"] / training["brax_ppo_env_steps_per_s"]
         if "env_steps_per_s" in training and "experts_env_steps_per_s" in training:

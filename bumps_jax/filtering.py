@@ -58,10 +58,10 @@ def default_config() -> ml_collections.ConfigDict:
     cfg.eval_repetitions = 100  # fresh noisy rollouts of each task's chosen policy
     cfg.seed = 0  # split into independent selection and evaluation noise
     cfg.net_seed = 0  # which network of a seed ensemble is filtered
-    # Episodes per program call: None runs each stage as one batch (a compile per batch size);
-    # an int pads and blocks every stage to that size, so one compiled program per net serves
-    # all of them. 4096 episodes keep a GPU busy (the env runs at ~0.4M steps/s from a batch
-    # of 4096 on an H200) and compile once instead of six times.
+    # Episodes per device per program call: None runs each stage as one batch (a compile per
+    # batch size); an int pads and blocks every stage to that size times the devices, so one
+    # compiled program per net serves all of them. 4096 episodes keep a GPU busy (the env
+    # runs at ~0.4M steps/s from a batch of 4096 on an H200) and compile once instead of six.
     cfg.block = ml_collections.config_dict.FieldReference(4096, field_type=int)
     return cfg
 
@@ -200,13 +200,14 @@ class Selection(NamedTuple):
 def run_blocked(grid, params, contexts, targets, keys, block: int | None, multiple: int = 1) -> dict:
     """Episodes (policy params shared, P = 1 stack) for flat (B,) contexts, targets, keys.
 
-    block None: one program call for the batch; else calls of exactly `block` episodes (the
-    last padded by repeating its first episode), so one compiled program serves any B. Either
-    size is rounded up to a multiple of `multiple` (the devices a sharded grid splits over).
+    block None: one program call for the batch, rounded up to a multiple of `multiple` (the
+    devices a sharded grid splits over); else calls of exactly `block` x `multiple` episodes,
+    `block` per device (the last call padded by repeating its first episode), so one compiled
+    program serves any B and each device's share stays the same whatever their number.
     Returns metrics of (B,).
     """
     n = len(contexts)
-    size = -(-(n if block is None else int(block)) // multiple) * multiple
+    size = -(-n // multiple) * multiple if block is None else int(block) * multiple
     out = []
     for start in range(0, n, size):
         idx = np.arange(start, start + size)

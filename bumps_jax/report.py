@@ -231,7 +231,8 @@ def speed_lines(bench: dict | None, scaling: dict | None) -> list[str]:
             f"Scale-out on {scaling['device']}: experts {scaling['experts_env_steps_per_s'][n]:,.0f} env-steps/s on "
             f"{n} devices vs {scaling['experts_env_steps_per_s']['1']:,.0f} on one "
             f"({scaling['experts_env_steps_speedup']:.2f}x); filtering "
-            f"{scaling['filter_rollouts_speedup']:.2f}x.",
+            f"{scaling['filter_rollouts_speedup']:.2f}x, at {scaling.get('workload', 1)} times the paper's work "
+            "(copies of every expert; filtering repetitions), measured on one device and on all in one run.",
         ]
     return [*lines, ""]
 
