@@ -55,7 +55,8 @@ def test_report_shows_pipeline_time_and_baseline(tmp_path):
     text = report.build(_paper_run(tmp_path))
     assert "**1.5 min** in all (train-experts 60 s, filter 30 s" in text
     assert "6 seeds, 2,000 env steps per seed: meta-test error 3.50 m" in text
-    assert "BUMPS's experts used 2,000 PPO env steps in all (2 experts)" in text
+    assert "BUMPS's experts used 2,000 PPO env steps in all (2 experts of 1,000); the baseline 12,000" in text
+    assert "Best BUMPS variant (filtered_ensemble): 0.90 m against the baseline's 3.50 m" in text
     assert "| filtered_ensemble | 110 | 0.90 +- 0.40 | 0.40 +- 0.11 | 7.0% +- 2.0 |" in text
 
 
