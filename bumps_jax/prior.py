@@ -20,6 +20,7 @@ versioned JSON (`save_prior` / `load_prior`) that later stages replay without op
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import time
 from pathlib import Path
@@ -275,7 +276,13 @@ def fitness(outcome: dict, target, weights) -> jax.Array:
 
 def _env_for(cfg) -> kick_env.KickEnv:
     # The default task, noise included; only the range of admissible targets is wider.
-    return kick_env.KickEnv(config_overrides={"task_range": tuple(cfg.task_range)})
+    return _env_for_range(tuple(cfg.task_range))
+
+
+@functools.lru_cache(maxsize=4)
+def _env_for_range(task_range: tuple) -> kick_env.KickEnv:
+    # One env per range, so programs built on it (`_tuning_programs`) are found again.
+    return kick_env.KickEnv(config_overrides={"task_range": task_range})
 
 
 def _free_mask(cfg) -> np.ndarray:
@@ -390,6 +397,38 @@ def optimise(
     return record
 
 
+@functools.lru_cache(maxsize=8)
+def _tuning_programs(env, mesh, P: int, R: int, fitness_json: str, sigma_init: float):
+    """`tune_for_tasks`' CMA-ES and its two jitted programs (one generation of every task; the
+    final start-vs-tuned costs). Kept per settings, so a repeated or resumed run of the same
+    settings in one process does not trace and compile them again (about a minute on a CPU)."""
+    from evosax.algorithms import CMA_ES  # heavy import, only needed here
+
+    from bumps_jax import sharding  # noqa: PLC0415 (keeps `import prior` light for tests)
+
+    weights = ml_collections.ConfigDict(json.loads(fitness_json))
+    episodes = jax.vmap(jax.vmap(_episode_fn(env), in_axes=(None, 0, None)), in_axes=(0, 0, None))
+    scale = jnp.asarray(PARAM_SCALE, jnp.float32)
+    es = CMA_ES(population_size=P, solution=jnp.zeros(N_PARAMS))
+    es_params = es.default_params.replace(std_init=jnp.asarray(sigma_init))
+
+    def cost_of(params, keys, target):  # params (P, 14), keys (P, R) -> (P,)
+        return jnp.mean(fitness(episodes(params, keys, target), target, weights), axis=1)
+
+    def generation(state, key, x0, target):
+        ask_key, eval_key, tell_key = jax.random.split(key, 3)
+        z, state = es.ask(ask_key, state, es_params)
+        # Common random numbers within a task's generation, as in `optimise`.
+        keys = jnp.broadcast_to(jax.random.split(eval_key, R), (P, R) + eval_key.shape)
+        cost = cost_of(clip_params(x0 + scale * z), keys, target)
+        state, _ = es.tell(tell_key, z, cost, state, es_params)
+        return state, jnp.min(cost)
+
+    step = sharding.over_batch(jax.vmap(generation), mesh, (True, True, True, True))
+    final = sharding.over_batch(jax.vmap(cost_of, in_axes=(0, None, 0)), mesh, (True, False, True))
+    return es, es_params, step, final
+
+
 def tune_for_tasks(
     targets,
     starts,
@@ -411,8 +450,6 @@ def tune_for_tasks(
     Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
     "history": (generations, T) best cost per generation, "episodes": int}.
     """
-    from evosax.algorithms import CMA_ES  # heavy import, only needed here
-
     cfg = make_config(config)
     validate_config(cfg)
     targets = jnp.asarray(targets, jnp.float32)
@@ -428,25 +465,8 @@ def tune_for_tasks(
     n_tasks = targets.shape[0]
     targets, starts = sharding.pad((targets, starts), sharding.padded_size(n_tasks, mesh))
     env = env or _env_for(cfg)
-    episodes = jax.vmap(jax.vmap(_episode_fn(env), in_axes=(None, 0, None)), in_axes=(0, 0, None))
     P, R, T = cfg.population_size, cfg.repetitions, targets.shape[0]
-    scale = jnp.asarray(PARAM_SCALE, jnp.float32)
-    es = CMA_ES(population_size=P, solution=jnp.zeros(N_PARAMS))
-    es_params = es.default_params.replace(std_init=jnp.asarray(sigma_init))
-
-    def cost_of(params, keys, target):  # params (P, 14), keys (P, R) -> (P,)
-        return jnp.mean(fitness(episodes(params, keys, target), target, cfg.fitness), axis=1)
-
-    def generation(state, key, x0, target):
-        ask_key, eval_key, tell_key = jax.random.split(key, 3)
-        z, state = es.ask(ask_key, state, es_params)
-        # Common random numbers within a task's generation, as in `optimise`.
-        keys = jnp.broadcast_to(jax.random.split(eval_key, R), (P, R) + eval_key.shape)
-        cost = cost_of(clip_params(x0 + scale * z), keys, target)
-        state, _ = es.tell(tell_key, z, cost, state, es_params)
-        return state, jnp.min(cost)
-
-    step = sharding.over_batch(jax.vmap(generation), mesh, (True, True, True, True))
+    es, es_params, step, final = _tuning_programs(env, mesh, P, R, cfg.fitness.to_json(), float(sigma_init))
     key = jax.random.key(cfg.seed)
     key, init_key = jax.random.split(key)
     state = jax.vmap(lambda k: es.init(k, jnp.zeros(N_PARAMS), es_params))(jax.random.split(init_key, T))
@@ -463,10 +483,9 @@ def tune_for_tasks(
             print(f"tuning gen {gen + 1:3d}/{generations}  mean best cost over tasks {history[-1].mean():7.3f}"
                   f"  worst {history[-1].max():7.3f}  ({time.perf_counter() - t0:5.1f} s)", flush=True)  # fmt: skip
 
-    tuned = clip_params(starts + scale * state.mean)
+    tuned = clip_params(starts + jnp.asarray(PARAM_SCALE, jnp.float32) * state.mean)
     E = cfg.eval_repetitions
     keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
-    final = sharding.over_batch(jax.vmap(cost_of, in_axes=(0, None, 0)), mesh, (True, False, True))
     costs = np.asarray(final(jnp.stack([starts, tuned], 1), keys, targets))[:n_tasks]  # (T, 2): start, tuned
     improved = costs[:, 1] < costs[:, 0]
     tuned, starts = np.asarray(tuned)[:n_tasks], np.asarray(starts)[:n_tasks]
