@@ -39,6 +39,8 @@ BENCH = "benchmarks/results/training.json"
 SCALING = "benchmarks/results/scaling.json"
 # What `publish` copies from a finished paper run into the repository: run file -> committed path.
 PUBLISHED = {
+    "prior/kick_prior.json": "results/kick_prior.json",
+    "prior/kick_sweep.png": "docs/kick_sweep.png",
     "experts/experts.json": "results/experts.json",
     "experts/experts.md": "docs/experts.md",
     "experts/progress.csv": "docs/experts_progress.csv",
