@@ -262,6 +262,8 @@ def main(argv=None) -> None:
         STAGES[args.stage][0](run_dir, args.preset, parse_overrides(args.set), **extra)
     except ValueError as err:  # bad config values: one clear line, not a traceback
         sys.exit(f"error: {err}")
+    except KeyboardInterrupt:  # Ctrl-C or a scheduler's SIGINT: the checkpoints are the state
+        sys.exit(f"interrupted: rerun the same command to resume {run_dir} from its last checkpoint")
 
 
 if __name__ == "__main__":
