@@ -76,6 +76,9 @@ def tiny_config() -> ml_collections.ConfigDict:
     cfg = default_config()
     cfg.preset = "tiny"
     cfg.train.epochs = 2000  # 3 experts x 75 steps: 2 steps per epoch
+    # 4000 steps at the paper's 3e-4 left the (4, 256) net at 0.026 rad MAE, and its kicks never
+    # struck the ball (CPU demo: accuracy 0.00); at 3e-3 both nets kick (accuracy 1.00 / 0.95).
+    cfg.train.learning_rate = 3e-3
     cfg.train.decay_every = 500
     cfg.train.chunk = 500
     cfg.eval.tasks = kick_env.meta_test_tasks()[9::10]
@@ -523,9 +526,10 @@ def run(cfg, out_dir, experts, experts_json=None, verbose: bool = True) -> dict:
         }
         timings[name]["eval_wall_s"] = time.perf_counter() - t0
         r = rows[name]
+        kept = "no task" if np.isnan(r["error_mean_m"]) else f"{r['error_mean_m']:.2f} m"
         say(
             f"{name}: evaluated in {time.perf_counter() - t0:.1f} s: accuracy {r['accuracy_mean']:.2f},"
-            f" error {r['error_mean_m']:.2f} m"
+            f" error {kept} over tasks with accuracy > 0.7, {r['error_mean_all_m']:.2f} m over all"
         )
 
     payload = {
