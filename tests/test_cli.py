@@ -42,3 +42,12 @@ def test_pipeline_overrides_name_their_stage():
 def test_video_without_a_filtered_run_says_what_to_do(tmp_path):
     with pytest.raises(SystemExit, match="run the filter stage first"):
         cli.main(["video", "--run-dir", str(tmp_path)])
+
+
+def test_an_interrupted_stage_says_how_to_resume(tmp_path, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setitem(cli.STAGES, "filter", (interrupted, "stand-in"))
+    with pytest.raises(SystemExit, match=f"interrupted: rerun the same command to resume {tmp_path}"):
+        cli.main(["filter", "--run-dir", str(tmp_path)])

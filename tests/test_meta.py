@@ -116,6 +116,21 @@ def test_resume_equals_uninterrupted(tmp_path):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def test_load_policy_reads_params_whatever_the_optimiser_state(tmp_path):
+    import orbax.checkpoint as ocp
+
+    cfg = _train_cfg()
+    init, _ = meta.make_trainer(meta.MetaPolicy(1, 8), cfg, n_rows=4)
+    params = jax.tree.map(lambda a: a + 1.0, init(meta.seed_keys(cfg)).params)
+    # A checkpoint from a trainer with another optimiser layout (here: none of Adam's).
+    state = {"params": params, "opt_state": {"other": jnp.zeros(3)}, "step": jnp.asarray(7)}
+    with ocp.CheckpointManager((tmp_path / "checkpoints").resolve()) as manager:
+        manager.save(7, args=ocp.args.StandardSave(state))
+    _, loaded = meta.load_policy(tmp_path, 1, 8, cfg)
+    for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_dataset_save_load_round_trip(tmp_path):
     data = _table_dataset((7.0, 18.0))
     meta.save_dataset(tmp_path / "d.npz", data)

@@ -31,9 +31,14 @@ def test_empty_run_dir_says_so(tmp_path):
 def _paper_run(tmp_path):
     """A run directory with every stage's results, a pipeline record and a baseline."""
     run = tmp_path / "run"
-    for sub in ("experts", "meta", "filter", "baseline"):
+    for sub in ("prior", "experts", "meta", "filter", "baseline"):
         (run / sub).mkdir(parents=True)
     common = _common("paper")
+    sweep = [{"strength": 1.0, "distance_m": 5.8, "valid_fraction": 1.0},
+             {"strength": 1.5, "distance_m": 21.4, "valid_fraction": 1.0}]  # fmt: skip
+    prior = {**common, "target_m": 12.0, "n_reps": 100, "mean_error_m": 0.68, "valid_fraction": 1.0,
+             "fallen_fraction": 0.0, "sweep": sweep}  # fmt: skip
+    (run / "prior" / "kick_prior.json").write_text(json.dumps(prior))
     experts = {**common, "tasks_m": [7.0, 7.5], "env_steps": 1000, "wall_s": 10.0, "accuracy_mean": 1.0,
                "accuracy_std": 0.0, "error_mean_m": 0.8, "error_std_m": 0.3, "per_task": []}  # fmt: skip
     (run / "experts" / "experts.json").write_text(json.dumps(experts))
@@ -64,12 +69,15 @@ def test_publish_copies_a_run_and_rebuilds_results_md(tmp_path):
     run = _paper_run(tmp_path)
     root = tmp_path / "repo"
     written = {p.relative_to(root).as_posix() for p in report.publish(run, root)}
-    assert {"results/experts.json", "results/table1.json", "results/table2.json", "results/baseline.json",
-            "results/pipeline.json", "docs/context_map.png", "docs/results.md"} <= written  # fmt: skip
+    assert {"results/kick_prior.json", "results/experts.json", "results/table1.json", "results/table2.json",
+            "results/baseline.json", "results/pipeline.json", "docs/context_map.png",
+            "docs/results.md"} <= written  # fmt: skip
     text = (root / "docs" / "results.md").read_text()
     assert "one `python -m bumps_jax reproduce --preset paper`" in text
     assert "`experts.ppo.total_env_steps=1000`" in text
     assert "![docs/context_map.png](context_map.png)" in text
+    # The prior is the run's own, not whatever an older run left in results/.
+    assert "12 m prior over 100 noisy kicks: mean error 0.68 m" in text
 
 
 def test_publish_refuses_an_empty_run(tmp_path):
