@@ -11,17 +11,22 @@ STAND = jnp.asarray(kick_env.stance_command())
 
 
 @pytest.fixture(scope="module")
-def episode(env):
-    """A whole standing-still episode in one compiled scan: (final state, rewards, dones)."""
+def episode(env, jit_env):
+    """A whole standing-still episode: (final state, (rewards, dones, final errors) per step).
+
+    Stepped from Python with the session's compiled step: a scan of its own would compile the
+    physics again (~20 s on a CPU) for the same episode.
+    """
+    reset, step = jit_env
 
     def run(rng, target):
-        def body(state, _):
-            state = env.step(state, STAND)
-            return state, (state.reward, state.done, state.metrics["final_error"])
+        state, trace = reset(rng, target), []
+        for _ in range(env.n_steps):
+            state = step(state, STAND)
+            trace.append((state.reward, state.done, state.metrics["final_error"]))
+        return state, tuple(jnp.stack(column) for column in zip(*trace, strict=True))
 
-        return jax.lax.scan(body, env.reset(rng, target), None, env.n_steps)
-
-    return jax.jit(run)
+    return run
 
 
 def test_reset_and_step_shapes(env, jit_env):
@@ -93,16 +98,18 @@ def test_noise_differs_across_rngs(env, jit_env):
     assert ball_offset.max() <= 2 * env.config.noise.ball_xy + 1e-6
 
 
-def test_no_noise_config_gives_identical_starts():
-    env = kick_env.KickEnv(
-        config_overrides={
-            "noise.ball_xy": 0.0,
-            "noise.joint_angle": 0.0,
-            "noise.friction": 0.0,
-            "noise.actuator_gain": 0.0,
-        }
-    )
-    reset = jax.jit(env.reset)
+@pytest.fixture(scope="module")
+def quiet_proprio_env():
+    """An env with every noise source off and proprioception on, and its reset jitted: one
+    compile (~13 s on a CPU) for the tests of both options. They do not interact: noise moves
+    the start state, proprioception only adds to the observation."""
+    noise_off = {f"noise.{k}": 0.0 for k in ("ball_xy", "joint_angle", "friction", "actuator_gain")}
+    env = kick_env.KickEnv(config_overrides={**noise_off, "proprioception": True})
+    return env, jax.jit(env.reset)
+
+
+def test_no_noise_config_gives_identical_starts(quiet_proprio_env):
+    _, reset = quiet_proprio_env
     s1, s2 = reset(jax.random.PRNGKey(4), 9.0), reset(jax.random.PRNGKey(5), 9.0)
     np.testing.assert_array_equal(s1.pipeline_state.qpos, s2.pipeline_state.qpos)
 
@@ -131,13 +138,14 @@ def test_servo_target_moves_at_most_the_speed_limit(env, jit_env):
 def test_actions_are_clipped_to_joint_limits(env, jit_env):
     reset, step = jit_env
     state = reset(jax.random.PRNGKey(9), 12.0)
-    state = jax.jit(lambda s: jax.lax.fori_loop(0, 30, lambda _, s: env.step(s, jnp.full((22,), 10.0)), s))(state)
+    for _ in range(30):
+        state = step(state, jnp.full((22,), 10.0, jnp.float32))  # strongly typed, as STAND: no recompile
     np.testing.assert_allclose(state.info["command"], env.ids.joint_range[:, 1], atol=1e-6)
 
 
-def test_proprioception_option_adds_state(jit_env):
-    env = kick_env.KickEnv(config_overrides={"proprioception": True})
-    state = jax.jit(env.reset)(jax.random.PRNGKey(0), 12.0)
+def test_proprioception_option_adds_state(quiet_proprio_env):
+    env, reset = quiet_proprio_env
+    state = reset(jax.random.PRNGKey(0), 12.0)
     assert state.obs.shape == (env.observation_size,) == (52,)
     np.testing.assert_allclose(state.obs[46:49], [0.0, 0.0, -1.0], atol=0.05)  # gravity, torso frame
 
