@@ -1,6 +1,7 @@
 """Run by test_sharding.py in a fresh process with 4 host devices (XLA reads the device
-count once, at start-up): trains tiny experts and filters a synthetic family on a mesh of 1
-device and on a mesh of 4, and prints what each produced as JSON."""
+count once, at start-up): trains tiny experts and filters a synthetic family on a mesh of 4
+devices, and prints what they produced as JSON. The single-device side of both runs in the
+test's own process, on programs that test_experts.py and test_filtering.py compile anyway."""
 
 import json
 import sys
@@ -9,24 +10,14 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import tiny_experts
 
 from bumps_jax import evaluate, experts, filtering, kick_env, sharding, synthetic_experts
 
-TINY = {
-    "tasks": (8.0, 12.0, 16.0),  # 3 tasks on 4 devices: one padded copy
-    "bc.steps": 200,
-    "tune.generations": 0,  # the blended prior as it is (tuning costs two more compiles per mesh)
-    "ppo.num_envs": 4,
-    "ppo.num_minibatches": 2,
-    "ppo.num_epochs": 1,
-    "ppo.total_env_steps": 4 * 75 * 2,
-    "updates_per_chunk": 1,
-}
 
-
-def train(env, n_devices: int, run_dir: Path) -> dict:
-    cfg = experts.make_config(overrides=TINY)
-    programs = experts.compile_programs(cfg, env, mesh=sharding.device_mesh(n_devices))
+def train(env, run_dir: Path) -> dict:
+    cfg = tiny_experts.config()  # 2 tasks on 4 devices: two padded copies
+    programs = experts.compile_programs(cfg, env, mesh=sharding.device_mesh(4))
     # Stop after one chunk and resume: the sharded path must also restore checkpoints.
     experts.train_experts(cfg, run_dir, verbose=False, stop_after_chunks=1, programs=programs)
     out = experts.train_experts(cfg, run_dir, verbose=False, programs=programs)
@@ -34,26 +25,28 @@ def train(env, n_devices: int, run_dir: Path) -> dict:
     return {"params": [np.asarray(x).tolist() for x in leaves], "finished": out["finished"]}
 
 
-def filter_synthetic(env, n_devices: int) -> dict:
-    mesh = sharding.device_mesh(n_devices)
-    params = jax.tree.map(lambda a: a[None], synthetic_experts.synthetic_contextual_params())
-    grid = evaluate.grid_fn(env, synthetic_experts.contextual_apply, mesh)
+EPISODES_PER_CALL = 8  # the filtering tests' block: the single-device side reuses their program
+
+
+def filter_synthetic(env, grid, params, n_devices: int) -> dict:
+    """Selection of a synthetic family by `grid` split over `n_devices`, in calls of 8 episodes."""
     tasks = np.array([10.0, 13.0, 15.0])
     contexts = filtering.candidate_contexts(tasks, [9.0, 11.5, 14.0])  # 6 candidates x 3 reps = 18 episodes
     sel_key, _ = filtering.noise_keys(0)
-    sel = filtering.filter_policy(
-        grid, params, contexts, tasks, 2.0, 3, sel_key, filtering.ball_start_xy(env), multiple=mesh.size
-    )
+    block = EPISODES_PER_CALL // n_devices
+    ball = filtering.ball_start_xy(env)
+    sel = filtering.filter_policy(grid, params, contexts, tasks, 2.0, 3, sel_key, ball, block, multiple=n_devices)
     return {"chosen": sel.chosen.tolist(), "distance": sel.distance.tolist(), "scores": sel.scores.tolist()}
 
 
 def main() -> None:
     assert len(jax.devices()) == 4, jax.devices()
     env = kick_env.KickEnv()
-    out = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for n in (1, 4):
-            out[n] = {"experts": train(env, n, Path(tmp) / f"run{n}"), "filter": filter_synthetic(env, n)}
+        out = {"experts": train(env, Path(tmp))}
+    params = jax.tree.map(lambda a: a[None], synthetic_experts.synthetic_contextual_params())
+    grid = evaluate.grid_fn(env, synthetic_experts.contextual_apply, sharding.device_mesh(4))
+    out["filter"] = filter_synthetic(env, grid, params, 4)
     json.dump(out, sys.stdout)
 
 

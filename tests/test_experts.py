@@ -6,33 +6,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from tiny_experts import N_STEPS
+from tiny_experts import config as _tiny_config
 
 from bumps_jax import experts, prior
 
-N_STEPS = 75
-
-
-def _tiny_config(**extra):
-    """Two tasks, 4 episodes per update, 2 chunks of 2 updates: seconds per chunk on a CPU."""
-    base = {
-        "tasks": (8.0, 12.0),
-        "bc.steps": 300,
-        "ppo.num_envs": 4,
-        "ppo.num_minibatches": 2,
-        "ppo.num_epochs": 2,
-        "ppo.total_env_steps": 4 * N_STEPS * 4,
-        "ppo.init_log_std": -4.0,
-        "updates_per_chunk": 2,
-        "eval.repetitions": 2,
-        "tune.generations": 0,  # the blended prior as it is; tuning has its own test
-    }
-    base.update(extra)
-    return experts.make_config(overrides=base)
-
 
 @pytest.fixture(scope="module")
-def programs(env):
-    return experts.compile_programs(_tiny_config(), env)
+def programs(expert_programs):
+    return expert_programs
 
 
 @pytest.mark.parametrize(
@@ -97,7 +79,7 @@ def test_vmapped_training_equals_each_task_alone(programs):
         _, single_metrics = alone(start, target, cfg.updates_per_chunk)
         # The first batch is collected before any gradient step: the same episodes.
         np.testing.assert_allclose(single_metrics.episode_return[0], metrics.episode_return[i, 0], rtol=1e-3)
-    assert int(together.env_steps[0]) == 2 * 4 * N_STEPS
+    assert int(together.env_steps[0]) == 1 * 4 * N_STEPS  # one update of 4 episodes
 
 
 def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
@@ -108,7 +90,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
     assert whole["finished"]
 
     part = experts.train_experts(cfg, tmp_path / "split", verbose=False, programs=programs, stop_after_chunks=1)
-    assert not part["finished"] and int(part["state"].update[0]) == 2
+    assert not part["finished"] and int(part["state"].update[0]) == 1
     assert not (tmp_path / "split" / "final_params").exists()
     resumed = experts.train_experts(cfg, tmp_path / "split", verbose=False, programs=programs)
     assert resumed["finished"] and resumed["bc_losses"] is None  # BC came from the checkpoint
@@ -122,7 +104,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
     # The progress log is the same, row for row: one per update and task.
     whole_csv = (tmp_path / "whole" / "progress.csv").read_text()
     assert whole_csv == (tmp_path / "split" / "progress.csv").read_text()
-    assert len(whole_csv.strip().splitlines()) == 1 + 4 * 2
+    assert len(whole_csv.strip().splitlines()) == 1 + 2 * 2
 
     # Checkpoint round trip: the saved final params are the trained ones.
     loaded = experts.load_final_params(tmp_path / "whole", programs, 2)
@@ -155,7 +137,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
         "wall_s",
     ):
         assert key in on_disk, key
-    assert on_disk["tasks_m"] == [8.0, 12.0] and on_disk["env_steps"] == 4 * 4 * N_STEPS
+    assert on_disk["tasks_m"] == [8.0, 12.0] and on_disk["env_steps"] == 2 * 4 * N_STEPS
     assert set(on_disk["per_task"][0]) >= {"target_m", "accuracy", "error_mean_m", "error_std_m"}
     assert 0.0 <= record["accuracy_mean"] <= 1.0
     assert "single-task experts" in (tmp_path / "whole" / "experts.md").read_text()

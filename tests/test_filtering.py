@@ -5,7 +5,7 @@ import jax
 import numpy as np
 import pytest
 
-from bumps_jax import evaluate, filtering, synthetic_experts
+from bumps_jax import filtering
 
 BALL = np.array([0.3, -0.05])
 
@@ -106,14 +106,7 @@ def test_plots_write_pngs(tmp_path):
 
 # -- one tiny MJX end-to-end run ---------------------------------------------------------------
 
-BLOCK = 8  # every stage below runs as batches of 8 episodes: one compiled program
-
-
-@pytest.fixture(scope="module")
-def contextual(env):
-    params = synthetic_experts.synthetic_contextual_params()
-    stacked = jax.tree.map(lambda a: a[None], params)
-    return evaluate.grid_fn(env, synthetic_experts.contextual_apply), stacked
+BLOCK = 8  # every stage below runs as batches of 8 episodes: one compiled program (conftest's)
 
 
 def test_filtering_end_to_end_in_mjx(env, contextual):

@@ -7,24 +7,37 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
+import sharded_run
+import tiny_experts
 
-from bumps_jax import sharding
+from bumps_jax import experts, sharding
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def sharded_vs_single():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+def sharded_vs_single(env, contextual, expert_programs, tmp_path_factory):
+    run_env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    run_env["PYTHONPATH"] = os.pathsep.join([str(ROOT), run_env.get("PYTHONPATH", "")])
     proc = subprocess.run(
-        [sys.executable, str(ROOT / "tests" / "sharded_run.py")], env=env, capture_output=True, text=True, cwd=ROOT
+        [sys.executable, str(ROOT / "tests" / "sharded_run.py")], env=run_env, capture_output=True, text=True, cwd=ROOT
     )
     assert proc.returncode == 0, proc.stderr[-4000:]
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
-    return out["1"], out["4"]
+    sharded = json.loads(proc.stdout.strip().splitlines()[-1])
+    # The single-device side runs here, on the programs test_experts.py and test_filtering.py
+    # compile (the selection in calls of 8 episodes, as the sharded one's 2 on each of 4 devices).
+    out = experts.train_experts(tiny_experts.config(), tmp_path_factory.mktemp("one_device"), verbose=False,
+                                programs=expert_programs)  # fmt: skip
+    leaves = jax.tree.leaves(experts.expert_params(out["state"]))
+    grid, params = contextual
+    single = {
+        "experts": {"params": [np.asarray(x) for x in leaves], "finished": out["finished"]},
+        "filter": sharded_run.filter_synthetic(env, grid, params, 1),
+    }
+    return single, sharded
 
 
 def test_sharded_experts_equal_single_device_experts(sharded_vs_single):
@@ -34,10 +47,11 @@ def test_sharded_experts_equal_single_device_experts(sharded_vs_single):
     assert len(a) == len(b) and len(a) > 0
     for x, y in zip(a, b, strict=True):
         x, y = np.asarray(x), np.asarray(y)
-        assert x.shape == y.shape and x.shape[0] == 3  # the padded fourth task is dropped
-        # Not bit-identical: XLA picks its CPU kernels per batch shape (3 tasks vs 1 per
-        # device), and two PPO updates through contact dynamics carry the last-bit differences
-        # to ~1e-4 (measured 9.7e-5). A wrong slice or a mixed-up task would differ by O(1).
+        assert x.shape == y.shape and x.shape[0] == 2  # the padded third and fourth tasks are dropped
+        # Not bit-identical: XLA picks its CPU kernels per batch shape (2 tasks vs 1 per
+        # device), and PPO updates through contact dynamics carry the last-bit differences on
+        # (measured 3e-6 after these two updates; 9.7e-5 with 3 tasks at the default policy
+        # noise). A wrong slice or a mixed-up task would differ by O(1).
         np.testing.assert_allclose(x, y, rtol=1e-3, atol=1e-3)
 
 
