@@ -116,7 +116,7 @@ def _pipeline(run_dir: Path, preset: str, stages: tuple[str, ...], overrides: di
     per_stage = split_overrides(overrides or {}, stages)
     timing_path = run_dir / "pipeline.json"
     timing = json.loads(timing_path.read_text()) if timing_path.exists() else {"stages": {}}
-    previous = None
+    previous, counted = None, False
     for stage in stages:
         out = run_dir / OUTPUTS[stage]
         fresh = out.exists() and (previous is None or out.stat().st_mtime >= previous.stat().st_mtime)
@@ -124,6 +124,8 @@ def _pipeline(run_dir: Path, preset: str, stages: tuple[str, ...], overrides: di
             print(f"== {stage}: up to date ({out})")
         else:
             print(f"== {stage}", flush=True)
+            if not counted:  # this invocation's share: a report says whether the run was resumed
+                timing["calls"], counted = timing.get("calls", 0) + 1, True
             t0 = time.perf_counter()
             extra = {"publish": True} if stage == "kick-prior" else {}
             try:

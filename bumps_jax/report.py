@@ -162,9 +162,13 @@ def pipeline_lines(pipeline: dict | None) -> list[str]:
     if not pipeline:
         return []
     parts = ", ".join(f"{k} {v:.0f} s" for k, v in pipeline["stages"].items())
+    calls = pipeline.get("calls")  # absent in records older than the count
+    how = {None: "resumed across calls where a stage was cut", 1: "in one call"}.get(
+        calls, f"resumed across {calls} calls, each stage's time added up"
+    )
     return [
         f"One `reproduce` of the pipeline: **{pipeline['total_wall_s'] / 60:.1f} min** in all ({parts}; "
-        f"on {pipeline.get('device', 'the device above')}, resumed across calls where a stage was cut).",
+        f"on {pipeline.get('device', 'the device above')}, {how}).",
         *([f"Note: {pipeline['note']}"] if pipeline.get("note") else []),
         "",
     ]

@@ -1,5 +1,7 @@
 """The command line: every stage has --help, overrides parse, bad keys fail with one clear line."""
 
+import json
+
 import pytest
 
 from bumps_jax import cli
@@ -51,3 +53,33 @@ def test_an_interrupted_stage_says_how_to_resume(tmp_path, monkeypatch):
     monkeypatch.setitem(cli.STAGES, "filter", (interrupted, "stand-in"))
     with pytest.raises(SystemExit, match=f"interrupted: rerun the same command to resume {tmp_path}"):
         cli.main(["filter", "--run-dir", str(tmp_path)])
+
+
+def test_pipeline_skips_finished_stages_and_counts_its_calls(tmp_path, monkeypatch):
+    from bumps_jax import report
+
+    ran = []
+
+    def stage(name, fail=False):
+        def run(run_dir, preset, overrides):
+            ran.append(name)
+            if fail:
+                raise KeyboardInterrupt
+            out = run_dir / cli.OUTPUTS[name]
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text("{}")
+
+        return run, "stand-in"
+
+    monkeypatch.setattr(cli, "_report", lambda *args: None)
+    monkeypatch.setitem(cli.STAGES, "train-experts", stage("train-experts"))
+    monkeypatch.setitem(cli.STAGES, "meta-train", stage("meta-train", fail=True))
+    with pytest.raises(KeyboardInterrupt):
+        cli._pipeline(tmp_path, "tiny", ("train-experts", "meta-train"))
+    monkeypatch.setitem(cli.STAGES, "meta-train", stage("meta-train"))
+    cli._pipeline(tmp_path, "tiny", ("train-experts", "meta-train"))
+    assert ran == ["train-experts", "meta-train", "meta-train"]  # the finished stage is not rerun
+    pipeline = json.loads((tmp_path / "pipeline.json").read_text())
+    assert pipeline["calls"] == 2 and set(pipeline["stages"]) == {"train-experts", "meta-train"}
+    assert "resumed across 2 calls" in report.pipeline_lines(pipeline)[0]
+    assert "in one call" in report.pipeline_lines({**pipeline, "calls": 1})[0]
