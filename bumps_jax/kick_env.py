@@ -230,7 +230,8 @@ class KickEnv(Env):
             "friction_scale": 1.0 + cfg.noise.friction * jax.random.uniform(rng_f, (), minval=-1.0, maxval=1.0),
             "gain_scale": 1.0 + cfg.noise.actuator_gain * jax.random.uniform(rng_g, (), minval=-1.0, maxval=1.0),
             "max_ball_speed": jnp.zeros(()),
-            "min_torso_z": jnp.full((), jnp.inf),
+            # Strongly typed, as step returns it: a weak leaf would make a jitted step compile twice.
+            "min_torso_z": jnp.full((), jnp.inf, jnp.float32),
             "blown_up": jnp.zeros((), bool),
             "nan_action": jnp.zeros((), bool),
         }

@@ -42,6 +42,9 @@ def test_reset_and_step_shapes(env, jit_env):
     assert not bool(nxt.done)
     for value in nxt.metrics.values():
         assert np.isfinite(np.asarray(value)).all()
+    # A fresh state has the stepped state's types, weak or strong, so one compiled step serves both.
+    kinds = lambda s: [(x.dtype, x.weak_type) for x in jax.tree.leaves(s)]  # noqa: E731
+    assert kinds(state) == kinds(nxt)
 
 
 def test_episode_ends_after_horizon_with_final_reward(env, episode):
