@@ -36,7 +36,7 @@ demo: $(STAMP)
 reproduce: $(STAMP)
 	$(PY) -m bumps_jax reproduce --preset paper $(if $(SET),--set $(SET),)
 
-# Copy a finished paper run's results and figures into results/ and docs/ (docs/results.md).
+# Copy a finished paper run's results and figures into results/ and docs/ (docs/results.md), its prior into assets/.
 publish: $(STAMP)
 	$(PY) -m bumps_jax publish --run-dir runs/paper
 

@@ -39,8 +39,13 @@ def _kick_prior(run_dir: Path, preset: str, overrides: dict, publish: bool = Fal
 
 
 def _train_experts(run_dir: Path, preset: str, overrides: dict) -> None:
-    from bumps_jax import experts
+    from bumps_jax import experts, prior
 
+    # A run that made its own kick prior starts from that record, not from the committed asset,
+    # which a kick-prior run elsewhere may have rewritten since; a prior_path override wins.
+    own = run_dir / "prior" / prior.RUN_PRIOR_JSON
+    if own.is_file() and "prior_path" not in overrides:
+        overrides = {**overrides, "prior_path": str(own)}
     cfg = experts.make_config(experts.preset_config(preset), overrides)
     programs = experts.compile_programs(cfg)
     out = experts.train_experts(cfg, run_dir / "experts", programs=programs)
@@ -212,7 +217,7 @@ STAGES = {
     "report": (_report, "write report.md: our tables beside the paper's, figures, timings"),
     "demo": (_demo, "the whole pipeline at CPU size (tiny preset), ending with a report"),
     "reproduce": (_reproduce, "the whole pipeline at the paper's size (a GPU), resumable"),
-    "publish": (_publish, "copy a finished run's results and figures into results/, docs/; rebuild docs/results.md"),
+    "publish": (_publish, "copy a finished run's results, figures and prior into the repo; rebuild docs/results.md"),
     "render": (_render, "render the robot in its stance to a PNG"),
     "video": (_video, "render a GIF of filtered kicks at three distances from a finished run"),
     "showcase": (_showcase, "replay the committed prior over a batch of noisy episodes"),

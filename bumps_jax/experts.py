@@ -42,6 +42,10 @@ def default_config() -> ml_collections.ConfigDict:
     cfg.seed = 0
     cfg.updates_per_chunk = 2  # PPO updates per jitted chunk (progress + checkpoint between)
     cfg.keep_checkpoints = 2
+    # The kick prior record (`prior.load_prior`) the experts start from; "" is the committed asset
+    # (prior.PRIOR_JSON). The command line sets a run's own (<run>/prior/prior.RUN_PRIOR_JSON) when
+    # the run made one: the asset is global, and a kick-prior run elsewhere may rewrite it.
+    cfg.prior_path = ""
     cfg.bc = ml_collections.ConfigDict()
     # Full-batch Adam steps on the prior's 75 (obs, action) rows, cosine-decayed: 2000 steps at
     # 3e-3 left 0.15 rad errors at the swing's corners and the kick missed the ball; 20000 at
@@ -189,6 +193,20 @@ def behaviour_clone(networks, policy, obs, actions, steps: int, learning_rate: f
     return carry.policy, losses
 
 
+def prior_file(cfg: ml_collections.ConfigDict) -> Path:
+    """The kick prior record `cfg.prior_path` names (the committed asset if empty); ValueError
+    naming the path if there is no such file.
+
+    Checked here, where the prior is read, not in `validate_config`: that also runs when a
+    finished run's experts are reloaded from its config.json, which needs no prior and may
+    name one on the machine that trained them.
+    """
+    path = Path(cfg.prior_path) if cfg.prior_path else prior.PRIOR_JSON
+    if not path.is_file():
+        raise ValueError(f"prior_path: no kick prior record at {str(path)!r}")
+    return path
+
+
 def starting_kicks(cfg: ml_collections.ConfigDict, verbose: bool = True) -> tuple[np.ndarray, dict]:
     """The keyframe kick (T, 14) each expert clones before PPO, and a record of how it was made.
 
@@ -198,7 +216,7 @@ def starting_kicks(cfg: ml_collections.ConfigDict, verbose: bool = True) -> tupl
     strength of 0.625 lands at 8.8 m, between 12.2 and 16.5 m), and PPO with the paper's small
     steps does not move a kick metres.
     """
-    record = prior.load_prior()
+    record = prior.load_prior(prior_file(cfg))
     targets = np.asarray(cfg.tasks, np.float32)
     if cfg.bc.per_task_strength:
         anchors = jnp.asarray(record["anchors"], jnp.float32)  # short, 12 m, long

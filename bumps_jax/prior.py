@@ -34,6 +34,10 @@ from bumps_jax import kick_env, scene
 
 FORMAT_VERSION = 1
 PRIOR_JSON = Path(__file__).resolve().parent.parent / "assets" / "kick_prior.json"
+# A kick-prior run's own copy of the record it would commit as PRIOR_JSON, beside its payload:
+# the stages after it read this file, and `publish` commits it, so a run brought back from
+# another machine carries the prior its experts started from.
+RUN_PRIOR_JSON = "kick_prior_asset.json"
 
 # Angles in degrees (offsets from the stance unless noted), times in seconds.
 PARAM_NAMES = (
@@ -577,7 +581,8 @@ EXTREMES = {"short": 6.0, "long": 21.0}
 def run_stage(preset: str, run_dir: str | Path, overrides: dict | None = None, publish: bool = False) -> dict:
     """`make kick-prior`: optimise the 12 m prior (from the committed one), evaluate it, optimise
     the short and long extremes from it, sweep the blended family over strength; write
-    run_dir/{kick_prior.json, kick_sweep.png} and, if `publish`, the prior to assets/.
+    run_dir/{kick_prior.json, kick_sweep.png, RUN_PRIOR_JSON} and, if `publish`, the prior to
+    assets/ (the same record as run_dir/RUN_PRIOR_JSON).
     """
     from bumps_jax import results  # noqa: PLC0415 (keeps `import prior` light for tests)
 
@@ -621,18 +626,18 @@ def run_stage(preset: str, run_dir: str | Path, overrides: dict | None = None, p
         "extremes": extremes,
         "anchors": {n: [float(x) for x in anchors[n]] for n in ANCHORS},
     }
+    record = prior_record(main_params, cfg, evaluation, generations_run=cfg.generations,
+                          anchors=payload["anchors"], sweep=rows)  # fmt: skip
     results.write_json(run_dir / "kick_prior.json", payload)
     results.write_json(run_dir / "kick_prior_timing.json", timing_record(payload))
+    save_prior(record, run_dir / RUN_PRIOR_JSON)
     plot_sweep(payload, run_dir / "kick_sweep.png")
     if publish:  # the committed copies: results/, benchmarks/results/, docs/ and the asset
         root = PRIOR_JSON.parent.parent
         results.write_json(root / "results" / "kick_prior.json", payload)
         results.write_json(root / "benchmarks" / "results" / "kick_prior.json", timing_record(payload))
         plot_sweep(payload, root / "docs" / "kick_sweep.png")
-        save_prior(
-            prior_record(main_params, cfg, evaluation, generations_run=cfg.generations,
-                         anchors=payload["anchors"], sweep=rows)
-        )  # fmt: skip
+        save_prior(record, PRIOR_JSON)
     return payload
 
 

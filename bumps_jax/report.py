@@ -10,6 +10,7 @@ import json
 import shutil
 from pathlib import Path
 
+from bumps_jax import prior
 from bumps_jax.filtering import PAPER_TABLE2
 
 # The paper's Table 1 (SimSpark): accuracy mean, std; error mean, std (m).
@@ -41,6 +42,8 @@ SCALING = "benchmarks/results/scaling.json"
 PUBLISHED = {
     "prior/kick_prior.json": "results/kick_prior.json",
     "prior/kick_sweep.png": "docs/kick_sweep.png",
+    # The prior the run's experts started from: the committed asset that later runs start from.
+    f"prior/{prior.RUN_PRIOR_JSON}": "assets/kick_prior.json",
     "experts/experts.json": "results/experts.json",
     "experts/experts.md": "docs/experts.md",
     "experts/progress.csv": "docs/experts_progress.csv",
@@ -244,8 +247,8 @@ def speed_lines(bench: dict | None, scaling: dict | None) -> list[str]:
 
 
 def publish(run_dir: str | Path, root: str | Path = ".") -> list[Path]:
-    """Copy a finished paper run's results, tables and figures into results/ and docs/, then
-    rebuild docs/results.md. Returns the paths written."""
+    """Copy a finished paper run's results, tables and figures into results/ and docs/, and its
+    kick prior into assets/, then rebuild docs/results.md. Returns the paths written."""
     run_dir, root = Path(run_dir), Path(root)
     written = []
     for rel, dest in PUBLISHED.items():

@@ -83,3 +83,26 @@ def test_pipeline_skips_finished_stages_and_counts_its_calls(tmp_path, monkeypat
     assert pipeline["calls"] == 2 and set(pipeline["stages"]) == {"train-experts", "meta-train"}
     assert "resumed across 2 calls" in report.pipeline_lines(pipeline)[0]
     assert "in one call" in report.pipeline_lines({**pipeline, "calls": 1})[0]
+
+
+def test_train_experts_starts_from_the_runs_own_prior(tmp_path, monkeypatch):
+    from bumps_jax import experts, prior
+
+    class Built(Exception):  # stops the stage once its config is made, before anything compiles
+        pass
+
+    def compile_programs(cfg, *args, **kwargs):
+        raise Built(cfg.prior_path)
+
+    def prior_path(overrides):
+        with pytest.raises(Built) as built:
+            cli._train_experts(tmp_path, "tiny", overrides)
+        return built.value.args[0]
+
+    monkeypatch.setattr(experts, "compile_programs", compile_programs)
+    assert prior_path({}) == ""  # no kick-prior stage here (the demo): the committed asset
+    own = tmp_path / "prior" / prior.RUN_PRIOR_JSON
+    own.parent.mkdir()
+    own.write_text("{}")
+    assert prior_path({}) == str(own)
+    assert prior_path({"prior_path": "elsewhere.json"}) == "elsewhere.json"

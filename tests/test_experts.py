@@ -1,6 +1,7 @@
 """Expert training: config errors, vmapped = alone, checkpoint resume, Table-1 record."""
 
 import json
+import re
 
 import jax
 import jax.numpy as jnp
@@ -51,6 +52,28 @@ def test_bc_dataset_is_the_prior_kick(env):
     np.testing.assert_allclose(obs[:, 0], np.arange(N_STEPS) / N_STEPS, rtol=1e-6)
     np.testing.assert_allclose(obs[:, 1], (12.0 - 7.0) / 11.0, rtol=1e-6)
     np.testing.assert_allclose(actions, prior.keyframes_to_actions(params, N_STEPS, env.dt))
+
+
+def test_starting_kicks_read_the_configured_prior(tmp_path):
+    # A prior whose three anchors are one kick: every task's blended start is that kick.
+    record = json.loads(prior.PRIOR_JSON.read_text())
+    kick = prior.DEFAULT_PARAMS.tolist()
+    record.update(params=kick, anchors=dict.fromkeys(prior.ANCHORS, kick))
+    path = tmp_path / "run_prior.json"
+    path.write_text(json.dumps(record))
+    cfg = _tiny_config(prior_path=str(path))  # tune.generations 0: no CMA-ES, nothing compiled
+    expected = np.tile(prior.DEFAULT_PARAMS, (len(cfg.tasks), 1))
+    committed, _ = experts.starting_kicks(_tiny_config(), verbose=False)
+    assert not np.allclose(committed, expected)  # else the test could not tell the two apart
+    for per_task in (True, False):
+        kicks, _ = experts.starting_kicks(experts.make_config(cfg, {"bc.per_task_strength": per_task}), verbose=False)
+        np.testing.assert_allclose(kicks, expected, rtol=1e-6)
+
+
+def test_missing_prior_path_is_named(tmp_path):
+    path = tmp_path / "no_such_prior.json"
+    with pytest.raises(ValueError, match=re.escape(str(path))):
+        experts.starting_kicks(_tiny_config(prior_path=str(path)), verbose=False)
 
 
 def test_vmapped_training_equals_each_task_alone(programs):

@@ -92,6 +92,47 @@ def test_committed_prior_kicks_the_ball(env, rollout):
     assert result["mean_distance"] > 3.0
 
 
+def _stand_in_stage(monkeypatch, env):
+    """`run_stage` with its CMA-ES runs and sweep replaced by stand-ins: the file bookkeeping
+    alone, no MJX program compiled. Each optimised kick leans by its target (deg) to tell the
+    anchors apart."""
+
+    def optimise(cfg, out_dir, start=None, env=None, rollout=None):
+        params = prior.DEFAULT_PARAMS.copy()
+        params[prior.PARAM_NAMES.index("lean")] = cfg.target
+        numbers = {"mean_error": 0.5, "std_error": 0.2, "mean_distance": cfg.target, "valid_fraction": 1.0,
+                   "fallen_fraction": 0.0, "struck_fraction": 1.0}  # fmt: skip
+        return {"params": params, "evaluation": numbers}
+
+    def sweep(anchors, strengths, config=None, repetitions=8, env=None, rollout=None):
+        return [{"strength": float(s), "distance_m": 6.0 + 15.0 * float(s), "valid_fraction": 1.0} for s in strengths]
+
+    monkeypatch.setattr(prior, "_env_for", lambda cfg: env)
+    monkeypatch.setattr(prior, "optimise", optimise)
+    monkeypatch.setattr(prior, "sweep", sweep)
+    monkeypatch.setattr(prior, "plot_sweep", lambda payload, path: None)
+
+
+def test_run_stage_keeps_the_prior_record_it_publishes(tmp_path, monkeypatch, env):
+    _stand_in_stage(monkeypatch, env)
+    asset = tmp_path / "repo" / "assets" / "kick_prior.json"
+    asset.parent.mkdir(parents=True)
+    asset.write_text("committed")
+    monkeypatch.setattr(prior, "PRIOR_JSON", asset)
+
+    # Unpublished, the run still keeps its record: the experts stage reads it from there.
+    prior.run_stage("tiny", tmp_path / "own")
+    assert asset.read_text() == "committed"
+    record = prior.load_prior(tmp_path / "own" / prior.RUN_PRIOR_JSON)
+    assert record["params"][prior.PARAM_NAMES.index("lean")] == 12.0
+    np.testing.assert_array_equal(record["anchors"][:, 0], [6.0, 12.0, 21.0])  # short, main, long
+    assert prior.calibration(record)[-1].tolist() == [1.0, 21.0]
+
+    # Published, the committed asset is that same record, byte for byte.
+    prior.run_stage("tiny", tmp_path / "published", publish=True)
+    assert asset.read_bytes() == (tmp_path / "published" / prior.RUN_PRIOR_JSON).read_bytes()
+
+
 def test_load_prior_refuses_other_formats(tmp_path):
     record = json.loads(prior.PRIOR_JSON.read_text())
     record["format_version"] = 99
