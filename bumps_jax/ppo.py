@@ -44,6 +44,10 @@ def default_config() -> ml_collections.ConfigDict:
     cfg.num_epochs = 4  # paper: 30
     cfg.total_env_steps = 12_000  # per expert; paper: 12M
     cfg.learning_rate = 3e-4  # policy; paper: 1e-6
+    # Policy learning rate decays linearly to 0 over the run's Adam steps (paper (Baselines
+    # PPO1): constant). A larger early rate moves the kick further; the decay then lets the
+    # policy settle instead of ending on the last noisy step of a random walk.
+    cfg.anneal_learning_rate = False
     # The value net must first learn returns of order -150 by phase: until it does, the
     # normalised advantages rank actions by time step instead of by quality. Paper: 1e-6 (one
     # Adam for both nets, over 12M steps); ours lets the critic keep up with short runs.
@@ -373,10 +377,22 @@ def _labels(params: PPONetworkParams) -> PPONetworkParams:
     )
 
 
-def make_optimizer(cfg: ml_collections.ConfigDict) -> optax.GradientTransformation:
-    """Adam with separate learning rates for the policy and the value net, after norm clipping."""
+def sgd_steps(cfg: ml_collections.ConfigDict, n_steps: int) -> int:
+    """Adam steps of a whole run: updates x epochs x minibatches."""
+    return n_updates(cfg, n_steps) * cfg.num_epochs * cfg.num_minibatches
+
+
+def make_optimizer(cfg: ml_collections.ConfigDict, n_steps: int) -> optax.GradientTransformation:
+    """Adam with separate learning rates for the policy and the value net, after norm clipping.
+
+    With `anneal_learning_rate` the policy's rate falls linearly to 0 over the run; the
+    critic's stays constant, so it keeps tracking the returns of the settling policy.
+    """
+    policy_lr = cfg.learning_rate
+    if cfg.anneal_learning_rate:
+        policy_lr = optax.linear_schedule(cfg.learning_rate, 0.0, sgd_steps(cfg, n_steps))
     adam = optax.multi_transform(
-        {"policy": optax.adam(cfg.learning_rate), "value": optax.adam(cfg.value_learning_rate)}, _labels
+        {"policy": optax.adam(policy_lr), "value": optax.adam(cfg.value_learning_rate)}, _labels
     )
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), adam)
 
@@ -390,7 +406,7 @@ def make_train(config, env: kick_env.KickEnv) -> Trainer:
     cfg = make_config(config)
     validate_config(cfg, env.n_steps)
     networks = make_networks(cfg, env.observation_size, env.action_size)
-    optimizer = make_optimizer(cfg)
+    optimizer = make_optimizer(cfg, env.n_steps)
     ctx = _Context(env, networks, optimizer, cfg)
     total = n_updates(cfg, env.n_steps)
 

@@ -1,8 +1,10 @@
 """The PPO trainer: GAE by hand, config errors, a tiny run that learns (vmapped = alone and
 resuming are in test_experts.py, which shares their compiled programs)."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from bumps_jax import experts, kick_env, ppo
@@ -68,6 +70,34 @@ def test_bad_ppo_config_names_the_value(overrides, named):
     cfg = ppo.make_config(overrides=overrides)
     with pytest.raises(ValueError, match=named):
         ppo.validate_config(cfg, N_STEPS)
+
+
+def test_annealed_policy_rate_reaches_zero_and_spares_the_critic():
+    """The policy's steps shrink linearly to nothing over the run's Adam steps; the value net's
+    do not. Adam's first step has size lr per weight, so the step sizes read off the rate."""
+    cfg = ppo.make_config(overrides={"anneal_learning_rate": True, "learning_rate": 1e-3, "value_learning_rate": 1e-3})
+    total = ppo.sgd_steps(cfg, N_STEPS)
+    params = ppo.PPONetworkParams(policy={"w": jnp.ones(3)}, value={"w": jnp.ones(3)})
+    grads = jax.tree_util.tree_map(jnp.ones_like, params)
+    optimizer = ppo.make_optimizer(cfg, N_STEPS)
+
+    def first_step_at(count):
+        state = optimizer.init(params)
+        # Move the schedule's step counter to `count` (Adam's own counter stays at 0, so its
+        # first step is still lr-sized).
+        is_schedule = lambda x: isinstance(x, optax.ScaleByScheduleState)  # noqa: E731
+        state = jax.tree_util.tree_map(
+            lambda x: x._replace(count=jnp.full_like(x.count, count)) if is_schedule(x) else x,
+            state,
+            is_leaf=is_schedule,
+        )
+        updates, _ = optimizer.update(grads, state, params)
+        return float(jnp.abs(updates.policy["w"][0])), float(jnp.abs(updates.value["w"][0]))
+
+    start, end, half = first_step_at(0), first_step_at(total), first_step_at(total // 2)
+    np.testing.assert_allclose(start, (1e-3, 1e-3), rtol=1e-3)
+    np.testing.assert_allclose(half[0], 0.5e-3, rtol=1e-2)
+    assert end[0] == 0.0 and end[1] > 0.5e-3
 
 
 def test_unknown_key_is_refused():
