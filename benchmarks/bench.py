@@ -177,12 +177,15 @@ def bench_filter(preset: str, step: float, reps: int, mesh, method: str = "jit",
     }
 
 
-def reproduce_record(pipeline_json: Path) -> dict:
-    """The committed full `reproduce`'s wall time, with the device it ran on (it is not measured
-    here: the pipeline records it; compare it only with numbers from the same device)."""
+def reproduce_record(pipeline_json: Path, device: str) -> dict:
+    """The committed full `reproduce`'s wall time, with the device it ran on, if that is `device`
+    (it is not measured here: the pipeline records it). Empty otherwise: a bench record on
+    another device (e.g. a CPU smoke test) would set the GPU's pipeline time beside its own."""
     if not pipeline_json.exists():
         return {}
     pipeline = json.loads(pipeline_json.read_text())
+    if pipeline["device"] != device:
+        return {}
     return {
         "reproduce_wall_s": pipeline["total_wall_s"],
         "reproduce_stages_s": pipeline["stages"],
@@ -213,7 +216,8 @@ def main(argv=None) -> dict:
     one = sharding.device_mesh(1)
     n_dev = len(jax.devices())
     training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": args.sharding}
-    training.update(reproduce_record(Path(__file__).resolve().parent.parent / "results" / "pipeline.json"))
+    pipeline_json = Path(__file__).resolve().parent.parent / "results" / "pipeline.json"
+    training.update(reproduce_record(pipeline_json, results.device_name()))
     scaling: dict = {"devices": n_dev, "sharding": args.sharding}
 
     def save(section: str) -> None:

@@ -403,9 +403,10 @@ def optimise(
 
 @functools.lru_cache(maxsize=8)
 def _tuning_programs(env, mesh, P: int, R: int, fitness_json: str, sigma_init: float):
-    """`tune_for_tasks`' CMA-ES and its two jitted programs (one generation of every task; the
-    final start-vs-tuned costs). Kept per settings, so a repeated or resumed run of the same
-    settings in one process does not trace and compile them again (about a minute on a CPU)."""
+    """`tune_for_tasks`' CMA-ES, the scale of its steps and its two jitted programs (one
+    generation of every task; the final start-vs-tuned costs). Kept per settings, so a repeated
+    or resumed run of the same settings in one process does not trace and compile them again
+    (about a minute on a CPU)."""
     from evosax.algorithms import CMA_ES  # heavy import, only needed here
 
     from bumps_jax import sharding  # noqa: PLC0415 (keeps `import prior` light for tests)
@@ -430,7 +431,7 @@ def _tuning_programs(env, mesh, P: int, R: int, fitness_json: str, sigma_init: f
 
     step = sharding.over_batch(jax.vmap(generation), mesh, (True, True, True, True))
     final = sharding.over_batch(jax.vmap(cost_of, in_axes=(0, None, 0)), mesh, (True, False, True))
-    return es, es_params, step, final
+    return es, es_params, scale, step, final
 
 
 def tune_for_tasks(
@@ -470,7 +471,8 @@ def tune_for_tasks(
     targets, starts = sharding.pad((targets, starts), sharding.padded_size(n_tasks, mesh))
     env = env or _env_for(cfg)
     P, R, T = cfg.population_size, cfg.repetitions, targets.shape[0]
-    es, es_params, step, final = _tuning_programs(env, mesh, P, R, cfg.fitness.to_json(), float(sigma_init))
+    # `scale` comes with the programs so the final mean is read in the units the search stepped in.
+    es, es_params, scale, step, final = _tuning_programs(env, mesh, P, R, cfg.fitness.to_json(), float(sigma_init))
     key = jax.random.key(cfg.seed)
     key, init_key = jax.random.split(key)
     state = jax.vmap(lambda k: es.init(k, jnp.zeros(N_PARAMS), es_params))(jax.random.split(init_key, T))
@@ -487,7 +489,7 @@ def tune_for_tasks(
             print(f"tuning gen {gen + 1:3d}/{generations}  mean best cost over tasks {history[-1].mean():7.3f}"
                   f"  worst {history[-1].max():7.3f}  ({time.perf_counter() - t0:5.1f} s)", flush=True)  # fmt: skip
 
-    tuned = clip_params(starts + jnp.asarray(PARAM_SCALE, jnp.float32) * state.mean)
+    tuned = clip_params(starts + scale * state.mean)
     E = cfg.eval_repetitions
     keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
     costs = np.asarray(final(jnp.stack([starts, tuned], 1), keys, targets))[:n_tasks]  # (T, 2): start, tuned
