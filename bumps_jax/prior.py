@@ -549,6 +549,18 @@ def prior_record(params, cfg, numbers: dict, **extra) -> dict:
     }
 
 
+def record_from_payload(payload: dict) -> dict:
+    """The prior record of a kick-prior run made before runs kept theirs (RUN_PRIOR_JSON), from
+    the run's kick_prior.json: its 12 m kick, anchors and sweep, which is all the later stages
+    read. The evaluation holds only the numbers the payload kept."""
+    evaluation = {"repetitions": payload["n_reps"], "target": payload["target_m"],
+                  "mean_error": payload["mean_error_m"], "std_error": payload["std_error_m"],
+                  **{k: payload[k] for k in ("valid_fraction", "struck_fraction", "fallen_fraction")}}  # fmt: skip
+    cfg = make_config(None, PRESETS[payload["preset"]])
+    return prior_record(payload["anchors"]["main"], cfg, evaluation, generations_run=payload["generations"],
+                        anchors=payload["anchors"], sweep=payload["sweep"])  # fmt: skip
+
+
 def save_prior(record: dict, path: str | Path = PRIOR_JSON) -> None:
     Path(path).write_text(json.dumps(record, indent=2) + "\n")
 

@@ -256,6 +256,12 @@ def publish(run_dir: str | Path, root: str | Path = ".") -> list[Path]:
             (root / dest).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(run_dir / rel, root / dest)
             written.append(root / dest)
+    payload = _load(run_dir, "prior/kick_prior.json")
+    if payload and not (run_dir / "prior" / prior.RUN_PRIOR_JSON).exists():
+        # A run from before runs kept their prior record: rebuild it from the run's payload.
+        (root / "assets").mkdir(parents=True, exist_ok=True)
+        prior.save_prior(prior.record_from_payload(payload), root / "assets" / "kick_prior.json")
+        written.append(root / "assets" / "kick_prior.json")
     if not any(p.suffix == ".json" for p in written):
         raise ValueError(f"{run_dir} holds no stage results to publish")
     written.append(write_committed(root))
@@ -273,6 +279,7 @@ def write_committed(root: str | Path = ".") -> Path:
     root = Path(root)
     text = build(root, COMMITTED, figures_dir="docs", title="BUMPS on the simulated NAO: committed GPU results")
     path = root / "docs" / "results.md"
+    path.parent.mkdir(parents=True, exist_ok=True)
     pipeline = _load(root, COMMITTED["pipeline"])
     if pipeline:
         overrides = ", ".join(f"`{k}={v}`" for k, v in pipeline.get("overrides", {}).items()) or "none"

@@ -132,6 +132,15 @@ def test_run_stage_keeps_the_prior_record_it_publishes(tmp_path, monkeypatch, en
     prior.run_stage("tiny", tmp_path / "published", publish=True)
     assert asset.read_bytes() == (tmp_path / "published" / prior.RUN_PRIOR_JSON).read_bytes()
 
+    # A run from before runs kept their record: the payload rebuilds what the stages read.
+    rebuilt = prior.record_from_payload(json.loads((tmp_path / "own" / "kick_prior.json").read_text()))
+    prior.save_prior(rebuilt, tmp_path / "rebuilt.json")
+    again = prior.load_prior(tmp_path / "rebuilt.json")
+    np.testing.assert_array_equal(again["params"], record["params"])
+    np.testing.assert_array_equal(again["anchors"], record["anchors"])
+    np.testing.assert_array_equal(prior.calibration(again), prior.calibration(record))
+    assert rebuilt["config"] == json.loads((tmp_path / "own" / prior.RUN_PRIOR_JSON).read_text())["config"]
+
 
 def test_load_prior_refuses_other_formats(tmp_path):
     record = json.loads(prior.PRIOR_JSON.read_text())

@@ -1,8 +1,13 @@
 """The report puts our numbers beside the paper's and names stages that did not run."""
 
 import json
+from pathlib import Path
+
+import numpy as np
 
 from bumps_jax import prior, report, results
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def _common(preset="tiny"):
@@ -81,6 +86,21 @@ def test_publish_copies_a_run_and_rebuilds_results_md(tmp_path):
     assert "![docs/context_map.png](context_map.png)" in text
     # The prior is the run's own, not whatever an older run left in results/.
     assert "12 m prior over 100 noisy kicks: mean error 0.68 m" in text
+
+
+def test_publish_rebuilds_the_prior_record_of_an_older_run(tmp_path):
+    """A run from before runs kept their prior record: publish rebuilds it from the payload (the
+    committed one, results/kick_prior.json), so the asset still matches the run."""
+    run = tmp_path / "run"
+    (run / "prior").mkdir(parents=True)
+    payload = json.loads((ROOT / "results" / "kick_prior.json").read_text())
+    (run / "prior" / "kick_prior.json").write_text(json.dumps(payload))
+    root = tmp_path / "repo"
+    written = {p.relative_to(root).as_posix() for p in report.publish(run, root)}
+    assert "assets/kick_prior.json" in written
+    record = prior.load_prior(root / "assets" / "kick_prior.json")
+    assert record["params"].tolist() == np.float32(payload["anchors"]["main"]).tolist()
+    assert record["sweep"] == payload["sweep"]
 
 
 def test_publish_refuses_an_empty_run(tmp_path):
