@@ -58,8 +58,12 @@ def test_sharded_experts_equal_single_device_experts(sharded_vs_single):
 def test_sharded_filtering_makes_the_same_choices(sharded_vs_single):
     single, sharded = sharded_vs_single
     assert single["filter"]["chosen"] == sharded["filter"]["chosen"]
-    np.testing.assert_allclose(single["filter"]["distance"], sharded["filter"]["distance"], atol=1e-3)
-    np.testing.assert_allclose(single["filter"]["scores"], sharded["filter"]["scores"], atol=1e-3)
+    # Within 1 cm, not bit-identical: as for the experts above, the batch shape changes XLA's
+    # kernels, and the kick's contact amplifies last-bit differences (measured: 4.9 mm on one of
+    # 18 rollouts with the current committed prior, under 1 mm with the one before). A rollout
+    # of the wrong context or task would land metres away.
+    np.testing.assert_allclose(single["filter"]["distance"], sharded["filter"]["distance"], atol=1e-2)
+    np.testing.assert_allclose(single["filter"]["scores"], sharded["filter"]["scores"], atol=1e-2)
 
 
 def test_padding_repeats_the_last_item_and_unpad_drops_it():
