@@ -42,6 +42,7 @@ SCALING = "benchmarks/results/scaling.json"
 PUBLISHED = {
     "prior/kick_prior.json": "results/kick_prior.json",
     "prior/kick_sweep.png": "docs/kick_sweep.png",
+    "prior/kick_prior_timing.json": "benchmarks/results/kick_prior.json",
     # The prior the run's experts started from: the committed asset that later runs start from.
     f"prior/{prior.RUN_PRIOR_JSON}": "assets/kick_prior.json",
     "experts/experts.json": "results/experts.json",

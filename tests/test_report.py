@@ -73,11 +73,12 @@ def test_report_shows_pipeline_time_and_baseline(tmp_path):
 def test_publish_copies_a_run_and_rebuilds_results_md(tmp_path):
     run = _paper_run(tmp_path)
     (run / "prior" / prior.RUN_PRIOR_JSON).write_text('{"params": "the run\'s own prior"}')
+    (run / "prior" / "kick_prior_timing.json").write_text('{"wall_s": 1.0}')
     root = tmp_path / "repo"
     written = {p.relative_to(root).as_posix() for p in report.publish(run, root)}
     assert {"results/kick_prior.json", "results/experts.json", "results/table1.json", "results/table2.json",
             "results/baseline.json", "results/pipeline.json", "docs/context_map.png",
-            "docs/results.md", "assets/kick_prior.json"} <= written  # fmt: skip
+            "docs/results.md", "assets/kick_prior.json", "benchmarks/results/kick_prior.json"} <= written  # fmt: skip
     # The committed asset becomes the prior this run's experts started from.
     assert (root / "assets" / "kick_prior.json").read_text() == '{"params": "the run\'s own prior"}'
     text = (root / "docs" / "results.md").read_text()
