@@ -249,6 +249,17 @@ def starting_kicks(cfg: ml_collections.ConfigDict, verbose: bool = True) -> tupl
     return np.asarray(starts, np.float32), info
 
 
+def read_starting_kicks(path, targets) -> dict[float, np.ndarray]:
+    """Each of `targets`' (m) kick params (14,) from a run's starting_kicks.json (`starting_kicks`'
+    record); ValueError naming the targets the record lacks."""
+    record = json.loads(Path(path).read_text())
+    tasks = [float(t) for t in record["tasks_m"]]
+    missing = [t for t in targets if t not in tasks]
+    if missing:
+        raise ValueError(f"targets {missing} not among the kicks' tasks {tasks}")
+    return {t: np.asarray(record["params"][tasks.index(t)], np.float32) for t in targets}
+
+
 def make_init(cfg: ml_collections.ConfigDict, env: kick_env.KickEnv, trainer: ppo.Trainer):
     """A pure fn (rng, target, kick params (14,)) -> (TrainState after behaviour cloning of that
     kick, BC losses (steps,)). vmap over tasks."""

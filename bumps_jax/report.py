@@ -38,13 +38,14 @@ COMMITTED = {
 }
 BENCH = "benchmarks/results/training.json"
 SCALING = "benchmarks/results/scaling.json"
+PRIOR_ASSET = "assets/kick_prior.json"
 # What `publish` copies from a finished paper run into the repository: run file -> committed path.
 PUBLISHED = {
     "prior/kick_prior.json": "results/kick_prior.json",
     "prior/kick_sweep.png": "docs/kick_sweep.png",
     "prior/kick_prior_timing.json": "benchmarks/results/kick_prior.json",
     # The prior the run's experts started from: the committed asset that later runs start from.
-    f"prior/{prior.RUN_PRIOR_JSON}": "assets/kick_prior.json",
+    f"prior/{prior.RUN_PRIOR_JSON}": PRIOR_ASSET,
     "experts/experts.json": "results/experts.json",
     "experts/experts.md": "docs/experts.md",
     "experts/progress.csv": "docs/experts_progress.csv",
@@ -260,9 +261,9 @@ def publish(run_dir: str | Path, root: str | Path = ".") -> list[Path]:
     payload = _load(run_dir, "prior/kick_prior.json")
     if payload and not (run_dir / "prior" / prior.RUN_PRIOR_JSON).exists():
         # A run from before runs kept their prior record: rebuild it from the run's payload.
-        (root / "assets").mkdir(parents=True, exist_ok=True)
-        prior.save_prior(prior.record_from_payload(payload), root / "assets" / "kick_prior.json")
-        written.append(root / "assets" / "kick_prior.json")
+        (root / PRIOR_ASSET).parent.mkdir(parents=True, exist_ok=True)
+        prior.save_prior(prior.record_from_payload(payload), root / PRIOR_ASSET)
+        written.append(root / PRIOR_ASSET)
     if not any(p.suffix == ".json" for p in written):
         raise ValueError(f"{run_dir} holds no stage results to publish")
     written.append(write_committed(root))

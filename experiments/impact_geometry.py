@@ -14,22 +14,20 @@ the ball's upper back changes its angle, and with it the ball's speed. Writes
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
-from bumps_jax import kick_env, prior, results, scene
+from bumps_jax import experts, kick_env, prior, results, scene
 
 OFFSETS_MM = (-10.0, -5.0, 0.0, 5.0, 10.0)
 
 
-def strike(params: np.ndarray, ball_dx: float, ctrl_dt: float = 0.02, horizon_s: float = 1.5) -> dict:
-    """One noise-free kick with the ball moved `ball_dx` m forward: the first robot-ball contact
-    and the ball's resting distance (m ahead of its nominal start)."""
-    model = scene.load_model()
+def strike(model, params: np.ndarray, ball_dx: float, ctrl_dt: float = 0.02, horizon_s: float = 1.5) -> dict:
+    """One noise-free kick in `model` (the scene) with the ball moved `ball_dx` m forward: the
+    first robot-ball contact and the ball's resting distance (m ahead of its nominal start)."""
     ids = scene.scene_ids(model)
     data = mujoco.MjData(model)
     qpos = scene.stance_qpos(model)
@@ -86,17 +84,16 @@ def main(argv=None) -> None:
     parser.add_argument("--targets", type=float, nargs="+", default=[8.0, 12.0, 15.0, 18.0])
     parser.add_argument("--out-dir", default="experiments/results")
     args = parser.parse_args(argv)
-    record = json.loads(Path(args.kicks).read_text())
-    tasks = [float(t) for t in record["tasks_m"]]
-    missing = [t for t in args.targets if t not in tasks]
-    if missing:
-        parser.error(f"--targets {missing} not among the kicks' tasks {tasks}")
+    try:
+        kicks = experts.read_starting_kicks(args.kicks, args.targets)
+    except ValueError as err:
+        parser.error(f"--targets: {err}")
 
     start = time.perf_counter()
+    model = scene.load_model()
     rows = {}
-    for target in args.targets:
-        params = np.asarray(record["params"][tasks.index(target)], np.float32)
-        rows[str(target)] = by_offset = {str(mm): strike(params, mm / 1000.0) for mm in OFFSETS_MM}
+    for target, params in kicks.items():
+        rows[str(target)] = by_offset = {str(mm): strike(model, params, mm / 1000.0) for mm in OFFSETS_MM}
         distances = [by_offset[str(mm)]["distance_m"] for mm in OFFSETS_MM]
         slope = np.polyfit(np.asarray(OFFSETS_MM) / 10.0, distances, 1)[0]
         rows[str(target)]["distance_per_cm_of_ball_m"] = float(slope)

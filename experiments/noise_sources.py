@@ -12,7 +12,6 @@ Writes <out-dir>/noise_sources_<device>.json.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -20,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import kick_env, prior, results
+from bumps_jax import experts, kick_env, prior, results
 
 
 def noise_settings() -> dict[str, dict]:
@@ -59,16 +58,14 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.repetitions < 2:
         parser.error(f"--repetitions must be at least 2, got {args.repetitions}")
-    record = json.loads(Path(args.kicks).read_text())
-    tasks = [float(t) for t in record["tasks_m"]]
-    missing = [t for t in args.targets if t not in tasks]
-    if missing:
-        parser.error(f"--targets {missing} not among the kicks' tasks {tasks}")
+    try:
+        kicks = experts.read_starting_kicks(args.kicks, args.targets)
+    except ValueError as err:
+        parser.error(f"--targets: {err}")
 
     start = time.perf_counter()
     rows = {}
-    for target in args.targets:
-        params = np.asarray(record["params"][tasks.index(target)], np.float32)
+    for target, params in kicks.items():
         rows[str(target)] = {}
         for name, overrides in noise_settings().items():
             rows[str(target)][name] = row = spread(params, target, overrides, args.repetitions, args.seed)

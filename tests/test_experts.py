@@ -2,6 +2,7 @@
 
 import json
 import re
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -164,3 +165,13 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
     assert set(on_disk["per_task"][0]) >= {"target_m", "accuracy", "error_mean_m", "error_std_m"}
     assert 0.0 <= record["accuracy_mean"] <= 1.0
     assert "single-task experts" in (tmp_path / "whole" / "experts.md").read_text()
+
+
+def test_read_starting_kicks_finds_each_target_and_names_missing_ones():
+    path = Path(__file__).resolve().parent.parent / "docs" / "experts_starting_kicks.json"
+    record = json.loads(path.read_text())
+    kicks = experts.read_starting_kicks(path, [12.0, 7.0])
+    assert list(kicks) == [12.0, 7.0]
+    np.testing.assert_array_equal(kicks[12.0], np.float32(record["params"][record["tasks_m"].index(12.0)]))
+    with pytest.raises(ValueError, match=r"\[12.3\]"):
+        experts.read_starting_kicks(path, [12.0, 12.3])
