@@ -1,0 +1,41 @@
+"""The strike-height search (experiments/strike_search.py): its geometry and its argument checks."""
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from bumps_jax import kick_env, scene
+from experiments import strike_search
+
+
+def test_strike_height_of_the_stance_is_the_foot_top_below_the_ball_centre():
+    # Standing, the kicking foot's box (2 cm tall, sole on the floor) is behind the ball: the
+    # point of it nearest the ball's centre is its top front edge, 2 cm up, so 4.2 - 2 cm below.
+    # C MuJoCo's data has the fields the measure reads, and its forward pass is instant on a CPU.
+    env = kick_env.KickEnv()
+    data = mujoco.MjData(env.mj_model)
+    data.qpos[:] = np.asarray(env._qpos0)
+    mujoco.mj_forward(env.mj_model, data)
+    height, speed = strike_search.strike_height(env)(data)
+    assert float(height) == pytest.approx(0.02 - scene.BALL_RADIUS, abs=2e-3)
+    assert float(speed) == 0.0
+
+
+def test_start_kicks_are_inside_the_parameter_bounds():
+    from bumps_jax import prior
+
+    starts = strike_search.start_kicks()
+    assert {"default", "prior_main"} <= set(starts)
+    for params in starts.values():
+        assert jnp.all(params >= prior.PARAM_LOW - 1e-6) and jnp.all(params <= prior.PARAM_HIGH + 1e-6)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [(["--starts", "nosuch"], "nosuch"), (["--targets", "30"], "30"), (["--population", "1"], "population")],
+)
+def test_bad_arguments_are_named(argv, message, capsys):
+    with pytest.raises(SystemExit):
+        strike_search.main(argv)
+    assert message in capsys.readouterr().err
