@@ -511,11 +511,22 @@ def load_final_params(run_dir, programs: Compiled, n_tasks: int) -> ExpertParams
     return ocp.StandardCheckpointer().restore(final, expert_params(abstract))
 
 
+def load_run_config(run_dir) -> ml_collections.ConfigDict:
+    """The config an experts run saved (run_dir/config.json), laid over today's defaults.
+
+    A run made before a config key existed lacks it; the key then takes its default, which is
+    what such a run did (new keys default to the old behaviour, e.g. `ppo.anneal_learning_rate`).
+    """
+    cfg = default_config()
+    cfg.update(json.loads((Path(run_dir) / "config.json").read_text()))
+    return make_config(cfg)
+
+
 def family(run_dir) -> synthetic_experts.ExpertFamily:
     """The trained experts of `run_dir` for meta-training: `--experts bumps_jax.experts:family
     --experts-path runs/experts/paper`."""
 
-    cfg = make_config(ml_collections.ConfigDict(json.loads((Path(run_dir) / "config.json").read_text())))
+    cfg = load_run_config(run_dir)
     programs = compile_programs(cfg)
     params = load_final_params(run_dir, programs, len(cfg.tasks))
     return synthetic_experts.ExpertFamily(

@@ -175,3 +175,15 @@ def test_read_starting_kicks_finds_each_target_and_names_missing_ones():
     np.testing.assert_array_equal(kicks[12.0], np.float32(record["params"][record["tasks_m"].index(12.0)]))
     with pytest.raises(ValueError, match=r"\[12.3\]"):
         experts.read_starting_kicks(path, [12.0, 12.3])
+
+
+def test_a_run_config_from_before_a_key_existed_loads_with_its_default(tmp_path):
+    # The committed paper run was saved before `ppo.anneal_learning_rate` existed: reloading its
+    # experts (the meta stage does) must not fail on the missing key, and must not change what it had.
+    saved = json.loads(_tiny_config().to_json())
+    del saved["ppo"]["anneal_learning_rate"]
+    saved["ppo"]["learning_rate"] = 1e-6
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    cfg = experts.load_run_config(tmp_path)
+    assert cfg.ppo.anneal_learning_rate is False
+    assert cfg.ppo.learning_rate == 1e-6 and list(cfg.tasks) == list(_tiny_config().tasks)
