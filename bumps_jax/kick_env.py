@@ -40,6 +40,8 @@ def default_config() -> ml_collections.ConfigDict:
     """Every number of the task, in one place. See README of assets/nao_mjcf for the scene."""
     cfg = ml_collections.ConfigDict()
     cfg.ctrl_dt = 0.02  # 50 Hz, SimSpark's agent cycle
+    # Physics step (s), a divisor of ctrl_dt; None: the scene's own (5 ms, see the scene README).
+    cfg.physics_dt = None
     cfg.horizon_s = 1.5  # kick phase; the paper's kicks last 1.3-1.5 s
     cfg.task_range = (7.0, 18.0)  # metres; targets outside are refused
     cfg.tasks = meta_train_tasks()  # what brax-style `reset(rng)` draws from
@@ -94,6 +96,8 @@ def validate_config(cfg: ml_collections.ConfigDict) -> None:
     lo, hi = cfg.task_range
     if not 0.0 < lo < hi:
         raise ValueError(f"task_range must be 0 < low < high, got {tuple(cfg.task_range)}")
+    if cfg.physics_dt is not None and not 0 < cfg.physics_dt <= cfg.ctrl_dt:
+        raise ValueError(f"physics_dt must be in (0, ctrl_dt {cfg.ctrl_dt}], got {cfg.physics_dt!r}")
     if cfg.ctrl_dt <= 0 or cfg.horizon_s < cfg.ctrl_dt:
         raise ValueError(f"need 0 < ctrl_dt <= horizon_s, got {cfg.ctrl_dt}, {cfg.horizon_s}")
     if len(cfg.tasks) == 0:
@@ -164,6 +168,8 @@ class KickEnv(Env):
         validate_config(self.config)
         cfg = self.config
         self.mj_model = scene.load_model()
+        if cfg.physics_dt is not None:
+            self.mj_model.opt.timestep = cfg.physics_dt
         self.ids = scene.scene_ids(self.mj_model)
         physics_dt = float(self.mj_model.opt.timestep)
         self.n_substeps = int(round(cfg.ctrl_dt / physics_dt))
@@ -171,7 +177,7 @@ class KickEnv(Env):
             raise ValueError(f"ctrl_dt {cfg.ctrl_dt} is not a multiple of the physics step {physics_dt}")
         self.n_steps = int(round(cfg.horizon_s / cfg.ctrl_dt))
         self.mjx_model = mjx.put_model(self.mj_model)
-        self.decel_rate = scene.rolling_decel_rate()
+        self.decel_rate = scene.rolling_decel_rate(timestep=cfg.physics_dt)
         self._qpos0 = jnp.asarray(scene.stance_qpos(self.mj_model))
         self._stance = jnp.asarray(scene.STANCE)
         self._lo = jnp.asarray(self.ids.joint_range[:, 0])

@@ -83,6 +83,7 @@ def main(argv=None) -> None:
         "run_dir": args.run_dir,
         "repetitions": args.repetitions,
         "noise": dict(kick_env.default_config().noise),
+        "physics_dt_s": float(env.mj_model.opt.timestep),
         "scales": rows,
         **results.provenance("noise_scale", time.perf_counter() - start),
     }

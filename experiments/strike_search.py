@@ -150,6 +150,7 @@ def main(argv=None) -> None:
     parser.add_argument("--starts", nargs="+", default=None, help="names of the starting kicks to use (default: all)")
     parser.add_argument("--kinds", nargs="+", default=["control", "centred"], choices=["control", "centred"])
     parser.add_argument("--kicks", default="docs/experts_starting_kicks.json", help="reference kicks to replay")
+    parser.add_argument("--physics-dt", type=float, default=None, help="physics step (s); default: the scene's")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out-dir", default="experiments/results")
     parser.add_argument("--name", default="strike_search", help="stem of the files written")
@@ -157,7 +158,12 @@ def main(argv=None) -> None:
     for name in ("generations", "population", "repetitions", "eval_reps"):
         if getattr(args, name) < (2 if name in ("population", "eval_reps") else 1):
             parser.error(f"--{name.replace('_', '-')} is too small: {getattr(args, name)}")
-    env = kick_env.KickEnv(config_overrides={"task_range": prior.default_config().task_range})
+    try:
+        env = kick_env.KickEnv(
+            config_overrides={"task_range": prior.default_config().task_range, "physics_dt": args.physics_dt}
+        )
+    except ValueError as err:
+        parser.error(f"--physics-dt: {err}")
     try:
         kick_env.check_targets(args.targets, env.config.task_range)
         on_tasks = [t for t in args.targets if t in kick_env.meta_train_tasks()]
@@ -227,6 +233,7 @@ def main(argv=None) -> None:
     payload = {
         "settings": {k: v for k, v in vars(args).items() if k not in ("out_dir", "name")},
         "noise": dict(env.config.noise),
+        "physics_dt_s": float(env.mj_model.opt.timestep),
         "search_wall_s": search_s,
         "best": best,
         "references": references,

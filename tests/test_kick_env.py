@@ -215,3 +215,13 @@ def test_bad_config_is_refused_by_name(overrides, message):
 def test_unknown_config_key_is_refused():
     with pytest.raises(ValueError, match="noise.frction"):
         kick_env.KickEnv(config_overrides={"noise.frction": 0.1})
+
+
+def test_the_physics_step_sets_the_substeps_and_keeps_the_rolling_law():
+    assert kick_env.KickEnv().n_substeps == 8  # the scene's 2.5 ms
+    env = kick_env.KickEnv(config_overrides={"physics_dt": 0.005})
+    assert env.n_substeps == 4 and env.mj_model.opt.timestep == 0.005
+    # The rolling law is measured at the env's own step; it barely depends on it.
+    assert env.decel_rate == pytest.approx(kick_env.KickEnv().decel_rate, rel=0.01)
+    with pytest.raises(ValueError, match="physics_dt"):
+        kick_env.KickEnv(config_overrides={"physics_dt": -0.001})

@@ -39,3 +39,9 @@ def test_bad_arguments_are_named(argv, message, capsys):
     with pytest.raises(SystemExit):
         strike_search.main(argv)
     assert message in capsys.readouterr().err
+
+
+def test_a_physics_step_that_does_not_divide_the_control_step_is_named(capsys):
+    with pytest.raises(SystemExit):
+        strike_search.main(["--physics-dt", "0.003"])
+    assert "0.003" in capsys.readouterr().err
