@@ -506,6 +506,34 @@ def tune_for_tasks(
     }
 
 
+def best_starts(targets, candidates, config=None, repetitions: int = 16, seed: int = 3, env=None):
+    """Each target's best candidate kick: the lowest mean fitness over `repetitions` noisy kicks,
+    the same episodes for every candidate of a target (common random numbers).
+
+    targets: (T,) m; candidates: (T, C, 14). Returns (params (T, 14), index (T,), costs (T, C)).
+    """
+    cfg = make_config(config)
+    validate_config(cfg)
+    targets = jnp.asarray(targets, jnp.float32)
+    candidates = clip_params(jnp.asarray(candidates, jnp.float32))
+    if targets.ndim != 1 or candidates.ndim != 3 or candidates.shape[::2] != (targets.shape[0], N_PARAMS):
+        shapes = f"{targets.shape} and {candidates.shape}"
+        raise ValueError(f"need targets (T,) and candidates (T, C, {N_PARAMS}), got {shapes}")
+    if not isinstance(repetitions, int | np.integer) or repetitions < 1:
+        raise ValueError(f"repetitions must be a positive integer, got {repetitions!r}")
+    kick_env.check_targets(np.asarray(targets).tolist(), cfg.task_range)
+    episodes = jax.vmap(_episode_fn(env or _env_for(cfg)), in_axes=(None, 0, None))  # over reps
+
+    def task_costs(kicks, keys, target):  # kicks (C, 14), keys (R,) -> (C,)
+        out = jax.vmap(episodes, in_axes=(0, None, None))(kicks, keys, target)
+        return jnp.mean(fitness(out, target, cfg.fitness), axis=1)
+
+    keys = jax.random.split(jax.random.key(seed), (targets.shape[0], repetitions))
+    costs = np.asarray(jax.jit(jax.vmap(task_costs))(candidates, keys, targets))
+    index = np.argmin(costs, axis=1)
+    return np.asarray(candidates)[np.arange(len(index)), index], index, costs
+
+
 def sweep(anchors, strengths, config=None, repetitions: int = 8, seed: int = 2, env=None, rollout=None) -> list[dict]:
     """The blended kick at each strength: resting distance and valid fraction over noisy reps.
 

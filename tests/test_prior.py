@@ -159,3 +159,27 @@ def test_tuning_for_tasks_rejects_bad_inputs_before_compiling():
         prior.tune_for_tasks([8.0, 12.0], starts, generations=-1)
     with pytest.raises(ValueError, match="40.0"):
         prior.tune_for_tasks([8.0, 40.0], starts)
+
+
+def test_best_starts_picks_the_candidate_that_kicks_nearest(env):
+    # Per target, the committed 12 m kick against the same kick at a tenth of its swing speed
+    # (a few metres at most): the 12 m kick must win at 12 m, whichever order they come in.
+    main = prior.load_prior()["params"]
+    slow = main.copy()
+    slow[prior.PARAM_NAMES.index("strength")] = 0.1
+    slow[prior.PARAM_NAMES.index("t_swing")] = prior.PARAM_HIGH[prior.PARAM_NAMES.index("t_swing")]
+    candidates = np.stack([[slow, main], [main, slow]])
+    params, index, costs = prior.best_starts([12.0, 12.0], candidates, repetitions=2, env=env)
+    assert index.tolist() == [1, 0] and costs.shape == (2, 2)
+    np.testing.assert_allclose(params, np.stack([main, main]), atol=1e-6)
+    assert costs[0, 1] < costs[0, 0] and costs[1, 0] < costs[1, 1]
+
+
+def test_best_starts_rejects_bad_inputs_before_compiling():
+    candidates = np.tile(prior.DEFAULT_PARAMS, (2, 3, 1))
+    with pytest.raises(ValueError, match="candidates"):
+        prior.best_starts([8.0, 12.0], candidates[0])
+    with pytest.raises(ValueError, match="repetitions"):
+        prior.best_starts([8.0, 12.0], candidates, repetitions=0)
+    with pytest.raises(ValueError, match="40.0"):
+        prior.best_starts([8.0, 40.0], candidates)
