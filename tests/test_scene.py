@@ -94,8 +94,11 @@ def test_servo_respects_speed_and_torque_limits(model):
     goal[j] += np.deg2rad(90)
     top_speed, top_force = 0.0, 0.0
     ids_range = ids.joint_range
+    n_substeps = round(0.02 / model.opt.timestep)  # one 20 ms control step
     for _ in range(40):
-        ramp = kick_env.servo_ramp(command, goal, ids_range[:, 0], ids_range[:, 1], scene.MAX_JOINT_SPEED * 0.02, 4)
+        ramp = kick_env.servo_ramp(
+            command, goal, ids_range[:, 0], ids_range[:, 1], scene.MAX_JOINT_SPEED * 0.02, n_substeps
+        )
         command = ramp[-1]
         for ctrl in ramp:
             data.ctrl[:] = ctrl
