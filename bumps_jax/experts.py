@@ -227,10 +227,9 @@ def starting_kicks(cfg: ml_collections.ConfigDict, verbose: bool = True) -> tupl
 
     The blended prior at the strength calibrated for the task (or the one 12 m kick, as the
     paper's baseline did), or with `tune.anchor_starts` the best of that blend and the prior's
-    three anchors at the task's distance; then, if `tune.generations` > 0, CMA-ES on every task's kick at
-    once (`prior.tune_for_tasks`): between the prior's sweep points the blend is erratic (a
-    strength of 0.625 lands at 8.8 m, between 12.2 and 16.5 m), and PPO with the paper's small
-    steps does not move a kick metres.
+    three anchors at the task's distance. Then, if `tune.generations` > 0, CMA-ES on every
+    task's kick at once (`prior.tune_for_tasks`): between the prior's sweep points the blend is
+    erratic, and PPO with the paper's small steps does not move a kick metres.
     """
     record = prior.load_prior(prior_file(cfg))
     targets = np.asarray(cfg.tasks, np.float32)

@@ -40,7 +40,7 @@ def default_config() -> ml_collections.ConfigDict:
     """Every number of the task, in one place. See README of assets/nao_mjcf for the scene."""
     cfg = ml_collections.ConfigDict()
     cfg.ctrl_dt = 0.02  # 50 Hz, SimSpark's agent cycle
-    # Physics step (s), a divisor of ctrl_dt; None: the scene's own (5 ms, see the scene README).
+    # Physics step (s), a divisor of ctrl_dt; None: the scene's own (2.5 ms; the scene README says why).
     cfg.physics_dt = None
     cfg.horizon_s = 1.5  # kick phase; the paper's kicks last 1.3-1.5 s
     cfg.task_range = (7.0, 18.0)  # metres; targets outside are refused
