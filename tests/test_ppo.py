@@ -118,9 +118,10 @@ def test_tiny_ppo_improves_return():
     prior in tests/data (an earlier committed one, frozen here: the outcome depends on the kick,
     and the committed asset changes with each paper run; CPU, 16 episodes per update, lr 1e-5,
     sigma 0.018 rad): the collected
-    return rises over the first updates (-156.7, -154.0, -154.5, -152.1), but the deterministic
-    mean kick does not follow (-156.1 -> -157.4 after 4 updates), and at this step size longer
-    runs fall back (-172 at update 5): the kick's outcome is that sensitive to its trajectory.
+    return rises over the first updates (-158.6, -156.1, -155.3, -151.7 with the 2.5 ms physics
+    step; -156.7, -154.0, -154.5, -152.1 with 5 ms). With 5 ms the deterministic mean kick did
+    not follow (-156.1 -> -157.4 after 4 updates), and at this step size longer runs fell back
+    (-172 at update 5): the kick's outcome is that sensitive to its trajectory.
     So the test checks the stochastic return over 4 updates, not the deterministic one.
     """
     env = kick_env.KickEnv(config_overrides=NO_NOISE)
