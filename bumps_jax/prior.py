@@ -402,23 +402,35 @@ def optimise(
 
 
 @functools.lru_cache(maxsize=8)
-def _tuning_programs(env, mesh, P: int, R: int, fitness_json: str, sigma_init: float):
-    """`tune_for_tasks`' CMA-ES, the scale of its steps and its two jitted programs (one
-    generation of every task; the final start-vs-tuned costs). Kept per settings, so a repeated
-    or resumed run of the same settings in one process does not trace and compile them again
-    (about a minute on a CPU)."""
-    from evosax.algorithms import CMA_ES  # heavy import, only needed here
-
+def _cost_programs(env, mesh, fitness_json: str):
+    """The mean cost of kicks over noisy episodes: `cost_of` (params (P, 14), keys (P, R), target)
+    -> (P,), and its jitted batch over tasks split over `mesh`, (params (T, C, 14), keys (C, R)
+    shared by every task, targets (T,)) -> (T, C). Kept per settings: compiled once per process."""
     from bumps_jax import sharding  # noqa: PLC0415 (keeps `import prior` light for tests)
 
     weights = ml_collections.ConfigDict(json.loads(fitness_json))
     episodes = jax.vmap(jax.vmap(_episode_fn(env), in_axes=(None, 0, None)), in_axes=(0, 0, None))
+
+    def cost_of(params, keys, target):
+        return jnp.mean(fitness(episodes(params, keys, target), target, weights), axis=1)
+
+    return cost_of, sharding.over_batch(jax.vmap(cost_of, in_axes=(0, None, 0)), mesh, (True, False, True))
+
+
+@functools.lru_cache(maxsize=8)
+def _tuning_programs(env, mesh, P: int, R: int, fitness_json: str, sigma_init: float):
+    """`tune_for_tasks`' CMA-ES, the scale of its steps and its two jitted programs (one
+    generation of every task; the final start-vs-tuned costs, `_cost_programs`). Kept per
+    settings, so a repeated or resumed run of the same settings in one process does not trace
+    and compile them again (about a minute on a CPU)."""
+    from evosax.algorithms import CMA_ES  # heavy import, only needed here
+
+    from bumps_jax import sharding  # noqa: PLC0415 (keeps `import prior` light for tests)
+
+    cost_of, final = _cost_programs(env, mesh, fitness_json)
     scale = jnp.asarray(PARAM_SCALE, jnp.float32)
     es = CMA_ES(population_size=P, solution=jnp.zeros(N_PARAMS))
     es_params = es.default_params.replace(std_init=jnp.asarray(sigma_init))
-
-    def cost_of(params, keys, target):  # params (P, 14), keys (P, R) -> (P,)
-        return jnp.mean(fitness(episodes(params, keys, target), target, weights), axis=1)
 
     def generation(state, key, x0, target):
         ask_key, eval_key, tell_key = jax.random.split(key, 3)
@@ -430,7 +442,6 @@ def _tuning_programs(env, mesh, P: int, R: int, fitness_json: str, sigma_init: f
         return state, jnp.min(cost)
 
     step = sharding.over_batch(jax.vmap(generation), mesh, (True, True, True, True))
-    final = sharding.over_batch(jax.vmap(cost_of, in_axes=(0, None, 0)), mesh, (True, False, True))
     return es, es_params, scale, step, final
 
 
@@ -506,9 +517,10 @@ def tune_for_tasks(
     }
 
 
-def best_starts(targets, candidates, config=None, repetitions: int = 16, seed: int = 3, env=None):
+def best_starts(targets, candidates, config=None, repetitions: int = 16, seed: int = 3, env=None, mesh=None):
     """Each target's best candidate kick: the lowest mean fitness over `repetitions` noisy kicks,
-    the same episodes for every candidate of a target (common random numbers).
+    the same episodes for every candidate of a target (common random numbers). Tasks are split
+    over `mesh` (default: every device), in the program that scores `tune_for_tasks`' result.
 
     targets: (T,) m; candidates: (T, C, 14). Returns (params (T, 14), index (T,), costs (T, C)).
     """
@@ -522,16 +534,16 @@ def best_starts(targets, candidates, config=None, repetitions: int = 16, seed: i
     if not isinstance(repetitions, int | np.integer) or repetitions < 1:
         raise ValueError(f"repetitions must be a positive integer, got {repetitions!r}")
     kick_env.check_targets(np.asarray(targets).tolist(), cfg.task_range)
-    episodes = jax.vmap(_episode_fn(env or _env_for(cfg)), in_axes=(None, 0, None))  # over reps
+    from bumps_jax import sharding  # noqa: PLC0415 (keeps `import prior` light for tests)
 
-    def task_costs(kicks, keys, target):  # kicks (C, 14), keys (R,) -> (C,)
-        out = jax.vmap(episodes, in_axes=(0, None, None))(kicks, keys, target)
-        return jnp.mean(fitness(out, target, cfg.fitness), axis=1)
-
-    keys = jax.random.split(jax.random.key(seed), (targets.shape[0], repetitions))
-    costs = np.asarray(jax.jit(jax.vmap(task_costs))(candidates, keys, targets))
+    mesh = mesh or sharding.device_mesh()
+    _, costs_of = _cost_programs(env or _env_for(cfg), mesh, cfg.fitness.to_json())
+    n_tasks, n_candidates = candidates.shape[:2]
+    keys = jnp.broadcast_to(jax.random.split(jax.random.key(seed), repetitions), (n_candidates, repetitions))
+    padded = sharding.pad((candidates, targets), sharding.padded_size(n_tasks, mesh))
+    costs = np.asarray(costs_of(padded[0], keys, padded[1]))[:n_tasks]
     index = np.argmin(costs, axis=1)
-    return np.asarray(candidates)[np.arange(len(index)), index], index, costs
+    return np.asarray(candidates)[np.arange(n_tasks), index], index, costs
 
 
 def sweep(anchors, strengths, config=None, repetitions: int = 8, seed: int = 2, env=None, rollout=None) -> list[dict]:

@@ -22,7 +22,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from bumps_jax import evaluate, experts, kick_env, results
+from bumps_jax import evaluate, experts, filtering, kick_env, results
 
 
 def scaled_noise(scale: float) -> dict:
@@ -70,8 +70,7 @@ def main(argv=None) -> None:
     for scale in args.scales:
         env = kick_env.KickEnv(config_overrides=scaled_noise(scale))
         metrics = evaluate.evaluate_experts(env, fam.apply_fn, fam.params, tasks, args.repetitions, args.seed)
-        ball_xy = np.asarray(env._qpos0[env.ids.ball_qpos : env.ids.ball_qpos + 2])
-        tasks_rows = summarise(metrics, tasks, ball_xy)
+        tasks_rows = summarise(metrics, tasks, filtering.ball_start_xy(env))
         row = rows[str(scale)] = {
             "error_mean_m": float(np.mean([r["error_mean_m"] for r in tasks_rows])),
             "accuracy_mean": float(np.mean([r["valid_fraction"] for r in tasks_rows])),

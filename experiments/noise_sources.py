@@ -78,6 +78,7 @@ def main(argv=None) -> None:
         "kicks": args.kicks,
         "repetitions": args.repetitions,
         "noise": dict(kick_env.default_config().noise),
+        "physics_dt_s": float(kick_env.KickEnv().mj_model.opt.timestep),
         "targets": rows,
         **results.provenance("noise_sources", time.perf_counter() - start),
     }
