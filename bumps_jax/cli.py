@@ -121,6 +121,7 @@ def _pipeline(run_dir: Path, preset: str, stages: tuple[str, ...], overrides: di
     per_stage = split_overrides(overrides or {}, stages)
     timing_path = run_dir / "pipeline.json"
     timing = json.loads(timing_path.read_text()) if timing_path.exists() else {"stages": {}}
+    _count_killed_call(run_dir, timing)
     previous, counted = None, False
     for stage in stages:
         out = run_dir / OUTPUTS[stage]
@@ -133,9 +134,13 @@ def _pipeline(run_dir: Path, preset: str, stages: tuple[str, ...], overrides: di
                 timing["calls"], counted = timing.get("calls", 0) + 1, True
             t0 = time.perf_counter()
             extra = {"publish": True} if stage == "kick-prior" else {}
+            # A SIGKILL skips the `finally` below; this mark lets the next call count the lost time.
+            timing["open"] = {"stage": stage, "started": time.time()}
+            results.write_json(timing_path, timing)
             try:
                 STAGES[stage][0](run_dir, preset, per_stage[stage], **extra)
             finally:  # also when interrupted (Ctrl-C, `timeout -s INT`): a resumed stage adds up its parts
+                timing.pop("open", None)
                 timing["stages"][stage] = timing["stages"].get(stage, 0.0) + time.perf_counter() - t0
                 total = sum(timing["stages"].values())
                 timing.update(results.provenance(preset, total))
@@ -143,6 +148,22 @@ def _pipeline(run_dir: Path, preset: str, stages: tuple[str, ...], overrides: di
                 results.write_json(timing_path, timing)
         previous = out
     _report(run_dir, preset, {})
+
+
+def _count_killed_call(run_dir: Path, timing: dict) -> None:
+    """Add a call that was killed mid-stage (its `open` mark is left) to `timing`, in place.
+
+    Its time is counted up to the stage's last write under run_dir (a checkpoint, a progress
+    row): what came after it was lost and is redone by this call, so it is not known."""
+    opened = timing.pop("open", None)
+    if not opened:
+        return
+    stage_dir = (run_dir / OUTPUTS[opened["stage"]]).parent
+    writes = [p.stat().st_mtime for p in stage_dir.rglob("*") if p.is_file()] if stage_dir.exists() else []
+    lost = max([0.0, *(t - opened["started"] for t in writes)])
+    timing["stages"][opened["stage"]] = timing["stages"].get(opened["stage"], 0.0) + lost
+    timing["killed_calls"] = timing.get("killed_calls", 0) + 1
+    print(f"== a previous call was killed during {opened['stage']}: counting its {lost:.0f} s up to its last write")
 
 
 def _demo(run_dir: Path, preset: str, overrides: dict) -> None:

@@ -135,7 +135,7 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
         total += payload["wall_s"]
         lines.append(f"| {name} | {payload['wall_s']:.0f} | `{payload['command']}` |")
     lines += [f"| **sum of the stages' own wall times** | **{total:.0f}** | |", ""]
-    lines += pipeline_lines(extras["pipeline"])
+    lines += pipeline_lines(extras["pipeline"], total)
 
     if found["prior"]:
         p = found["prior"]
@@ -163,7 +163,9 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
     return "\n".join(lines)
 
 
-def pipeline_lines(pipeline: dict | None) -> list[str]:
+def pipeline_lines(pipeline: dict | None, stages_total_s: float | None = None) -> list[str]:
+    """The pipeline record's line; `stages_total_s` (the stages' own wall times, kept with their
+    checkpoints) shows up a record that missed calls killed before they could write it."""
     if not pipeline:
         return []
     parts = ", ".join(f"{k} {v:.0f} s" for k, v in pipeline["stages"].items())
@@ -171,12 +173,20 @@ def pipeline_lines(pipeline: dict | None) -> list[str]:
     how = {None: "resumed across calls where a stage was cut", 1: "in one call"}.get(
         calls, f"resumed across {calls} calls, each stage's time added up"
     )
-    return [
+    killed = pipeline.get("killed_calls")
+    if killed:
+        how += f"; {killed} of them killed, each counted up to its stage's last write"
+    lines = [
         f"One `reproduce` of the pipeline: **{pipeline['total_wall_s'] / 60:.1f} min** in all ({parts}; "
         f"on {pipeline.get('device', 'the device above')}, {how}).",
         *([f"Note: {pipeline['note']}"] if pipeline.get("note") else []),
-        "",
     ]
+    if stages_total_s and pipeline["total_wall_s"] < 0.99 * stages_total_s:
+        lines.append(
+            f"This record is short of the stages' own {stages_total_s / 60:.1f} min: calls that were killed "
+            "before they could write it are missing. The stages' times above are counted to their checkpoints."
+        )
+    return [*lines, ""]
 
 
 def baseline_lines(baseline: dict | None, experts: dict | None, filtered: dict | None = None) -> list[str]:

@@ -85,6 +85,41 @@ def test_pipeline_skips_finished_stages_and_counts_its_calls(tmp_path, monkeypat
     assert "in one call" in report.pipeline_lines({**pipeline, "calls": 1})[0]
 
 
+
+def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, monkeypatch):
+    import os
+    import time
+
+    from bumps_jax import report
+
+    def killed(run_dir, preset, overrides):  # SIGKILL: no `finally` runs, the mark stays behind
+        ckpt = run_dir / "meta" / "checkpoints" / "100"
+        ckpt.parent.mkdir(parents=True)
+        ckpt.write_text("")
+        opened = json.loads((run_dir / "pipeline.json").read_text())["open"]
+        os.utime(ckpt, (opened["started"] + 42.0,) * 2)  # its last write, 42 s after the start
+        raise SystemExit(json.loads((run_dir / "pipeline.json").read_text()))
+
+    monkeypatch.setattr(cli, "_report", lambda *args: None)
+    monkeypatch.setitem(cli.STAGES, "meta-train", (killed, "stand-in"))
+    with pytest.raises(SystemExit) as frozen:
+        cli._pipeline(tmp_path, "tiny", ("meta-train",))
+    (tmp_path / "pipeline.json").write_text(json.dumps(frozen.value.args[0]))  # as the kill left it
+
+    def finish(run_dir, preset, overrides):
+        (run_dir / cli.OUTPUTS["meta-train"]).write_text("{}")
+
+    monkeypatch.setitem(cli.STAGES, "meta-train", (finish, "stand-in"))
+    start = time.perf_counter()
+    cli._pipeline(tmp_path, "tiny", ("meta-train",))
+    pipeline = json.loads((tmp_path / "pipeline.json").read_text())
+    assert "open" not in pipeline and pipeline["calls"] == 2 and pipeline["killed_calls"] == 1
+    assert 42.0 <= pipeline["stages"]["meta-train"] <= 42.0 + time.perf_counter() - start
+    assert "1 of them killed" in report.pipeline_lines(pipeline)[0]
+    # A record that lost killed calls altogether is shown up by the stages' own times.
+    assert "calls that were killed" in report.pipeline_lines(pipeline, stages_total_s=1000.0)[1]
+    assert len(report.pipeline_lines(pipeline, stages_total_s=42.0)) == 2  # the line and a blank
+
 def test_train_experts_starts_from_the_runs_own_prior(tmp_path, monkeypatch):
     from bumps_jax import experts, prior
 
