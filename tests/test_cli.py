@@ -85,7 +85,6 @@ def test_pipeline_skips_finished_stages_and_counts_its_calls(tmp_path, monkeypat
     assert "in one call" in report.pipeline_lines({**pipeline, "calls": 1})[0]
 
 
-
 def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, monkeypatch):
     import os
     import time
@@ -119,6 +118,7 @@ def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, monkeypa
     # A record that lost killed calls altogether is shown up by the stages' own times.
     assert "calls that were killed" in report.pipeline_lines(pipeline, stages_total_s=1000.0)[1]
     assert len(report.pipeline_lines(pipeline, stages_total_s=42.0)) == 2  # the line and a blank
+
 
 def test_train_experts_starts_from_the_runs_own_prior(tmp_path, monkeypatch):
     from bumps_jax import experts, prior
