@@ -219,10 +219,11 @@ def main(argv=None) -> dict:
     pipeline_json = Path(__file__).resolve().parent.parent / "results" / "pipeline.json"
     training.update(reproduce_record(pipeline_json, results.device_name()))
     scaling: dict = {"devices": n_dev, "sharding": args.sharding}
+    physics_dt = kick_env.KickEnv().physics_dt  # every section's env is the default one
 
     def save(section: str) -> None:
         print(f"[bench] {section} done at {time.perf_counter() - start:.0f} s", flush=True)
-        prov = results.provenance(args.preset, time.perf_counter() - start)
+        prov = results.provenance(args.preset, time.perf_counter() - start, physics_dt_s=physics_dt)
         if "scaling" not in args.only:  # a scale-out-only run leaves the one-device record alone
             results.write_json(out_dir / "training.json", {**training, **prov})
         if any(k.endswith("_speedup") for k in scaling):  # at least one ratio measured

@@ -566,7 +566,8 @@ def evaluate_run(config, run_dir, state: ppo.TrainState, programs: Compiled, wal
     )
     env_steps = int(np.asarray(state.env_steps)[0])
     record = evaluate.experts_record(cfg.tasks, metrics, env_steps)
-    record.update(results.provenance(cfg.preset, wall_s + time.perf_counter() - start))
+    wall_s += time.perf_counter() - start
+    record.update(results.provenance(cfg.preset, wall_s, physics_dt_s=programs.env.physics_dt))
     record["eval_repetitions"] = int(cfg.eval.repetitions)
     evaluate.write_experts_table(record, run_dir)
     return record

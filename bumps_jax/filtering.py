@@ -405,7 +405,7 @@ def run(cfg, meta_dir, out_dir, verbose: bool = True) -> dict:
         "config": json.loads(cfg.to_json()),
         "meta_run": str(meta_dir),
         "timings": timings,
-        **results.provenance(cfg.preset, time.perf_counter() - t_start),
+        **results.provenance(cfg.preset, time.perf_counter() - t_start, physics_dt_s=env.physics_dt),
     }
     results.write_json(out_dir / "table2.json", meta.json_safe(payload))
     (out_dir / "table2.md").write_text(table2_markdown(rows))

@@ -171,7 +171,7 @@ class KickEnv(Env):
         if cfg.physics_dt is not None:
             self.mj_model.opt.timestep = cfg.physics_dt
         self.ids = scene.scene_ids(self.mj_model)
-        physics_dt = float(self.mj_model.opt.timestep)
+        physics_dt = self.physics_dt = float(self.mj_model.opt.timestep)
         self.n_substeps = int(round(cfg.ctrl_dt / physics_dt))
         if not math.isclose(self.n_substeps * physics_dt, cfg.ctrl_dt, rel_tol=1e-6):
             raise ValueError(f"ctrl_dt {cfg.ctrl_dt} is not a multiple of the physics step {physics_dt}")

@@ -540,7 +540,7 @@ def run(cfg, out_dir, experts, experts_json=None, verbose: bool = True) -> dict:
         "eval": {"repetitions": cfg.eval.repetitions, "n_tasks": len(cfg.eval.tasks), "seed": cfg.eval.seed},
         "dataset_pairs": len(data.obs),
         "timings": timings,
-        **results.provenance(cfg.preset, time.perf_counter() - t_start),
+        **results.provenance(cfg.preset, time.perf_counter() - t_start, physics_dt_s=env.physics_dt),
     }
     results.write_json(out_dir / "table1.json", json_safe(payload))
     (out_dir / "table1.md").write_text(table1_markdown(rows))

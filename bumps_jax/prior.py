@@ -664,7 +664,7 @@ def run_stage(preset: str, run_dir: str | Path, overrides: dict | None = None, p
     stacked = np.stack([anchors[n] for n in ANCHORS])
     rows = sweep(stacked, SWEEP_STRENGTHS, cfg, repetitions=max(4, cfg.eval_repetitions // 4), env=env, rollout=rollout)
     payload = {
-        **results.provenance(preset, time.perf_counter() - t0),
+        **results.provenance(preset, time.perf_counter() - t0, physics_dt_s=env.physics_dt),
         "target_m": float(cfg.target),
         "n_reps": int(cfg.eval_repetitions),
         "mean_error_m": evaluation["mean_error"],

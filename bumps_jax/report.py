@@ -123,18 +123,19 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
         "",
         "## Stages",
         "",
-        "| stage | wall time (s) | command |",
-        "|---|---|---|",
+        "| stage | wall time (s) | physics step | command |",
+        "|---|---|---|---|",
     ]  # fmt: skip
     total = 0.0
     for name, payload in found.items():
         if payload is None:
             used = " (the committed `assets/kick_prior.json` was used)" if name == "prior" else ""
-            lines.append(f"| {name} | not run{used} | |")
+            lines.append(f"| {name} | not run{used} | | |")
             continue
         total += payload["wall_s"]
-        lines.append(f"| {name} | {payload['wall_s']:.0f} | `{payload['command']}` |")
-    lines += [f"| **sum of the stages' own wall times** | **{total:.0f}** | |", ""]
+        lines.append(f"| {name} | {payload['wall_s']:.0f} | {physics_step(payload)} | `{payload['command']}` |")
+    lines += [f"| **sum of the stages' own wall times** | **{total:.0f}** | | |", ""]
+    lines += mixed_steps_lines({**found, "baseline": extras["baseline"]})
     lines += pipeline_lines(extras["pipeline"], total)
 
     if found["prior"]:
@@ -161,6 +162,21 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
+
+
+def physics_step(payload: dict | None) -> str:
+    """A record's physics step ("2.5 ms"), or "not recorded" for records older than the key."""
+    dt = (payload or {}).get("physics_dt_s")
+    return f"{dt * 1e3:g} ms" if dt else "not recorded"
+
+
+def mixed_steps_lines(payloads: dict) -> list[str]:
+    """A warning when the records shown together ran at different physics steps."""
+    steps = {name: physics_step(p) for name, p in payloads.items() if p and p.get("physics_dt_s")}
+    if len(set(steps.values())) < 2:
+        return []
+    listed = ", ".join(f"{name} {step}" for name, step in steps.items())
+    return [f"**These records ran at different physics steps ({listed}): they are not comparable.**", ""]
 
 
 def pipeline_lines(pipeline: dict | None, stages_total_s: float | None = None) -> list[str]:
@@ -197,7 +213,7 @@ def baseline_lines(baseline: dict | None, experts: dict | None, filtered: dict |
         f"One contextual policy trained by PPO on targets drawn from U[7, 18] m, {baseline['seeds']} seeds, "
         f"{baseline['env_steps']:,} env steps per seed: meta-test error {baseline['error_mean_m']:.2f} m over all "
         f"{len(baseline['eval_tasks'])} tasks, accuracy {baseline['accuracy_mean']:.2f} ({baseline['preset']} preset, "
-        f"{baseline.get('device', 'device unknown')}).",
+        f"{baseline.get('device', 'device unknown')}, physics step {physics_step(baseline)}).",
     ]
     if "start" in baseline:
         start = baseline["start"]
@@ -227,7 +243,7 @@ def speed_lines(bench: dict | None, scaling: dict | None) -> list[str]:
     lines = [
         "## Speed (`make bench`)",
         "",
-        f"On {bench['device']}, one device, {bench['date'][:10]}:",
+        f"On {bench['device']}, one device, {bench['date'][:10]}, physics step {physics_step(bench)}:",
         "",
         "| measure | value |",
         "|---|---|",

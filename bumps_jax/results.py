@@ -31,9 +31,10 @@ def versions() -> dict:
     return out
 
 
-def provenance(preset: str, wall_s: float, command: str | None = None) -> dict:
-    """The keys every results file carries (see the results contract in docs/)."""
-    return {
+def provenance(preset: str, wall_s: float, command: str | None = None, physics_dt_s: float | None = None) -> dict:
+    """The keys every results file carries (see the results contract in docs/), and the physics step
+    its env ran at where one did: results made at different steps are not comparable."""
+    record = {
         "device": device_name(),
         "n_devices": jax.device_count(),
         "versions": versions(),
@@ -42,6 +43,9 @@ def provenance(preset: str, wall_s: float, command: str | None = None) -> dict:
         "preset": preset,
         "wall_s": round(float(wall_s), 3),
     }
+    if physics_dt_s is not None:
+        record["physics_dt_s"] = float(physics_dt_s)
+    return record
 
 
 def write_json(path: str | os.PathLike, payload: dict) -> Path:

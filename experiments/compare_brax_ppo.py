@@ -148,7 +148,7 @@ def compare(
         "brax_wall_s": round(brax_wall, 2),
     }
     out["return_gap"] = out["ours"]["return_mean"] - out["brax"]["return_mean"]
-    out.update(results.provenance("compare", time.perf_counter() - start))
+    out.update(results.provenance("compare", time.perf_counter() - start, physics_dt_s=env.physics_dt))
     return out
 
 

@@ -109,7 +109,7 @@ def run(cfg: ml_collections.ConfigDict, out_dir: str | Path) -> dict:
     rows = [evaluate.table_row(evaluate.summarise_tasks({k: v[s] for k, v in m.items()})) for s in range(1 + cfg.seeds)]
     start_row, per_seed = rows[0], rows[1:]
     payload = {
-        **results.provenance(cfg.preset, time.perf_counter() - start),
+        **results.provenance(cfg.preset, time.perf_counter() - start, physics_dt_s=env.physics_dt),
         "seeds": int(cfg.seeds),
         "curve": {
             "env_steps": env_steps.tolist(),

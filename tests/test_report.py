@@ -25,7 +25,7 @@ def test_report_fills_tables_and_names_missing_stages(tmp_path):
     text = report.build(tmp_path)
     assert "CPU-sized numbers" in text
     assert "| meta_4x256 | 0.90 +- 0.05 | 0.84 +- 0.10 | 0.50 +- 0.10 | 0.72 +- 0.25 | 0.60 |" in text
-    assert "| filter | not run | |" in text
+    assert "| filter | not run | | |" in text
     assert "| filtered_ensemble |  | not run | 0.40 +- 0.11 |  | 3.3% +- 1.1 |" in text
 
 
@@ -110,3 +110,21 @@ def test_publish_refuses_an_empty_run(tmp_path):
     (tmp_path / "run").mkdir()
     with pytest.raises(ValueError, match="no stage results"):
         report.publish(tmp_path / "run", tmp_path / "repo")
+
+
+def test_records_at_different_physics_steps_are_flagged(tmp_path):
+    (tmp_path / "experts").mkdir()
+    (tmp_path / "baseline").mkdir()
+    experts_record = {**results.provenance("paper", 5.0, physics_dt_s=0.0025), "tasks_m": [7.0], "env_steps": 75,
+                      "accuracy_mean": 1.0, "accuracy_std": 0.0, "error_mean_m": 0.4, "error_std_m": 0.1,
+                      "error_mean_all_m": 0.4}  # fmt: skip
+    (tmp_path / "experts" / "experts.json").write_text(json.dumps(experts_record))
+    text = report.build(tmp_path)
+    assert "| experts | 5 | 2.5 ms |" in text and "not comparable" not in text
+    baseline = {**results.provenance("paper", 1.0, physics_dt_s=0.005), "seeds": 1, "env_steps": 75,
+                "eval_tasks": [7.1], "error_mean_m": 2.0, "accuracy_mean": 1.0}  # fmt: skip
+    (tmp_path / "baseline" / "baseline.json").write_text(json.dumps(baseline))
+    text = report.build(tmp_path)
+    assert "different physics steps (experts 2.5 ms, baseline 5 ms): they are not comparable" in text
+    assert "physics step 5 ms)." in text
+    assert report.physics_step(results.provenance("tiny", 1.0)) == "not recorded"
