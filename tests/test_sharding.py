@@ -58,12 +58,17 @@ def test_sharded_experts_equal_single_device_experts(sharded_vs_single):
 def test_sharded_filtering_makes_the_same_choices(sharded_vs_single):
     single, sharded = sharded_vs_single
     assert single["filter"]["chosen"] == sharded["filter"]["chosen"]
-    # Within 1 cm, not bit-identical: as for the experts above, the batch shape changes XLA's
-    # kernels, and the kick's contact amplifies last-bit differences (measured: 4.9 mm on one of
-    # 18 rollouts with the current committed prior, under 1 mm with the one before). A rollout
-    # of the wrong context or task would land metres away.
-    np.testing.assert_allclose(single["filter"]["distance"], sharded["filter"]["distance"], atol=1e-2)
-    np.testing.assert_allclose(single["filter"]["scores"], sharded["filter"]["scores"], atol=1e-2)
+    # Not bit-identical: as for the experts above, the batch shape changes XLA's kernels, and the
+    # kick's contact amplifies last-bit differences, now and then by centimetres (measured: one of
+    # the 18 rollouts 5.1 cm apart with the 2.5 ms prior, 4.9 mm with the 5 ms one; the other 17
+    # within 0.13 mm). A wrong slice moves a whole block of episodes to another rollout's place:
+    # repetitions of one context land 0.1-0.3 m apart, other contexts metres apart.
+    distance_gap = np.abs(np.subtract(single["filter"]["distance"], sharded["filter"]["distance"]))
+    assert (distance_gap > 1e-2).sum() <= 1 and distance_gap.max() < 0.1, distance_gap
+    # A candidate's score on each task is a mean over its 3 repetitions: the one outlier moves it
+    # by a third (measured: 1.3-1.7 cm on the 3 tasks, the other 15 scores within 0.1 mm).
+    score_gap = np.abs(np.subtract(single["filter"]["scores"], sharded["filter"]["scores"]))
+    assert (score_gap > 1e-2).sum() <= 3 and score_gap.max() < 0.1, score_gap
 
 
 def test_padding_repeats_the_last_item_and_unpad_drops_it():
