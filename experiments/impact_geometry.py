@@ -106,8 +106,8 @@ def main(argv=None) -> None:
             flush=True,
         )
     payload = {"kicks": args.kicks, "offsets_mm": list(OFFSETS_MM), "targets": rows,
-               "physics_dt_s": float(model.opt.timestep),
-               **results.provenance("impact_geometry", time.perf_counter() - start)}  # fmt: skip
+               **results.provenance("impact_geometry", time.perf_counter() - start,
+                                    physics_dt_s=model.opt.timestep)}  # fmt: skip
     print(results.write_json(Path(args.out_dir) / "impact_geometry_cpu.json", payload))
 
 

@@ -82,9 +82,8 @@ def main(argv=None) -> None:
         "run_dir": args.run_dir,
         "repetitions": args.repetitions,
         "noise": dict(kick_env.default_config().noise),
-        "physics_dt_s": float(env.mj_model.opt.timestep),
         "scales": rows,
-        **results.provenance("noise_scale", time.perf_counter() - start),
+        **results.provenance("noise_scale", time.perf_counter() - start, physics_dt_s=env.physics_dt),
     }
     device = "cpu" if jax.default_backend() == "cpu" else "gpu"
     print(results.write_json(Path(args.out_dir) / f"noise_scale_{device}.json", payload))

@@ -78,9 +78,8 @@ def main(argv=None) -> None:
         "kicks": args.kicks,
         "repetitions": args.repetitions,
         "noise": dict(kick_env.default_config().noise),
-        "physics_dt_s": float(kick_env.KickEnv().mj_model.opt.timestep),
         "targets": rows,
-        **results.provenance("noise_sources", time.perf_counter() - start),
+        **results.provenance("noise_sources", time.perf_counter() - start, physics_dt_s=kick_env.KickEnv().physics_dt),
     }
     device = "cpu" if jax.default_backend() == "cpu" else "gpu"
     print(results.write_json(Path(args.out_dir) / f"noise_sources_{device}.json", payload))

@@ -233,12 +233,11 @@ def main(argv=None) -> None:
     payload = {
         "settings": {k: v for k, v in vars(args).items() if k not in ("out_dir", "name")},
         "noise": dict(env.config.noise),
-        "physics_dt_s": float(env.mj_model.opt.timestep),
         "search_wall_s": search_s,
         "best": best,
         "references": references,
         "searches": searches,
-        **results.provenance("strike_search", time.perf_counter() - t0),
+        **results.provenance("strike_search", time.perf_counter() - t0, physics_dt_s=env.physics_dt),
     }
     device = "cpu" if jax.default_backend() == "cpu" else "gpu"
     out_dir = Path(args.out_dir)
