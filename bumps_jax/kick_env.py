@@ -11,6 +11,7 @@ different tasks: `jax.vmap(env.reset)(rngs, targets)`.
 
 from __future__ import annotations
 
+import json
 import math
 
 import jax
@@ -40,8 +41,9 @@ def default_config() -> ml_collections.ConfigDict:
     """Every number of the task, in one place. See README of assets/nao_mjcf for the scene."""
     cfg = ml_collections.ConfigDict()
     cfg.ctrl_dt = 0.02  # 50 Hz, SimSpark's agent cycle
-    # Physics step (s), a divisor of ctrl_dt; None: the scene's own (2.5 ms; the scene README says why).
-    cfg.physics_dt = None
+    # Physics step (s), a divisor of ctrl_dt; None: the scene's own (2.5 ms).
+    cfg.physics_dt = ml_collections.FieldReference(None, field_type=float)
+    cfg.impl = "jax"  # MJX backend that steps the physics
     cfg.horizon_s = 1.5  # kick phase; the paper's kicks last 1.3-1.5 s
     cfg.task_range = (7.0, 18.0)  # metres; targets outside are refused
     cfg.tasks = meta_train_tasks()  # what brax-style `reset(rng)` draws from
@@ -84,20 +86,28 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
     return cfg
 
 
-def make_preset_config(presets: dict, name: str, overrides: dict | None = None) -> ml_collections.ConfigDict:
-    """`make_config` of the named preset (presets: name -> fn() -> ConfigDict); ValueError naming
-    an unknown preset or key."""
-    if name not in presets:
-        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(presets)}")
-    return make_config(presets[name](), overrides)
+IMPLS = ("jax",)
+
+
+def resolved(env_cfg) -> dict:
+    """An env config as plain data with its physics step resolved (None: the scene's own), as
+    records carry it: `physics_dt` (s) and `impl` always present."""
+    d = env_cfg.to_dict() if isinstance(env_cfg, ml_collections.ConfigDict) else dict(env_cfg)
+    if d.get("physics_dt") is None:
+        d["physics_dt"] = scene.default_timestep()
+    d.setdefault("impl", "jax")
+    return json.loads(json.dumps(d, default=list))
 
 
 def validate_config(cfg: ml_collections.ConfigDict) -> None:
+    """ValueError naming the first bad value of an env config."""
+    if cfg.impl not in IMPLS:
+        raise ValueError(f"env.impl must be one of {IMPLS}, got {cfg.impl!r}")
     lo, hi = cfg.task_range
     if not 0.0 < lo < hi:
         raise ValueError(f"task_range must be 0 < low < high, got {tuple(cfg.task_range)}")
     if cfg.physics_dt is not None and not 0 < cfg.physics_dt <= cfg.ctrl_dt:
-        raise ValueError(f"physics_dt must be in (0, ctrl_dt {cfg.ctrl_dt}], got {cfg.physics_dt!r}")
+        raise ValueError(f"env.physics_dt must be in (0, ctrl_dt {cfg.ctrl_dt}], got {cfg.physics_dt!r}")
     if cfg.ctrl_dt <= 0 or cfg.horizon_s < cfg.ctrl_dt:
         raise ValueError(f"need 0 < ctrl_dt <= horizon_s, got {cfg.ctrl_dt}, {cfg.horizon_s}")
     if len(cfg.tasks) == 0:
@@ -105,7 +115,7 @@ def validate_config(cfg: ml_collections.ConfigDict) -> None:
     check_targets(cfg.tasks, cfg.task_range)
     for name, value in cfg.noise.items():
         if value < 0:
-            raise ValueError(f"noise.{name} must be >= 0, got {value}")
+            raise ValueError(f"env.noise.{name} must be >= 0, got {value}")
 
 
 def check_targets(targets, task_range) -> np.ndarray:
@@ -114,7 +124,7 @@ def check_targets(targets, task_range) -> np.ndarray:
     lo, hi = task_range
     bad = ~np.isfinite(arr) | (arr < lo - 1e-9) | (arr > hi + 1e-9)
     if bad.any():
-        raise ValueError(f"target {arr[bad].flat[0]!r} m is outside the task range [{lo}, {hi}] m")
+        raise ValueError(f"target {float(arr[bad].flat[0])!r} m is outside the task range [{lo}, {hi}] m")
     return arr
 
 
@@ -331,6 +341,10 @@ class KickEnv(Env):
         return {
             "final_error": error,
             "rel_error": error / info["target"],
+            # Where the ball rests relative to its nominal start: along the kick line (m) and to
+            # its left (m); `error_against` scores them against any target.
+            "distance": rest[0] - (info["target_xy"][0] - info["target"]),
+            "lateral": rest[1] - info["target_xy"][1],
             "valid": valid.astype(jnp.float32),
             "struck": struck.astype(jnp.float32),
             "fallen": fallen.astype(jnp.float32),
@@ -341,6 +355,16 @@ class KickEnv(Env):
             "rest_y": jnp.nan_to_num(rest[1]),
         }
 
+    def normalise_context(self, context):
+        """A target or context (m) as the policy sees it: 0 at the task range's low end, 1 at its high."""
+        lo, hi = self.config.task_range
+        return (context - lo) / (hi - lo)
+
+    def with_context(self, obs: jax.Array, context) -> jax.Array:
+        """The observation (obs_size,) with its context replaced by `context` (m): a policy asked
+        for another distance than the task the env scores (policy filtering)."""
+        return obs.at[1].set(self.normalise_context(context))
+
     def _reward(self, data, info, metrics, done) -> jax.Array:
         """Paper's per-step term: -scale * |ball - target|; at the end, -w * final error."""
         w = self.config.reward
@@ -350,9 +374,8 @@ class KickEnv(Env):
         return -w.distance * distance - jnp.where(done, w.final_error * metrics["final_error"], 0.0)
 
     def _observe(self, data, info) -> jax.Array:
-        lo, hi = self.config.task_range
         phase = info["step"].astype(jnp.float32) / self.n_steps
-        context = (info["target"] - lo) / (hi - lo)
+        context = self.normalise_context(info["target"])
         obs = jnp.stack([phase, context])
         if not self.config.proprioception:
             return obs
@@ -366,6 +389,14 @@ class KickEnv(Env):
             ball_rel,
         ])  # fmt: skip
         return jnp.nan_to_num(jnp.concatenate([obs, extra]))
+
+
+def error_against(distance, lateral, blown_up, targets):
+    """The env's final error of kicks that rest at (distance, lateral) (..., as in the metrics)
+    against other targets (m): broadcasts, e.g. distance (C, R) with targets (T, 1, 1) -> (T, C, R).
+    A blown-up episode scores the target distance, as the env scores it."""
+    err = np.hypot(np.asarray(distance, np.float64) - targets, np.asarray(lateral, np.float64))
+    return np.where(np.asarray(blown_up) > 0, np.broadcast_to(targets, err.shape), err)
 
 
 def servo_ramp(command, wanted, low, high, max_delta, n_substeps):

@@ -74,6 +74,12 @@ def load_model(path: Path | str = SCENE_XML) -> mujoco.MjModel:
     return mujoco.MjModel.from_xml_path(str(path))
 
 
+@functools.lru_cache(maxsize=1)
+def default_timestep() -> float:
+    """The scene's own physics step (s), as its MJCF sets it."""
+    return float(load_model().opt.timestep)
+
+
 def scene_ids(model: mujoco.MjModel) -> SceneIds:
     def jid(name: str) -> int:
         i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)

@@ -1,0 +1,351 @@
+"""The pipeline's one config tree, its presets, and `--set` overrides checked against it.
+
+    cfg = make_config("tiny", {"env.physics_dt": 0.005, "experts.tasks": (9.0,)})
+
+The tree has one section per stage plus the env every stage builds its simulation from:
+
+    preset                       "tiny" | "paper"
+    env       kick_env.default_config(): physics, task, noise, reward
+    prior     the keyframe kick prior (CMA-ES)
+    experts   one PPO expert per task: starting kicks, cloning, PPO, evaluation
+    meta      behaviour cloning into the contextual meta-policies, and their evaluation
+    filter    policy filtering over sampled contexts (Table 2)
+    baseline  the multi-task PPO baseline (the paper's Figure 1)
+
+Defaults are the `paper` preset (the paper's budgets, for a GPU); `tiny` overrides the
+sizes so that the whole pipeline runs on a CPU in minutes. Every value a user can set is a
+leaf here; `docs/decisions.md` says how the numbers were chosen.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+
+import ml_collections
+from ml_collections import FieldReference
+
+from bumps_jax import kick_env, ppo
+
+STAGES = ("prior", "experts", "meta", "filter", "baseline")
+
+
+def _prior() -> ml_collections.ConfigDict:
+    cfg = ml_collections.ConfigDict()
+    cfg.target = 12.0  # m: the main kick is tuned for the middle of the task range
+    # Targets allowed while tuning: wide enough for the short and long ends of the kick family.
+    cfg.task_range = (5.0, 25.0)
+    cfg.extremes = ml_collections.ConfigDict({"short": 6.0, "long": 21.0})  # m: the family's ends
+    cfg.population_size = 64  # CMA-ES candidates per generation
+    cfg.generations = 80
+    cfg.repetitions = 16  # noisy episodes per candidate per generation
+    cfg.eval_repetitions = 100  # fresh noisy episodes scoring the best kick
+    cfg.sigma_init = 1.0  # CMA-ES step, in units of the kick model's PARAM_SCALE
+    cfg.seed = 0
+    # Kick record the main search starts from ("": the committed assets/kick_prior.json). A run
+    # copies it into its directory first, so a rerun starts from the same kick.
+    cfg.start = ""
+    cfg.start_strength = 0.75  # the main kick's swing speed cap, leaving headroom for longer kicks
+    # Parameters the main search moves (the extremes move all); strength stays at start_strength.
+    cfg.free_params = (
+        "lean", "support_hip", "support_ankle", "t_shift", "t_lift", "back_hip", "back_knee",
+        "back_ankle", "t_back", "swing_hip", "swing_knee", "swing_ankle", "t_swing",
+    )  # fmt: skip
+    cfg.sweep_strengths = tuple(i / 8 for i in range(9))  # along short (0) -> main (0.5) -> long (1)
+    cfg.fitness = ml_collections.ConfigDict()
+    cfg.fitness.distance = 1.0  # cost per metre of resting error along the kick line
+    cfg.fitness.lateral = 2.0  # cost per metre sideways
+    cfg.fitness.invalid = 20.0  # cost of a fall, a miss or a blow-up
+    return cfg
+
+
+def _experts() -> ml_collections.ConfigDict:
+    cfg = ml_collections.ConfigDict()
+    cfg.tasks = kick_env.meta_train_tasks()  # m, one expert each
+    cfg.seed = 0
+    cfg.updates_per_chunk = 25  # PPO updates per compiled chunk; progress and a checkpoint between
+    cfg.keep_checkpoints = 3
+    cfg.bc = ml_collections.ConfigDict()
+    cfg.bc.steps = 20000  # full-batch Adam steps cloning the starting kick (cosine decay)
+    cfg.bc.learning_rate = 1e-2
+    # Each task clones the prior's family at its own calibrated strength; False clones the main
+    # kick for every task.
+    cfg.bc.per_task_strength = True
+    cfg.tune = ml_collections.ConfigDict()  # CMA-ES on every task's starting kick, all at once
+    cfg.tune.generations = 60  # 0: clone the (blended or anchor) kick as it is
+    cfg.tune.sigma_init = 2.0  # in PARAM_SCALE units around each task's start
+    cfg.tune.population_size = 32
+    cfg.tune.repetitions = 8  # noisy kicks per candidate per generation
+    cfg.tune.eval_repetitions = 32  # fresh kicks choosing between start and tuned
+    cfg.tune.seed = 0
+    # Start each task from the best of its blended kick and the prior's three anchors.
+    cfg.tune.anchor_starts = True
+    cfg.ppo = ppo.default_config()
+    cfg.ppo.num_envs = 256  # episodes per update (19,200 steps; the paper: 4,096)
+    cfg.ppo.num_minibatches = 16  # 16 episodes = 1,200 steps each (the paper: 1,024)
+    cfg.ppo.num_epochs = 30
+    cfg.ppo.total_env_steps = 256 * 75 * 625  # 12.0 M per expert, 625 updates
+    cfg.ppo.learning_rate = 1e-6
+    cfg.ppo.init_log_std = -6.0
+    cfg.ppo.reward_scaling = 0.01
+    cfg.eval = ml_collections.ConfigDict()
+    cfg.eval.repetitions = 100  # noisy kicks per expert on its own task
+    cfg.eval.seed = 1
+    return cfg
+
+
+def _meta() -> ml_collections.ConfigDict:
+    cfg = ml_collections.ConfigDict()
+    # name -> (hidden layers, width): the paper's two meta-policies.
+    cfg.nets = ml_collections.ConfigDict({"meta_4x256": (4, 256), "meta_11x128": (11, 128)})
+    cfg.dataset = ml_collections.ConfigDict()
+    cfg.dataset.repetitions = 1  # rollouts per expert; 1 records them noise-free (the paper)
+    cfg.dataset.seed = 0
+    cfg.train = ml_collections.ConfigDict()
+    cfg.train.learning_rate = 3e-4  # Adam, times decay_rate every decay_every epochs
+    cfg.train.decay_rate = 0.8
+    cfg.train.decay_every = 5000  # epochs
+    cfg.train.batch_size = 128
+    cfg.train.epochs = 150_000  # passes over the dataset
+    cfg.train.chunk = 2500  # epochs per host sync (progress, CSV, checkpoint)
+    cfg.train.n_seeds = 1  # initialisations trained side by side; seed 0 is the table's row
+    cfg.train.seed = 0
+    cfg.eval = ml_collections.ConfigDict()
+    cfg.eval.tasks = kick_env.meta_test_tasks()
+    cfg.eval.repetitions = 100
+    cfg.eval.seed = 1
+    return cfg
+
+
+def _filter() -> ml_collections.ConfigDict:
+    cfg = ml_collections.ConfigDict()
+    cfg.tasks = kick_env.meta_test_tasks()
+    cfg.context_range = (7.1, 18.0)  # m: sampled contexts form a grid over this range ...
+    cfg.context_step = 0.1  # ... of this step (110 contexts)
+    cfg.high_context_step = 0.01  # the "high sample rate" variant (1091 contexts)
+    cfg.width = 1.0  # m: a task's candidates are the contexts within +- width of it
+    cfg.selection_repetitions = 10  # noisy rollouts per sampled context
+    cfg.eval_repetitions = 100  # fresh noisy rollouts of each task's chosen context
+    cfg.seed = 0  # split into independent selection and evaluation noise
+    cfg.net_seed = 0  # which initialisation of a meta-policy ensemble is filtered
+    # Episodes per device per program call: one compiled program serves every batch (None: one
+    # call, and one compile, per batch size).
+    cfg.block = FieldReference(4096, field_type=int)
+    return cfg
+
+
+def _baseline() -> ml_collections.ConfigDict:
+    cfg = ml_collections.ConfigDict()
+    cfg.seeds = 6  # independent runs, trained side by side
+    cfg.bc_steps = 20000  # cloning the main kick at every training context before PPO
+    cfg.bc_learning_rate = 1e-3
+    cfg.eval_tasks = kick_env.meta_test_tasks()
+    cfg.eval_repetitions = 100
+    cfg.eval_seed = 7
+    cfg.ppo = _experts().ppo  # one expert's PPO settings and budget per seed ...
+    cfg.ppo.policy_hidden = (256,) * 11  # ... with the paper's 11 x 256 policy
+    cfg.ppo.sample_task_range = (7.0, 18.0)  # each episode draws its target from U[7, 18] m
+    return cfg
+
+
+def default_config() -> ml_collections.ConfigDict:
+    """The whole tree at the `paper` preset's values (unlocked)."""
+    cfg = ml_collections.ConfigDict()
+    cfg.preset = "paper"
+    cfg.env = kick_env.default_config()
+    cfg.prior = _prior()
+    cfg.experts = _experts()
+    cfg.meta = _meta()
+    cfg.filter = _filter()
+    cfg.baseline = _baseline()
+    return cfg
+
+
+# Each preset: dotted overrides of the defaults (the paper's values).
+PRESETS: dict[str, dict] = {
+    "paper": {},
+    "tiny": {
+        "preset": "tiny",
+        "prior.population_size": 8,
+        "prior.generations": 3,
+        "prior.repetitions": 2,
+        "prior.eval_repetitions": 8,
+        "experts.tasks": (8.0, 12.0, 16.0),
+        "experts.updates_per_chunk": 2,
+        "experts.keep_checkpoints": 2,
+        "experts.tune.generations": 1,
+        "experts.tune.sigma_init": 0.5,
+        "experts.tune.population_size": 4,
+        "experts.tune.repetitions": 2,
+        "experts.tune.eval_repetitions": 4,
+        "experts.tune.anchor_starts": False,
+        "experts.ppo.num_envs": 8,
+        "experts.ppo.num_minibatches": 2,
+        "experts.ppo.num_epochs": 4,
+        "experts.ppo.total_env_steps": 8 * 75 * 4,
+        "experts.ppo.learning_rate": 3e-5,
+        "experts.ppo.init_log_std": -4.0,
+        "experts.eval.repetitions": 8,
+        "meta.train.epochs": 2000,
+        "meta.train.learning_rate": 3e-3,
+        "meta.train.decay_every": 500,
+        "meta.train.chunk": 500,
+        "meta.eval.tasks": kick_env.meta_test_tasks()[9::10],
+        "meta.eval.repetitions": 2,
+        "filter.tasks": kick_env.meta_test_tasks()[9::10],
+        "filter.context_step": 1.0,
+        "filter.high_context_step": 0.5,
+        "filter.selection_repetitions": 2,
+        "filter.eval_repetitions": 2,
+        "filter.block": 24,
+        "baseline.seeds": 2,
+        "baseline.bc_steps": 2000,
+        "baseline.bc_learning_rate": 1e-2,
+        "baseline.eval_tasks": kick_env.meta_test_tasks()[9::20],
+        "baseline.eval_repetitions": 2,
+        "baseline.ppo.num_envs": 8,
+        "baseline.ppo.num_minibatches": 2,
+        "baseline.ppo.num_epochs": 2,
+        "baseline.ppo.total_env_steps": 8 * 75 * 3,
+        "baseline.ppo.learning_rate": 1e-5,
+        "baseline.ppo.init_log_std": -4.0,
+        "baseline.ppo.policy_hidden": (64, 64),
+    },
+}
+
+
+def make_config(preset: str = "tiny", overrides: dict | None = None) -> ml_collections.ConfigDict:
+    """The locked config of `preset` with dotted `overrides` ({"experts.ppo.learning_rate": 1e-5}).
+
+    ValueError, naming the key and value, for an unknown preset or key, or a value of the wrong
+    type; then every section's own checks (`validate`).
+    """
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+    cfg = default_config()
+    cfg.lock()
+    for key, value in {**PRESETS[preset], **(overrides or {})}.items():
+        set_leaf(cfg, key, value)
+    validate(cfg)
+    return cfg
+
+
+def set_leaf(cfg: ml_collections.ConfigDict, key: str, value) -> None:
+    """cfg[key] = value for a dotted key, the value checked against the leaf's type."""
+    *parents, leaf = key.split(".")
+    node = cfg
+    for i, part in enumerate(parents):
+        if not isinstance(node, ml_collections.ConfigDict) or part not in node:
+            raise ValueError(f"unknown config key {key!r} (no section {'.'.join(parents[: i + 1])!r})")
+        node = node[part]
+    if not isinstance(node, ml_collections.ConfigDict) or leaf not in node:
+        raise ValueError(f"unknown config key {key!r}")
+    if isinstance(node[leaf], ml_collections.ConfigDict):
+        raise ValueError(f"config key {key!r} is a section; set one of its keys: {sorted(node[leaf])}")
+    node[leaf] = coerce(key, value, node.get_type(leaf), node[leaf])
+
+
+def coerce(key: str, value, kind: type, current):
+    """`value` as the type of a leaf (kind; current: its value now), or ValueError naming both."""
+
+    def bad(expected: str):
+        return ValueError(f"--set {key}={json.dumps(value, default=str)}: expected {expected}")
+
+    if value is None:
+        if current is None or kind in (str,):
+            return value
+        raise bad(kind.__name__)
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        raise bad("true or false")
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise bad("an integer")
+        return value
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            raise bad("a finite number")
+        return float(value)
+    if kind is str:
+        if not isinstance(value, str):
+            raise bad("a string")
+        return value
+    if kind is tuple:
+        if not isinstance(value, list | tuple):
+            example = json.dumps(list(current)[:3])[:-1] + (", ...]" if len(current) > 3 else "]")
+            raise bad(f"a list like {example}")
+        items = list(value)
+        if current and all(isinstance(c, str) for c in current):
+            if not all(isinstance(v, str) for v in items):
+                raise bad("a list of strings")
+            return tuple(items)
+        if current and all(isinstance(c, list | tuple) for c in current):
+            return tuple(tuple(v) if isinstance(v, list) else v for v in items)
+        if not all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in items):
+            raise bad("a list of numbers")
+        ints = current and all(isinstance(c, int) for c in current)
+        if ints and not all(isinstance(v, int) for v in items):
+            raise bad("a list of integers")
+        return tuple(items if ints else [float(v) for v in items])
+    return value
+
+
+def validate(cfg: ml_collections.ConfigDict) -> None:
+    """Every section's range checks; ValueError naming the first bad value."""
+    from bumps_jax import validation  # noqa: PLC0415 (the checks import the algorithm modules)
+
+    validation.validate(cfg)
+
+
+def env_key(env_cfg: ml_collections.ConfigDict | dict) -> dict:
+    """The part of an env config that changes the physics or the scoring: what must match
+    between a record and the run that reads it (the task list and range only choose targets)."""
+    d = env_cfg.to_dict() if isinstance(env_cfg, ml_collections.ConfigDict) else dict(env_cfg)
+    return {k: _jsonable(v) for k, v in sorted(d.items()) if k not in ("tasks", "task_range")}
+
+
+def differing_keys(a: dict, b: dict, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two nested dicts (missing on one side included)."""
+    out = []
+    for k in sorted(set(a) | set(b)):
+        va, vb = a.get(k, "<missing>"), b.get(k, "<missing>")
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += differing_keys(va, vb, f"{prefix}{k}.")
+        elif _jsonable(va) != _jsonable(vb):
+            out.append(f"{prefix}{k}")
+    return out
+
+
+def check_same_env(record_env: dict | None, env_cfg, what: str) -> None:
+    """ValueError naming the differing keys if `what` (a record or asset) was made under another
+    env config than `env_cfg`; a record that names none is refused too."""
+    if record_env is None:
+        raise ValueError(f"{what} does not record the env config it was made under; remake it")
+    diff = differing_keys(env_key(record_env), env_key(env_cfg))
+    if diff:
+        mine, theirs = env_key(env_cfg), env_key(record_env)
+        shown = ", ".join(f"env.{k}: {_get(theirs, k)} there, {_get(mine, k)} here" for k in diff)
+        raise ValueError(f"{what} was made under another env config ({shown})")
+
+
+def section(cfg: ml_collections.ConfigDict, stage: str) -> dict:
+    """What one stage's results depend on: its section, the env and the preset, as plain data."""
+    return {"preset": cfg.preset, "env": _jsonable(cfg.env.to_dict()), stage: _jsonable(cfg[stage].to_dict())}
+
+
+def fingerprint(data) -> str:
+    """A short stable hash of JSON-able data."""
+    text = json.dumps(_jsonable(data), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _jsonable(value):
+    return json.loads(json.dumps(value, default=str, sort_keys=True))
+
+
+def _get(d: dict, dotted: str):
+    for part in dotted.split("."):
+        d = d.get(part, "<missing>") if isinstance(d, dict) else "<missing>"
+    return d

@@ -1,0 +1,279 @@
+"""What a run writes and reads: provenance, strict JSON, resumable CSV, orbax checkpoints, and the
+stage manifest that keeps a run directory from mixing configs.
+
+Every stage writes `<run>/<stage>/stage.json` before it starts: the config it depends on and a
+fingerprint of every input file it reads. A later call compares its own with it
+(`check_manifest`) and refuses to reuse, resume or skip over outputs made otherwise.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime
+import hashlib
+import json
+import math
+import os
+import shutil
+import sys
+from importlib import metadata
+from pathlib import Path
+
+PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "optax", "orbax-checkpoint", "evosax", "warp-lang")
+MANIFEST = "stage.json"
+
+
+class StaleRunError(ValueError):
+    """A run directory holds outputs of another config or other inputs than this call's."""
+
+
+# -- provenance --------------------------------------------------------------------------------
+
+
+def device_name() -> str:
+    """e.g. 'NVIDIA H100 80GB HBM3', or 'cpu'."""
+    import jax  # noqa: PLC0415
+
+    dev = jax.devices()[0]
+    return "cpu" if dev.platform == "cpu" else str(dev.device_kind)
+
+
+def versions() -> dict:
+    out = {}
+    for name in PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    out["python"] = sys.version.split()[0]
+    return out
+
+
+def provenance(preset: str, wall_s: float, env: dict, command: str | None = None) -> dict:
+    """The keys every results file carries: device, versions, date, command, preset, wall time, and
+    the env config it ran under (`env`: physics_dt in s, the backend `impl`, noise, reward)."""
+    import jax  # noqa: PLC0415
+
+    from bumps_jax import kick_env  # noqa: PLC0415
+
+    return {
+        "device": device_name(),
+        "n_devices": jax.device_count(),
+        "versions": versions(),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "command": command or command_line(),
+        "preset": preset,
+        "wall_s": round(float(wall_s), 3),
+        "env": kick_env.resolved(env),
+    }
+
+
+def command_line() -> str:
+    """How this process was started, as a user would type it (no absolute paths)."""
+    script = Path(sys.argv[0]).resolve()
+    package = Path(__file__).resolve().parent
+    if script.parent == package:  # python -m bumps_jax[.module]
+        head = "python -m bumps_jax" + ("" if script.stem == "__main__" else f".{script.stem}")
+    elif sys.argv[0] in ("-c", ""):
+        head = "python -c <inline>"
+    else:
+        try:
+            head = f"python {script.relative_to(Path.cwd()).as_posix()}"
+        except ValueError:
+            head = f"python {script.name}"
+    return " ".join([head, *sys.argv[1:]])
+
+
+# -- files -------------------------------------------------------------------------------------
+
+
+def json_safe(obj):
+    """NaN / inf -> None, numpy scalars and arrays -> Python, recursively: strict JSON."""
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v) for v in obj]
+    if hasattr(obj, "tolist"):  # numpy / jax scalars and arrays
+        return json_safe(obj.tolist())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def write_json(path: str | os.PathLike, payload: dict) -> Path:
+    """Strict JSON (no NaN), written atomically (temp file + rename): a killed run never leaves half a file."""
+    return write_text(path, json.dumps(json_safe(payload), indent=2, allow_nan=False) + "\n")
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+    return path
+
+
+def read_json(path: str | os.PathLike, what: str = "") -> dict:
+    """The JSON object in `path`, or ValueError naming the path (missing, unreadable or not JSON)."""
+    path = Path(path)
+    hint = f" ({what})" if what else ""
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file{hint}")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: cannot read it as JSON{hint}: {err}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object{hint}")
+    return data
+
+
+def file_hash(path: str | os.PathLike) -> str:
+    """sha256 of a file, or of every file under a directory (names and contents)."""
+    path = Path(path)
+    h = hashlib.sha256()
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    for p in files:
+        h.update(p.relative_to(path).as_posix().encode() if path.is_dir() else b"")
+        h.update(p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def check_writable(directory: str | os.PathLike) -> Path:
+    """Create `directory` and prove it writable, or ValueError naming it (before any long work)."""
+    directory = Path(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        probe = directory / ".write_probe"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as err:
+        raise ValueError(f"run directory {str(directory)!r} is not writable: {err.strerror or err}") from None
+    return directory
+
+
+def save_figure(fig, path: str | os.PathLike) -> Path:
+    """Save a matplotlib figure as PNG (tight layout, 120 dpi) and close it."""
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+# -- resumable CSV -----------------------------------------------------------------------------
+
+
+def trim_csv(path: Path, fields, key: str, last: int) -> None:
+    """Rewrite `path` with the header `fields` and only the rows whose `key` column is <= `last`:
+    rows of a chunk whose checkpoint never landed are redone by the resumed run."""
+    rows = []
+    if path.exists():
+        with path.open(newline="") as f:
+            rows = [r for r in csv.DictReader(f) if r.get(key) not in (None, "") and int(r[key]) <= last]
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(fields))
+        writer.writeheader()
+        writer.writerows({k: r.get(k, "") for k in fields} for r in rows)
+    tmp.replace(path)
+
+
+def append_csv(path: Path, fields, rows) -> None:
+    """Append dict rows (header first if the file is new)."""
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(fields))
+        if new:
+            writer.writeheader()
+        writer.writerows(rows)
+
+
+# -- checkpoints -------------------------------------------------------------------------------
+
+
+def checkpoint_manager(directory: Path, keep: int, read_only: bool = False):
+    """An orbax manager over `directory`: each step is written to a temporary folder and renamed
+    when complete, so a run killed mid-save leaves the previous checkpoint as the latest."""
+    import orbax.checkpoint as ocp  # noqa: PLC0415
+
+    options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only, read_only=read_only)
+    return ocp.CheckpointManager(Path(directory).resolve(), options=options)
+
+
+def restore_latest(manager, restore_args, say=print):
+    """(step, restored) from the newest checkpoint that reads, or (None, None) if there is none.
+
+    A corrupt checkpoint (a truncated file, a broken _METADATA) is reported with its path and
+    moved aside to `<step>.corrupt`, and the next older one is tried.
+    """
+    for step in sorted(manager.all_steps(), reverse=True):
+        try:
+            return step, manager.restore(step, args=restore_args)
+        except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
+            path = Path(manager.directory) / str(step)
+            reason = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
+            say(f"checkpoint {path} is unreadable ({reason}); trying an older one")
+            shutil.move(str(path), str(path.with_name(f"{step}.corrupt")))
+            manager.reload()
+    return None, None
+
+
+# -- the stage manifest ------------------------------------------------------------------------
+
+
+def manifest(config: dict, inputs: dict[str, str | os.PathLike]) -> dict:
+    """What a stage's outputs depend on: its config (`config.section`) and its input files'
+    fingerprints (name -> path)."""
+    return {
+        "config": config,
+        "inputs": {name: {"path": str(path), "sha256": file_hash(path)} for name, path in sorted(inputs.items())},
+    }
+
+
+def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
+    """Compare a stage directory's manifest with `wanted` before the stage runs.
+
+    Returns "new" (nothing there yet), "same" (its outputs belong to this config and inputs: reuse
+    or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
+    StaleRunError naming the differing keys and the two ways on.
+    """
+    from bumps_jax import config as config_mod  # noqa: PLC0415
+
+    path = stage_dir / MANIFEST
+    if not path.exists():
+        if stage_dir.exists() and any(p.name != MANIFEST for p in stage_dir.iterdir()):
+            diff = ["(outputs without a manifest: made by an older version or another program)"]
+        else:
+            return "new"
+    else:
+        try:
+            have = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            have = {}
+        diff = config_mod.differing_keys(
+            {"config": have.get("config", {}), "inputs": _hashes(have.get("inputs", {}))},
+            {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
+        )
+        if not diff:
+            return "same"
+    if force:
+        shutil.rmtree(stage_dir)
+        return "forced"
+    shown = ", ".join(d.removeprefix("config.") for d in diff[:6]) + (" ..." if len(diff) > 6 else "")
+    raise StaleRunError(
+        f"{stage_dir} holds outputs of another config or other inputs ({shown}): "
+        "use a new --run-dir, or --force to recompute this stage and every stage after it"
+    )
+
+
+def write_manifest(stage_dir: Path, wanted: dict) -> Path:
+    return write_json(stage_dir / MANIFEST, wanted)
+
+
+def _hashes(inputs: dict) -> dict:
+    return {name: entry.get("sha256") for name, entry in inputs.items()}

@@ -1,0 +1,160 @@
+"""Range checks of the whole config tree, run before anything compiles.
+
+Each raises ValueError naming the dotted key, the bad value and what is allowed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import ml_collections
+import numpy as np
+
+from bumps_jax import kick_env
+
+
+def validate(cfg: ml_collections.ConfigDict) -> None:
+    """Every section of a pipeline config (`config.make_config`)."""
+    kick_env.validate_config(cfg.env)
+    n_steps = int(round(cfg.env.horizon_s / cfg.env.ctrl_dt))
+    task_range = tuple(cfg.env.task_range)
+    prior(cfg.prior)
+    experts(cfg.experts, task_range, n_steps)
+    meta(cfg.meta, task_range)
+    filtering(cfg.filter, task_range)
+    baseline(cfg.baseline, task_range, n_steps)
+    if cfg.filter.net_seed >= cfg.meta.train.n_seeds:
+        raise ValueError(
+            f"filter.net_seed {cfg.filter.net_seed} names no network: meta.train.n_seeds is {cfg.meta.train.n_seeds}"
+        )
+
+
+def positive_ints(node, prefix: str, keys) -> None:
+    for key in keys:
+        value = node[key]
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+            raise ValueError(f"{prefix}{key} must be a positive integer, got {value!r}")
+
+
+def positive_floats(node, prefix: str, keys) -> None:
+    for key in keys:
+        value = node[key]
+        if not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
+            raise ValueError(f"{prefix}{key} must be > 0, got {value!r}")
+
+
+def targets(values, task_range, key: str) -> None:
+    if len(values) == 0:
+        raise ValueError(f"{key} is empty: give at least one target distance (m)")
+    try:
+        kick_env.check_targets(values, task_range)
+    except ValueError as err:
+        raise ValueError(f"{key}: {err}") from None
+
+
+def prior(p) -> None:
+    from bumps_jax import kick_model  # noqa: PLC0415
+
+    positive_ints(p, "prior.", ("population_size", "generations", "repetitions", "eval_repetitions"))
+    if p.population_size < 2:
+        raise ValueError(f"prior.population_size must be >= 2 for CMA-ES, got {p.population_size}")
+    positive_floats(p, "prior.", ("sigma_init",))
+    if not 0.0 < p.start_strength <= 1.0:
+        raise ValueError(f"prior.start_strength must be in (0, 1], got {p.start_strength!r}")
+    unknown = [n for n in p.free_params if n not in kick_model.PARAM_NAMES]
+    if unknown or not p.free_params:
+        raise ValueError(f"prior.free_params must name parameters of {kick_model.PARAM_NAMES}, got {unknown!r}")
+    for name, value in p.fitness.items():
+        if not math.isfinite(value) or value < 0:
+            raise ValueError(f"prior.fitness.{name} must be >= 0, got {value!r}")
+    lo, hi = p.task_range
+    if not 0.0 < lo < hi:
+        raise ValueError(f"prior.task_range must be 0 < low < high, got {tuple(p.task_range)}")
+    targets([p.target, *p.extremes.values()], p.task_range, "prior.target and prior.extremes")
+    if not all(0.0 <= s <= 1.0 for s in p.sweep_strengths) or not p.sweep_strengths:
+        raise ValueError(f"prior.sweep_strengths must lie in [0, 1], got {tuple(p.sweep_strengths)}")
+
+
+def ppo_section(c, prefix: str, n_steps: int, task_range) -> None:
+    positive_ints(c, prefix, ("num_envs", "num_minibatches", "num_epochs", "total_env_steps"))
+    if c.num_envs % c.num_minibatches:
+        raise ValueError(
+            f"{prefix}num_minibatches {c.num_minibatches} must divide {prefix}num_envs {c.num_envs}"
+            " (minibatches are whole episodes)"
+        )
+    if c.total_env_steps < c.num_envs * n_steps:
+        raise ValueError(
+            f"{prefix}total_env_steps {c.total_env_steps} is less than one update "
+            f"(num_envs {c.num_envs} x {n_steps} steps)"
+        )
+    positive_floats(c, prefix, ("learning_rate", "value_learning_rate", "max_grad_norm", "clip_epsilon"))
+    positive_floats(c, prefix, ("reward_scaling",))
+    for key in ("discount", "gae_lambda"):
+        if not 0.0 <= c[key] <= 1.0:
+            raise ValueError(f"{prefix}{key} must be in [0, 1], got {c[key]!r}")
+    for key in ("entropy_cost", "vf_coefficient"):
+        if c[key] < 0:
+            raise ValueError(f"{prefix}{key} must be >= 0, got {c[key]!r}")
+    for key in ("policy_hidden", "value_hidden"):
+        if not c[key] or any(int(h) < 1 for h in c[key]):
+            raise ValueError(f"{prefix}{key} must be positive layer sizes, got {tuple(c[key])!r}")
+    if c.sample_task_range is not None:
+        if len(c.sample_task_range) != 2 or not 0.0 < c.sample_task_range[0] < c.sample_task_range[1]:
+            raise ValueError(f"{prefix}sample_task_range must be (low, high), got {tuple(c.sample_task_range)}")
+        targets(c.sample_task_range, task_range, f"{prefix}sample_task_range")
+
+
+def experts(e, task_range, n_steps: int) -> None:
+    targets(e.tasks, task_range, "experts.tasks")
+    positive_ints(e, "experts.", ("updates_per_chunk", "keep_checkpoints"))
+    positive_ints(e.bc, "experts.bc.", ("steps",))
+    positive_floats(e.bc, "experts.bc.", ("learning_rate",))
+    positive_ints(e.tune, "experts.tune.", ("repetitions", "eval_repetitions", "population_size"))
+    if isinstance(e.tune.generations, bool) or e.tune.generations < 0:
+        raise ValueError(f"experts.tune.generations must be an integer >= 0, got {e.tune.generations!r}")
+    if e.tune.population_size < 2:
+        raise ValueError(f"experts.tune.population_size must be >= 2 for CMA-ES, got {e.tune.population_size}")
+    positive_floats(e.tune, "experts.tune.", ("sigma_init",))
+    positive_ints(e.eval, "experts.eval.", ("repetitions",))
+    ppo_section(e.ppo, "experts.ppo.", n_steps, task_range)
+    total = int(e.ppo.total_env_steps // (e.ppo.num_envs * n_steps))
+    if total % e.updates_per_chunk:
+        raise ValueError(
+            f"experts.updates_per_chunk {e.updates_per_chunk} must divide the {total} updates that "
+            f"experts.ppo.total_env_steps {e.ppo.total_env_steps} buys (one compiled chunk size)"
+        )
+
+
+def meta(m, task_range) -> None:
+    positive_ints(m.train, "meta.train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every"))
+    if m.train.epochs % m.train.chunk:
+        raise ValueError(f"meta.train.epochs {m.train.epochs} must be a multiple of meta.train.chunk {m.train.chunk}")
+    positive_floats(m.train, "meta.train.", ("learning_rate",))
+    if not 0 < m.train.decay_rate <= 1:
+        raise ValueError(f"meta.train.decay_rate must be in (0, 1], got {m.train.decay_rate!r}")
+    positive_ints(m.dataset, "meta.dataset.", ("repetitions",))
+    positive_ints(m.eval, "meta.eval.", ("repetitions",))
+    targets(m.eval.tasks, task_range, "meta.eval.tasks")
+    for name, arch in m.nets.items():
+        if len(arch) != 2 or min(arch) < 1:
+            raise ValueError(f"meta.nets.{name} must be (hidden layers >= 1, width >= 1), got {tuple(arch)!r}")
+
+
+def filtering(f, task_range) -> None:
+    targets(f.tasks, task_range, "filter.tasks")
+    targets(f.context_range, task_range, "filter.context_range")
+    positive_floats(f, "filter.", ("width", "context_step", "high_context_step"))
+    positive_ints(f, "filter.", ("selection_repetitions", "eval_repetitions"))
+    if isinstance(f.net_seed, bool) or f.net_seed < 0:
+        raise ValueError(f"filter.net_seed must be an integer >= 0, got {f.net_seed!r}")
+    if f.block is not None:
+        positive_ints(f, "filter.", ("block",))
+
+
+def baseline(b, task_range, n_steps: int) -> None:
+    positive_ints(b, "baseline.", ("seeds", "bc_steps", "eval_repetitions"))
+    positive_floats(b, "baseline.", ("bc_learning_rate",))
+    targets(b.eval_tasks, task_range, "baseline.eval_tasks")
+    ppo_section(b.ppo, "baseline.ppo.", n_steps, task_range)
+    if b.ppo.sample_task_range is None:
+        raise ValueError("baseline.ppo.sample_task_range must be (low, high): the baseline is multi-task")
