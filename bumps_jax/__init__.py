@@ -1,4 +1,4 @@
-"""bumps_jax: Bottom-Up Meta-Policy Search on a simulated NAO, trained end to end in JAX + MuJoCo MJX."""
+"""bumps_jax: Bottom-Up Meta-Policy Search on a simulated NAO, trained end to end in JAX and MuJoCo MJX."""
 
 import contextlib as _contextlib
 import io as _io

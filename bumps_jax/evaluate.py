@@ -1,45 +1,18 @@
-"""Rolling out deterministic kick policies and scoring them as the paper does (Table 1).
+"""Scoring policies as the paper does: per-task statistics and Table 1 rows from final metrics.
 
-A policy here is `apply_fn(params, obs) -> action (22,)`. Observations are the env's
-(phase, context); the context a policy sees may differ from the task the env scores, which is
-what policy filtering needs (a meta-policy asked for 11.3 m may kick best for 11.0 m).
+Metrics come from `rollout` programs as arrays of (n_tasks, n_reps).
 """
 
 from __future__ import annotations
-
-import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import kick_env, sharding
+from bumps_jax import kick_env, rollout
 
 # The paper counts a meta-policy's error only on tasks where it kicks validly this often.
 ACCURACY_THRESHOLD = 0.7
-
-
-def episode_fn(env: kick_env.KickEnv, apply_fn):
-    """A pure fn (params, context, target, key) -> final metrics of one noisy episode.
-
-    context, target: scalars (m). The policy sees `context` in its observation; the env
-    scores the kick against `target`. vmap it over whatever varies (experts, contexts, reps).
-    """
-    lo, hi = env.config.task_range
-
-    def episode(params, context, target, key):
-        state = env.reset(key, target)
-        ctx = (context - lo) / (hi - lo)
-
-        def body(state, _):
-            obs = state.obs.at[1].set(ctx)
-            state = env.step(state, apply_fn(params, obs))
-            return state, None
-
-        state, _ = jax.lax.scan(body, state, None, env.n_steps)
-        return state.metrics
-
-    return episode
 
 
 def summarise_tasks(metrics: dict) -> dict:
@@ -69,79 +42,12 @@ def table_row(per_task: dict, threshold: float = ACCURACY_THRESHOLD) -> dict:
     return {
         "accuracy_mean": float(acc.mean()),
         "accuracy_std": float(acc.std()),
-        "error_mean_m": float(err[kept].mean()) if kept.any() else float("nan"),
-        "error_std_m": float(err[kept].std()) if kept.any() else float("nan"),
+        "error_mean_m": float(err[kept].mean()) if kept.any() else None,  # no task above the threshold
+        "error_std_m": float(err[kept].std()) if kept.any() else None,
         "error_mean_all_m": float(err.mean()),
         "tasks_above_threshold": int(kept.sum()),
         "n_tasks": int(len(acc)),
     }
-
-
-def repetition_keys(seed: int, n_tasks: int, n_reps: int) -> jax.Array:
-    """(n_tasks, n_reps) independent episode keys."""
-    return jax.random.split(jax.random.key(seed), n_tasks * n_reps).reshape(n_tasks, n_reps)
-
-
-def _recording_step(env, apply_fn, params, ctx, state, _):
-    """One control step that also returns what the policy saw and did: (obs (2,), action (22,))."""
-    obs = state.obs.at[1].set(ctx)
-    action = apply_fn(params, obs)
-    return env.step(state, action), (obs, action)
-
-
-def trajectory_fn(env: kick_env.KickEnv, apply_fn):
-    """A pure fn (params, context, target, key) -> (obs (T, obs_size), actions (T, 22), metrics).
-
-    Like `episode_fn`, but it also records each step's observation (with the context in
-    obs[1], as the policy saw it) and the policy's action: the behaviour-cloning data.
-    """
-    lo, hi = env.config.task_range
-
-    def trajectory(params, context, target, key):
-        ctx = (context - lo) / (hi - lo)
-        body = functools.partial(_recording_step, env, apply_fn, params, ctx)
-        state, (obs, actions) = jax.lax.scan(body, env.reset(key, target), None, env.n_steps)
-        return obs, actions, state.metrics
-
-    return trajectory
-
-
-def grid_fn(env: kick_env.KickEnv, apply_fn, mesh=None, method: str = "jit"):
-    """Jitted (params (P, ...), contexts (n,), targets (n,), keys (n, R)) -> metrics of (P, n, R).
-
-    Every policy of a stack (seeds, networks of one architecture) on every (context, target)
-    pair, R noisy repetitions each: one XLA program. With a `mesh` the pairs are split over
-    its devices (n must then be a multiple of the mesh size; `filtering.run_blocked` pads).
-    """
-    episode = episode_fn(env, apply_fn)
-    over_reps = jax.vmap(episode, in_axes=(None, None, None, 0))
-    over_pairs = jax.vmap(over_reps, in_axes=(None, 0, 0, 0))
-    over_policies = jax.vmap(over_pairs, in_axes=(0, None, None, None))
-    if mesh is None:
-        return jax.jit(over_policies)
-    return sharding.over_batch(over_policies, mesh, (False, True, True, True), out_axis=1, method=method)
-
-
-def _return_step(env, apply_fn, params, ctx, carry, _):
-    """One control step that adds the reward to the carried return: ((state, ret), None)."""
-    state, ret = carry
-    state = env.step(state, apply_fn(params, state.obs.at[1].set(ctx)))
-    return (state, ret + state.reward), None
-
-
-def return_fn(env: kick_env.KickEnv, apply_fn):
-    """A pure fn (params, target, key) -> (undiscounted return, final metrics) of one episode.
-
-    The policy sees its own target as context; what PPO maximises, for learning curves.
-    """
-    lo, hi = env.config.task_range
-
-    def episode(params, target, key):
-        body = functools.partial(_return_step, env, apply_fn, params, (target - lo) / (hi - lo))
-        (state, ret), _ = jax.lax.scan(body, (env.reset(key, target), jnp.zeros(())), None, env.n_steps)
-        return ret, state.metrics
-
-    return episode
 
 
 # -- single-task experts (Table 1, first row) ------------------------------------------------
@@ -160,10 +66,9 @@ def evaluate_experts(env: kick_env.KickEnv, apply_fn, params, tasks, n_reps: int
         raise ValueError(f"n_reps must be >= 1, got {n_reps!r}")
     kick_env.check_targets(tasks, env.config.task_range)
     # Expert i on task i only (grid_fn would score every expert on every task).
-    over_reps = jax.vmap(episode_fn(env, apply_fn), in_axes=(None, None, None, 0))
-    program = jax.jit(jax.vmap(over_reps, in_axes=(0, 0, 0, 0)))
+    program = rollout.matched_fn(env, apply_fn)
     targets = jnp.asarray(tasks)
-    metrics = program(params, targets, targets, repetition_keys(seed, len(tasks), n_reps))
+    metrics = program(params, targets, targets, rollout.repetition_keys(seed, len(tasks), n_reps))
     return jax.tree_util.tree_map(np.asarray, metrics)
 
 

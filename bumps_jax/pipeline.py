@@ -1,0 +1,143 @@
+"""Running stages into a run directory without ever mixing configs.
+
+    run_dir/
+      prior/     stage.json  kick_prior.json  kick_prior_asset.json  ...
+      experts/   stage.json  experts.json  final_params/  checkpoints/  progress.csv
+      meta/      stage.json  table1.json  <net>/checkpoints/  dataset.npz
+      filter/    stage.json  table2.json  error_vs_target.png  context_map.png
+      baseline/  stage.json  baseline.json  baseline_curve.png
+      pipeline.json  report.md
+
+Data flows one way: prior -> experts -> meta -> filter (and prior -> baseline). Each stage
+module (`bumps_jax.stages.<name>`) says which files it reads (`inputs`) and which record marks
+it done (`OUTPUT`); `run_stage` checks every input before any work, compares the stage's
+manifest (its config section, the env and the inputs' fingerprints) with what is already there,
+and then reuses, resumes, recomputes (`force`) or refuses.
+"""
+
+from __future__ import annotations
+
+import importlib
+import shutil
+import time
+from pathlib import Path
+
+from bumps_jax import config, runio
+
+# Stage name -> the stages that read its outputs (directly or through another).
+ORDER = ("prior", "experts", "meta", "filter", "baseline")
+DOWNSTREAM = {"prior": ("experts", "meta", "filter", "baseline"), "experts": ("meta", "filter"),
+              "meta": ("filter",), "filter": (), "baseline": ()}  # fmt: skip
+
+
+def stage_module(name: str):
+    if name not in ORDER:
+        raise ValueError(f"unknown stage {name!r}; choose one of {ORDER}")
+    return importlib.import_module(f"bumps_jax.stages.{name}")
+
+
+def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]:
+    """(manifest wanted, status) of one stage, checked before any work: every input exists and
+    parses (ValueError naming it), and the stage directory holds nothing of another config
+    (runio.StaleRunError unless `force`). status: "new", "same", "done" or "forced"."""
+    module = stage_module(name)
+    inputs = module.inputs(cfg, run_dir)
+    wanted = runio.manifest(config.section(cfg, name), inputs)
+    stage_dir = run_dir / name
+    status = runio.check_manifest(stage_dir, wanted, force=False) if not force else _forced(stage_dir, wanted)
+    if status == "same" and (stage_dir / module.OUTPUT).exists():
+        status = "done"
+    return wanted, status
+
+
+def _forced(stage_dir: Path, wanted: dict) -> str:
+    try:
+        return runio.check_manifest(stage_dir, wanted, force=False)
+    except runio.StaleRunError:
+        return runio.check_manifest(stage_dir, wanted, force=True)
+
+
+def run_stage(name: str, cfg, run_dir: Path, force: bool = False, say=print) -> dict:
+    """Run (or resume, or reuse) one stage; returns its record. With `force`, a stage whose
+    outputs were made otherwise is wiped with every stage after it, and recomputed."""
+    run_dir = runio.check_writable(run_dir)
+    module = stage_module(name)
+    wanted, status = plan(name, cfg, run_dir, force)
+    output = run_dir / name / module.OUTPUT
+    if status == "done":
+        say(f"== {name}: up to date ({output})")
+        return runio.read_json(output)
+    if status == "forced":
+        for later in DOWNSTREAM[name]:
+            if (run_dir / later).exists():
+                say(f"== {later}: removed (made from the {name} outputs that --force replaces)")
+                shutil.rmtree(run_dir / later)
+    runio.write_manifest(run_dir / name, wanted)
+    say(f"== {name}" + (" (resuming)" if status == "same" else ""), flush=True)
+    return module.run(cfg, run_dir, say=say)
+
+
+def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> dict:
+    """Run `stages` in order into `run_dir`, then write the report. Writes run_dir/pipeline.json:
+    each stage's wall time over every call, the number of calls, and the whole call's time.
+
+    Every stage's inputs and manifest are checked up front where they already exist, so a stale
+    later stage stops the call before the first stage does any work.
+    """
+    from bumps_jax import report  # noqa: PLC0415
+
+    run_dir = runio.check_writable(run_dir)
+    for name in stages:
+        if (run_dir / name).exists() and not force:
+            try:
+                plan(name, cfg, run_dir)
+            except runio.StaleRunError:
+                raise
+            except ValueError:
+                pass  # an input that an earlier stage of this call writes
+    timing_path = run_dir / "pipeline.json"
+    timing = runio.read_json(timing_path) if timing_path.exists() else {"stages": {}}
+    count_killed_call(run_dir, timing, say)
+    counted = False
+    t_call = time.perf_counter()
+    for name in stages:
+        _, status = plan(name, cfg, run_dir, force)
+        if status == "done":
+            say(f"== {name}: up to date ({run_dir / name / stage_module(name).OUTPUT})")
+            continue
+        if not counted:  # a report says whether the run was resumed
+            timing["calls"], counted = timing.get("calls", 0) + 1, True
+        # A SIGKILL skips the `finally` below; this mark lets the next call count the lost time.
+        timing["open"] = {"stage": name, "started": time.time()}
+        runio.write_json(timing_path, timing)
+        t0 = time.perf_counter()
+        try:
+            run_stage(name, cfg, run_dir, force, say)
+        finally:  # also when interrupted: a resumed stage adds up its parts
+            timing.pop("open", None)
+            timing["stages"][name] = timing["stages"].get(name, 0.0) + time.perf_counter() - t0
+            total = sum(timing["stages"].values())
+            timing["call_wall_s"] = time.perf_counter() - t_call
+            timing.update(runio.provenance(cfg.preset, total, cfg.env))
+            timing["total_wall_s"] = total
+            runio.write_json(timing_path, timing)
+    path = report.write(run_dir)
+    say(path.read_text())
+    say(f"wrote {path}")
+    return timing
+
+
+def count_killed_call(run_dir: Path, timing: dict, say=print) -> None:
+    """Add a call that was killed mid-stage (its `open` mark is left) to `timing`, in place.
+
+    Its time is counted up to the stage's last write under run_dir (a checkpoint, a progress
+    row): what came after it was lost and is redone by this call."""
+    opened = timing.pop("open", None)
+    if not opened:
+        return
+    stage_dir = run_dir / opened["stage"]
+    writes = [p.stat().st_mtime for p in stage_dir.rglob("*") if p.is_file()] if stage_dir.exists() else []
+    lost = max([0.0, *(t - opened["started"] for t in writes)])
+    timing["stages"][opened["stage"]] = timing["stages"].get(opened["stage"], 0.0) + lost
+    timing["killed_calls"] = timing.get("killed_calls", 0) + 1
+    say(f"== a previous call was killed during {opened['stage']}: counting its {lost:.0f} s up to its last write")

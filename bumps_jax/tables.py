@@ -1,0 +1,124 @@
+"""The paper's numbers, and the markdown of every table the project prints or writes.
+
+Each table is rendered once, here, from the records the stages write; the paper's columns sit
+beside ours wherever the paper reported the same row.
+"""
+
+from __future__ import annotations
+
+from bumps_jax.evaluate import ACCURACY_THRESHOLD
+
+# The paper's Table 1 (SimSpark): accuracy mean, std; error mean, std (m).
+PAPER_TABLE1 = {
+    "experts": (0.89, 0.04, 0.57, 0.14),
+    "meta_4x256": (0.84, 0.10, 0.72, 0.25),
+    "meta_11x128": (0.84, 0.17, 0.68, 0.28),
+}
+# The paper's Table 2: error mean, std (m); relative error mean, std.
+PAPER_TABLE2 = {
+    "filtered_4x256": (0.45, 0.10, 0.038, 0.011),
+    "filtered_11x128": (0.43, 0.13, 0.036, 0.013),
+    "filtered_ensemble": (0.40, 0.11, 0.033, 0.011),
+    "high_sample_rate_4x256": (0.40, 0.09, 0.033, 0.009),
+}
+TABLE2_COLUMNS = ("error_mean_m", "error_std_m", "rel_error_mean", "rel_error_std")
+
+
+def num(x, digits: int = 2, scale: float = 1.0, suffix: str = "") -> str:
+    """A number for a table; 'n/a' for None (e.g. an error mean over no task)."""
+    return "n/a" if x is None else f"{scale * x:.{digits}f}{suffix}"
+
+
+def pm(mean, std, digits: int = 2, scale: float = 1.0, suffix: str = "") -> str:
+    return f"{num(mean, digits, scale, suffix)} +- {num(std, digits, scale)}"
+
+
+def experts_markdown(record: dict) -> str:
+    """The experts' row of Table 1 and their per-task numbers."""
+    lines = [
+        "| model | accuracy | error mean (m) | error std (m) | rel. error |",
+        "|---|---|---|---|---|",
+        f"| single-task experts | {pm(record['accuracy_mean'], record['accuracy_std'])} "
+        f"| {num(record['error_mean_m'])} | {num(record['error_std_m'])} "
+        f"| {num(record['rel_error_mean'], 1, 100, '%')} |",
+        "",
+        f"{record['tasks_above_threshold']}/{record['n_tasks']} tasks above accuracy {ACCURACY_THRESHOLD} "
+        f"(the error columns count only those); {record['n_reps']} kicks per task, "
+        f"{record['env_steps']} PPO env steps per expert.",
+        "",
+        "| target (m) | accuracy | error mean (m) | error std (m) |",
+        "|---|---|---|---|",
+    ]
+    for row in record["per_task"]:
+        lines.append(
+            f"| {row['target_m']:.1f} | {row['accuracy']:.2f} | {num(row['error_mean_m'])} "
+            f"| {num(row['error_std_m'])} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def table1_markdown(rows: dict) -> str:
+    """Table 1 of one run: experts and unfiltered meta-policies (rows: name -> `evaluate.table_row`)."""
+    lines = [
+        "| policy | accuracy | error (acc > 0.7) m | error (all tasks) m | tasks > 0.7 |",
+        "|---|---|---|---|---|",
+    ]
+    for name, r in rows.items():
+        lines.append(
+            f"| {name} | {pm(r['accuracy_mean'], r['accuracy_std'])} | {pm(r['error_mean_m'], r['error_std_m'])} "
+            f"| {num(r.get('error_mean_all_m'))} | {r.get('tasks_above_threshold', '-')}/{r.get('n_tasks', '-')} |"
+        )
+    return "# Table 1: experts and unfiltered meta-policies\n\n" + "\n".join(lines) + "\n"
+
+
+def table1_beside_paper(rows: dict) -> list[str]:
+    """Table 1 lines with the paper's columns beside ours (the report's form)."""
+    lines = [
+        "| model | accuracy (ours) | accuracy (paper) | error m (ours) | error m (paper) | error m, all tasks (ours) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, paper in PAPER_TABLE1.items():
+        r = rows.get(name)
+        if r is None:
+            lines.append(f"| {name} | not run | {pm(paper[0], paper[1])} | | {pm(paper[2], paper[3])} | |")
+            continue
+        lines.append(
+            f"| {name} | {pm(r['accuracy_mean'], r['accuracy_std'])} | {pm(paper[0], paper[1])} "
+            f"| {pm(r['error_mean_m'], r['error_std_m'])} | {pm(paper[2], paper[3])} "
+            f"| {num(r.get('error_mean_all_m', r['error_mean_m']))} |"
+        )
+    return lines
+
+
+def table2_beside_paper(rows: dict) -> list[str]:
+    """Table 2 lines, every paper variant, ours beside (the report's form)."""
+    lines = [
+        "| variant | contexts | error m (ours) | error m (paper) | rel. error (ours) | rel. error (paper) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, (em, es, rm, rs) in PAPER_TABLE2.items():
+        r = rows.get(name)
+        ours = "not run" if r is None else pm(r["error_mean_m"], r["error_std_m"])
+        rel = "" if r is None else pm(r["rel_error_mean"], r["rel_error_std"], 1, 100, "%")
+        n = "" if r is None else r["n_contexts"]
+        lines.append(f"| {name} | {n} | {ours} | {pm(em, es)} | {rel} | {pm(rm, rs, 1, 100, '%')} |")
+    return lines
+
+
+def table2_markdown(rows: dict) -> str:
+    """Table 2: BUMPS after policy filtering, beside the paper (rows: name -> `filtering` row)."""
+    lines = [
+        "# Table 2: BUMPS after policy filtering (this run vs the paper)",
+        "",
+        "| variant | contexts | error m | paper error m | rel. error | paper rel. error |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, r in rows.items():
+        p = PAPER_TABLE2.get(name)
+        paper_err = pm(p[0], p[1]) if p else "-"
+        paper_rel = pm(p[2], p[3], 1, 100, "%") if p else "-"
+        lines.append(
+            f"| {name} | {r['n_contexts']} | {pm(r['error_mean_m'], r['error_std_m'])} | {paper_err} "
+            f"| {pm(r['rel_error_mean'], r['rel_error_std'], 1, 100, '%')} | {paper_rel} |"
+        )
+    return "\n".join(lines) + "\n"
