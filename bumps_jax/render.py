@@ -6,7 +6,7 @@ from pathlib import Path
 
 import mujoco
 
-from bumps_jax import kick_env, scene
+from bumps_jax import kick_env, rollout, scene
 
 
 def _camera(lookat, distance=1.1, azimuth=215.0, elevation=-18.0) -> mujoco.MjvCamera:
@@ -40,24 +40,18 @@ ROLL_SPEEDUP = 10.0
 
 
 def kick_states_fn(env: kick_env.KickEnv, apply_fn):
-    """Jitted (params, context m, target m, key) -> (qpos (T, nq) per control step, rest_xy (2,)).
+    """Jitted (params, context m, target m, key) -> (qpos (T, nq) after each control step, rest_xy (2,)).
 
     The kick phase as the policy plays it (the policy sees `context`, the env scores `target`),
     and where the env's closed form puts the ball at rest.
     """
-    import jax
+    import jax  # noqa: PLC0415
 
-    lo, hi = env.config.task_range
+    episode = rollout.episode_fn(env, apply_fn, record="qpos")
 
     def run(params, context, target, key):
-        ctx = (context - lo) / (hi - lo)
-
-        def body(state, _):
-            state = env.step(state, apply_fn(params, state.obs.at[1].set(ctx)))
-            return state, state.pipeline_state.qpos
-
-        state, qpos = jax.lax.scan(body, env.reset(key, target), None, env.n_steps)
-        return qpos, jax.numpy.stack([state.metrics["rest_x"], state.metrics["rest_y"]])
+        metrics, qpos = episode(params, context, target, key)
+        return qpos, jax.numpy.stack([metrics["rest_x"], metrics["rest_y"]])
 
     return jax.jit(run)
 
@@ -80,20 +74,21 @@ def _target_marker(scene_, xy, rgba=(0.9, 0.1, 0.1, 0.9)) -> None:
     scene_.ngeom += 1
 
 
-def kick_frames(model, qpos, rest_xy, target_xy, label: str, fps: int, width: int, height: int) -> list:
+def kick_frames(env, qpos, rest_xy, target_xy, label: str, fps: int, width: int, height: int) -> list:
     """RGB frames (PIL images) of one kick: the kick phase in real time, then the roll to rest
     time-lapsed, the camera following the ball, the target marked in red."""
     import numpy as np
     from PIL import Image, ImageDraw
 
+    model = env.mj_model
     data = mujoco.MjData(model)
-    ball = scene.scene_ids(model).ball_qpos
-    ctrl_dt = 0.02
+    ball = env.ids.ball_qpos
+    ctrl_dt = env.config.ctrl_dt
     kick_t = np.arange(0.0, len(qpos) * ctrl_dt, 1.0 / fps)
     poses = [qpos[min(int(t / ctrl_dt), len(qpos) - 1)] for t in kick_t]
     # After the kick the ball approaches its resting point as a rolling ball does,
     # x(t) = x_rest - (x_rest - x_end) e^{-c t}, shown ROLL_SPEEDUP times faster.
-    c = scene.rolling_decel_rate()
+    c = env.decel_rate
     end = np.array(qpos[-1], np.float64)
     start_xy = end[ball : ball + 2].copy()
     n_roll = int(ROLL_SECONDS / ROLL_SPEEDUP * fps)
@@ -139,7 +134,7 @@ def kick_gif(path, env, apply_fn, params, contexts, targets, seed: int = 0, fps:
         error = float(np.linalg.norm(rest - (start + np.array([target, 0.0]))))
         label = f"target {target:.1f} m, context {context:.2f} m: error {error:.2f} m"
         target_xy = start + np.array([target, 0.0])
-        panels.append(kick_frames(env.mj_model, qpos, rest, target_xy, label, fps, *size))
+        panels.append(kick_frames(env, qpos, rest, target_xy, label, fps, *size))
     n = max(len(p) for p in panels)
     frames = []
     for i in range(n):

@@ -10,15 +10,7 @@ import json
 import shutil
 from pathlib import Path
 
-from bumps_jax import prior
-from bumps_jax.filtering import PAPER_TABLE2
-
-# The paper's Table 1 (SimSpark): accuracy mean, std; error mean, std (m).
-PAPER_TABLE1 = {
-    "experts": (0.89, 0.04, 0.57, 0.14),
-    "meta_4x256": (0.84, 0.10, 0.72, 0.25),
-    "meta_11x128": (0.84, 0.17, 0.68, 0.28),
-}
+from bumps_jax import tables
 STAGES = {
     "prior": "prior/kick_prior.json",
     "experts": "experts/experts.json",
@@ -45,7 +37,7 @@ PUBLISHED = {
     "prior/kick_sweep.png": "docs/kick_sweep.png",
     "prior/kick_prior_timing.json": "benchmarks/results/kick_prior.json",
     # The prior the run's experts started from: the committed asset that later runs start from.
-    f"prior/{prior.RUN_PRIOR_JSON}": PRIOR_ASSET,
+    "prior/kick_prior_asset.json": PRIOR_ASSET,
     "experts/experts.json": "results/experts.json",
     "experts/experts.md": "docs/experts.md",
     "experts/progress.csv": "docs/experts_progress.csv",
@@ -68,41 +60,9 @@ def _load(run_dir: Path, rel: str) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
-def _f(x, digits=2) -> str:
-    return "n/a" if x is None else f"{x:.{digits}f}"
-
-
-def table1(rows: dict) -> list[str]:
-    lines = [
-        "| model | accuracy (ours) | accuracy (paper) | error m (ours) | error m (paper) | error m, all tasks (ours) |",
-        "|---|---|---|---|---|---|",
-    ]
-    for name, paper in PAPER_TABLE1.items():
-        r = rows.get(name)
-        if r is None:
-            paper_acc, paper_err = f"{paper[0]:.2f} +- {paper[1]:.2f}", f"{paper[2]:.2f} +- {paper[3]:.2f}"
-            lines.append(f"| {name} | not run | {paper_acc} | | {paper_err} | |")
-            continue
-        lines.append(
-            f"| {name} | {_f(r['accuracy_mean'])} +- {_f(r['accuracy_std'])} | {paper[0]:.2f} +- {paper[1]:.2f} "
-            f"| {_f(r['error_mean_m'])} +- {_f(r['error_std_m'])} | {paper[2]:.2f} +- {paper[3]:.2f} "
-            f"| {_f(r.get('error_mean_all_m', r['error_mean_m']))} |"
-        )
-    return lines
-
-
-def table2(rows: dict) -> list[str]:
-    lines = [
-        "| variant | contexts | error m (ours) | error m (paper) | rel. error (ours) | rel. error (paper) |",
-        "|---|---|---|---|---|---|",
-    ]
-    for name, (em, es, rm, rs) in PAPER_TABLE2.items():
-        r = rows.get(name)
-        ours = "not run" if r is None else f"{r['error_mean_m']:.2f} +- {r['error_std_m']:.2f}"
-        rel = "" if r is None else f"{100 * r['rel_error_mean']:.1f}% +- {100 * r['rel_error_std']:.1f}"
-        n = "" if r is None else r["n_contexts"]
-        lines.append(f"| {name} | {n} | {ours} | {em:.2f} +- {es:.2f} | {rel} | {100 * rm:.1f}% +- {100 * rs:.1f} |")
-    return lines
+def has_results(run_dir: Path) -> bool:
+    """Whether any stage has written its record under run_dir."""
+    return any((Path(run_dir) / rel).exists() for rel in STAGES.values())
 
 
 def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*", title: str | None = None) -> str:
@@ -151,11 +111,11 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
     rows1 = dict(found["meta"]["rows"]) if found["meta"] else {}
     if found["experts"] and "experts" not in rows1:
         rows1["experts"] = found["experts"]
-    lines += ["## Table 1: experts and unfiltered meta-policies", "", *table1(rows1), ""]
+    lines += ["## Table 1: experts and unfiltered meta-policies", "", *tables.table1_beside_paper(rows1), ""]
     if found["experts"]:
         lines += [f"Experts: {found['experts']['env_steps']:,} PPO env steps each.", ""]
     rows2 = found["filter"]["rows"] if found["filter"] else {}
-    lines += ["## Table 2: BUMPS after policy filtering", "", *table2(rows2), ""]
+    lines += ["## Table 2: BUMPS after policy filtering", "", *tables.table2_beside_paper(rows2), ""]
     lines += baseline_lines(extras["baseline"], found["experts"], rows2)
     pictures = [*run_dir.glob(f"{figures_dir}/*.png"), *run_dir.glob(f"{figures_dir}/*.gif")]
     figures = sorted(p.relative_to(run_dir).as_posix() for p in pictures)
@@ -165,18 +125,23 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
 
 
 def physics_step(payload: dict | None) -> str:
-    """A record's physics step ("2.5 ms"), or "not recorded" for records older than the key."""
-    dt = (payload or {}).get("physics_dt_s")
-    return f"{dt * 1e3:g} ms" if dt else "not recorded"
+    """A record's physics ("2.5 ms, jax"), or "not recorded" for records older than the env key."""
+    payload = payload or {}
+    env = payload.get("env") or {}
+    dt = env.get("physics_dt", payload.get("physics_dt_s"))
+    if not dt:
+        return "not recorded"
+    impl = env.get("impl")
+    return f"{dt * 1e3:g} ms" + (f", {impl}" if impl else ", backend not recorded")
 
 
 def mixed_steps_lines(payloads: dict) -> list[str]:
-    """A warning when the records shown together ran at different physics steps."""
-    steps = {name: physics_step(p) for name, p in payloads.items() if p and p.get("physics_dt_s")}
+    """A warning when the records shown together ran under different physics (step or backend)."""
+    steps = {name: physics_step(p) for name, p in payloads.items() if p and physics_step(p) != "not recorded"}
     if len(set(steps.values())) < 2:
         return []
     listed = ", ".join(f"{name} {step}" for name, step in steps.items())
-    return [f"**These records ran at different physics steps ({listed}): they are not comparable.**", ""]
+    return [f"**These records ran under different physics ({listed}): they are not comparable.**", ""]
 
 
 def pipeline_lines(pipeline: dict | None, stages_total_s: float | None = None) -> list[str]:
@@ -284,12 +249,6 @@ def publish(run_dir: str | Path, root: str | Path = ".") -> list[Path]:
             (root / dest).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(run_dir / rel, root / dest)
             written.append(root / dest)
-    payload = _load(run_dir, "prior/kick_prior.json")
-    if payload and not (run_dir / "prior" / prior.RUN_PRIOR_JSON).exists():
-        # A run from before runs kept their prior record: rebuild it from the run's payload.
-        (root / PRIOR_ASSET).parent.mkdir(parents=True, exist_ok=True)
-        prior.save_prior(prior.record_from_payload(payload), root / PRIOR_ASSET)
-        written.append(root / PRIOR_ASSET)
     if not any(p.suffix == ".json" for p in written):
         raise ValueError(f"{run_dir} holds no stage results to publish")
     written.append(write_committed(root))

@@ -8,6 +8,7 @@ fingerprint of every input file it reads. A later call compares its own with it
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import datetime
 import hashlib
@@ -15,6 +16,7 @@ import json
 import math
 import os
 import shutil
+import signal
 import sys
 from importlib import metadata
 from pathlib import Path
@@ -25,6 +27,10 @@ MANIFEST = "stage.json"
 
 class StaleRunError(ValueError):
     """A run directory holds outputs of another config or other inputs than this call's."""
+
+
+class Interrupted(Exception):
+    """Ctrl-C (SIGINT) was pressed; the loop stopped after its chunk, with its state saved."""
 
 
 # -- provenance --------------------------------------------------------------------------------
@@ -221,6 +227,51 @@ def restore_latest(manager, restore_args, say=print):
             shutil.move(str(path), str(path.with_name(f"{step}.corrupt")))
             manager.reload()
     return None, None
+
+
+# -- long loops -------------------------------------------------------------------------------
+
+
+def eta(done: int, total: int, elapsed_s: float) -> str:
+    """'12.3 s, ETA 45 s' after `done` of `total` units of work took `elapsed_s`."""
+    if done <= 0:
+        return f"{elapsed_s:.1f} s"
+    left = elapsed_s / done * max(total - done, 0)
+    return f"{elapsed_s:.1f} s, ETA {left:.0f} s" if left < 120 else f"{elapsed_s:.1f} s, ETA {left / 60:.1f} min"
+
+
+class _StopFlag:
+    def __init__(self):
+        self.requested = False
+
+    def check(self) -> None:
+        """Raise Interrupted if Ctrl-C was pressed since the loop started: call it after a chunk is saved."""
+        if self.requested:
+            raise Interrupted()
+
+
+@contextlib.contextmanager
+def stop_on_interrupt(say=print):
+    """A chunk loop that Ctrl-C stops cleanly: SIGINT only sets a flag, which the loop reads between
+    chunks (`flag.check()`), so the interrupt never lands inside JAX or orbax (where it can be swallowed
+    or crash the process); a second Ctrl-C stops at once. Outside the main thread it changes nothing."""
+    flag = _StopFlag()
+
+    def handler(signum, frame):
+        if flag.requested:
+            raise KeyboardInterrupt
+        flag.requested = True
+        say("\ninterrupt: stopping after this chunk (Ctrl-C again to stop at once)", flush=True)
+
+    try:
+        previous = signal.signal(signal.SIGINT, handler)
+    except ValueError:  # not the main thread
+        yield flag
+        return
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 # -- the stage manifest ------------------------------------------------------------------------

@@ -4,12 +4,13 @@ import jax
 import pytest
 import tiny_experts
 
-from bumps_jax import evaluate, experts, kick_env, synthetic_experts
+from bumps_jax import config, evaluate, kick_env, synthetic_experts
 
 
 @pytest.fixture(scope="session")
 def env():
-    return kick_env.KickEnv()
+    """The tiny pipeline config's env (the scene's defaults)."""
+    return kick_env.KickEnv(config.make_config("tiny").env)
 
 
 @pytest.fixture(scope="session")
@@ -31,4 +32,6 @@ def contextual(env):
 def expert_programs(env):
     """The tiny experts' programs (tiny_experts.py), compiled on first use: test_experts.py
     trains with them and test_sharding.py's single-device side too."""
-    return experts.compile_programs(tiny_experts.config(), env)
+    from bumps_jax.stages import experts as experts_stage
+
+    return experts_stage.compile_programs(tiny_experts.pipeline_config(), env)

@@ -1,143 +1,133 @@
-"""The command line: every stage has --help, overrides parse, bad keys fail with one clear line."""
+"""The command line: help, overrides, presets, and one clear line (never a traceback) for every user mistake."""
 
 import json
+import subprocess
+import sys
 
 import pytest
 
-from bumps_jax import cli
+from bumps_jax import cli, config, kick_env, pipeline, runio
 
 
-def test_every_stage_has_help(capsys):
-    for stage in cli.STAGES:
+def test_every_command_has_help(capsys):
+    for command in (*cli.STAGE_COMMANDS, *cli.PIPELINES, *cli.OTHER):
         with pytest.raises(SystemExit) as exit_info:
-            cli.main([stage, "--help"])
+            cli.main([command, "--help"])
         assert exit_info.value.code == 0
         assert "--preset" in capsys.readouterr().out
 
 
-def test_overrides_parse_json_values():
-    assert cli.parse_overrides(["a.b=1", "c=[7.0, 8.0]", "d=name"]) == {"a.b": 1, "c": (7.0, 8.0), "d": "name"}
-    with pytest.raises(SystemExit, match="key=value"):
-        cli.parse_overrides(["novalue"])
+def test_set_may_repeat_and_every_item_is_kept():  # defect 2
+    parsed = cli.parse_overrides([["experts.tasks=[3.0]"], ["experts.tune.generations=0", "env.physics_dt=0.005"]])
+    assert parsed == {"experts.tasks": (3.0,), "experts.tune.generations": 0, "env.physics_dt": 0.005}
+    args = cli.build_parser().parse_args(["train-experts", "--set", "tasks=[3.0]", "--set", "tune.generations=0"])
+    assert cli.parse_overrides(args.set, "experts") == {"experts.tasks": (3.0,), "experts.tune.generations": 0}
+    with pytest.raises(SystemExit, match=r"error: experts.tasks: target 3.0 m is outside the task range"):
+        cli.main(["train-experts", "--set", "tasks=[3.0]", "--set", "tune.generations=0"])
 
 
-def test_unknown_config_key_is_one_clear_line(tmp_path):
-    with pytest.raises(SystemExit, match="error: unknown config key 'filter.nope'"):
-        cli.main(["filter", "--run-dir", str(tmp_path), "--set", "filter.nope=1"])
+def test_a_stage_reads_its_own_keys_without_their_section():
+    assert cli.parse_overrides([["ppo.learning_rate=1e-5", "env.physics_dt=0.005"]], "experts") == {
+        "experts.ppo.learning_rate": 1e-5,
+        "env.physics_dt": 0.005,
+    }
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        cli.parse_overrides([["novalue"]])
 
 
-def test_meta_train_without_experts_says_what_to_do(tmp_path):
-    with pytest.raises(SystemExit, match="run train-experts first"):
+@pytest.mark.parametrize(
+    ("command", "item", "named"),
+    [
+        ("train-experts", "tasks=12", r"--set experts.tasks=12: expected a list like \[7.0, 7.5, 8.0, ...\]"),
+        ("train-experts", "ppo.learning_rate=fast", r'--set experts.ppo.learning_rate="fast": expected a finite number'),
+        ("train-experts", "eval.repetitions=2.5", r"--set experts.eval.repetitions=2.5: expected an integer"),
+        ("filter", "seed=1.5", r"--set filter.seed=1.5: expected an integer"),
+        ("filter", "net_seed=5", r"filter.net_seed 5 names no network: meta.train.n_seeds is 1"),
+        ("filter", "nope=1", r"unknown config key 'filter.nope'"),
+        ("kick-prior", "env.impl=torch", r"env.impl must be one of"),
+    ],
+)
+def test_wrong_values_are_one_line_before_any_work(tmp_path, command, item, named):  # defect 6
+    with pytest.raises(SystemExit, match=f"^error: {named}"):
+        cli.main([command, "--run-dir", str(tmp_path / "run"), "--set", item])
+    assert not (tmp_path / "run").exists()
+
+
+def test_presets_cannot_mismatch(tmp_path, monkeypatch):  # defect 5
+    with pytest.raises(SystemExit, match="reproduce runs the 'paper' preset only"):
+        cli.main(["reproduce", "--preset", "tiny", "--run-dir", str(tmp_path)])
+    with pytest.raises(SystemExit, match="demo runs the 'tiny' preset only"):
+        cli.main(["demo", "--preset", "paper", "--run-dir", str(tmp_path)])
+    seen = {}
+    monkeypatch.setattr(pipeline, "run_pipeline", lambda stages, cfg, run_dir, force: seen.update(
+        preset=cfg.preset, run_dir=run_dir))  # fmt: skip
+    cli.main(["reproduce"])
+    assert seen == {"preset": "paper", "run_dir": cli.default_run_dir("reproduce", "paper")}
+    assert str(seen["run_dir"]) == "runs/paper"
+    cli.main(["demo"])
+    assert seen == {"preset": "tiny", "run_dir": cli.default_run_dir("demo", "tiny")}
+
+
+def test_stages_on_an_empty_directory_say_what_to_do(tmp_path):  # defect 6
+    with pytest.raises(SystemExit, match=r"^error: .*meta/table1.json: no such file \(run meta-train first\)"):
+        cli.main(["filter", "--run-dir", str(tmp_path)])
+    with pytest.raises(SystemExit, match=r"^error: .*experts/experts.json: no such file \(run train-experts first\)"):
         cli.main(["meta-train", "--run-dir", str(tmp_path)])
-
-
-def test_pipeline_overrides_name_their_stage():
-    stages = ("train-experts", "filter")
-    split = cli.split_overrides({"experts.ppo.learning_rate": 1e-5, "filter.block": 8}, stages)
-    assert split == {"train-experts": {"ppo.learning_rate": 1e-5}, "filter": {"block": 8}}
-    with pytest.raises(SystemExit, match="start with a stage"):
-        cli.split_overrides({"ppo.learning_rate": 1e-5}, stages)
-    with pytest.raises(SystemExit, match="start with a stage"):
-        cli.split_overrides({"meta.train.epochs": 5}, stages)  # meta-train is not in this pipeline
-
-
-def test_video_without_a_filtered_run_says_what_to_do(tmp_path):
-    with pytest.raises(SystemExit, match="run the filter stage first"):
+    with pytest.raises(SystemExit, match="^error: .* holds no stage results yet"):
+        cli.main(["report", "--run-dir", str(tmp_path)])
+    with pytest.raises(SystemExit, match="^error: .*filter/table2.json: no such file"):
         cli.main(["video", "--run-dir", str(tmp_path)])
+    with pytest.raises(SystemExit, match="^error: run directory '/dev/null/run' is not writable"):
+        cli.main(["train-experts", "--run-dir", "/dev/null/run"])
+    with pytest.raises(SystemExit, match="^error: --episodes must be a positive integer, got -3"):
+        cli.main(["showcase", "--episodes", "-3"])
+
+
+def test_a_truncated_experts_record_is_named_at_once(tmp_path):  # defect 7
+    (tmp_path / "experts").mkdir()
+    (tmp_path / "experts" / "experts.json").write_text('{"accuracy_mean": 1.0, "tas')
+    with pytest.raises(SystemExit, match=r"^error: .*experts/experts.json: cannot read it as JSON"):
+        cli.main(["meta-train", "--run-dir", str(tmp_path)])
 
 
 def test_an_interrupted_stage_says_how_to_resume(tmp_path, monkeypatch):
     def interrupted(*args, **kwargs):
-        raise KeyboardInterrupt
+        raise runio.Interrupted
 
-    monkeypatch.setitem(cli.STAGES, "filter", (interrupted, "stand-in"))
+    monkeypatch.setattr(pipeline, "run_stage", interrupted)
     with pytest.raises(SystemExit, match=f"interrupted: rerun the same command to resume {tmp_path}"):
         cli.main(["filter", "--run-dir", str(tmp_path)])
 
 
-def test_pipeline_skips_finished_stages_and_counts_its_calls(tmp_path, monkeypatch):
-    from bumps_jax import report
+def test_records_are_strict_json(tmp_path):  # defect 11
+    path = runio.write_json(tmp_path / "r.json", {"error_mean_m": float("nan"), "rows": [float("inf"), 1.0]})
+    assert json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"not JSON: {c}")) == {
+        "error_mean_m": None,
+        "rows": [None, 1.0],
+    }
+    from bumps_jax import evaluate
 
-    ran = []
-
-    def stage(name, fail=False):
-        def run(run_dir, preset, overrides):
-            ran.append(name)
-            if fail:
-                raise KeyboardInterrupt
-            out = run_dir / cli.OUTPUTS[name]
-            out.parent.mkdir(parents=True, exist_ok=True)
-            out.write_text("{}")
-
-        return run, "stand-in"
-
-    monkeypatch.setattr(cli, "_report", lambda *args: None)
-    monkeypatch.setitem(cli.STAGES, "train-experts", stage("train-experts"))
-    monkeypatch.setitem(cli.STAGES, "meta-train", stage("meta-train", fail=True))
-    with pytest.raises(KeyboardInterrupt):
-        cli._pipeline(tmp_path, "tiny", ("train-experts", "meta-train"))
-    monkeypatch.setitem(cli.STAGES, "meta-train", stage("meta-train"))
-    cli._pipeline(tmp_path, "tiny", ("train-experts", "meta-train"))
-    assert ran == ["train-experts", "meta-train", "meta-train"]  # the finished stage is not rerun
-    pipeline = json.loads((tmp_path / "pipeline.json").read_text())
-    assert pipeline["calls"] == 2 and set(pipeline["stages"]) == {"train-experts", "meta-train"}
-    assert "resumed across 2 calls" in report.pipeline_lines(pipeline)[0]
-    assert "in one call" in report.pipeline_lines({**pipeline, "calls": 1})[0]
+    row = evaluate.table_row({"accuracy": __import__("numpy").zeros(3), "error_mean_m": __import__("numpy").ones(3)})
+    assert row["error_mean_m"] is None and row["tasks_above_threshold"] == 0
 
 
-def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, monkeypatch):
-    import os
-    import time
-
-    from bumps_jax import report
-
-    def killed(run_dir, preset, overrides):  # SIGKILL: no `finally` runs, the mark stays behind
-        ckpt = run_dir / "meta" / "checkpoints" / "100"
-        ckpt.parent.mkdir(parents=True)
-        ckpt.write_text("")
-        opened = json.loads((run_dir / "pipeline.json").read_text())["open"]
-        os.utime(ckpt, (opened["started"] + 42.0,) * 2)  # its last write, 42 s after the start
-        raise SystemExit(json.loads((run_dir / "pipeline.json").read_text()))
-
-    monkeypatch.setattr(cli, "_report", lambda *args: None)
-    monkeypatch.setitem(cli.STAGES, "meta-train", (killed, "stand-in"))
-    with pytest.raises(SystemExit) as frozen:
-        cli._pipeline(tmp_path, "tiny", ("meta-train",))
-    (tmp_path / "pipeline.json").write_text(json.dumps(frozen.value.args[0]))  # as the kill left it
-
-    def finish(run_dir, preset, overrides):
-        (run_dir / cli.OUTPUTS["meta-train"]).write_text("{}")
-
-    monkeypatch.setitem(cli.STAGES, "meta-train", (finish, "stand-in"))
-    start = time.perf_counter()
-    cli._pipeline(tmp_path, "tiny", ("meta-train",))
-    pipeline = json.loads((tmp_path / "pipeline.json").read_text())
-    assert "open" not in pipeline and pipeline["calls"] == 2 and pipeline["killed_calls"] == 1
-    assert 42.0 <= pipeline["stages"]["meta-train"] <= 42.0 + time.perf_counter() - start
-    assert "1 of them killed" in report.pipeline_lines(pipeline)[0]
-    # A record that lost killed calls altogether is shown up by the stages' own times.
-    assert "calls that were killed" in report.pipeline_lines(pipeline, stages_total_s=1000.0)[1]
-    assert len(report.pipeline_lines(pipeline, stages_total_s=42.0)) == 2  # the line and a blank
+def test_no_stray_output_and_plain_numbers_in_errors():  # defect 12
+    out = subprocess.run(
+        [sys.executable, "-c", "import bumps_jax.kick_env, bumps_jax.ppo, bumps_jax.config"],
+        capture_output=True,
+        text=True,
+        env={"JAX_PLATFORMS": "cpu", "PATH": ""},
+        check=True,
+    )
+    assert out.stdout == "" and "warp" not in out.stderr.lower()
+    with pytest.raises(ValueError) as err:
+        kick_env.check_targets([3.0], (7.0, 18.0))
+    assert "np.float64" not in str(err.value) and "3.0 m" in str(err.value)
 
 
-def test_train_experts_starts_from_the_runs_own_prior(tmp_path, monkeypatch):
-    from bumps_jax import experts, prior
-
-    class Built(Exception):  # stops the stage once its config is made, before anything compiles
-        pass
-
-    def compile_programs(cfg, *args, **kwargs):
-        raise Built(cfg.prior_path)
-
-    def prior_path(overrides):
-        with pytest.raises(Built) as built:
-            cli._train_experts(tmp_path, "tiny", overrides)
-        return built.value.args[0]
-
-    monkeypatch.setattr(experts, "compile_programs", compile_programs)
-    assert prior_path({}) == ""  # no kick-prior stage here (the demo): the committed asset
-    own = tmp_path / "prior" / prior.RUN_PRIOR_JSON
-    own.parent.mkdir()
-    own.write_text("{}")
-    assert prior_path({}) == str(own)
-    assert prior_path({"prior_path": "elsewhere.json"}) == "elsewhere.json"
+def test_env_overrides_reach_every_stage():
+    cfg = config.make_config("tiny", {"env.physics_dt": 0.005, "env.noise.friction": 0.0})
+    assert cfg.env.physics_dt == 0.005 and cfg.env.noise.friction == 0.0
+    assert config.section(cfg, "meta")["env"]["physics_dt"] == 0.005
+    with pytest.raises(ValueError, match=r"env.physics_dt: 0.0025 there, 0.005 here"):
+        config.check_same_env(kick_env.resolved(config.make_config("tiny").env), cfg.env, "kick prior x")

@@ -1,17 +1,18 @@
-"""Expert training: config errors, vmapped = alone, checkpoint resume, Table-1 record."""
+"""Expert training: config errors, vmapped = alone, checkpoint resume (also past a corrupt checkpoint), Table-1 record."""
 
 import json
 import re
+import shutil
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from tiny_experts import N_STEPS
-from tiny_experts import config as _tiny_config
+from tiny_experts import N_STEPS, pipeline_config
 
-from bumps_jax import experts, prior
+from bumps_jax import bc, config, kick_model, runio
+from bumps_jax.stages import experts
 
 
 @pytest.fixture(scope="module")
@@ -22,149 +23,161 @@ def programs(expert_programs):
 @pytest.mark.parametrize(
     ("overrides", "named"),
     [
-        ({"tasks": ()}, "tasks is empty"),
-        ({"tasks": (8.0, 19.5)}, "19.5"),
-        ({"updates_per_chunk": 3}, "updates_per_chunk 3"),
-        ({"updates_per_chunk": 0}, "updates_per_chunk"),
-        ({"bc.steps": 0}, "bc.steps"),
-        ({"ppo.total_env_steps": 0}, "total_env_steps"),
-        ({"ppo.num_envs": 5}, "num_minibatches 2 must divide ppo.num_envs 5"),
+        ({"experts.tasks": ()}, "experts.tasks is empty"),
+        ({"experts.tasks": (8.0, 19.5)}, "19.5"),
+        ({"experts.updates_per_chunk": 3}, "updates_per_chunk 3"),
+        ({"experts.updates_per_chunk": 0}, "updates_per_chunk"),
+        ({"experts.bc.steps": 0}, "bc.steps"),
+        ({"experts.ppo.total_env_steps": 0}, "total_env_steps"),
+        ({"experts.ppo.num_envs": 5}, "num_minibatches 2 must divide experts.ppo.num_envs 5"),
     ],
 )
-def test_bad_config_names_the_value(env, overrides, named):
+def test_bad_config_names_the_value(overrides, named):
     with pytest.raises(ValueError, match=named):
-        experts.compile_programs(_tiny_config(**overrides), env)
+        pipeline_config(**overrides)
 
 
-def test_presets_validate(env):
-    for name in experts.PRESETS:
-        cfg = experts.preset_config(name)
-        experts.validate_config(cfg, env)
-    paper = experts.preset_config("paper")
-    assert len(paper.tasks) == 23 and paper.ppo.total_env_steps == 12_000_000
+def test_presets_validate():
+    paper = config.make_config("paper")
+    assert len(paper.experts.tasks) == 23 and paper.experts.ppo.total_env_steps == 12_000_000
+    assert config.make_config("tiny").experts.tasks == (8.0, 12.0, 16.0)
     with pytest.raises(ValueError, match="huge"):
-        experts.preset_config("huge")
+        config.make_config("huge")
 
 
-def test_bc_dataset_is_the_prior_kick(env):
-    params = jnp.asarray(prior.load_prior()["params"], jnp.float32)
-    obs, actions = experts.bc_dataset(env, 12.0, params)
+def test_kick_dataset_is_the_prior_kick(env):
+    params = jnp.asarray(kick_model.load_record()["params"], jnp.float32)
+    obs, actions = bc.kick_dataset(env, 12.0, params)
     assert obs.shape == (N_STEPS, 2) and actions.shape == (N_STEPS, 22)
     np.testing.assert_allclose(obs[:, 0], np.arange(N_STEPS) / N_STEPS, rtol=1e-6)
     np.testing.assert_allclose(obs[:, 1], (12.0 - 7.0) / 11.0, rtol=1e-6)
-    np.testing.assert_allclose(actions, prior.keyframes_to_actions(params, N_STEPS, env.dt))
+    np.testing.assert_allclose(actions, kick_model.keyframes_to_actions(params, N_STEPS, env.dt))
 
 
-def test_starting_kicks_read_the_configured_prior(tmp_path):
+def test_starting_kicks_read_the_runs_prior(tmp_path):
     # A prior whose three anchors are one kick: every task's blended start is that kick.
-    record = json.loads(prior.PRIOR_JSON.read_text())
-    kick = prior.DEFAULT_PARAMS.tolist()
-    record.update(params=kick, anchors=dict.fromkeys(prior.ANCHORS, kick))
-    path = tmp_path / "run_prior.json"
-    path.write_text(json.dumps(record))
-    cfg = _tiny_config(prior_path=str(path))  # tune.generations 0: no CMA-ES, nothing compiled
-    expected = np.tile(prior.DEFAULT_PARAMS, (len(cfg.tasks), 1))
-    committed, _ = experts.starting_kicks(_tiny_config(), verbose=False)
+    record = json.loads(kick_model.ASSET.read_text())
+    kick = kick_model.DEFAULT_PARAMS.tolist()
+    record.update(params=kick, anchors=dict.fromkeys(kick_model.ANCHORS, kick))
+    runio.write_json(tmp_path / "prior" / experts.PRIOR, record)
+    assert experts.prior_path(pipeline_config(), tmp_path) == tmp_path / "prior" / experts.PRIOR
+    assert experts.prior_path(pipeline_config(), tmp_path / "elsewhere") == kick_model.ASSET
+    cfg = pipeline_config()  # tune.generations 0: no CMA-ES, nothing compiled
+    expected = np.tile(kick_model.DEFAULT_PARAMS, (len(cfg.experts.tasks), 1))
+    committed, _ = experts.starting_kicks(cfg, kick_model.load_record(), say=lambda *a, **k: None)
     assert not np.allclose(committed, expected)  # else the test could not tell the two apart
     for per_task in (True, False):
-        kicks, _ = experts.starting_kicks(experts.make_config(cfg, {"bc.per_task_strength": per_task}), verbose=False)
+        cfg = pipeline_config(**{"experts.bc.per_task_strength": per_task})
+        own = kick_model.load_record(experts.prior_path(cfg, tmp_path), env_cfg=cfg.env)
+        kicks, _ = experts.starting_kicks(cfg, own, say=lambda *a, **k: None)
         np.testing.assert_allclose(kicks, expected, rtol=1e-6)
 
 
-def test_missing_prior_path_is_named(tmp_path):
-    path = tmp_path / "no_such_prior.json"
-    with pytest.raises(ValueError, match=re.escape(str(path))):
-        experts.starting_kicks(_tiny_config(prior_path=str(path)), verbose=False)
+def test_a_prior_of_another_env_config_is_refused(tmp_path):
+    record = json.loads(kick_model.ASSET.read_text())
+    runio.write_json(tmp_path / "prior" / experts.PRIOR, record)
+    cfg = pipeline_config(**{"env.physics_dt": 0.005})
+    with pytest.raises(ValueError, match=re.escape("env.physics_dt: 0.0025 there, 0.005 here")):
+        experts.inputs(cfg, tmp_path)
+    del record["env"]
+    runio.write_json(tmp_path / "prior" / experts.PRIOR, record)
+    with pytest.raises(ValueError, match="does not record the env config"):
+        experts.inputs(pipeline_config(), tmp_path)
 
 
 def test_vmapped_training_equals_each_task_alone(programs):
     """Experts in one vmapped program do not interact: expert 8 m trains bit-for-bit the same
     next to 12 m or next to 16 m. Trained alone (a differently fused XLA program), its first
     batch of episodes matches to float precision; later ones are not compared: contact
-    dynamics amplify last-bit differences of the actions into different kicks (we measured
-    policy-param differences of 1e-3 after two updates)."""
-    cfg = _tiny_config()
-    targets = jnp.asarray(cfg.tasks)
-    kicks, _ = experts.starting_kicks(cfg, verbose=False)
-    state, bc_losses = experts.run_init(programs, experts.task_rngs(cfg.seed, 2), targets, kicks)
+    dynamics amplify last-bit differences of the actions into different kicks."""
+    cfg = pipeline_config()
+    quiet = dict(say=lambda *a, **k: None)
+    targets = jnp.asarray(cfg.experts.tasks)
+    kicks, _ = experts.starting_kicks(cfg, kick_model.load_record(), **quiet)
+    state, bc_losses = experts.run_init(programs, experts.task_rngs(cfg.experts.seed, 2), targets, kicks)
     assert np.all(np.asarray(bc_losses[:, -1]) < 0.2 * np.asarray(bc_losses[:, 0]))
     together, metrics = experts.run_chunk(programs, state, targets)
 
     other_targets = jnp.asarray([8.0, 16.0])
-    other_kicks, _ = experts.starting_kicks(experts.make_config(cfg, {"tasks": (8.0, 16.0)}), verbose=False)
-    other_state, _ = experts.run_init(programs, experts.task_rngs(cfg.seed, 2), other_targets, other_kicks)
+    other_cfg = pipeline_config(**{"experts.tasks": (8.0, 16.0)})
+    other_kicks, _ = experts.starting_kicks(other_cfg, kick_model.load_record(), **quiet)
+    other_state, _ = experts.run_init(programs, experts.task_rngs(cfg.experts.seed, 2), other_targets, other_kicks)
     other, _ = experts.run_chunk(programs, other_state, other_targets)
     for a, b in zip(jax.tree_util.tree_leaves(together), jax.tree_util.tree_leaves(other), strict=True):
         np.testing.assert_array_equal(np.asarray(a)[0], np.asarray(b)[0])
 
     alone = jax.jit(programs.trainer.run_updates, static_argnums=2)
-    for i, target in enumerate(cfg.tasks):
+    for i, target in enumerate(cfg.experts.tasks):
         start = jax.tree_util.tree_map(lambda x, i=i: x[i], state)
-        _, single_metrics = alone(start, target, cfg.updates_per_chunk)
+        _, single_metrics = alone(start, target, cfg.experts.updates_per_chunk)
         # The first batch is collected before any gradient step: the same episodes.
         np.testing.assert_allclose(single_metrics.episode_return[0], metrics.episode_return[i, 0], rtol=1e-3)
     assert int(together.env_steps[0]) == 1 * 4 * N_STEPS  # one update of 4 episodes
 
 
+def _same_trees(a, b):
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
 def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
     # One generation of tuning: the fresh run tunes and records its starting kicks, the resumed
-    # one must not tune again (its BC came from the checkpoint).
-    cfg = _tiny_config(**{"tune.generations": 1, "tune.eval_repetitions": 2})
-    whole = experts.train_experts(cfg, tmp_path / "whole", verbose=False, programs=programs)
+    # one must not tune again (its cloning came from the checkpoint).
+    cfg = pipeline_config(**{"experts.tune.generations": 1, "experts.tune.eval_repetitions": 2})
+    quiet = dict(say=lambda *a, **k: None)
+    whole = experts.train(cfg, tmp_path / "whole", programs, **quiet)
     assert whole["finished"]
 
-    part = experts.train_experts(cfg, tmp_path / "split", verbose=False, programs=programs, stop_after_chunks=1)
+    part = experts.train(cfg, tmp_path / "split", programs, stop_after_chunks=1, **quiet)
     assert not part["finished"] and int(part["state"].update[0]) == 1
-    assert not (tmp_path / "split" / "final_params").exists()
-    resumed = experts.train_experts(cfg, tmp_path / "split", verbose=False, programs=programs)
-    assert resumed["finished"] and resumed["bc_losses"] is None  # BC came from the checkpoint
-    record = json.loads((tmp_path / "split" / "starting_kicks.json").read_text())
-    assert record["tuned"] and np.asarray(record["params"]).shape == (2, prior.N_PARAMS)
-
-    for a, b in zip(
-        jax.tree_util.tree_leaves(whole["state"]), jax.tree_util.tree_leaves(resumed["state"]), strict=True
-    ):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert not (tmp_path / "split" / "experts" / "final_params").exists()
+    said = []
+    resumed = experts.train(cfg, tmp_path / "split", programs, say=lambda *a, **k: said.append(a[0]))
+    assert resumed["finished"] and any("resumed from update 1" in s for s in said)
+    assert not any("behaviour cloning" in s for s in said)  # cloning came from the checkpoint
+    record = json.loads((tmp_path / "split" / "experts" / "starting_kicks.json").read_text())
+    assert record["tuned"] and np.asarray(record["params"]).shape == (2, kick_model.N_PARAMS)
+    _same_trees(whole["state"], resumed["state"])
     # The progress log is the same, row for row: one per update and task.
-    whole_csv = (tmp_path / "whole" / "progress.csv").read_text()
-    assert whole_csv == (tmp_path / "split" / "progress.csv").read_text()
+    whole_csv = (tmp_path / "whole" / "experts" / "progress.csv").read_text()
+    assert whole_csv == (tmp_path / "split" / "experts" / "progress.csv").read_text()
     assert len(whole_csv.strip().splitlines()) == 1 + 2 * 2
 
-    # Checkpoint round trip: the saved final params are the trained ones.
-    loaded = experts.load_final_params(tmp_path / "whole", programs, 2)
+    # The loader the meta stage uses rebuilds the same experts from the run directory alone.
     want = experts.expert_params(whole["state"])
-    for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(want), strict=True):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-
-    # The meta stage's loader rebuilds the same experts from the run directory alone.
-    fam = experts.family(tmp_path / "whole")
+    _same_trees(experts.load_final_params(tmp_path / "whole" / "experts", programs, 2), want)
+    fam = experts.load_family(cfg, tmp_path / "whole")
     assert list(fam.tasks) == [8.0, 12.0]
-    for a, b in zip(jax.tree_util.tree_leaves(fam.params), jax.tree_util.tree_leaves(want), strict=True):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    _same_trees(fam.params, want)
 
     # Table 1's first row, under the run directory, with the results contract's keys.
-    record = experts.evaluate_run(cfg, tmp_path / "whole", whole["state"], programs, whole["wall_s"])
-    on_disk = json.loads((tmp_path / "whole" / "experts.json").read_text())
-    for key in (
-        "tasks_m",
-        "per_task",
-        "accuracy_mean",
-        "accuracy_std",
-        "error_mean_m",
-        "error_std_m",
-        "env_steps",
-        "device",
-        "versions",
-        "date",
-        "command",
-        "preset",
-        "wall_s",
-    ):
+    stage_dir = tmp_path / "whole" / "experts"
+    record = experts.evaluate_experts(cfg, stage_dir, want, programs, whole["wall_s"], **quiet)
+    on_disk = json.loads((stage_dir / "experts.json").read_text())
+    for key in ("tasks_m", "per_task", "accuracy_mean", "accuracy_std", "error_mean_m", "error_std_m",
+                "env_steps", "env_steps_breakdown", "device", "versions", "date", "command", "preset", "wall_s"):  # fmt: skip
         assert key in on_disk, key
+    assert on_disk["env"]["physics_dt"] == 0.0025 and on_disk["env"]["impl"] == "jax"
     assert on_disk["tasks_m"] == [8.0, 12.0] and on_disk["env_steps"] == 2 * 4 * N_STEPS
+    assert on_disk["env_steps_breakdown"]["tuning"] > 0
     assert set(on_disk["per_task"][0]) >= {"target_m", "accuracy", "error_mean_m", "error_std_m"}
-    assert 0.0 <= record["accuracy_mean"] <= 1.0
-    assert "single-task experts" in (tmp_path / "whole" / "experts.md").read_text()
+    # Accuracy is the fraction of valid kicks, which the env scores per episode.
+    assert record["accuracy_mean"] == pytest.approx(np.mean([r["accuracy"] for r in on_disk["per_task"]]))
+    assert "single-task experts" in (stage_dir / "experts.md").read_text()
+
+    # A corrupt newest checkpoint: reported with its path, and the run resumes from the one before.
+    ckpts = stage_dir / "checkpoints"
+    shutil.copytree(tmp_path / "split" / "experts" / "checkpoints", ckpts, dirs_exist_ok=True)
+    latest = max(int(p.name) for p in ckpts.iterdir() if p.name.isdigit())
+    for f in (ckpts / str(latest)).rglob("*"):
+        if f.is_file():
+            f.write_bytes(f.read_bytes()[: len(f.read_bytes()) // 2])
+    shutil.rmtree(stage_dir / "final_params")
+    said.clear()
+    again = experts.train(cfg, tmp_path / "whole", programs, say=lambda *a, **k: said.append(a[0]))
+    assert any(f"{ckpts / str(latest)} is unreadable" in s for s in said), said
+    assert any(f"resumed from update {latest - 1}" in s for s in said), said
+    _same_trees(again["state"], whole["state"])
 
 
 def test_read_starting_kicks_finds_each_target_and_names_missing_ones():
@@ -175,15 +188,3 @@ def test_read_starting_kicks_finds_each_target_and_names_missing_ones():
     np.testing.assert_array_equal(kicks[12.0], np.float32(record["params"][record["tasks_m"].index(12.0)]))
     with pytest.raises(ValueError, match=r"\[12.3\]"):
         experts.read_starting_kicks(path, [12.0, 12.3])
-
-
-def test_a_run_config_from_before_a_key_existed_loads_with_its_default(tmp_path):
-    # The committed paper run was saved before `ppo.anneal_learning_rate` existed: reloading its
-    # experts (the meta stage does) must not fail on the missing key, and must not change what it had.
-    saved = json.loads(_tiny_config().to_json())
-    del saved["ppo"]["anneal_learning_rate"]
-    saved["ppo"]["learning_rate"] = 1e-6
-    (tmp_path / "config.json").write_text(json.dumps(saved))
-    cfg = experts.load_run_config(tmp_path)
-    assert cfg.ppo.anneal_learning_rate is False
-    assert cfg.ppo.learning_rate == 1e-6 and list(cfg.tasks) == list(_tiny_config().tasks)

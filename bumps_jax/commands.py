@@ -1,0 +1,85 @@
+"""The commands besides the stages: report, publish, render, video, showcase.
+
+Each takes the pipeline config, the run directory and the parsed arguments; each checks its
+inputs (with their paths) before any long work.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from bumps_jax import runio
+
+
+def run(command: str, cfg, run_dir: Path, args) -> None:
+    {"report": report, "publish": publish, "render": render, "video": video, "showcase": showcase}[command](
+        cfg, Path(run_dir), args
+    )
+
+
+def report(cfg, run_dir: Path, args) -> None:
+    from bumps_jax import report as report_mod  # noqa: PLC0415
+
+    if not run_dir.is_dir():
+        raise ValueError(f"no run directory {str(run_dir)!r}: run a stage first (e.g. python -m bumps_jax demo)")
+    if not report_mod.has_results(run_dir):
+        raise ValueError(f"{run_dir} holds no stage results yet: run a stage first")
+    path = report_mod.write(run_dir)
+    print(path.read_text())
+    print(f"wrote {path}")
+
+
+def publish(cfg, run_dir: Path, args) -> None:
+    from bumps_jax import report as report_mod  # noqa: PLC0415
+
+    for path in report_mod.publish(run_dir):
+        print(f"wrote {path}")
+
+
+def render(cfg, run_dir: Path, args) -> None:
+    from bumps_jax import render as render_mod  # noqa: PLC0415
+
+    out = Path(args.out) if args.out else run_dir / "stance.png"
+    runio.check_writable(out.parent)
+    print(f"wrote {render_mod.stance_picture(out)}")
+
+
+def video(cfg, run_dir: Path, args) -> None:
+    """A GIF of filtered kicks of a finished run: the (4, 256) net at the test tasks nearest 8, 12, 16 m."""
+    import jax  # noqa: PLC0415
+
+    from bumps_jax import bc, kick_env, render  # noqa: PLC0415
+
+    table2 = runio.read_json(run_dir / "filter" / "table2.json", "run the filter stage first")
+    out = Path(args.out) if args.out else run_dir / "filtered_kicks.gif"
+    runio.check_writable(out.parent)
+    tasks, chosen = np.asarray(table2["tasks"]), np.asarray(table2["chosen_contexts"]["filtered_4x256"])
+    picks = sorted({int(np.argmin(np.abs(tasks - t))) for t in (8.0, 12.0, 16.0)})
+    depth, width = cfg.meta.nets["meta_4x256"]
+    apply_fn, params = bc.load_policy(run_dir / "meta" / "meta_4x256", depth, width, cfg.meta.train)
+    params = jax.tree.map(lambda a: a[cfg.filter.net_seed], params)
+    env = kick_env.KickEnv(cfg.env)
+    path = render.kick_gif(out, env, apply_fn, params, chosen[picks], tasks[picks])
+    print(f"wrote {path}")
+
+
+def showcase(cfg, run_dir: Path, args) -> None:
+    """A batch of noisy episodes of the committed prior's main kick: the scene and env at a glance."""
+    import jax  # noqa: PLC0415
+    import jax.numpy as jnp  # noqa: PLC0415
+
+    from bumps_jax import kick_env, kick_model, rollout  # noqa: PLC0415
+
+    if args.episodes < 1:
+        raise ValueError(f"--episodes must be a positive integer, got {args.episodes}")
+    record = kick_model.load_record(kick_model.ASSET, env_cfg=cfg.env)
+    env = kick_env.KickEnv(cfg.env)
+    table = kick_model.action_tables(kick_model.clip_params(record["params"])[None], env.n_steps, env.dt)
+    keys = jax.random.split(jax.random.key(0), args.episodes)[None]
+    target = jnp.full((1,), 12.0)
+    out = rollout.matched_fn(env, rollout.table_policy)(table, target, target, keys)
+    print(f"{args.episodes} noisy kicks of the committed 12 m prior:")
+    print(f"  resting distance {np.mean(out['distance']):.2f} +- {np.std(out['distance']):.2f} m")
+    print(f"  final error      {np.mean(out['final_error']):.2f} m, valid {np.mean(out['valid']):.2f}")

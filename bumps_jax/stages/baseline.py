@@ -1,0 +1,123 @@
+"""The paper's Figure 1: plain multi-task PPO, one contextual policy for every target distance.
+
+The experts' PPO trainer on one policy (the `baseline` section: 11 x 256 in the paper preset)
+whose episodes each draw their target from U[7, 18] m, started by cloning the main kick of the
+run's prior at every training context, several seeds trained side by side (vmap over seeds).
+Writes run_dir/baseline/baseline.json (the return curve with a 95 % bootstrap band over seeds,
+and the meta-test error evaluated like the BUMPS variants) and baseline_curve.png.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bumps_jax import bc, evaluate, kick_env, kick_model, ppo, rollout, runio
+from bumps_jax.stages import experts as experts_stage
+
+OUTPUT = "baseline.json"
+
+
+def inputs(cfg, run_dir: Path) -> dict:
+    path = experts_stage.prior_path(cfg, run_dir)
+    kick_model.load_record(path, env_cfg=cfg.env)
+    return {"prior": path}
+
+
+def clone_start(cfg, env: kick_env.KickEnv, trainer: ppo.Trainer, kick) -> tuple:
+    """The policy every seed starts from: the kick cloned at every meta-training context. (params, BC losses)."""
+    b = cfg.baseline
+    pairs = [bc.kick_dataset(env, t, kick) for t in kick_env.meta_train_tasks()]
+    obs, actions = (jnp.concatenate(parts) for parts in zip(*pairs, strict=True))
+    policy0 = trainer.networks.policy_network.init(jax.random.key(0))
+    clone = jax.jit(lambda p: bc.clone_kick(trainer.networks, p, obs, actions, b.bc_steps, b.bc_learning_rate))
+    return clone(policy0)
+
+
+def bootstrap_curve(returns: np.ndarray, steps_per_update: int) -> dict:
+    """Mean return over seeds (seeds, updates) with its 95 % bootstrap band, per env step."""
+    from scipy import stats  # noqa: PLC0415
+
+    ci = stats.bootstrap((returns,), np.mean, axis=0, confidence_level=0.95, n_resamples=1000, random_state=0)
+    return {
+        "env_steps": (steps_per_update * np.arange(1, returns.shape[1] + 1)).tolist(),
+        "mean": returns.mean(axis=0).tolist(),
+        "ci_low": np.asarray(ci.confidence_interval.low).tolist(),
+        "ci_high": np.asarray(ci.confidence_interval.high).tolist(),
+    }
+
+
+def run(cfg, run_dir: Path, say=print) -> dict:
+    """Train the seeds, evaluate them on the meta-test tasks, write the record and the figure."""
+    start = time.perf_counter()
+    b = cfg.baseline
+    stage_dir = Path(run_dir) / "baseline"
+    env = kick_env.KickEnv(cfg.env)
+    trainer = ppo.make_train(b.ppo, env)
+    record = kick_model.load_record(experts_stage.prior_path(cfg, run_dir), env_cfg=cfg.env)
+    say(f"cloning the main kick into the {len(b.ppo.policy_hidden)}-layer policy ({b.bc_steps} steps)", flush=True)
+    policy0, bc_losses = clone_start(cfg, env, trainer, jnp.asarray(record["params"]))
+    say(f"training {b.seeds} seeds x {trainer.n_updates} updates in one program (compiling first)", flush=True)
+    train = jax.jit(jax.vmap(lambda rng: trainer.train(rng, 12.0, policy0)))
+    state, metrics = jax.block_until_ready(train(jax.random.split(jax.random.key(1), b.seeds)))
+    train_s = time.perf_counter() - start
+
+    # Policy 0 is where every seed started (the clone, before PPO); then the seeds' results.
+    cloned = experts_stage.ExpertParams(ppo.init_normalizer(env.observation_size), policy0)
+    params = jax.tree.map(
+        lambda a, s: jnp.concatenate([jnp.asarray(a, s.dtype)[None], s]),
+        cloned,
+        jax.vmap(experts_stage.expert_params)(state),
+    )
+    tasks = np.asarray(b.eval_tasks, np.float32)
+    keys = rollout.repetition_keys(b.eval_seed, len(tasks), b.eval_repetitions)
+    grid = rollout.grid_fn(env, experts_stage.expert_policy(trainer.networks))
+    m = grid(params, tasks, tasks, keys)  # (1 + seeds, tasks, reps)
+    rows = [evaluate.table_row(evaluate.summarise_tasks({k: v[s] for k, v in m.items()})) for s in range(1 + b.seeds)]
+    start_row, per_seed = rows[0], rows[1:]
+    env_steps = trainer.n_updates * trainer.steps_per_update
+    payload = {
+        **runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env),
+        "seeds": int(b.seeds),
+        "env_steps_per_seed": int(env_steps),
+        "curve": bootstrap_curve(np.asarray(metrics.episode_return), trainer.steps_per_update),
+        "error_mean_m": float(np.mean([r["error_mean_all_m"] for r in per_seed])),
+        "accuracy_mean": float(np.mean([r["accuracy_mean"] for r in per_seed])),
+        "per_seed": per_seed,
+        "start": start_row,  # the cloned main kick every seed started from, before PPO
+        "bc_final_loss": float(bc_losses[-1]),
+        "env_steps": int(env_steps),
+        "train_wall_s": train_s,
+        "eval_tasks": tasks.tolist(),
+        "eval_repetitions": int(b.eval_repetitions),
+    }
+    runio.write_json(stage_dir / OUTPUT, payload)
+    plot_curve(payload, stage_dir / "baseline_curve.png")
+    say(
+        f"baseline: error {payload['error_mean_m']:.2f} m, accuracy {payload['accuracy_mean']:.2f}, "
+        f"{env_steps:,} env steps per seed; at the start (the cloned main kick): "
+        f"error {start_row['error_mean_all_m']:.2f} m, accuracy {start_row['accuracy_mean']:.2f}"
+    )
+    return payload
+
+
+def plot_curve(payload: dict, path: Path) -> Path:
+    """Mean episode return over env steps with its 95 % bootstrap band."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    c = payload["curve"]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(c["env_steps"], c["mean"], label=f"mean over {payload['seeds']} seeds")
+    ax.fill_between(c["env_steps"], c["ci_low"], c["ci_high"], alpha=0.3, label="95% bootstrap CI")
+    ax.set_xlabel("environment steps (per seed)")
+    ax.set_ylabel("mean episode return")
+    ax.set_title(f"Multi-task PPO, targets U[7, 18] m ({payload['device']}, {payload['preset']})", fontsize=9)
+    ax.legend(fontsize=8)
+    return runio.save_figure(fig, path)

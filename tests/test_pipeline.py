@@ -1,0 +1,162 @@
+"""The run directory never mixes configs: manifests, --force, resume bookkeeping, inputs checked first.
+
+The stages here are stand-ins (no simulation): what is tested is the runner around them.
+"""
+
+import json
+import types
+from pathlib import Path
+
+import pytest
+
+from bumps_jax import config, pipeline, report, runio
+
+
+def fake_stage(name, log, upstream=None, fail=False):
+    """A stage module that records its calls and writes its output (reading `upstream`'s, if any)."""
+
+    def inputs(cfg, run_dir):
+        if upstream is None:
+            return {}
+        path = Path(run_dir) / upstream / "out.json"
+        runio.read_json(path, f"run {upstream} first")
+        return {upstream: path}
+
+    def run(cfg, run_dir, say=print):
+        log.append(name)
+        if fail:
+            raise KeyboardInterrupt
+        record = {"stage": name, "seed": cfg.experts.seed, "n": len(log)}
+        return runio.write_json(Path(run_dir) / name / "out.json", record) and record
+
+    return types.SimpleNamespace(OUTPUT="out.json", inputs=inputs, run=run)
+
+
+@pytest.fixture
+def stages(monkeypatch):
+    log = []
+    modules = {"experts": fake_stage("experts", log), "meta": fake_stage("meta", log, upstream="experts")}
+    monkeypatch.setattr(pipeline, "stage_module", lambda name: modules[name])
+    monkeypatch.setattr(report, "write", lambda run_dir: runio.write_text(Path(run_dir) / "report.md", "report\n"))
+    return log, modules
+
+
+def cfg(**overrides):
+    return config.make_config("tiny", overrides)
+
+
+def test_a_rerun_with_other_overrides_is_refused_naming_the_keys(tmp_path, stages):  # issue: defect 1
+    log, _ = stages
+    pipeline.run_stage("experts", cfg(), tmp_path)
+    pipeline.run_stage("experts", cfg(), tmp_path)  # same config: up to date, not rerun
+    assert log == ["experts"]
+    other = cfg(**{"experts.ppo.learning_rate": 1e-3, "experts.seed": 7})
+    with pytest.raises(runio.StaleRunError) as err:
+        pipeline.run_stage("experts", other, tmp_path)
+    assert "experts.ppo.learning_rate" in str(err.value) and "experts.seed" in str(err.value)
+    assert "--force" in str(err.value) and "--run-dir" in str(err.value)
+    assert json.loads((tmp_path / "experts" / "out.json").read_text())["seed"] == 0  # untouched
+    pipeline.run_stage("experts", other, tmp_path, force=True)
+    assert log == ["experts", "experts"]
+    assert json.loads((tmp_path / "experts" / "out.json").read_text())["seed"] == 7
+
+
+def test_a_stage_whose_inputs_changed_is_refused(tmp_path, stages):  # defect 3
+    log, _ = stages
+    pipeline.run_stage("experts", cfg(), tmp_path)
+    pipeline.run_stage("meta", cfg(), tmp_path)
+    # The experts are replaced by another run's: the meta outputs were made from the old ones.
+    runio.write_json(tmp_path / "experts" / "out.json", {"stage": "experts", "another": "run"})
+    with pytest.raises(runio.StaleRunError, match="inputs.experts"):
+        pipeline.run_stage("meta", cfg(), tmp_path)
+    assert log == ["experts", "meta"]
+
+
+def test_force_recomputes_every_later_stage(tmp_path, stages):
+    log, _ = stages
+    pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)
+    changed = cfg(**{"experts.seed": 3})
+    with pytest.raises(runio.StaleRunError):  # refused before any stage runs
+        pipeline.run_pipeline(("experts", "meta"), changed, tmp_path)
+    assert log == ["experts", "meta"]
+    pipeline.run_pipeline(("experts", "meta"), changed, tmp_path, force=True)
+    assert log == ["experts", "meta", "experts", "meta"]
+
+
+def test_the_pipeline_never_reports_up_to_date_over_stale_outputs(tmp_path, stages):  # defect 4
+    log, _ = stages
+    pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)
+    with pytest.raises(runio.StaleRunError, match=r"experts\.tasks"):
+        pipeline.run_pipeline(("experts", "meta"), cfg(**{"experts.tasks": (9.0,)}), tmp_path)
+    assert log == ["experts", "meta"]
+
+
+def test_outputs_without_a_manifest_are_not_reused(tmp_path, stages):
+    runio.write_json(tmp_path / "experts" / "out.json", {"made": "by an older version"})
+    with pytest.raises(runio.StaleRunError, match="without a manifest"):
+        pipeline.run_stage("experts", cfg(), tmp_path)
+
+
+def test_a_missing_input_is_named_before_any_work(tmp_path, stages):  # defect 7
+    log, _ = stages
+    with pytest.raises(ValueError, match=r"experts/out.json: no such file \(run experts first\)"):
+        pipeline.run_stage("meta", cfg(), tmp_path)
+    (tmp_path / "experts").mkdir()
+    (tmp_path / "experts" / "out.json").write_text('{"trunc')
+    with pytest.raises(ValueError, match=r"experts/out.json: cannot read it as JSON"):
+        pipeline.run_stage("meta", cfg(), tmp_path)
+    assert log == []
+
+
+def test_an_unwritable_run_directory_fails_at_once(tmp_path, stages):  # defects 6, 7
+    log, _ = stages
+    with pytest.raises(ValueError, match="is not writable"):
+        pipeline.run_stage("experts", cfg(), Path("/dev/null/run"))
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(ValueError, match="is not writable"):
+        pipeline.run_stage("experts", cfg(), blocker / "run")
+    assert log == []
+
+
+def test_pipeline_skips_finished_stages_and_counts_its_calls(tmp_path, stages, monkeypatch):
+    log, modules = stages
+    monkeypatch.setitem(modules, "meta", fake_stage("meta", log, upstream="experts", fail=True))
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)
+    monkeypatch.setitem(modules, "meta", fake_stage("meta", log, upstream="experts"))
+    pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)
+    assert log == ["experts", "meta", "meta"]  # the finished stage is not rerun
+    record = json.loads((tmp_path / "pipeline.json").read_text())
+    assert record["calls"] == 2 and set(record["stages"]) == {"experts", "meta"}
+    assert record["env"]["physics_dt"] == 0.0025 and record["env"]["impl"] == "jax"
+    assert "resumed across 2 calls" in report.pipeline_lines(record)[0]
+    assert "in one call" in report.pipeline_lines({**record, "calls": 1})[0]
+
+
+def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, stages, monkeypatch):
+    import os
+    import time
+
+    log, modules = stages
+
+    def killed(cfg, run_dir, say=print):  # SIGKILL: no `finally` runs, the mark stays behind
+        ckpt = Path(run_dir) / "experts" / "checkpoints" / "100"
+        ckpt.parent.mkdir(parents=True)
+        ckpt.write_text("")
+        opened = json.loads((Path(run_dir) / "pipeline.json").read_text())["open"]
+        os.utime(ckpt, (opened["started"] + 42.0,) * 2)  # its last write, 42 s after the start
+        raise SystemExit(json.loads((Path(run_dir) / "pipeline.json").read_text()))
+
+    monkeypatch.setattr(modules["experts"], "run", killed)
+    with pytest.raises(SystemExit) as frozen:
+        pipeline.run_pipeline(("experts",), cfg(), tmp_path)
+    (tmp_path / "pipeline.json").write_text(json.dumps(frozen.value.args[0]))  # as the kill left it
+    monkeypatch.setattr(modules["experts"], "run", fake_stage("experts", log).run)
+    start = time.perf_counter()
+    pipeline.run_pipeline(("experts",), cfg(), tmp_path)
+    record = json.loads((tmp_path / "pipeline.json").read_text())
+    assert "open" not in record and record["calls"] == 2 and record["killed_calls"] == 1
+    assert 42.0 <= record["stages"]["experts"] <= 42.0 + time.perf_counter() - start
+    assert "1 of them killed" in report.pipeline_lines(record)[0]
+    assert "calls that were killed" in report.pipeline_lines(record, stages_total_s=1000.0)[1]
