@@ -32,7 +32,7 @@ demo: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m bumps_jax demo
 
 # The paper preset end to end on a GPU: runs/paper/report.md; finished stages are skipped.
-# Overrides name their stage: make reproduce SET="experts.ppo.total_env_steps=2880000"
+# Overrides are dotted keys of the config tree: make reproduce SET="experts.ppo.total_env_steps=2880000"
 reproduce: $(STAMP)
 	$(PY) -m bumps_jax reproduce --preset paper $(if $(SET),--set $(SET),)
 
@@ -43,9 +43,9 @@ publish: $(STAMP)
 report: $(STAMP)
 	$(PY) -m bumps_jax report --preset $(PRESET)
 
-# The paper preset also publishes: assets/kick_prior.json, results/, benchmarks/results/, docs/.
+# Stages write only into runs/$(PRESET)/<stage>/; `make publish` copies a paper run into the repository.
 kick-prior: $(STAMP)
-	$(PY) -m bumps_jax kick-prior --preset $(PRESET) $(if $(filter paper,$(PRESET)),--publish,)
+	$(PY) -m bumps_jax kick-prior --preset $(PRESET)
 
 # Offscreen rendering: EGL on a GPU host; on a CPU-only machine use MUJOCO_GL=osmesa
 # (Debian: apt-get install libosmesa6).
@@ -80,7 +80,7 @@ filter: $(STAMP)
 
 # The paper's Figure 1: plain multi-task PPO (one contextual policy, targets U[7, 18] m).
 baseline: $(STAMP)
-	$(PY) experiments/multitask_baseline.py --preset $(PRESET)
+	$(PY) -m bumps_jax baseline --preset $(PRESET)
 
 clean:
 	rm -rf $(VENV) runs

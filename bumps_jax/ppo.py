@@ -37,87 +37,45 @@ PPONetworkParams = ppo_losses.PPONetworkParams
 
 
 def default_config() -> ml_collections.ConfigDict:
-    """PPO hyperparameters; the paper's value (Table of PPO hyperparameters) beside each."""
+    """PPO hyperparameters; the paper's value beside each (docs/decisions.md says where ours differ)."""
     cfg = ml_collections.ConfigDict()
     cfg.num_envs = 16  # episodes per update; paper: 4096 steps per batch (~55 episodes of 75)
     cfg.num_minibatches = 4  # whole episodes per minibatch = num_envs / this; paper: 1024 steps
     cfg.num_epochs = 4  # paper: 30
     cfg.total_env_steps = 12_000  # per expert; paper: 12M
     cfg.learning_rate = 3e-4  # policy; paper: 1e-6
-    # Policy learning rate decays linearly to 0 over the run's Adam steps (paper (Baselines
-    # PPO1): constant). A larger early rate moves the kick further; the decay then lets the
-    # policy settle instead of ending on the last noisy step of a random walk.
-    cfg.anneal_learning_rate = False
-    # The value net must first learn returns of order -150 by phase: until it does, the
-    # normalised advantages rank actions by time step instead of by quality. Paper: 1e-6 (one
-    # Adam for both nets, over 12M steps); ours lets the critic keep up with short runs.
-    cfg.value_learning_rate = 1e-3
-    cfg.max_grad_norm = 1.0  # paper (Baselines PPO1): none; a guard against one bad batch
+    cfg.anneal_learning_rate = False  # decay the policy's rate linearly to 0 over the run; paper: constant
+    cfg.value_learning_rate = 1e-3  # the value net's own Adam; paper: one Adam at 1e-6 for both
+    cfg.max_grad_norm = 1.0  # clip the gradient's global norm; paper (Baselines PPO1): none
     cfg.discount = 0.999  # paper: 0.999
     cfg.gae_lambda = 1.0  # paper: 1.0
     cfg.clip_epsilon = 0.29  # paper: 0.29
     cfg.entropy_cost = 0.01  # paper: 0.01
     cfg.vf_coefficient = 0.5  # paper (Baselines PPO1): 1.0 on a separate value loss
-    # On top of the env's 0.1 per-step factor (kick_env's reward.distance, the paper's "x 0.1"):
-    # the value net then fits returns of order -1.5 instead of -150 within a few updates (the
-    # policy gradient is unaffected: advantages are normalised). CPU trial on 16 m, 8 updates:
-    # 1.0 left the critic far behind and the return fell (-157 -> -166); 0.01 raised it
-    # (-157 -> -155). Paper: 0.1 in all, which the env already applies.
+    # Reward factor on top of the env's own 0.1 per-step factor (the paper's "x 0.1" in all).
     cfg.reward_scaling = 0.01
     cfg.normalize_advantage = True  # paper (Baselines PPO1): yes
-    # Observations are (phase, context) in [0, 1] already, and an expert's context never
-    # varies: running statistics would divide its zero variance by std_min. Off by default.
+    # Running observation statistics; off: observations are (phase, context) in [0, 1] already.
     cfg.normalize_observations = False
     cfg.policy_hidden = (64, 64)  # paper: 64-64 tanh
     cfg.value_hidden = (64, 64)  # paper: 64-64 tanh
-    cfg.init_log_std = -6.0  # paper: state-independent log-std initialised at -6
+    cfg.init_log_std = -6.0  # state-independent log-std at the start; paper: -6
     # None: every episode of `train(rng, target)` kicks for `target` (an expert). (low, high):
-    # each episode draws its own target from U[low, high] and `target` is ignored: the paper's
-    # multi-task PPO baseline.
-    cfg.sample_task_range = None
+    # each episode draws its own target from U[low, high] and `target` is ignored (multi-task PPO).
+    cfg.sample_task_range = ml_collections.FieldReference(None, field_type=tuple)
     return cfg
 
 
 def make_config(config=None, overrides: dict | None = None) -> ml_collections.ConfigDict:
-    """A locked copy of `config` (default: `default_config()`) with dotted `overrides`."""
+    """A locked copy of a PPO section (default: `default_config()`) with dotted `overrides`."""
     return kick_env.make_config(default_config() if config is None else config, overrides)
 
 
 def validate_config(cfg: ml_collections.ConfigDict, n_steps: int) -> None:
-    """ValueError naming the first bad value; `n_steps` is the env's episode length."""
-    for key in ("num_envs", "num_minibatches", "num_epochs", "total_env_steps"):
-        value = cfg[key]
-        if not isinstance(value, int | np.integer) or value < 1:
-            raise ValueError(f"ppo.{key} must be a positive integer, got {value!r}")
-    if cfg.num_envs % cfg.num_minibatches:
-        raise ValueError(
-            f"ppo.num_minibatches {cfg.num_minibatches} must divide ppo.num_envs {cfg.num_envs}"
-            " (minibatches are whole episodes)"
-        )
-    if cfg.total_env_steps < cfg.num_envs * n_steps:
-        raise ValueError(
-            f"ppo.total_env_steps {cfg.total_env_steps} is less than one update "
-            f"(num_envs {cfg.num_envs} x {n_steps} steps)"
-        )
-    for key in ("learning_rate", "value_learning_rate", "max_grad_norm", "clip_epsilon", "reward_scaling"):
-        if not np.isfinite(cfg[key]) or cfg[key] <= 0:
-            raise ValueError(f"ppo.{key} must be > 0, got {cfg[key]!r}")
-    for key in ("discount", "gae_lambda"):
-        if not 0.0 <= cfg[key] <= 1.0:
-            raise ValueError(f"ppo.{key} must be in [0, 1], got {cfg[key]!r}")
-    if cfg.entropy_cost < 0 or cfg.vf_coefficient < 0:
-        raise ValueError(
-            f"ppo.entropy_cost and vf_coefficient must be >= 0, got {cfg.entropy_cost}, {cfg.vf_coefficient}"
-        )
-    for key in ("policy_hidden", "value_hidden"):
-        if not cfg[key] or any(int(h) < 1 for h in cfg[key]):
-            raise ValueError(f"ppo.{key} must be positive layer sizes, got {tuple(cfg[key])!r}")
-    if cfg.sample_task_range is not None:
-        low, high = cfg.sample_task_range
-        if not 0.0 < low < high:
-            raise ValueError(
-                f"ppo.sample_task_range must be (low, high) with 0 < low < high, got {cfg.sample_task_range}"
-            )
+    """ValueError naming the first bad value of a PPO section (`n_steps`: the env's episode length)."""
+    from bumps_jax import validation  # noqa: PLC0415
+
+    validation.ppo_section(cfg, "ppo.", n_steps, (0.0, float("inf")))
 
 
 def n_updates(cfg: ml_collections.ConfigDict, n_steps: int) -> int:

@@ -3,10 +3,8 @@
 Every batched program of the pipeline is a `vmap` over independent items: experts in
 training, episodes in filtering. `over_batch` jits such a function with its batch split over a
 one-axis `Mesh`: XLA's SPMD partitioner gives each device its slice, with no communication.
-(`method="shard_map"` writes the split out by hand instead; it gives the same results on CPU
-devices, but on two H200s with jax 0.11.2 XLA crashed compiling the expert-training program
-that way, so the partitioner is the default.) On one device the mesh has one member and the
-program is the one that runs everywhere else, so there is a single code path.
+On one device the mesh has one member and the program is the one that runs everywhere else,
+so there is a single code path.
 
 The batch must divide evenly over the devices: `pad` repeats the last item up to a multiple
 of the mesh size and callers drop the copies (`unpad`) before anything is saved, so
@@ -85,28 +83,16 @@ def initialize_distributed() -> None:
     jax.distributed.initialize()
 
 
-METHODS = ("shard_map", "jit")
-
-
-def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0, method: str = "jit"):
+def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0):
     """`fn` jitted with the arguments flagged in `batched` split on their leading axis over
     `mesh`, the others replicated, and every output split on axis `out_axis`.
 
     `fn` must treat the items of its batch independently (a vmap), so each device's slice
-    gives what the whole batch would. method "jit": XLA's SPMD partitioner splits the program
-    (`jit` with in/out shardings); "shard_map": `jit(shard_map(fn))`, the split written out.
+    gives what the whole batch would; XLA's SPMD partitioner splits the program.
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     in_specs = tuple(P(AXIS) if b else P() for b in batched)
-    if method == "jit":
-        out = NamedSharding(mesh, P(*([None] * out_axis), AXIS))
-        return jax.jit(fn, in_shardings=tuple(NamedSharding(mesh, s) for s in in_specs), out_shardings=out)
-    # check_vma off: the vmapped simulators draw randomness and scan with carries that the
-    # varying-axis checker cannot always type; nothing here communicates across devices.
-    out_specs = P(*([None] * out_axis), AXIS)
-    mapped = jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False)
-    return jax.jit(mapped)
+    out = NamedSharding(mesh, P(*([None] * out_axis), AXIS))
+    return jax.jit(fn, in_shardings=tuple(NamedSharding(mesh, s) for s in in_specs), out_shardings=out)
 
 
 def place(tree, mesh: Mesh):
