@@ -302,7 +302,7 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
 def env_key(env_cfg: ml_collections.ConfigDict | dict) -> dict:
     """The part of an env config that changes the physics or the scoring: what must match
     between a record and the run that reads it (the task list and range only choose targets)."""
-    d = env_cfg.to_dict() if isinstance(env_cfg, ml_collections.ConfigDict) else dict(env_cfg)
+    d = kick_env.resolved(env_cfg)  # physics_dt None -> the scene's own step, as records carry it
     return {k: _jsonable(v) for k, v in sorted(d.items()) if k not in ("tasks", "task_range")}
 
 

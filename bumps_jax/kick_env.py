@@ -11,6 +11,7 @@ different tasks: `jax.vmap(env.reset)(rngs, targets)`.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 
@@ -71,7 +72,8 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
 
     Unknown keys raise at once, naming the key.
     """
-    cfg = ml_collections.ConfigDict(default_config() if config is None else config)
+    # A deep copy: overriding a nested key must not write into the caller's config.
+    cfg = copy.deepcopy(ml_collections.ConfigDict(default_config() if config is None else config))
     cfg.lock()
     for key, value in (overrides or {}).items():
         node = cfg

@@ -83,7 +83,7 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
         "",
         "## Stages",
         "",
-        "| stage | wall time (s) | physics step | command |",
+        "| stage | wall time (s) | physics (step, backend) | command |",
         "|---|---|---|---|",
     ]  # fmt: skip
     total = 0.0

@@ -2,9 +2,10 @@
 
 import jax
 import pytest
+import stand_ins
 import tiny_experts
 
-from bumps_jax import config, evaluate, kick_env, synthetic_experts
+from bumps_jax import config, kick_env, rollout
 
 
 @pytest.fixture(scope="session")
@@ -21,11 +22,11 @@ def jit_env(env):
 
 @pytest.fixture(scope="session")
 def contextual(env):
-    """(grid, params): every-pair rollouts of the synthetic contextual policy (a stack of one) on
+    """(grid, params): every-pair rollouts of the stand-in contextual policy (a stack of one) on
     one device, jitted once for the filtering tests and the single-device side of the sharding
     test (each MJX program costs ~50 s to compile on a CPU)."""
-    params = synthetic_experts.synthetic_contextual_params()
-    return evaluate.grid_fn(env, synthetic_experts.contextual_apply), jax.tree.map(lambda a: a[None], params)
+    params = stand_ins.synthetic_contextual_params(tuple(env.config.task_range))
+    return rollout.grid_fn(env, stand_ins.contextual_apply), jax.tree.map(lambda a: a[None], params)
 
 
 @pytest.fixture(scope="session")

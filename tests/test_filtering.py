@@ -1,20 +1,24 @@
-"""Policy filtering: selection on known context -> distance maps, noise independence, bad inputs,
-and one tiny MJX end-to-end run with the synthetic contextual policy."""
+"""Policy filtering: selection on known context -> distance maps, scores against a slow reference,
+noise independence, bad inputs, and one tiny MJX run with the stand-in contextual policy."""
 
 import jax
 import numpy as np
 import pytest
 
-from bumps_jax import filtering
+from bumps_jax import config, filtering
 
-BALL = np.array([0.3, -0.05])
+TASK_RANGE = (7.0, 18.0)
 
 
-def _rest_points(contexts, achieved, reps=3, spread=0.0, seed=0):
-    """Resting points (C, R, 2) of a family that kicks `achieved(c)` m along +x, +- spread."""
+def _resting(contexts, achieved, reps=3, spread=0.0, seed=0):
+    """(distance, lateral) (C, R) of a family that kicks `achieved(c)` m along the kick line, +- spread."""
     rng = np.random.default_rng(seed)
     d = achieved(np.asarray(contexts))[:, None] + spread * rng.standard_normal((len(contexts), reps))
-    return np.stack([BALL[0] + d, np.full_like(d, BALL[1])], axis=-1)
+    return d, np.zeros_like(d)
+
+
+def _no_blow_up(distance):
+    return np.zeros(distance.shape, bool)
 
 
 def test_selection_picks_the_context_that_lands_on_the_target():
@@ -22,14 +26,31 @@ def test_selection_picks_the_context_that_lands_on_the_target():
     contexts = filtering.context_grid(7.1, 18.0, 0.1)
     tasks = np.array([8.0, 11.3, 17.5])
     contexts = filtering.candidate_contexts(tasks, contexts)
-    rest = _rest_points(contexts, lambda c: c + 0.5)
-    scores = filtering.score_matrix(rest, np.zeros(rest.shape[:2], bool), tasks, BALL)
+    distance, lateral = _resting(contexts, lambda c: c + 0.5)
+    scores = filtering.score_matrix(distance, lateral, _no_blow_up(distance), tasks)
     assert scores.shape == (3, len(contexts))
-    chosen = contexts[filtering.select_contexts(scores, contexts, tasks, width=1.0)]
+    chosen = contexts[filtering.select_contexts(scores, contexts, tasks, 1.0, TASK_RANGE)]
     np.testing.assert_allclose(chosen, tasks - 0.5, atol=1e-6)
     # A narrower neighbourhood stops at its edge, the closest it may go.
-    chosen = contexts[filtering.select_contexts(scores, contexts, tasks, width=0.3)]
+    chosen = contexts[filtering.select_contexts(scores, contexts, tasks, 0.3, TASK_RANGE)]
     np.testing.assert_allclose(chosen, tasks - 0.3, atol=1e-6)
+
+
+def test_scores_equal_a_slow_reference():
+    """Each score is the mean over repetitions of the Euclidean distance from the resting point
+    (distance along, lateral across the kick line) to the task's target; a blown-up episode
+    scores the task's distance."""
+    rng = np.random.default_rng(3)
+    distance = rng.uniform(6.0, 19.0, size=(4, 5))
+    lateral = rng.normal(scale=0.7, size=(4, 5))
+    blown = rng.uniform(size=(4, 5)) < 0.2
+    tasks = np.array([7.5, 12.0, 16.3])
+    expected = np.zeros((3, 4))
+    for t, task in enumerate(tasks):
+        for c in range(4):
+            errs = [np.sqrt((distance[c, r] - task) ** 2 + lateral[c, r] ** 2) for r in range(5)]
+            expected[t, c] = sum(task if blown[c, r] else errs[r] for r in range(5)) / 5
+    np.testing.assert_allclose(filtering.score_matrix(distance, lateral, blown, tasks), expected, rtol=1e-12)
 
 
 def test_context_grids_have_the_papers_sizes():
@@ -43,18 +64,18 @@ def test_context_grids_have_the_papers_sizes():
 def test_a_perfect_family_keeps_each_task_on_its_own_context():
     tasks = np.array([7.1, 12.0, 18.0])
     contexts = filtering.candidate_contexts(tasks, filtering.context_grid(7.1, 18.0, 0.5))
-    rest = _rest_points(contexts, lambda c: c)
-    scores = filtering.score_matrix(rest, np.zeros(rest.shape[:2], bool), tasks, BALL)
-    np.testing.assert_allclose(contexts[filtering.select_contexts(scores, contexts, tasks, 2.0)], tasks)
+    distance, lateral = _resting(contexts, lambda c: c)
+    scores = filtering.score_matrix(distance, lateral, _no_blow_up(distance), tasks)
+    np.testing.assert_allclose(contexts[filtering.select_contexts(scores, contexts, tasks, 2.0, TASK_RANGE)], tasks)
 
 
 def test_blown_up_rollouts_score_as_the_target_distance():
     contexts = np.array([10.0, 10.5])
-    rest = _rest_points(contexts, lambda c: c, reps=2)
+    distance, lateral = _resting(contexts, lambda c: c, reps=2)
     blown = np.array([[True, True], [False, False]])
-    scores = filtering.score_matrix(rest, blown, [10.0], BALL)
+    scores = filtering.score_matrix(distance, lateral, blown, [10.0])
     np.testing.assert_allclose(scores, [[10.0, 0.5]])
-    assert filtering.select_contexts(scores, contexts, [10.0], 1.0)[0] == 1
+    assert filtering.select_contexts(scores, contexts, [10.0], 1.0, TASK_RANGE)[0] == 1
 
 
 def test_ensemble_takes_the_better_net_per_task():
@@ -64,9 +85,26 @@ def test_ensemble_takes_the_better_net_per_task():
 
     eval_a = {"final_error": np.array([[1.0, 1.0], [2.0, 2.0]])}
     eval_b = {"final_error": np.array([[3.0, 3.0], [0.5, 0.5]])}
-    use_b, m = filtering.ensemble_metrics(sel([0.2, 0.9]), sel([0.4, 0.1]), eval_a, eval_b)
-    assert use_b.tolist() == [False, True]
-    np.testing.assert_array_equal(m["final_error"], [[1.0, 1.0], [0.5, 0.5]])
+    ens = filtering.ensemble_choice(sel([0.2, 0.9]), sel([0.4, 0.1]), eval_a, eval_b)
+    assert ens.use_b.tolist() == [False, True]
+    np.testing.assert_array_equal(ens.best_score, [0.2, 0.1])
+    np.testing.assert_array_equal(ens.metrics["final_error"], [[1.0, 1.0], [0.5, 0.5]])
+
+
+def test_table2_row_by_hand():
+    """Two tasks (10 and 12 m), two fresh kicks each."""
+    metrics = {
+        "final_error": np.array([[0.2, 0.4], [1.0, 0.0]]),
+        "rel_error": np.array([[0.02, 0.04], [1.0 / 12, 0.0]]),
+        "valid": np.array([[1.0, 1.0], [1.0, 0.0]]),
+    }
+    row = filtering.table2_row(metrics, n_contexts=7, best_score=np.array([0.1, 0.4]), rollouts=14)
+    assert row["error_mean_m"] == pytest.approx(0.4)  # per-task means 0.3 and 0.5
+    assert row["error_std_m"] == pytest.approx(0.1)
+    assert row["rel_error_mean"] == pytest.approx((0.03 + 1.0 / 24) / 2)
+    assert row["accuracy_mean"] == pytest.approx(0.75)
+    assert row["selection_error_m"] == pytest.approx(0.25)
+    assert (row["n_contexts"], row["rollouts"], row["n_tasks"]) == (7, 14, 2)
 
 
 def test_selection_and_evaluation_noise_are_independent():
@@ -80,15 +118,19 @@ def test_selection_and_evaluation_noise_are_independent():
 @pytest.mark.parametrize(
     ("call", "match"),
     [
-        (lambda: filtering.check_contexts([], (7.0, 18.0)), "no contexts"),
-        (lambda: filtering.check_contexts([8.0, 19.5], (7.0, 18.0)), "19.5"),
-        (lambda: filtering.check_contexts([6.2], (7.0, 18.0)), "6.2"),
+        (lambda: filtering.check_contexts([], TASK_RANGE), "no contexts"),
+        (lambda: filtering.check_contexts([8.0, 19.5], TASK_RANGE), "19.5"),
+        (lambda: filtering.check_contexts([6.2], TASK_RANGE), "6.2"),
         (lambda: filtering.check_width(0.0), "width .* 0.0"),
         (lambda: filtering.check_width(-0.5), "-0.5"),
-        (lambda: filtering.select_contexts(np.zeros((1, 2)), [8.0, 9.0], [8.5], 1.0), "8.5"),
-        (lambda: filtering.make_config("tiny", {"width": 0.0}), "width"),
-        (lambda: filtering.make_config("tiny", {"tasks": (3.0,)}), "3.0"),
-        (lambda: filtering.make_config("tiny", {"context_range": (7.0, 25.0)}), "25.0"),
+        (lambda: filtering.select_contexts(np.zeros((1, 2)), [8.0, 9.0], [8.5], 1.0, TASK_RANGE), "8.5"),
+        (lambda: filtering.select_contexts(np.zeros((1, 2)), [8.0, 9.0], [8.0, 9.0], 1.0, TASK_RANGE), r"\(2, 2\)"),
+        # The range is the env config's, passed in: a context outside a narrower one is named.
+        (lambda: filtering.select_contexts(np.zeros((1, 2)), [8.0, 13.0], [8.0], 1.0, (7.0, 12.0)), "13.0"),
+        (lambda: config.make_config("tiny", {"filter.width": 0.0}), "filter.width"),
+        (lambda: config.make_config("tiny", {"filter.tasks": (3.0,)}), "3.0"),
+        (lambda: config.make_config("tiny", {"filter.context_range": (7.0, 25.0)}), "25.0"),
+        (lambda: config.make_config("tiny", {"filter.net_seed": 1}), "net_seed 1"),
     ],
 )
 def test_bad_inputs_name_the_value(call, match):
@@ -96,40 +138,35 @@ def test_bad_inputs_name_the_value(call, match):
         call()
 
 
-def test_plots_write_pngs(tmp_path):
-    t = np.linspace(7.1, 18.0, 5)
-    filtering.plot_error_vs_target(tmp_path / "e.png", {"experts": (t, t * 0.05), "BUMPS": (t, t * 0.03)})
-    filtering.plot_context_map(tmp_path / "c.png", {"net": (t, np.stack([t, t + 0.2], 1))})
-    for name in ("e.png", "c.png"):
-        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"
-
-
-# -- one tiny MJX end-to-end run ---------------------------------------------------------------
+# -- one tiny MJX run ---------------------------------------------------------------------------
 
 BLOCK = 8  # every stage below runs as batches of 8 episodes: one compiled program (conftest's)
 
 
 def test_filtering_end_to_end_in_mjx(env, contextual):
     grid, params = contextual
+    task_range = tuple(env.config.task_range)
     tasks = np.array([11.0, 13.0])
     contexts = filtering.candidate_contexts(tasks, [9.0, 15.0])
     sel_key, eval_key = filtering.noise_keys(0)
-    ball = filtering.ball_start_xy(env)
-    sel = filtering.filter_policy(grid, params, contexts, tasks, 2.0, 2, sel_key, ball, block=BLOCK)
+    sel = filtering.filter_policy(grid, params, contexts, tasks, 2.0, 2, sel_key, task_range=task_range, block=BLOCK)
     assert sel.scores.shape == (2, 4) and sel.distance.shape == (4, 2)
     chosen = sel.contexts[sel.chosen]
     assert np.all(np.abs(chosen - tasks) <= 2.0 + 1e-6)
     own = np.searchsorted(sel.contexts, tasks)
     assert np.all(sel.best_score <= sel.scores[np.arange(2), own])
+    # The contextual family kicks further for a larger context (the map filtering corrects).
+    assert np.all(np.diff(sel.distance.mean(axis=1)) > 0)
     # Rescoring: the env's own final error for a rollout whose target is the task equals the
-    # selection score computed from resting points (the dynamics ignore the target).
+    # selection score computed from the resting points (the dynamics ignore the target).
     flat = np.repeat(contexts, 2)
     keys = filtering.stage_keys(sel_key, 4, 2)
     for t_index, task in enumerate(tasks):
         m = filtering.run_blocked(grid, params, flat, np.full(8, task), keys, BLOCK)
-        np.testing.assert_allclose(m["final_error"].reshape(4, 2).mean(1), sel.scores[t_index], atol=2e-3)
+        np.testing.assert_allclose(m["final_error"].reshape(4, 2).mean(1), sel.scores[t_index], atol=1e-4)
     m = filtering.evaluate_chosen(grid, params, chosen, tasks, 4, eval_key, block=BLOCK)
     assert m["final_error"].shape == (2, 4)
-    row = filtering.table2_row(m, len(contexts))
-    assert row["n_contexts"] == 4 and np.isfinite(row["error_mean_m"])
+    row = filtering.table2_row(m, len(contexts), sel.best_score, len(contexts) * 2)
+    assert row["n_contexts"] == 4 and np.isfinite(row["error_mean_m"]) and row["rollouts"] == 8
+    assert row["selection_error_m"] == pytest.approx(sel.best_score.mean())
     assert row["rel_error_mean"] == pytest.approx(np.mean(m["final_error"] / tasks[:, None]), rel=1e-5)

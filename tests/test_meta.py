@@ -1,17 +1,30 @@
-"""Meta-training: lr schedule, behaviour cloning, dataset contextualisation, save/load, resume."""
+"""Meta-training (bc.py and the meta and filter stages): lr schedule, behaviour cloning, resume
+(also past a corrupt checkpoint), loading a policy, the dataset's contextualisation, and the two
+stages end to end on stand-in experts."""
 
 import csv
+import json
+import re
+import shutil
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import stand_ins
 
-from bumps_jax import kick_env, meta, synthetic_experts
+from bumps_jax import bc, config, evaluate, filtering, kick_env, pipeline, runio, tables
+from bumps_jax.stages import experts as experts_stage
+from bumps_jax.stages import filter as filter_stage
+from bumps_jax.stages import meta as meta_stage
+
+
+def quiet(*args, **kwargs):
+    pass
 
 
 def _train_cfg(**changes):
-    cfg = meta.tiny_config().train
+    cfg = config.make_config("tiny").meta.train
     cfg.unlock()
     cfg.update(changes)
     cfg.lock()
@@ -20,10 +33,10 @@ def _train_cfg(**changes):
 
 def test_lr_schedule_matches_the_paper():
     """3e-4 x 0.8 every 5000 epochs, an epoch being one pass: 14 steps for 23 experts x 75 steps."""
-    train = meta.default_config().train
-    epoch_steps = meta.steps_per_epoch(train, 23 * 75)
+    train = config.make_config("paper").meta.train
+    epoch_steps = bc.steps_per_epoch(train, 23 * 75)
     assert epoch_steps == 14  # 13 full batches of 128 and one of 61
-    schedule = meta.lr_schedule(train, epoch_steps)
+    schedule = bc.lr_schedule(train, epoch_steps)
     for epoch, lr in [(0, 3e-4), (4999, 3e-4), (5000, 2.4e-4), (12000, 1.92e-4), (149_999, 3e-4 * 0.8**29)]:
         assert float(schedule(epoch * epoch_steps)) == pytest.approx(lr, rel=1e-5), epoch
         assert float(schedule(epoch * epoch_steps + epoch_steps - 1)) == pytest.approx(lr, rel=1e-5), epoch
@@ -35,12 +48,12 @@ def test_an_epoch_visits_every_row_once():
     obs = jnp.asarray(rng.uniform(size=(300, 2)), jnp.float32)  # 3 batches: 128, 128, 44 rows
     actions = jnp.asarray(rng.normal(size=(300, 22)), jnp.float32)
     cfg = _train_cfg(learning_rate=1e-12, epochs=1, chunk=1, batch_size=128)
-    model = meta.MetaPolicy(depth=1, width=8)
-    init, chunk = meta.make_trainer(model, cfg, 300)
-    state = init(meta.seed_keys(cfg))
+    model = bc.MetaPolicy(depth=1, width=8)
+    init, chunk = bc.make_trainer(model, cfg, 300)
+    state = init(bc.seed_keys(cfg))
     params0 = jax.tree.map(lambda a: a[0], state.params)
-    per_row = np.abs(np.asarray(meta.policy_apply(model)(params0, obs)) - np.asarray(actions)).mean(axis=1)
-    state, losses = chunk(state, obs, actions, meta.seed_keys(cfg))
+    per_row = np.abs(np.asarray(bc.policy_apply(model)(params0, obs)) - np.asarray(actions)).mean(axis=1)
+    state, losses = chunk(state, obs, actions, bc.seed_keys(cfg))
     assert int(state.step) == 3 and losses.shape == (1, 3)
     weighted = (128 * losses[0, 0] + 128 * losses[0, 1] + 44 * losses[0, 2]) / 300
     assert float(weighted) == pytest.approx(per_row.mean(), rel=1e-4)
@@ -51,57 +64,58 @@ def test_behaviour_cloning_recovers_a_linear_map(tmp_path):
     w = rng.normal(size=(2, 22)).astype(np.float32) * 0.5
     b = rng.normal(size=22).astype(np.float32) * 0.3
     x = rng.uniform(size=(4096, 2)).astype(np.float32)
-    data = meta.Dataset(obs=x, actions=x @ w + b, task=np.zeros(len(x), np.float32))
+    data = bc.Dataset(obs=x, actions=x @ w + b, task=np.zeros(len(x), np.float32))
     # 4096 pairs: 32 steps per epoch, 2880 steps in all.
     cfg = _train_cfg(learning_rate=3e-3, decay_every=30, epochs=90, chunk=30, batch_size=128)
-    model = meta.MetaPolicy(depth=2, width=32)
-    state = meta.train(model, data, cfg, tmp_path, verbose=False)
+    model = bc.MetaPolicy(depth=2, width=32)
+    state = bc.train(model, data, cfg, tmp_path, say=quiet)
     x_test = rng.uniform(size=(256, 2)).astype(np.float32)
     params0 = jax.tree.map(lambda a: a[0], state.params)
-    pred = np.asarray(meta.policy_apply(model)(params0, jnp.asarray(x_test)))
+    pred = np.asarray(bc.policy_apply(model)(params0, jnp.asarray(x_test)))
     assert np.abs(pred - (x_test @ w + b)).mean() < 0.03
 
 
-def _table_dataset(tasks) -> meta.Dataset:
-    """The synthetic experts' (obs, action) pairs without simulating: phase k / T, their table row."""
-    experts = synthetic_experts.synthetic_experts(tasks)
-    tables = np.asarray(experts.params)  # (E, T, 22)
-    n_exp, n_steps, _ = tables.shape
+def _table_dataset(tasks) -> bc.Dataset:
+    """The stand-in experts' (obs, action) pairs without simulating: phase k / T, their table row."""
+    experts = stand_ins.synthetic_experts(tasks)
+    tables_ = np.asarray(experts.params)  # (E, T, 22)
+    n_exp, n_steps, _ = tables_.shape
     phase = np.tile(np.arange(n_steps) / n_steps, n_exp)
     task = np.repeat(np.asarray(tasks, np.float32), n_steps)
     ctx = (task - 7.0) / 11.0
-    return meta.Dataset(np.stack([phase, ctx], 1).astype(np.float32), tables.reshape(-1, 22), task)
+    return bc.Dataset(np.stack([phase, ctx], 1).astype(np.float32), tables_.reshape(-1, 22), task)
 
 
 def test_loss_falls_on_the_tiny_preset(tmp_path):
     data = _table_dataset(kick_env.meta_train_tasks())
-    cfg = meta.tiny_config()
+    cfg = config.make_config("tiny", {"meta.train.epochs": 300, "meta.train.chunk": 75, "meta.train.decay_every": 100})
     # All 23 experts' rows (14 steps per epoch): the tiny schedule cut to 300 epochs.
-    cfg.train.unlock()
-    cfg.train.update(epochs=300, chunk=75, decay_every=100)
-    depth, width = cfg.nets["meta_4x256"]
-    model = meta.MetaPolicy(depth, width)
-    init, _ = meta.make_trainer(model, cfg.train, len(data.obs))
-    first = jax.tree.map(lambda a: a[0], init(meta.seed_keys(cfg.train)).params)
-    initial = float(meta.mae_loss(first, meta.policy_apply(model), data.obs, data.actions))
-    meta.train(model, data, cfg.train, tmp_path, verbose=False)
+    depth, width = cfg.meta.nets["meta_4x256"]
+    model = bc.MetaPolicy(depth, width)
+    init, _ = bc.make_trainer(model, cfg.meta.train, len(data.obs))
+    first = jax.tree.map(lambda a: a[0], init(bc.seed_keys(cfg.meta.train)).params)
+    initial = float(bc.mae_loss(first, bc.policy_apply(model), data.obs, data.actions))
+    lines = []
+    bc.train(model, data, cfg.meta.train, tmp_path, say=lines.append)
     with open(tmp_path / "progress.csv") as f:
         rows = list(csv.DictReader(f))
-    chunk, epochs = cfg.train.chunk, cfg.train.epochs
+    chunk, epochs = cfg.meta.train.chunk, cfg.meta.train.epochs
     assert [int(r["epoch"]) for r in rows] == list(range(chunk, epochs + 1, chunk))
     losses = [float(r["loss_mean"]) for r in rows]
     assert losses[-1] < losses[0] and losses[-1] < 0.3 * initial
+    # One progress line per chunk, with an ETA until the last.
+    assert len(lines) == epochs // chunk and "ETA" in lines[0]
 
 
 def test_resume_equals_uninterrupted(tmp_path):
     data = _table_dataset((8.0, 12.0))
     cfg = _train_cfg(epochs=40, chunk=10, n_seeds=2)
-    model = meta.MetaPolicy(depth=1, width=8)
-    trainer = meta.make_trainer(model, cfg, len(data.obs))  # 150 pairs: 2 steps per epoch
-    whole = meta.train(model, data, cfg, tmp_path / "a", verbose=False, trainer=trainer)
-    part = meta.train(model, data, cfg, tmp_path / "b", verbose=False, max_chunks=2, trainer=trainer)
+    model = bc.MetaPolicy(depth=1, width=8)
+    trainer = bc.make_trainer(model, cfg, len(data.obs))  # 150 pairs: 2 steps per epoch
+    whole = bc.train(model, data, cfg, tmp_path / "a", say=quiet, trainer=trainer)
+    part = bc.train(model, data, cfg, tmp_path / "b", say=quiet, max_chunks=2, trainer=trainer)
     assert int(part.step) == 2 * 20
-    resumed = meta.train(model, data, cfg, tmp_path / "b", verbose=False, trainer=trainer)
+    resumed = bc.train(model, data, cfg, tmp_path / "b", say=quiet, trainer=trainer)
     assert int(resumed.step) == 2 * 40
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(resumed), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -111,72 +125,254 @@ def test_resume_equals_uninterrupted(tmp_path):
     w = jax.tree.leaves(whole.params)[0]
     assert not np.allclose(w[0], w[1])
     # load_policy reads the final checkpoint back.
-    _, params = meta.load_policy(tmp_path / "b", 1, 8, cfg)
+    _, params = bc.load_policy(tmp_path / "b", 1, 8, cfg)
     for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(whole.params), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_resume_falls_back_past_a_corrupt_checkpoint(tmp_path):
+    """A truncated newest checkpoint is reported by path, set aside, and its chunk redone: the run
+    still ends where an uninterrupted one does, its progress.csv without the redone chunk twice."""
+    data = _table_dataset((8.0, 12.0))
+    cfg = _train_cfg(epochs=30, chunk=10)
+    model = bc.MetaPolicy(depth=1, width=8)
+    trainer = bc.make_trainer(model, cfg, len(data.obs))
+    whole = bc.train(model, data, cfg, tmp_path / "a", say=quiet, trainer=trainer)
+    bc.train(model, data, cfg, tmp_path / "b", say=quiet, max_chunks=2, trainer=trainer)
+    newest = tmp_path / "b" / "checkpoints" / "40"  # 2 chunks x 10 epochs x 2 steps
+    for path in newest.rglob("*"):
+        if path.is_file():
+            path.write_bytes(b"")
+    lines = []
+    resumed = bc.train(model, data, cfg, tmp_path / "b", say=lines.append, trainer=trainer)
+    assert any(str(newest) in line for line in lines), lines
+    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(resumed), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with open(tmp_path / "b" / "progress.csv") as f:
+        assert [int(r["epoch"]) for r in csv.DictReader(f)] == [10, 20, 30]
 
 
 def test_load_policy_reads_params_whatever_the_optimiser_state(tmp_path):
     import orbax.checkpoint as ocp
 
     cfg = _train_cfg()
-    init, _ = meta.make_trainer(meta.MetaPolicy(1, 8), cfg, n_rows=4)
-    params = jax.tree.map(lambda a: a + 1.0, init(meta.seed_keys(cfg)).params)
+    init, _ = bc.make_trainer(bc.MetaPolicy(1, 8), cfg, n_rows=4)
+    params = jax.tree.map(lambda a: a + 1.0, init(bc.seed_keys(cfg)).params)
     # A checkpoint from a trainer with another optimiser layout (here: none of Adam's).
     state = {"params": params, "opt_state": {"other": jnp.zeros(3)}, "step": jnp.asarray(7)}
     with ocp.CheckpointManager((tmp_path / "checkpoints").resolve()) as manager:
         manager.save(7, args=ocp.args.StandardSave(state))
-    _, loaded = meta.load_policy(tmp_path, 1, 8, cfg)
+    _, loaded = bc.load_policy(tmp_path, 1, 8, cfg)
     for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def test_load_policy_names_the_folder_without_a_checkpoint(tmp_path):
+    cfg = _train_cfg()
+    with pytest.raises(ValueError, match=re.escape(str((tmp_path / "net" / "checkpoints").resolve()))):
+        bc.load_policy(tmp_path / "net", 1, 8, cfg)
+    (tmp_path / "net" / "checkpoints").mkdir(parents=True)
+    with pytest.raises(ValueError, match="no checkpoint"):
+        bc.load_policy(tmp_path / "net", 1, 8, cfg)
+
+
 def test_dataset_save_load_round_trip(tmp_path):
     data = _table_dataset((7.0, 18.0))
-    meta.save_dataset(tmp_path / "d.npz", data)
-    back = meta.load_dataset(tmp_path / "d.npz")
+    meta_stage.save_dataset(tmp_path / "d.npz", data)
+    back = meta_stage.load_dataset(tmp_path / "d.npz")
     for a, b in zip(data, back, strict=True):
         np.testing.assert_array_equal(a, b)
 
 
-def test_recorded_dataset_is_contextualised_with_the_experts_task():
-    """Three synthetic experts, K = 1, noise off: X = (step / T, normalised own task), Y = their actions."""
-    tasks = (7.5, 12.0, 16.5)
-    experts = synthetic_experts.synthetic_experts(tasks)
-    env = meta.dataset_env(1)
-    assert all(v == 0.0 for v in env.config.noise.values())
-    data, metrics = meta.collect_dataset(env, experts, repetitions=1)
-    n_steps = env.n_steps
-    assert data.obs.shape == (3 * n_steps, 2) and data.actions.shape == (3 * n_steps, 22)
-    assert metrics["final_error"].shape == (3, 1)
-    np.testing.assert_allclose(data.task, np.repeat(tasks, n_steps))
-    np.testing.assert_allclose(data.obs[:, 1], (np.repeat(tasks, n_steps) - 7.0) / 11.0, rtol=1e-6)
-    np.testing.assert_allclose(data.obs[:, 0], np.tile(np.arange(n_steps) / n_steps, 3), atol=1e-6)
-    np.testing.assert_allclose(data.actions, np.asarray(experts.params).reshape(-1, 22), atol=1e-6)
+def test_recording_env_is_noise_free_only_when_k_is_one():
+    cfg = config.make_config("tiny")
+    assert all(v == 0.0 for v in meta_stage.dataset_env(cfg).config.noise.values())
+    assert cfg.env.noise.friction > 0  # the run's own env is left as it was
+    noisy = config.make_config("tiny", {"meta.dataset.repetitions": 3})
+    assert meta_stage.dataset_env(noisy).config.noise.friction == cfg.env.noise.friction
 
 
-def test_noisy_recording_env_when_k_above_one():
-    assert meta.dataset_env(3).config.noise.friction > 0
+def test_nets_run_in_the_papers_order_first():
+    assert meta_stage.net_names({"zz": 1, "meta_11x128": 1, "aa": 1, "meta_4x256": 1}) == [
+        "meta_4x256",
+        "meta_11x128",
+        "aa",
+        "zz",
+    ]
 
 
 @pytest.mark.parametrize(
     ("overrides", "match"),
     [
-        ({"train.epochs": 1000, "train.chunk": 300}, "1000"),
-        ({"train.batch_size": 0}, "batch_size"),
-        ({"eval.tasks": (5.0,)}, "5.0"),
-        ({"dataset.repetitions": 0}, "repetitions"),
+        ({"meta.train.epochs": 1000, "meta.train.chunk": 300}, "1000"),
+        ({"meta.train.batch_size": 0}, "meta.train.batch_size"),
+        ({"meta.eval.tasks": (5.0,)}, "5.0"),
+        ({"meta.dataset.repetitions": 0}, "meta.dataset.repetitions"),
+        ({"meta.nets.meta_4x256": (0, 256)}, "meta.nets.meta_4x256"),
     ],
 )
 def test_bad_config_names_the_value(overrides, match):
     with pytest.raises(ValueError, match=match):
-        meta.make_config("tiny", overrides)
-
-
-def test_json_safe_strict_json():
-    assert meta.json_safe({"a": [float("nan"), 1.0], "b": float("inf")}) == {"a": [None, 1.0], "b": None}
+        config.make_config("tiny", overrides)
 
 
 def test_unknown_preset():
     with pytest.raises(ValueError, match="huge"):
-        meta.make_config("huge")
+        config.make_config("huge")
+
+
+# -- the stages, on stand-in experts -----------------------------------------------------------
+
+OVERRIDES = {
+    # Both nets of one small architecture: one compiled evaluation program serves the two.
+    "meta.nets.meta_4x256": (1, 16),
+    "meta.nets.meta_11x128": (1, 16),
+    "meta.train.epochs": 4,
+    "meta.train.chunk": 2,
+    "meta.eval.tasks": (10.0, 13.0),
+    "filter.tasks": (10.0, 13.0),
+    "filter.context_range": (9.0, 14.0),
+    "filter.context_step": 2.5,
+    "filter.high_context_step": 1.25,
+    "filter.block": 8,
+}
+
+
+def _experts_run(cfg, run_dir):
+    """What the experts stage leaves for the meta stage: experts.json (a record of made-up
+    numbers) and a final_params folder (the stand-ins replace what it would hold)."""
+    tasks = cfg.experts.tasks
+    rng = np.random.default_rng(0)
+    err = rng.uniform(0.1, 0.5, size=(len(tasks), 4))
+    metrics = {"final_error": err, "rel_error": err / np.asarray(tasks)[:, None], "valid": np.ones_like(err)}
+    record = {**evaluate.experts_record(tasks, metrics, 600), **runio.provenance(cfg.preset, 0.0, cfg.env)}
+    runio.write_json(run_dir / "experts" / "experts.json", record)
+    (run_dir / "experts" / "final_params").mkdir()
+    return record
+
+
+@pytest.fixture(scope="module")
+def stage_run(tmp_path_factory):
+    """The meta and filter stages run in order by the stage runner on stand-in experts."""
+    cfg = config.make_config("tiny", OVERRIDES)
+    run_dir = tmp_path_factory.mktemp("run")
+    record = _experts_run(cfg, run_dir)
+    family = stand_ins.synthetic_experts(cfg.experts.tasks)
+    loads = []
+
+    def load_family(c, d):
+        loads.append(d)
+        return family
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(experts_stage, "load_family", load_family)
+        table1 = pipeline.run_stage("meta", cfg, run_dir, say=quiet)
+        table2 = pipeline.run_stage("filter", cfg, run_dir, say=quiet)
+        # Both up to date now: read back, no work (the filter's reading of the nets' checkpoints
+        # left them as the manifest hashed them).
+        again = {name: pipeline.run_stage(name, cfg, run_dir, say=quiet) for name in ("meta", "filter")}
+    return {"cfg": cfg, "dir": run_dir, "experts": record, "family": family, "loads": loads,
+            "table1": table1, "table2": table2, "again": again}  # fmt: skip
+
+
+def test_meta_stage_records_the_experts_contextualised(stage_run):
+    """X = (step / T, normalised own task), Y = the expert's actions, one noise-free rollout each."""
+    cfg, family = stage_run["cfg"], stage_run["family"]
+    data = meta_stage.load_dataset(stage_run["dir"] / "meta" / "dataset.npz")
+    n_steps, tasks = 75, np.asarray(cfg.experts.tasks)
+    assert data.obs.shape == (3 * n_steps, 2) and data.actions.shape == (3 * n_steps, 22)
+    np.testing.assert_allclose(data.task, np.repeat(tasks, n_steps))
+    np.testing.assert_allclose(data.obs[:, 1], (np.repeat(tasks, n_steps) - 7.0) / 11.0, rtol=1e-6)
+    np.testing.assert_allclose(data.obs[:, 0], np.tile(np.arange(n_steps) / n_steps, 3), atol=1e-6)
+    np.testing.assert_allclose(data.actions, np.asarray(family.params).reshape(-1, 22), atol=1e-6)
+    assert stage_run["loads"] == [stage_run["dir"]]  # the experts were loaded once, for the dataset
+
+
+def test_meta_stage_writes_table1(stage_run):
+    cfg, table1 = stage_run["cfg"], stage_run["table1"]
+    saved = json.loads((stage_run["dir"] / "meta" / "table1.json").read_text())  # strict JSON
+    assert saved == table1 == stage_run["again"]["meta"]
+    old_keys = {"rows", "rows_per_seed", "per_task", "eval", "dataset_pairs", "timings", "device", "n_devices",
+                "versions", "date", "command", "preset", "wall_s"}  # fmt: skip
+    assert old_keys <= set(saved) and saved["env"]["physics_dt"] == 0.0025
+    assert list(saved["rows"]) == ["experts", "meta_4x256", "meta_11x128"]
+    expected = {k: stage_run["experts"][k] for k in meta_stage.ROW_KEYS}
+    assert {k: saved["rows"]["experts"][k] for k in meta_stage.ROW_KEYS} == expected
+    assert saved["per_task"]["experts"]["tasks"] == list(cfg.experts.tasks)
+    assert saved["per_task"]["tasks"] == [10.0, 13.0] and saved["dataset_pairs"] == 3 * 75
+    assert saved["eval"] == {"repetitions": 2, "n_tasks": 2, "seed": 1}
+    for net in ("meta_4x256", "meta_11x128"):
+        assert saved["rows"][net]["n_tasks"] == 2 and len(saved["rows_per_seed"][net]) == 1
+        assert len(saved["per_task"][net]["error_mean_m"]) == 2
+        assert set(saved["timings"][net]) == {"train_wall_s", "eval_wall_s"}
+        with open(stage_run["dir"] / "meta" / net / "progress.csv") as f:
+            assert [int(r["epoch"]) for r in csv.DictReader(f)] == [2, 4]
+    assert (stage_run["dir"] / "meta" / "table1.md").read_text() == tables.table1_markdown(saved["rows"])
+
+
+def test_filter_stage_writes_table2(stage_run):
+    cfg, saved = stage_run["cfg"], stage_run["table2"]
+    stage_dir = stage_run["dir"] / "filter"
+    assert json.loads((stage_dir / "table2.json").read_text()) == saved == stage_run["again"]["filter"]
+    assert list(saved["rows"]) == list(tables.PAPER_TABLE2)
+    n_low = len(filtering.candidate_contexts(cfg.filter.tasks, [9.0, 11.5, 14.0]))
+    n_high = len(filtering.candidate_contexts(cfg.filter.tasks, [9.0, 10.25, 11.5, 12.75, 14.0]))
+    rows = saved["rows"]
+    assert (rows["filtered_4x256"]["n_contexts"], rows["high_sample_rate_4x256"]["n_contexts"]) == (n_low, n_high)
+    assert rows["filtered_4x256"]["rollouts"] == n_low * 2 and rows["high_sample_rate_4x256"]["rollouts"] == n_high * 2
+    assert rows["filtered_ensemble"]["rollouts"] == 2 * n_low * 2
+    # Per task the ensemble keeps the lower of the two nets' selection scores.
+    best = min(rows["filtered_4x256"]["selection_error_m"], rows["filtered_11x128"]["selection_error_m"])
+    assert rows["filtered_ensemble"]["selection_error_m"] <= best + 1e-12
+    for name, chosen in saved["chosen_contexts"].items():
+        if name != "filtered_ensemble_uses_11x128":
+            assert np.all(np.abs(np.asarray(chosen) - saved["tasks"]) <= cfg.filter.width + 1e-6), name
+    assert set(saved["per_task_error_m"]) == {*tables.PAPER_TABLE2}
+    assert saved["config"]["block"] == 8 and saved["paper"]["filtered_ensemble"]["error_mean_m"] == 0.40
+    assert (stage_dir / "table2.md").read_text() == tables.table2_markdown(rows)
+    for name in ("error_vs_target.png", "context_map.png"):
+        assert (stage_dir / name).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_meta_inputs_name_what_is_missing(tmp_path):
+    cfg = config.make_config("tiny")
+    path = tmp_path / "experts" / "experts.json"
+    with pytest.raises(ValueError, match=re.escape(str(path)) + ".*train-experts"):
+        meta_stage.inputs(cfg, tmp_path)
+    path.parent.mkdir()
+    path.write_text("{not json")
+    with pytest.raises(ValueError, match=re.escape(str(path))):
+        meta_stage.inputs(cfg, tmp_path)
+    _experts_run(cfg, tmp_path / "other")
+    shutil.copy(tmp_path / "other" / "experts" / "experts.json", path)
+    with pytest.raises(ValueError, match=re.escape(str(tmp_path / "experts" / "final_params"))):
+        meta_stage.inputs(cfg, tmp_path)
+    (tmp_path / "experts" / "final_params").mkdir()
+    assert meta_stage.inputs(cfg, tmp_path)["experts"] == path
+    # Experts made under another env config are refused, naming the key.
+    with pytest.raises(ValueError, match="env.noise.friction"):
+        meta_stage.inputs(config.make_config("tiny", {"env.noise.friction": 0.3}), tmp_path)
+
+
+def test_meta_dataset_is_reused_without_loading_the_experts(tmp_path, monkeypatch):
+    data = _table_dataset((8.0, 12.0))
+    meta_stage.save_dataset(tmp_path / "meta" / "dataset.npz", data)
+
+    def no_experts(cfg, run_dir):
+        raise AssertionError("the experts were loaded although the dataset was saved")
+
+    monkeypatch.setattr(experts_stage, "load_family", no_experts)
+    back = meta_stage.dataset(config.make_config("tiny"), tmp_path, say=quiet)
+    np.testing.assert_array_equal(back.actions, data.actions)
+
+
+def test_filter_inputs_refuse_another_meta_config(stage_run):
+    run_dir = stage_run["dir"]
+    overrides = {**OVERRIDES, "meta.train.epochs": 6}
+    with pytest.raises(ValueError, match="meta.train.epochs"):
+        filter_stage.inputs(config.make_config("tiny", overrides), run_dir)
+    overrides = {**OVERRIDES, "meta.nets.meta_11x128": (2, 16)}
+    with pytest.raises(ValueError, match="meta.nets.meta_11x128"):
+        filter_stage.inputs(config.make_config("tiny", overrides), run_dir)
+    with pytest.raises(ValueError, match=re.escape(str(run_dir / "nothing" / "meta" / "table1.json"))):
+        filter_stage.inputs(stage_run["cfg"], run_dir / "nothing")

@@ -9,7 +9,8 @@ import numpy as np
 import optax
 import pytest
 
-from bumps_jax import experts, kick_env, ppo
+from bumps_jax import config, kick_env, kick_model, ppo
+from bumps_jax.stages import experts
 
 N_STEPS = 75
 
@@ -124,26 +125,28 @@ def test_tiny_ppo_improves_return():
     (-172 at update 5): the kick's outcome is that sensitive to its trajectory.
     So the test checks the stochastic return over 4 updates, not the deterministic one.
     """
-    env = kick_env.KickEnv(config_overrides=NO_NOISE)
     n_updates = 4
-    cfg = experts.make_config(
-        overrides={
-            "tasks": (16.0,),
-            "bc.per_task_strength": False,  # the one 12 m kick, ~4 m short of 16 m
-            "ppo.num_envs": 16,
-            "ppo.num_minibatches": 4,
-            "ppo.num_epochs": 4,
-            "ppo.total_env_steps": 16 * N_STEPS * n_updates,
-            "ppo.learning_rate": 1e-5,
-            "updates_per_chunk": n_updates,
-            "tune.generations": 0,
-            "prior_path": str(Path(__file__).parent / "data" / "kick_prior_h200.json"),
-        }
+    cfg = config.make_config(
+        "tiny",
+        {
+            **{f"env.{k}": v for k, v in NO_NOISE.items()},
+            "experts.tasks": (16.0,),
+            "experts.bc.per_task_strength": False,  # the one 12 m kick, ~4 m short of 16 m
+            "experts.ppo.num_envs": 16,
+            "experts.ppo.num_minibatches": 4,
+            "experts.ppo.num_epochs": 4,
+            "experts.ppo.total_env_steps": 16 * N_STEPS * n_updates,
+            "experts.ppo.learning_rate": 1e-5,
+            "experts.updates_per_chunk": n_updates,
+            "experts.tune.generations": 0,
+        },
     )
-    programs = experts.compile_programs(cfg, env)
-    kicks, _ = experts.starting_kicks(cfg, verbose=False)
-    state, _ = experts.run_init(programs, experts.task_rngs(cfg.seed, 1), jnp.asarray(cfg.tasks), kicks)
-    _, metrics = experts.run_chunk(programs, state, jnp.asarray(cfg.tasks))
+    programs = experts.compile_programs(cfg)
+    frozen = kick_model.load_record(Path(__file__).parent / "data" / "kick_prior_h200.json")
+    kicks, _ = experts.starting_kicks(cfg, frozen, say=lambda *a, **k: None)
+    tasks = jnp.asarray(cfg.experts.tasks)
+    state, _ = experts.run_init(programs, experts.task_rngs(cfg.experts.seed, 1), tasks, kicks)
+    _, metrics = experts.run_chunk(programs, state, tasks)
     returns = np.asarray(metrics.episode_return[0])  # (updates,), each collected before its update
     print(f"collected returns per update {returns.round(2).tolist()}")
     assert returns[2:].mean() > returns[0] + 1.0

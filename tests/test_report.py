@@ -5,13 +5,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bumps_jax import prior, report, results
+from bumps_jax import config, report, runio
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _common(preset="tiny"):
-    return {**results.provenance(preset, 12.0, command="python -m bumps_jax demo")}
+def _common(preset="tiny", **env):
+    return {**runio.provenance(preset, 12.0, config.make_config("tiny", env).env, command="python -m bumps_jax demo")}
 
 
 def test_report_fills_tables_and_names_missing_stages(tmp_path):
@@ -72,7 +72,7 @@ def test_report_shows_pipeline_time_and_baseline(tmp_path):
 
 def test_publish_copies_a_run_and_rebuilds_results_md(tmp_path):
     run = _paper_run(tmp_path)
-    (run / "prior" / prior.RUN_PRIOR_JSON).write_text('{"params": "the run\'s own prior"}')
+    (run / "prior" / "kick_prior_asset.json").write_text('{"params": "the run\'s own prior"}')
     (run / "prior" / "kick_prior_timing.json").write_text('{"wall_s": 1.0}')
     root = tmp_path / "repo"
     written = {p.relative_to(root).as_posix() for p in report.publish(run, root)}
@@ -89,21 +89,6 @@ def test_publish_copies_a_run_and_rebuilds_results_md(tmp_path):
     assert "12 m prior over 100 noisy kicks: mean error 0.68 m" in text
 
 
-def test_publish_rebuilds_the_prior_record_of_an_older_run(tmp_path):
-    """A run from before runs kept their prior record: publish rebuilds it from the payload (the
-    committed one, results/kick_prior.json), so the asset still matches the run."""
-    run = tmp_path / "run"
-    (run / "prior").mkdir(parents=True)
-    payload = json.loads((ROOT / "results" / "kick_prior.json").read_text())
-    (run / "prior" / "kick_prior.json").write_text(json.dumps(payload))
-    root = tmp_path / "repo"
-    written = {p.relative_to(root).as_posix() for p in report.publish(run, root)}
-    assert "assets/kick_prior.json" in written
-    record = prior.load_prior(root / "assets" / "kick_prior.json")
-    assert record["params"].tolist() == np.float32(payload["anchors"]["main"]).tolist()
-    assert record["sweep"] == payload["sweep"]
-
-
 def test_publish_refuses_an_empty_run(tmp_path):
     import pytest
 
@@ -112,19 +97,19 @@ def test_publish_refuses_an_empty_run(tmp_path):
         report.publish(tmp_path / "run", tmp_path / "repo")
 
 
-def test_records_at_different_physics_steps_are_flagged(tmp_path):
+def test_records_of_different_physics_are_flagged(tmp_path):
     (tmp_path / "experts").mkdir()
     (tmp_path / "baseline").mkdir()
-    experts_record = {**results.provenance("paper", 5.0, physics_dt_s=0.0025), "tasks_m": [7.0], "env_steps": 75,
-                      "accuracy_mean": 1.0, "accuracy_std": 0.0, "error_mean_m": 0.4, "error_std_m": 0.1,
-                      "error_mean_all_m": 0.4}  # fmt: skip
+    experts_record = {**_common("paper"), "tasks_m": [7.0], "env_steps": 75, "accuracy_mean": 1.0, "accuracy_std": 0.0,
+                      "error_mean_m": 0.4, "error_std_m": 0.1, "error_mean_all_m": 0.4, "wall_s": 5.0}  # fmt: skip
     (tmp_path / "experts" / "experts.json").write_text(json.dumps(experts_record))
     text = report.build(tmp_path)
-    assert "| experts | 5 | 2.5 ms |" in text and "not comparable" not in text
-    baseline = {**results.provenance("paper", 1.0, physics_dt_s=0.005), "seeds": 1, "env_steps": 75,
-                "eval_tasks": [7.1], "error_mean_m": 2.0, "accuracy_mean": 1.0}  # fmt: skip
+    assert "| experts | 5 | 2.5 ms, jax |" in text and "not comparable" not in text
+    baseline = {**_common("paper", **{"env.physics_dt": 0.005}), "seeds": 1, "env_steps": 75, "eval_tasks": [7.1],
+                "error_mean_m": 2.0, "accuracy_mean": 1.0}  # fmt: skip
     (tmp_path / "baseline" / "baseline.json").write_text(json.dumps(baseline))
     text = report.build(tmp_path)
-    assert "different physics steps (experts 2.5 ms, baseline 5 ms): they are not comparable" in text
-    assert "physics step 5 ms)." in text
-    assert report.physics_step(results.provenance("tiny", 1.0)) == "not recorded"
+    assert "different physics (experts 2.5 ms, jax, baseline 5 ms, jax): they are not comparable" in text
+    assert "physics step 5 ms, jax)." in text
+    assert report.physics_step({"physics_dt_s": 0.005}) == "5 ms, backend not recorded"
+    assert report.physics_step({"device": "cpu"}) == "not recorded"

@@ -13,7 +13,8 @@ import pytest
 import sharded_run
 import tiny_experts
 
-from bumps_jax import experts, sharding
+from bumps_jax import sharding
+from bumps_jax.stages import experts
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -29,8 +30,8 @@ def sharded_vs_single(env, contextual, expert_programs, tmp_path_factory):
     sharded = json.loads(proc.stdout.strip().splitlines()[-1])
     # The single-device side runs here, on the programs test_experts.py and test_filtering.py
     # compile (the selection in calls of 8 episodes, as the sharded one's 2 on each of 4 devices).
-    out = experts.train_experts(tiny_experts.config(), tmp_path_factory.mktemp("one_device"), verbose=False,
-                                programs=expert_programs)  # fmt: skip
+    out = experts.train(tiny_experts.pipeline_config(), tmp_path_factory.mktemp("one_device"), expert_programs,
+                        say=lambda *a, **k: None)  # fmt: skip
     leaves = jax.tree.leaves(experts.expert_params(out["state"]))
     grid, params = contextual
     single = {

@@ -172,7 +172,7 @@ def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
     if e.tune.generations > 0:
         t0 = time.perf_counter()
         out = cmaes.tune_for_tasks(
-            tune_env, targets, starts, e.tune, cfg.prior.fitness, e.tune.generations, e.tune.sigma_init, say=say
+            tune_env, targets, starts, e.tune, e.tune.generations, e.tune.sigma_init, fitness=cfg.prior.fitness, say=say
         )
         starts = out["params"]
         info.update(tuned=True, wall_s=time.perf_counter() - t0, episodes=out["episodes"],

@@ -1,0 +1,308 @@
+"""Behaviour cloning: the contextual meta-policy fitted to the experts' pairs, and one kick
+cloned into an expert's Gaussian policy.
+
+The meta-policy (BUMPS step 2): an MLP (tanh hidden layers, linear output) maps the observation
+(phase, normalised context) to the 22 joint targets. Loss: mean absolute error; Adam with a
+staircase decay per epoch; an epoch is one pass over the shuffled pairs in batches, the last one
+partial (as the original's Keras `fit`): ceil(N / batch) gradient steps. The pairs stay on the
+device; each chunk of epochs is one jitted lax.scan that shuffles epoch e with key
+fold_in(seed key, e), so a resumed run draws the same batches as an uninterrupted one; seeds
+are vmapped. The host syncs once per chunk: progress line, CSV row, orbax checkpoint.
+
+Kick cloning (the experts' and the baseline's start): full-batch Adam fits a Gaussian policy's
+mean to a keyframe kick's (T, 22) joint targets (`kick_dataset`, `clone_kick`).
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from bumps_jax import kick_env, kick_model, ppo, runio
+
+CSV_FIELDS = ("epoch", "step", "lr", "loss_mean", "loss_last", "loss_best_seed", "seconds")
+KEEP_CHECKPOINTS = 2
+
+
+# -- the meta-policy ----------------------------------------------------------------------------
+
+
+class Dataset(NamedTuple):
+    """Behaviour-cloning pairs over experts, repetitions and steps (N = E * K * T)."""
+
+    obs: np.ndarray  # (N, 2) phase, normalised context (the expert's task)
+    actions: np.ndarray  # (N, 22) the expert's joint targets (rad)
+    task: np.ndarray  # (N,) the expert's task (m)
+
+
+class MetaPolicy(nn.Module):
+    """MLP: obs (..., 2) -> joint targets (..., 22); `depth` tanh layers of `width`, linear output."""
+
+    depth: int
+    width: int
+    n_actions: int = 22
+
+    @nn.compact
+    def __call__(self, obs):
+        x = obs
+        for _ in range(self.depth):
+            x = nn.tanh(nn.Dense(self.width)(x))
+        return nn.Dense(self.n_actions)(x)
+
+
+def policy_apply(model: MetaPolicy):
+    """apply_fn(params, obs (..., 2)) -> actions (..., 22): the policy interface of `rollout`."""
+
+    def apply_fn(params, obs):
+        return model.apply({"params": params}, obs)
+
+    return apply_fn
+
+
+def steps_per_epoch(train_cfg, n_rows: int) -> int:
+    """Gradient steps in one pass over `n_rows` pairs in batches of train_cfg.batch_size."""
+    return -(-int(n_rows) // int(train_cfg.batch_size))
+
+
+def lr_schedule(train_cfg, epoch_steps: int = 1) -> optax.Schedule:
+    """lr(step) = lr0 * decay ** floor(epoch / decay_every), epoch = step // epoch_steps: the
+    paper's staircase decay, applied per epoch as its Keras scheduler did."""
+    return optax.exponential_decay(
+        init_value=train_cfg.learning_rate,
+        transition_steps=train_cfg.decay_every * epoch_steps,
+        decay_rate=train_cfg.decay_rate,
+        staircase=True,
+    )
+
+
+def mae_loss(params, apply_fn, obs, actions, weights=None) -> jax.Array:
+    """Mean absolute error () over the joints and the rows of obs (B, 2), actions (B, 22);
+    with weights (B,), the mean over the rows of weight 1."""
+    per_row = jnp.mean(jnp.abs(apply_fn(params, obs) - actions), axis=-1)
+    if weights is None:
+        return jnp.mean(per_row)
+    return jnp.sum(per_row * weights) / jnp.sum(weights)
+
+
+class TrainState(NamedTuple):
+    """What a checkpoint holds. Leaves of params and opt_state carry the seed axis (S, ...)."""
+
+    params: Any
+    opt_state: Any
+    step: jax.Array  # () int32: gradient steps done
+
+
+class SeedCarry(NamedTuple):
+    """The scan carry of one seed's training."""
+
+    params: Any
+    opt_state: Any
+
+
+def _epoch(apply_fn, optimizer, batch_size, epoch_steps, obs, actions, seed_key, carry: SeedCarry, epoch):
+    """One pass over the dataset, shuffled with key fold_in(seed_key, epoch): (carry, losses (epoch_steps,))."""
+    n = obs.shape[0]
+    order = jax.random.permutation(jax.random.fold_in(seed_key, epoch), n)
+    # Static shapes: every batch takes batch_size slots; the last, partial one masks the
+    # slots past the end, so its loss is the mean over its own rows (as Keras computes it).
+    order = jnp.concatenate([order, jnp.zeros(epoch_steps * batch_size - n, order.dtype)])
+    slots = jnp.arange(epoch_steps * batch_size).reshape(epoch_steps, batch_size)
+
+    def step(carry: SeedCarry, batch):
+        idx, slot = batch
+        weights = (slot < n).astype(obs.dtype)
+        loss, grads = jax.value_and_grad(mae_loss)(carry.params, apply_fn, obs[idx], actions[idx], weights)
+        updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
+        return SeedCarry(optax.apply_updates(carry.params, updates), opt_state), loss
+
+    return jax.lax.scan(step, carry, (order.reshape(epoch_steps, batch_size), slots))
+
+
+def make_trainer(model: MetaPolicy, train_cfg, n_rows: int):
+    """(init, chunk) for a dataset of `n_rows` pairs: init(seed_keys (S,)) -> TrainState;
+    chunk(state, obs (N, 2), actions (N, 22), seed_keys (S,)) -> (state after train_cfg.chunk
+    more epochs, losses (S, chunk epochs x steps per epoch)). Both jitted."""
+    epoch_steps = steps_per_epoch(train_cfg, n_rows)
+    # Adam over one flat vector: the same update, elementwise, in fewer kernels per step (the
+    # loop is launch-bound: tiny nets, batches of 128).
+    optimizer = optax.flatten(optax.adam(lr_schedule(train_cfg, epoch_steps)))
+    apply_fn = policy_apply(model)
+    chunk_epochs = int(train_cfg.chunk)
+
+    def init_one(key):
+        params = model.init(key, jnp.zeros((1, 2)))["params"]
+        return params, optimizer.init(params)
+
+    @jax.jit
+    def init(seed_keys):
+        params, opt_state = jax.vmap(init_one)(seed_keys)
+        return TrainState(params, opt_state, jnp.zeros((), jnp.int32))
+
+    def chunk_one(params, opt_state, seed_key, obs, actions, epochs):
+        body = functools.partial(_epoch, apply_fn, optimizer, train_cfg.batch_size, epoch_steps, obs, actions, seed_key)
+        carry, losses = jax.lax.scan(body, SeedCarry(params, opt_state), epochs)
+        return carry.params, carry.opt_state, losses.reshape(-1)
+
+    @jax.jit
+    def chunk(state: TrainState, obs, actions, seed_keys):
+        if obs.shape[0] != n_rows:
+            raise ValueError(f"the trainer was built for {n_rows} pairs, got {obs.shape[0]}")
+        epochs = state.step // epoch_steps + jnp.arange(chunk_epochs, dtype=jnp.int32)
+        params, opt_state, losses = jax.vmap(chunk_one, in_axes=(0, 0, 0, None, None, None))(
+            state.params, state.opt_state, seed_keys, obs, actions, epochs
+        )
+        return TrainState(params, opt_state, state.step + chunk_epochs * epoch_steps), losses
+
+    return init, chunk
+
+
+def seed_keys(train_cfg) -> jax.Array:
+    """(n_seeds,) keys, one per initialisation trained side by side."""
+    return jax.random.split(jax.random.key(train_cfg.seed), train_cfg.n_seeds)
+
+
+def _progress_row(state: TrainState, losses: np.ndarray, epoch_steps: int, schedule, seconds: float) -> dict:
+    """The CSV row of one chunk from its losses (S, steps)."""
+    step = int(state.step)
+    return {
+        "epoch": step // epoch_steps,
+        "step": step,
+        "lr": float(schedule(step - 1)),
+        "loss_mean": float(losses.mean()),
+        "loss_last": float(losses[:, -1].mean()),
+        "loss_best_seed": float(losses.mean(axis=1).min()),
+        "seconds": round(seconds, 3),
+    }
+
+
+def train(model: MetaPolicy, data: Dataset, train_cfg, out_dir, say=print, max_chunks=None, trainer=None) -> TrainState:
+    """Train (or resume) one architecture on data (N pairs); returns the final TrainState, whose
+    `step` counts gradient steps (train_cfg.epochs x `steps_per_epoch`).
+
+    Writes out_dir/progress.csv and an orbax checkpoint in out_dir/checkpoints after every chunk.
+    A rerun resumes from the newest readable checkpoint and ends where an uninterrupted run would.
+    max_chunks: stop after this many chunks in this call (tests of the resume path).
+    """
+    import orbax.checkpoint as ocp  # noqa: PLC0415
+
+    out_dir = Path(out_dir).resolve()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    init, chunk = trainer or make_trainer(model, train_cfg, len(data.obs))
+    epoch_steps = steps_per_epoch(train_cfg, len(data.obs))
+    total_steps = train_cfg.epochs * epoch_steps
+    keys = seed_keys(train_cfg)
+    csv_path = out_dir / "progress.csv"
+    schedule = lr_schedule(train_cfg, epoch_steps)
+    with runio.checkpoint_manager(out_dir / "checkpoints", KEEP_CHECKPOINTS) as manager:
+        fresh = init(keys)
+        step, state = runio.restore_latest(manager, ocp.args.StandardRestore(fresh), say)
+        if step is None:
+            state = fresh
+        else:
+            say(f"  resumed from epoch {int(state.step) // epoch_steps} in {out_dir}")
+        runio.trim_csv(csv_path, CSV_FIELDS, "step", int(state.step))
+        obs, actions = jnp.asarray(data.obs), jnp.asarray(data.actions)  # resident on the device
+        first, done_chunks, start = int(state.step), 0, time.perf_counter()
+        with runio.stop_on_interrupt(say) as stop:
+            while int(state.step) < total_steps and (max_chunks is None or done_chunks < max_chunks):
+                t0 = time.perf_counter()
+                state, losses = chunk(state, obs, actions, keys)
+                row = _progress_row(state, np.asarray(losses), epoch_steps, schedule, time.perf_counter() - t0)
+                runio.append_csv(csv_path, CSV_FIELDS, [row])
+                manager.save(row["step"], args=ocp.args.StandardSave(state))
+                manager.wait_until_finished()
+                done_chunks += 1
+                eta = runio.eta(row["step"] - first, total_steps - first, time.perf_counter() - start)
+                say(
+                    f"  epoch {row['epoch']:7d}/{train_cfg.epochs}  lr {row['lr']:.2e}  loss {row['loss_mean']:.4f}"
+                    f"  (last {row['loss_last']:.4f})  {eta}"
+                )
+                stop.check()
+    return state
+
+
+def load_policy(net_dir, depth: int, width: int, train_cfg) -> tuple[Any, Any]:
+    """(apply_fn, params stacked over seeds (S, ...)) from the newest checkpoint in net_dir/checkpoints.
+
+    ValueError naming the folder if it holds no checkpoint, or if its newest one is unreadable
+    (an older one would be a policy trained less than the run says).
+    """
+    import orbax.checkpoint as ocp  # noqa: PLC0415
+
+    path = Path(net_dir).resolve() / "checkpoints"
+    if not path.is_dir():
+        raise ValueError(f"{path}: no checkpoint folder (run meta-train first)")
+    model = MetaPolicy(depth, width)
+    init, _ = make_trainer(model, train_cfg, n_rows=1)  # the state's shapes do not depend on the data
+    # Only the params: a policy does not need the optimiser's state, whose layout may differ
+    # between versions of the trainer. (Real arrays, not `jax.eval_shape`: orbax restores a leaf
+    # without a sharding as a NumPy array, and initialising these small nets takes milliseconds.)
+    target = {"params": init(seed_keys(train_cfg)).params}
+    restore_args = ocp.checkpoint_utils.construct_restore_args(target)
+    args = ocp.args.PyTreeRestore(item=target, restore_args=restore_args, partial_restore=True)
+    with runio.checkpoint_manager(path, KEEP_CHECKPOINTS, read_only=True) as manager:
+        latest = manager.latest_step()
+        if latest is None:
+            raise ValueError(f"{path}: no checkpoint (run meta-train first)")
+        try:
+            restored = manager.restore(latest, args=args)
+        except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
+            reason = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
+            raise ValueError(f"{path / str(latest)}: unreadable checkpoint ({reason}); rerun meta-train") from None
+    return policy_apply(model), restored["params"]
+
+
+# -- cloning one kick into an expert's Gaussian policy ----------------------------------------
+
+
+class BCCarry(NamedTuple):
+    """The scan carry of kick cloning."""
+
+    policy: Any  # policy network params
+    opt_state: Any
+
+
+def kick_dataset(env: kick_env.KickEnv, target, kick_params) -> tuple[jax.Array, jax.Array]:
+    """A keyframe kick (14,) as (obs (T, 2), actions (T, 22)) for an expert of `target` m.
+
+    obs[k] is what the env shows before step k: (k / T, normalised target); actions[k] the
+    kick's joint targets for step k.
+    """
+    phase = jnp.arange(env.n_steps, dtype=jnp.float32) / env.n_steps
+    context = jnp.full_like(phase, env.normalise_context(jnp.asarray(target, jnp.float32)))
+    actions = kick_model.keyframes_to_actions(kick_params, env.n_steps, env.dt)
+    return jnp.stack([phase, context], axis=-1), actions
+
+
+def _clone_loss(networks, normalizer, policy, obs, actions):
+    """Mean squared error (rad^2) of the policy mean against the kick's actions."""
+    return jnp.mean(jnp.square(ppo.policy_mean(networks, normalizer, policy, obs) - actions))
+
+
+def _clone_step(networks, optimizer, normalizer, obs, actions, carry: BCCarry, _unused):
+    """One full-batch Adam step: (carry, None) -> (carry, loss)."""
+    loss, grads = jax.value_and_grad(_clone_loss, argnums=2)(networks, normalizer, carry.policy, obs, actions)
+    updates, opt_state = optimizer.update(grads, carry.opt_state, carry.policy)
+    return BCCarry(optax.apply_updates(carry.policy, updates), opt_state), loss
+
+
+def clone_kick(networks, policy, obs, actions, steps: int, learning_rate: float):
+    """Fit the policy mean to (obs (T, 2), actions (T, 22)). Returns (policy params, losses (steps,)).
+
+    Only the mean's weights move: the log-std keeps its initial value (its gradient is zero).
+    """
+    # Cosine decay to 1% of the peak: the kick's sharp swing needs the late small steps to be
+    # fitted closely enough to strike.
+    optimizer = optax.adam(optax.cosine_decay_schedule(learning_rate, steps, alpha=0.01))
+    normalizer = ppo.init_normalizer(obs.shape[-1])
+    body = functools.partial(_clone_step, networks, optimizer, normalizer, obs, actions)
+    carry, losses = jax.lax.scan(body, BCCarry(policy, optimizer.init(policy)), None, steps)
+    return carry.policy, losses

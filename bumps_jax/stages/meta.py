@@ -1,0 +1,209 @@
+"""Stage 3: the experts behaviour-cloned into the contextual meta-policies, and Table 1 (BUMPS step 2).
+
+1. Dataset: every expert (one per meta-training task) is rolled out `meta.dataset.repetitions`
+   times on its own task (the paper: once, with the noise off); each step's (observation,
+   action) is kept, the observation's context being the expert's task. Saved as dataset.npz
+   and reused when the stage resumes.
+2. Each net of `meta.nets` (`bc.MetaPolicy`) is trained on it (`bc.train`, resumable).
+3. Evaluation, unfiltered: every net on `meta.eval.tasks` x `meta.eval.repetitions` noisy kicks
+   with context = target (`rollout.grid_fn`); the experts' row comes from their own record.
+
+Writes run_dir/meta/: dataset.npz, <net>/progress.csv, <net>/checkpoints/, table1.json, table1.md.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bumps_jax import bc, config, evaluate, kick_env, rollout, runio, tables
+from bumps_jax.stages import experts as experts_stage
+
+OUTPUT = "table1.json"
+NETS = ("meta_4x256", "meta_11x128")  # the paper's two meta-policies, in its order
+# The experts' record's keys that make their Table 1 row.
+ROW_KEYS = (
+    "accuracy_mean", "accuracy_std", "error_mean_m", "error_std_m", "error_mean_all_m", "tasks_above_threshold",
+    "n_tasks",
+)  # fmt: skip
+
+
+def inputs(cfg, run_dir: Path) -> dict:
+    """The experts' record and their trained params; ValueError naming a missing or bad one."""
+    stage = Path(run_dir) / "experts"
+    record_path = stage / experts_stage.OUTPUT
+    record = runio.read_json(record_path, "the experts' record: run train-experts first")
+    config.check_same_env(record.get("env"), kick_env.resolved(cfg.env), f"the experts' record {record_path}")
+    experts_row(record, record_path)
+    params = stage / "final_params"
+    if not params.is_dir():
+        raise ValueError(f"{params}: no such folder (the trained experts): run train-experts first")
+    return {"experts": record_path, "experts_params": params}
+
+
+def experts_row(record: dict, path) -> tuple[dict, dict | None]:
+    """The experts' Table 1 row from their record (`evaluate.experts_record`), and their per-task
+    errors {"tasks", "error_mean_m"} if it lists them; ValueError naming `path` if it has no row."""
+    if "accuracy_mean" not in record:
+        raise ValueError(f"{path}: no experts row (accuracy_mean missing): rerun train-experts")
+    row = {k: record[k] for k in ROW_KEYS if k in record}
+    per_task = None
+    if isinstance(record.get("per_task"), list):
+        per_task = {
+            "tasks": [r["target_m"] for r in record["per_task"]],
+            "error_mean_m": [r["error_mean_m"] for r in record["per_task"]],
+        }
+    return {**row, "source": str(path)}, per_task
+
+
+def net_names(nets) -> list[str]:
+    """The nets of `meta.nets`, the paper's first in its order, then any others sorted."""
+    return [n for n in NETS if n in nets] + sorted(n for n in nets if n not in NETS)
+
+
+# -- the dataset --------------------------------------------------------------------------------
+
+
+def dataset_env(cfg) -> kick_env.KickEnv:
+    """The env the experts are recorded in: cfg.env, noise-free when they kick once each (the paper)."""
+    overrides = {}
+    if cfg.meta.dataset.repetitions == 1:
+        overrides = {f"noise.{name}": 0.0 for name in cfg.env.noise}
+    # A copy: `kick_env.make_config` shares the nested sections of the config it is given.
+    return kick_env.KickEnv(copy.deepcopy(cfg.env), overrides)
+
+
+def collect_dataset(env: kick_env.KickEnv, family, repetitions: int, seed: int = 0) -> tuple[bc.Dataset, dict]:
+    """Roll each expert out `repetitions` (K) times on its own task: (bc.Dataset of E * K * T
+    pairs, final metrics of (E, K)). family: (apply_fn, params stacked over E, tasks (E,) m)."""
+    tasks = kick_env.check_targets(family.tasks, env.config.task_range).astype(np.float32)
+    if repetitions < 1:
+        raise ValueError(f"repetitions must be >= 1, got {repetitions!r}")
+    program = rollout.matched_fn(env, family.apply_fn, record="trajectory")
+    keys = rollout.repetition_keys(seed, len(tasks), repetitions)
+    metrics, (obs, actions) = program(family.params, tasks, tasks, keys)  # (E, K, T, ...)
+    n = obs.shape[0] * obs.shape[1] * obs.shape[2]
+    task = np.broadcast_to(tasks[:, None, None], obs.shape[:3]).reshape(n)
+    data = bc.Dataset(
+        obs=np.asarray(obs, np.float32).reshape(n, obs.shape[-1]),
+        actions=np.asarray(actions, np.float32).reshape(n, actions.shape[-1]),
+        task=np.asarray(task, np.float32),
+    )
+    return data, {k: np.asarray(v) for k, v in metrics.items()}
+
+
+def save_dataset(path, data: bc.Dataset) -> Path:
+    """npz with obs, actions, task; written atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, **data._asdict())
+    tmp.replace(path)
+    return path
+
+
+def load_dataset(path) -> bc.Dataset:
+    """The bc.Dataset saved by `save_dataset`."""
+    with np.load(path) as f:
+        return bc.Dataset(**{name: f[name] for name in bc.Dataset._fields})
+
+
+def dataset(cfg, run_dir: Path, say=print) -> bc.Dataset:
+    """run_dir/meta/dataset.npz if a previous call of this stage saved it, else recorded from the
+    trained experts now (and saved)."""
+    path = Path(run_dir) / "meta" / "dataset.npz"
+    if path.exists():
+        data = load_dataset(path)
+        say(f"dataset: {path} ({len(data.obs)} pairs, reused)")
+        return data
+    t0 = time.perf_counter()
+    family = experts_stage.load_family(cfg, run_dir)
+    reps = cfg.meta.dataset.repetitions
+    data, metrics = collect_dataset(dataset_env(cfg), family, reps, cfg.meta.dataset.seed)
+    save_dataset(path, data)
+    say(
+        f"dataset: {len(data.obs)} pairs from {len(family.tasks)} experts x {reps} in {time.perf_counter() - t0:.1f} s;"
+        f" expert error in the recording env {metrics['final_error'].mean():.2f} m"
+    )
+    return data
+
+
+# -- training and Table 1 -----------------------------------------------------------------------
+
+
+def evaluate_unfiltered(grid, params, tasks, repetitions: int, seed: int) -> dict:
+    """Metrics (P, n_tasks, R) of each stacked policy (P, ...) on each task (n_tasks,) with context = target."""
+    tasks = np.asarray(tasks, np.float32)
+    out = grid(params, tasks, tasks, rollout.repetition_keys(seed, len(tasks), repetitions))
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def train_and_evaluate(cfg, stage_dir: Path, name: str, data: bc.Dataset, env, grids: dict, say=print) -> dict:
+    """Train (or resume) one net of cfg.meta.nets and evaluate its seeds unfiltered: its row,
+    rows_per_seed, per_task and timings entries. grids: (depth, width) -> program, filled here."""
+    m = cfg.meta
+    depth, width = m.nets[name]
+    say(f"{name}: {depth} x {width}, {m.train.epochs} epochs, {m.train.n_seeds} seed(s)")
+    t0 = time.perf_counter()
+    model = bc.MetaPolicy(depth, width)
+    state = bc.train(model, data, m.train, stage_dir / name, say)
+    timing = {"train_wall_s": time.perf_counter() - t0}  # compiling and checkpoints included
+    t0 = time.perf_counter()
+    if (depth, width) not in grids:  # one program per architecture: the policy depends on nothing else
+        grids[depth, width] = rollout.grid_fn(env, bc.policy_apply(model))
+    grid = grids[depth, width]
+    metrics = evaluate_unfiltered(grid, state.params, m.eval.tasks, m.eval.repetitions, m.eval.seed)
+    summaries = [evaluate.summarise_tasks({k: v[s] for k, v in metrics.items()}) for s in range(m.train.n_seeds)]
+    timing["eval_wall_s"] = time.perf_counter() - t0
+    row = evaluate.table_row(summaries[0])
+    kept = "no task" if row["error_mean_m"] is None else f"{row['error_mean_m']:.2f} m"
+    say(
+        f"{name}: evaluated in {timing['eval_wall_s']:.1f} s: accuracy {row['accuracy_mean']:.2f},"
+        f" error {kept} over tasks with accuracy > {evaluate.ACCURACY_THRESHOLD},"
+        f" {row['error_mean_all_m']:.2f} m over all"
+    )
+    return {
+        "row": row,
+        "rows_per_seed": [evaluate.table_row(s) for s in summaries],
+        "per_task": {
+            "error_mean_m": summaries[0]["error_mean_m"].tolist(),
+            "accuracy": summaries[0]["accuracy"].tolist(),
+        },
+        "timings": timing,
+    }
+
+
+def run(cfg, run_dir: Path, say=print) -> dict:
+    """The stage: dataset, every net trained (resumable) and evaluated; writes table1.json and
+    table1.md under run_dir/meta and returns the record."""
+    t_start = time.perf_counter()
+    run_dir = Path(run_dir)
+    stage_dir = run_dir / "meta"
+    record_path = inputs(cfg, run_dir)["experts"]
+    data = dataset(cfg, run_dir, say)
+    env, e = kick_env.KickEnv(cfg.env), cfg.meta.eval
+    rows, per_task = {}, {"tasks": [float(t) for t in e.tasks]}
+    rows["experts"], experts_per_task = experts_row(runio.read_json(record_path), record_path)
+    if experts_per_task:
+        per_task["experts"] = experts_per_task
+    rows_per_seed, timings, grids = {}, {}, {}
+    for name in net_names(cfg.meta.nets):
+        out = train_and_evaluate(cfg, stage_dir, name, data, env, grids, say)
+        rows[name], rows_per_seed[name] = out["row"], out["rows_per_seed"]
+        per_task[name], timings[name] = out["per_task"], out["timings"]
+    payload = {
+        "rows": rows,
+        "rows_per_seed": rows_per_seed,
+        "per_task": per_task,
+        "eval": {"repetitions": e.repetitions, "n_tasks": len(e.tasks), "seed": e.seed},
+        "dataset_pairs": len(data.obs),
+        "timings": timings,
+        "config": cfg.meta.to_dict(),  # what the filter stage checks its nets against
+        **runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env),
+    }
+    runio.write_json(stage_dir / OUTPUT, payload)
+    runio.write_text(stage_dir / "table1.md", tables.table1_markdown(rows))
+    return runio.json_safe(payload)
