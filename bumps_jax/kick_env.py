@@ -345,8 +345,8 @@ class KickEnv(Env):
             "rel_error": error / info["target"],
             # Where the ball rests relative to its nominal start: along the kick line (m) and to
             # its left (m); `error_against` scores them against any target.
-            "distance": rest[0] - (info["target_xy"][0] - info["target"]),
-            "lateral": rest[1] - info["target_xy"][1],
+            "distance": jnp.nan_to_num(rest[0]) - (info["target_xy"][0] - info["target"]),
+            "lateral": jnp.nan_to_num(rest[1]) - info["target_xy"][1],
             "valid": valid.astype(jnp.float32),
             "struck": struck.astype(jnp.float32),
             "fallen": fallen.astype(jnp.float32),

@@ -1,25 +1,20 @@
-"""The keyframe kick prior: key poses, config checks, a tiny CMA-ES run, the committed prior."""
+"""The keyframe kick prior: key poses, the prior section's checks, the prior stage's files."""
 
-import csv
 import json
 
-import jax
 import numpy as np
 import pytest
 
-from bumps_jax import prior, scene
-
-
-@pytest.fixture(scope="module")
-def rollout(env):
-    return prior.make_rollout(env)
+from bumps_jax import cmaes, config, kick_env, kick_model, scene
+from bumps_jax.stages import prior
 
 
 def test_actions_shape_and_joint_limits():
     rng = np.random.default_rng(0)
-    batch = rng.uniform(prior.PARAM_LOW, prior.PARAM_HIGH, size=(64, prior.N_PARAMS))
-    batch = np.concatenate([batch, prior.DEFAULT_PARAMS[None], prior.PARAM_LOW[None], prior.PARAM_HIGH[None]])
-    actions = np.asarray(jax.vmap(lambda p: prior.keyframes_to_actions(p, 75))(batch))
+    batch = rng.uniform(kick_model.PARAM_LOW, kick_model.PARAM_HIGH, size=(64, kick_model.N_PARAMS))
+    extremes = [kick_model.DEFAULT_PARAMS[None], kick_model.PARAM_LOW[None], kick_model.PARAM_HIGH[None]]
+    batch = np.concatenate([batch, *extremes])
+    actions = np.asarray(kick_model.action_tables(batch, 75, 0.02))
     assert actions.shape == (len(batch), 75, scene.N_JOINTS)
     assert np.isfinite(actions).all()
     ids = scene.scene_ids(scene.load_model())
@@ -33,7 +28,7 @@ def test_actions_shape_and_joint_limits():
 
 
 def test_strength_slows_the_swing():
-    times = {s: np.asarray(prior.keyframes(np.r_[prior.DEFAULT_PARAMS[:-1], s])[0]) for s in (0.3, 1.0)}
+    times = {s: np.asarray(kick_model.keyframes(np.r_[kick_model.DEFAULT_PARAMS[:-1], s])[0]) for s in (0.3, 1.0)}
     swing = {s: t[4] - t[3] for s, t in times.items()}
     assert swing[0.3] > 2.5 * swing[1.0]
 
@@ -46,140 +41,146 @@ def test_strength_slows_the_swing():
         ("repetitions", -2),
         ("sigma_init", 0.0),
         ("target", 30.0),
+        ("extremes.long", 40.0),
         ("start_strength", 1.5),
         ("fitness.invalid", -1.0),
         ("free_params", ("lean", "no_such_param")),
+        ("sweep_strengths", (0.0, 1.5)),
     ],
 )
 def test_bad_config_values_raise_naming_them(key, value):
-    cfg = prior.make_config(None, {key: value})
-    with pytest.raises(ValueError, match=key.split(".")[-1]):
-        prior.validate_config(cfg)
+    with pytest.raises(ValueError, match=key.split(".")[0]):
+        config.make_config("tiny", {f"prior.{key}": value})
 
 
 def test_unknown_config_key_raises():
     with pytest.raises(ValueError, match="popsize"):
-        prior.make_config(None, {"popsize": 8})
+        config.make_config("tiny", {"prior.popsize": 8})
 
 
-def test_tiny_optimisation_improves(tmp_path, env, rollout):
-    # Start from a poor kick (swing too weak for 12 m) so there is something to improve.
-    start = prior.load_prior()["params"]
-    cfg = prior.make_config(None, {
-        "population_size": 6, "generations": 4, "repetitions": 1, "eval_repetitions": 4,
-        "start_strength": 0.45, "free_params": ("strength", "swing_hip", "back_knee"), "sigma_init": 1.5,
-    })  # fmt: skip
-    # The module's rollout: the final evaluation (one kick, 4 episodes) is then the program that
-    # test_committed_prior_kicks_the_ball runs, compiled once (~40 s on a CPU). The session env
-    # differs from optimise's own only in its range of admissible targets, which holds 12 m.
-    record = prior.optimise(cfg, tmp_path, start=start, verbose=False, env=env, rollout=rollout)
-    with open(tmp_path / "progress.csv") as f:
-        rows = list(csv.DictReader(f))
-    assert len(rows) == 4
-    first_mean = float(rows[0]["mean_fitness"])
-    assert float(rows[-1]["best_so_far"]) < first_mean
-    saved = prior.load_prior(tmp_path / "kick_prior.json")
-    np.testing.assert_allclose(saved["params"], record["params"], rtol=1e-6)
-    assert saved["evaluation"]["repetitions"] == 4
-
-
-def test_committed_prior_kicks_the_ball(env, rollout):
-    record = prior.load_prior()
-    assert record["params"].shape == (prior.N_PARAMS,)
-    result = prior.evaluate(record["params"], record["config"], repetitions=4, env=env, rollout=rollout)
-    assert result["struck_fraction"] == 1.0
-    assert result["fallen_fraction"] == 0.0
-    assert result["mean_distance"] > 3.0
-
-
-def _stand_in_stage(monkeypatch, env):
-    """`run_stage` with its CMA-ES runs and sweep replaced by stand-ins: the file bookkeeping
-    alone, no MJX program compiled. Each optimised kick leans by its target (deg) to tell the
-    anchors apart."""
-
-    def optimise(cfg, out_dir, start=None, env=None, rollout=None):
-        params = prior.DEFAULT_PARAMS.copy()
-        params[prior.PARAM_NAMES.index("lean")] = cfg.target
-        numbers = {"mean_error": 0.5, "std_error": 0.2, "mean_distance": cfg.target, "valid_fraction": 1.0,
-                   "fallen_fraction": 0.0, "struck_fraction": 1.0}  # fmt: skip
-        return {"params": params, "evaluation": numbers}
-
-    def sweep(anchors, strengths, config=None, repetitions=8, env=None, rollout=None):
-        return [{"strength": float(s), "distance_m": 6.0 + 15.0 * float(s), "valid_fraction": 1.0} for s in strengths]
-
-    monkeypatch.setattr(prior, "_env_for", lambda cfg: env)
-    monkeypatch.setattr(prior, "optimise", optimise)
-    monkeypatch.setattr(prior, "sweep", sweep)
-    monkeypatch.setattr(prior, "plot_sweep", lambda payload, path: None)
-
-
-def test_run_stage_keeps_the_prior_record_it_publishes(tmp_path, monkeypatch, env):
-    _stand_in_stage(monkeypatch, env)
-    asset = tmp_path / "repo" / "assets" / "kick_prior.json"
-    asset.parent.mkdir(parents=True)
-    asset.write_text("committed")
-    monkeypatch.setattr(prior, "PRIOR_JSON", asset)
-
-    # Unpublished, the run still keeps its record: the experts stage reads it from there.
-    prior.run_stage("tiny", tmp_path / "own")
-    assert asset.read_text() == "committed"
-    record = prior.load_prior(tmp_path / "own" / prior.RUN_PRIOR_JSON)
-    assert record["params"][prior.PARAM_NAMES.index("lean")] == 12.0
-    np.testing.assert_array_equal(record["anchors"][:, 0], [6.0, 12.0, 21.0])  # short, main, long
-    assert prior.calibration(record)[-1].tolist() == [1.0, 21.0]
-
-    # Published, the committed asset is that same record, byte for byte.
-    prior.run_stage("tiny", tmp_path / "published", publish=True)
-    assert asset.read_bytes() == (tmp_path / "published" / prior.RUN_PRIOR_JSON).read_bytes()
-
-    # A run from before runs kept their record: the payload rebuilds what the stages read.
-    rebuilt = prior.record_from_payload(json.loads((tmp_path / "own" / "kick_prior.json").read_text()))
-    prior.save_prior(rebuilt, tmp_path / "rebuilt.json")
-    again = prior.load_prior(tmp_path / "rebuilt.json")
-    np.testing.assert_array_equal(again["params"], record["params"])
-    np.testing.assert_array_equal(again["anchors"], record["anchors"])
-    np.testing.assert_array_equal(prior.calibration(again), prior.calibration(record))
-    assert rebuilt["config"] == json.loads((tmp_path / "own" / prior.RUN_PRIOR_JSON).read_text())["config"]
-
-
-def test_load_prior_refuses_other_formats(tmp_path):
-    record = json.loads(prior.PRIOR_JSON.read_text())
+def test_load_record_refuses_other_formats(tmp_path):
+    record = json.loads(kick_model.ASSET.read_text())
     record["format_version"] = 99
     path = tmp_path / "old.json"
     path.write_text(json.dumps(record))
-    with pytest.raises(ValueError, match="format_version"):
-        prior.load_prior(path)
+    with pytest.raises(ValueError, match="format_version") as err:
+        kick_model.load_record(path)
+    assert str(path) in str(err.value)
 
 
-def test_tuning_for_tasks_rejects_bad_inputs_before_compiling():
-    starts = np.tile(prior.DEFAULT_PARAMS, (2, 1))
-    with pytest.raises(ValueError, match="starts"):
-        prior.tune_for_tasks([8.0, 12.0], starts[:1])
-    with pytest.raises(ValueError, match="generations"):
-        prior.tune_for_tasks([8.0, 12.0], starts, generations=-1)
-    with pytest.raises(ValueError, match="40.0"):
-        prior.tune_for_tasks([8.0, 40.0], starts)
+# -- the stage, its CMA-ES runs and sweep replaced by stand-ins: the file bookkeeping alone ------
 
 
-def test_best_starts_picks_the_candidate_that_kicks_nearest(env):
-    # Per target, the committed 12 m kick against the same kick at a tenth of its swing speed
-    # (a few metres at most): the 12 m kick must win at 12 m, whichever order they come in.
-    main = prior.load_prior()["params"]
-    slow = main.copy()
-    slow[prior.PARAM_NAMES.index("strength")] = 0.1
-    slow[prior.PARAM_NAMES.index("t_swing")] = prior.PARAM_HIGH[prior.PARAM_NAMES.index("t_swing")]
-    candidates = np.stack([[slow, main], [main, slow]])
-    params, index, costs = prior.best_starts([12.0, 12.0], candidates, repetitions=2, env=env)
-    assert index.tolist() == [1, 0] and costs.shape == (2, 2)
-    np.testing.assert_allclose(params, np.stack([main, main]), atol=1e-6)
-    assert costs[0, 1] < costs[0, 0] and costs[1, 0] < costs[1, 1]
+class StandIns:
+    """cmaes.optimise / evaluate_kick / sweep without MJX: each optimised kick leans by its target
+    (deg) to tell the anchors apart; every call is recorded."""
+
+    def __init__(self, monkeypatch):
+        self.calls = []
+        monkeypatch.setattr(cmaes, "optimise", self.optimise)
+        monkeypatch.setattr(cmaes, "evaluate_kick", self.evaluate_kick)
+        monkeypatch.setattr(cmaes, "sweep", self.sweep)
+
+    def optimise(self, env, start, target, free_params, cfg, csv_path=None, mesh=None, say=print, label=""):
+        self.calls.append({"target": target, "start": np.asarray(start).copy(), "free": tuple(free_params)})
+        csv_path.write_text("generation\n0\n")
+        params = np.asarray(start, np.float32).copy()
+        params[kick_model.PARAM_NAMES.index("lean")] = target
+        return {"params": params, "best_cost": 0.5, "mean_params": params, "history": {}}
+
+    def evaluate_kick(self, env, params, target, fitness, repetitions, seed=1, mesh=None):
+        return {"repetitions": repetitions, "target": target, "mean_error": 0.5, "std_error": 0.2,
+                "mean_distance": float(target), "mean_lateral": 0.0, "mean_fitness": 0.9, "valid_fraction": 1.0,
+                "struck_fraction": 1.0, "fallen_fraction": 0.0}  # fmt: skip
+
+    def sweep(self, env, anchors, strengths, target, repetitions=8, seed=2, mesh=None):
+        return [{"strength": float(s), "distance_m": 6.0 + 15.0 * float(s), "distance_std_m": 0.1, "lateral_m": 0.0,
+                 "valid_fraction": 1.0, "fallen_fraction": 0.0} for s in strengths]  # fmt: skip
 
 
-def test_best_starts_rejects_bad_inputs_before_compiling():
-    candidates = np.tile(prior.DEFAULT_PARAMS, (2, 3, 1))
-    with pytest.raises(ValueError, match="candidates"):
-        prior.best_starts([8.0, 12.0], candidates[0])
-    with pytest.raises(ValueError, match="repetitions"):
-        prior.best_starts([8.0, 12.0], candidates, repetitions=0)
-    with pytest.raises(ValueError, match="40.0"):
-        prior.best_starts([8.0, 40.0], candidates)
+@pytest.fixture
+def asset(tmp_path, monkeypatch):
+    """The committed prior copied to a tmp file that stands for assets/kick_prior.json."""
+    path = tmp_path / "assets" / "kick_prior.json"
+    path.parent.mkdir()
+    path.write_text(kick_model.ASSET.read_text())
+    monkeypatch.setattr(kick_model, "ASSET", path)
+    return path
+
+
+def test_the_stage_writes_the_record_later_stages_start_from(tmp_path, monkeypatch, asset):
+    stand_ins, cfg, lines = StandIns(monkeypatch), config.make_config("tiny"), []
+    payload = prior.run(cfg, tmp_path / "run", say=lines.append)
+    out = tmp_path / "run" / "prior"
+    assert json.loads((out / prior.OUTPUT).read_text()) == json.loads(json.dumps(payload))
+    assert payload["env"]["physics_dt"] > 0 and payload["preset"] == "tiny" and payload["reused_anchors"] == []
+    record = kick_model.load_record(out / prior.ASSET, env_cfg=kick_env.resolved(cfg.env))
+    assert record["params"][kick_model.PARAM_NAMES.index("lean")] == 12.0
+    np.testing.assert_array_equal(record["anchors"][:, 0], [6.0, 12.0, 21.0])  # short, main, long
+    assert kick_model.calibration(record)[-1].tolist() == [1.0, 21.0]
+    # The main kick starts from the asset at start_strength and moves only the free parameters;
+    # the extremes start from the main kick and move every parameter.
+    main, short, long = stand_ins.calls
+    assert main["start"][kick_model.PARAM_NAMES.index("strength")] == cfg.prior.start_strength
+    assert main["free"] == tuple(cfg.prior.free_params) and short["free"] == kick_model.PARAM_NAMES
+    np.testing.assert_array_equal(short["start"], record["anchors"][1])
+    assert (short["target"], long["target"]) == (6.0, 21.0)
+    timing = json.loads((out / prior.TIMING).read_text())
+    assert timing["env"] == payload["env"] and timing["episodes_per_optimisation"] == 3 * 8 * 2
+    assert (out / prior.SWEEP_PLOT).stat().st_size > 0
+    assert (out / prior.START).read_bytes() == asset.read_bytes()
+
+
+def test_a_rerun_reuses_finished_anchors_and_restarts_an_unfinished_one(tmp_path, monkeypatch, asset):
+    stand_ins, cfg = StandIns(monkeypatch), config.make_config("tiny")
+    first = prior.run(cfg, tmp_path, say=lambda m: None)
+    out = tmp_path / "prior"
+    (out / "anchor_long.json").unlink()  # killed during the long kick's search: its CSV is left
+    stand_ins.calls.clear()
+    lines = []
+    again = prior.run(cfg, tmp_path, say=lines.append)
+    assert [c["target"] for c in stand_ins.calls] == [21.0]
+    assert again["reused_anchors"] == ["short", "main"] and again["anchors"] == first["anchors"]
+    text = "\n".join(lines)
+    assert "anchor main (12 m) reused" in text and "anchor short (6 m) reused" in text
+    assert "anchor long (21 m): its unfinished search restarts from generation 0" in text
+
+
+def test_a_rerun_starts_from_the_runs_own_start_after_the_asset_changes(tmp_path, monkeypatch, asset):
+    stand_ins, cfg = StandIns(monkeypatch), config.make_config("tiny")
+    prior.run(cfg, tmp_path, say=lambda m: None)
+    committed = json.loads(asset.read_text())
+    changed = dict(committed, params=[p + 1.0 for p in committed["params"]])
+    asset.write_text(json.dumps(changed))  # assets/ gets a new prior after the first call
+    for anchor in ("main", "short", "long"):
+        (tmp_path / "prior" / f"anchor_{anchor}.json").unlink()
+    stand_ins.calls.clear()
+    assert prior.inputs(cfg, tmp_path) == {"start": tmp_path / "prior" / prior.START}
+    prior.run(cfg, tmp_path, say=lambda m: None)
+    expected = np.asarray(committed["params"], np.float32)
+    expected[kick_model.PARAM_NAMES.index("strength")] = cfg.prior.start_strength
+    np.testing.assert_array_equal(stand_ins.calls[0]["start"], expected)
+    assert [c["target"] for c in stand_ins.calls] == [12.0, 6.0, 21.0]
+
+
+def test_an_extreme_searched_from_another_main_kick_is_searched_again(tmp_path, monkeypatch, asset):
+    stand_ins, cfg = StandIns(monkeypatch), config.make_config("tiny")
+    prior.run(cfg, tmp_path, say=lambda m: None)
+    main = json.loads((tmp_path / "prior" / "anchor_main.json").read_text())
+    main["params"][0] += 1.0  # as if the main kick had been searched again
+    (tmp_path / "prior" / "anchor_main.json").write_text(json.dumps(main))
+    stand_ins.calls.clear()
+    lines = []
+    prior.run(cfg, tmp_path, say=lines.append)
+    assert [c["target"] for c in stand_ins.calls] == [6.0, 21.0]
+    assert "searched from another start" in "\n".join(lines)
+
+
+def test_inputs_name_a_start_record_that_does_not_load(tmp_path):
+    missing = tmp_path / "nope.json"
+    with pytest.raises(ValueError, match="nope.json"):
+        prior.inputs(config.make_config("tiny", {"prior.start": str(missing)}), tmp_path / "run")
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format_version": 1, "param_names": ["x"]}')
+    with pytest.raises(ValueError, match="bad.json"):
+        prior.inputs(config.make_config("tiny", {"prior.start": str(bad)}), tmp_path / "run")

@@ -1,11 +1,12 @@
 """The strike-height search (experiments/strike_search.py): its geometry and its argument checks."""
 
-import jax.numpy as jnp
+import json
+
 import mujoco
 import numpy as np
 import pytest
 
-from bumps_jax import kick_env, scene
+from bumps_jax import kick_env, kick_model, scene
 from experiments import strike_search
 
 
@@ -17,23 +18,35 @@ def test_strike_height_of_the_stance_is_the_foot_top_below_the_ball_centre():
     data = mujoco.MjData(env.mj_model)
     data.qpos[:] = np.asarray(env._qpos0)
     mujoco.mj_forward(env.mj_model, data)
-    height, speed = strike_search.strike_height(env)(data)
+    height = strike_search.strike_height(env)(data)
     assert float(height) == pytest.approx(0.02 - scene.BALL_RADIUS, abs=2e-3)
-    assert float(speed) == 0.0
 
 
 def test_start_kicks_are_inside_the_parameter_bounds():
-    from bumps_jax import prior
-
     starts = strike_search.start_kicks()
-    assert {"default", "prior_main"} <= set(starts)
+    assert {"default", "prior_main", "prior_short", "prior_long"} <= set(starts)
     for params in starts.values():
-        assert jnp.all(params >= prior.PARAM_LOW - 1e-6) and jnp.all(params <= prior.PARAM_HIGH + 1e-6)
+        assert np.all(params >= kick_model.PARAM_LOW - 1e-6) and np.all(params <= kick_model.PARAM_HIGH + 1e-6)
+
+
+def test_reference_kicks_are_read_by_target(tmp_path):
+    path = tmp_path / "kicks.json"
+    path.write_text(json.dumps({"tasks_m": [8.0, 12.0], "params": [[1.0] * 14, [2.0] * 14]}))
+    kicks = strike_search.read_kicks(path, [12.0])
+    assert list(kicks) == [12.0] and kicks[12.0].tolist() == [2.0] * 14
+    with pytest.raises(ValueError, match="16.0"):
+        strike_search.read_kicks(path, [16.0])
 
 
 @pytest.mark.parametrize(
     ("argv", "message"),
-    [(["--starts", "nosuch"], "nosuch"), (["--targets", "30"], "30"), (["--population", "1"], "population")],
+    [
+        (["--starts", "nosuch"], "nosuch"),
+        (["--targets", "30"], "30"),
+        (["--population", "1"], "population"),
+        (["--sigma", "0"], "sigma"),
+        (["--targets", "8", "--kicks", "no_such_kicks.json"], "no_such_kicks.json"),
+    ],
 )
 def test_bad_arguments_are_named(argv, message, capsys):
     with pytest.raises(SystemExit):

@@ -1,0 +1,401 @@
+"""CMA-ES on keyframe kicks: one driver for the prior's anchors, the experts' per-task tuning and
+the strike search, and the replays that score kicks (evaluation, sweep, choice of starts).
+
+A search moves a kick's 14 parameters as params = clip(x0 + scale * z), z drawn by evosax's
+CMA-ES in units of `kick_model.PARAM_SCALE`; a parameter left out of the search's free mask has
+scale 0 and stays at x0. Many independent searches (T of them, each with its start x0, target,
+free mask and one extra number for its cost) run as one generation program, vmapped over
+searches and split over a device mesh (`sharding.over_batch`):
+
+    ask (P candidates) -> P x R noisy episodes -> mean cost per candidate -> tell
+
+All candidates of one search's generation meet the same R episodes (common random numbers), so
+the ranking compares kicks, not luck. The driver keeps each search's best candidate so far
+beside CMA-ES's own state; the host loop between generations prints progress with an ETA.
+Every episode is `rollout.episode_fn` playing the kick's action table (`rollout.table_policy`).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import time
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from bumps_jax import kick_env, kick_model, rollout, runio, sharding
+
+PROGRESS_FIELDS = ("generation", "best_fitness", "mean_fitness", "best_so_far", "valid_fraction", "seconds")
+
+
+class Carry(NamedTuple):
+    """What one generation hands to the next, every leaf with a leading (T,) search axis."""
+
+    es: Any  # evosax CMA-ES state
+    best_cost: jax.Array  # (T,) lowest mean cost of any candidate so far
+    best_params: jax.Array  # (T, 14) that candidate
+
+
+class Stats(NamedTuple):
+    """One generation's summary per search, (T,) each."""
+
+    best: jax.Array  # lowest mean cost among this generation's candidates
+    mean: jax.Array  # mean cost over the population
+    valid: jax.Array  # fraction of valid kicks over the population's episodes
+
+
+class Search(NamedTuple):
+    """A compiled CMA-ES generation over T searches (`make_search`)."""
+
+    es: Any
+    es_params: Any
+    step: Any  # jitted (Carry, keys (T,), x0 (T, 14), targets (T,), scale (T, 14), extra (T,)) -> (Carry, Stats)
+    mesh: Any
+
+
+class Result(NamedTuple):
+    """Where T searches ended (host arrays, padding dropped)."""
+
+    mean: np.ndarray  # (T, 14) params at each search's final CMA-ES mean
+    best: np.ndarray  # (T, 14) each search's best candidate over all generations
+    best_cost: np.ndarray  # (T,) its mean cost in the generation that drew it
+    history: dict  # Stats field -> (generations, T)
+    key: jax.Array  # the driver's PRNG key after the last generation
+
+
+# -- costs -------------------------------------------------------------------------------------
+
+
+def kick_cost(env: kick_env.KickEnv, fitness):
+    """The kick prior's cost: fn(params (P, 14), keys (P, R), target, extra) -> (mean cost (P,),
+    metrics of (P, R)), cost = `kick_model.fitness` with weights `fitness`; `extra` is unused."""
+    episodes = jax.vmap(rollout.over_reps(rollout.episode_fn(env, rollout.table_policy)), in_axes=(0, None, None, 0))
+
+    def cost_fn(params, keys, target, extra):
+        metrics = episodes(kick_model.action_tables(params, env.n_steps, env.dt), target, target, keys)
+        return jnp.mean(kick_model.fitness(metrics, target, fitness), axis=1), metrics
+
+    return cost_fn
+
+
+def _weights(fitness_json: str) -> ml_collections.ConfigDict:
+    return ml_collections.ConfigDict(json.loads(fitness_json))
+
+
+def _fitness_json(fitness) -> str:
+    data = fitness.to_dict() if isinstance(fitness, ml_collections.ConfigDict) else dict(fitness)
+    return json.dumps({k: float(v) for k, v in sorted(data.items())})
+
+
+@functools.lru_cache(maxsize=8)
+def _cost_program(env, mesh, fitness_json: str):
+    """Jitted (params (T, C, 14), keys (C, R), targets (T,)) -> mean costs (T, C), tasks split over
+    `mesh`; kept per settings so that one process compiles it once."""
+    cost_fn = kick_cost(env, _weights(fitness_json))
+
+    def costs(params, keys, target):
+        return cost_fn(params, keys, target, 0.0)[0]
+
+    return sharding.over_batch(jax.vmap(costs, in_axes=(0, None, 0)), mesh, (True, False, True))
+
+
+@functools.lru_cache(maxsize=8)
+def _metrics_program(env, mesh):
+    """`rollout.matched_fn` of action tables: (tables (N, n_steps, 22), contexts (N,), targets (N,),
+    keys (N, R)) -> metrics of (N, R); kept per env and mesh."""
+    return rollout.matched_fn(env, rollout.table_policy, mesh=mesh)
+
+
+# -- the driver --------------------------------------------------------------------------------
+
+
+def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, mesh) -> Search:
+    """One CMA-ES generation of T searches as a jitted program split over `mesh`.
+
+    cost_fn(params (P, 14), keys (P, R), target (), extra ()) -> (mean cost (P,), metrics of
+    (P, R) holding "valid"), e.g. `kick_cost`. Searches step in the 14-d z space of
+    `kick_model.PARAM_SCALE` units, starting at z = 0 with step `sigma_init`.
+    """
+    from evosax.algorithms import CMA_ES  # noqa: PLC0415 (heavy import, only needed here)
+
+    P, R = int(population), int(repetitions)
+    es = CMA_ES(population_size=P, solution=jnp.zeros(kick_model.N_PARAMS))
+    es_params = es.default_params.replace(std_init=jnp.asarray(sigma_init))
+
+    def generation(carry: Carry, key, x0, target, scale, extra):
+        ask_key, eval_key, tell_key = jax.random.split(key, 3)
+        z, es_state = es.ask(ask_key, carry.es, es_params)
+        keys = jnp.broadcast_to(jax.random.split(eval_key, R), (P, R) + eval_key.shape)
+        params = kick_model.clip_params(x0 + scale * z)
+        cost, metrics = cost_fn(params, keys, target, extra)
+        es_state, _ = es.tell(tell_key, z, cost, es_state, es_params)
+        i = jnp.argmin(cost)
+        better = cost[i] < carry.best_cost
+        carry = Carry(
+            es_state,
+            jnp.where(better, cost[i], carry.best_cost),
+            jnp.where(better, params[i], carry.best_params),
+        )
+        return carry, Stats(jnp.min(cost), jnp.mean(cost), jnp.mean(metrics["valid"]))
+
+    step = sharding.over_batch(jax.vmap(generation), mesh, (True,) * 6)
+    return Search(es, es_params, step, mesh)
+
+
+@functools.lru_cache(maxsize=8)
+def kick_search(env, mesh, population: int, repetitions: int, sigma_init: float, fitness_json: str) -> Search:
+    """`make_search` of `kick_cost`, kept per settings: the prior's three anchors, or a resumed
+    tuning in the same process, compile it once (about a minute on a CPU)."""
+    return make_search(kick_cost(env, _weights(fitness_json)), population, repetitions, sigma_init, mesh)
+
+
+def run_search(search: Search, x0, targets, free, generations: int, seed: int, extra=None, say=print,
+               label: str = "cma-es", on_generation=None) -> Result:  # fmt: skip
+    """Run T searches for `generations` generations from key(seed).
+
+    x0: (T, 14) starts; targets: (T,) m; free: (T, 14) bool, the parameters each search moves;
+    extra: (T,) numbers handed to the cost (default 0). on_generation(gen, stats) is called on the
+    host after each generation with `Stats` of (T,) numpy arrays.
+    """
+    x0 = kick_model.clip_params(jnp.asarray(x0, jnp.float32))
+    n = x0.shape[0]
+    targets = jnp.asarray(targets, jnp.float32)
+    scale = jnp.where(jnp.asarray(free, bool), jnp.asarray(kick_model.PARAM_SCALE, jnp.float32), 0.0)
+    extra = jnp.zeros(n, jnp.float32) if extra is None else jnp.asarray(extra, jnp.float32)
+    x0, targets, scale, extra = sharding.pad((x0, targets, scale, extra), sharding.padded_size(n, search.mesh))
+    T = x0.shape[0]
+    key = jax.random.key(seed)
+    key, init_key = jax.random.split(key)
+    init = jax.vmap(lambda k: search.es.init(k, jnp.zeros(kick_model.N_PARAMS), search.es_params))
+    carry = Carry(init(jax.random.split(init_key, T)), jnp.full(T, jnp.inf, jnp.float32), x0)
+    # CMA-ES starts some fields weakly typed and returns them strongly typed: fix the types now
+    # so that the generation program compiles once, not twice.
+    carry = jax.tree.map(lambda x: x.astype(x.dtype), carry)
+    inputs = sharding.place((x0, targets, scale, extra), search.mesh)
+    history, clock = [], _Clock(generations)
+    for gen in range(generations):
+        key, gen_key = jax.random.split(key)
+        carry, stats = search.step(*sharding.place((carry, jax.random.split(gen_key, T)), search.mesh), *inputs)
+        stats = Stats(*(np.asarray(s) for s in sharding.unpad(tuple(stats), n)))
+        history.append(stats)
+        if on_generation is not None:
+            on_generation(gen, stats)
+        say(f"{label} gen {gen + 1}/{generations}  best cost {stats.best.mean():.3f} (worst search "
+            f"{stats.best.max():.3f})  population mean {stats.mean.mean():.3f}  valid {stats.valid.mean():.2f}  "
+            f"{clock.tick(gen)}")  # fmt: skip
+    es, best_cost, best = sharding.unpad(tuple(carry), n)
+    mean = kick_model.clip_params(x0[:n] + scale[:n] * es.mean)
+    names = Stats._fields
+    hist = {k: np.asarray([getattr(s, k) for s in history]).reshape(generations, n) for k in names}
+    return Result(np.asarray(mean), np.asarray(best), np.asarray(best_cost), hist, key)
+
+
+class _Clock:
+    """Elapsed time and an ETA from the generations after the first (which includes compiling)."""
+
+    def __init__(self, total: int):
+        self.total, self.t0, self.t1 = total, time.perf_counter(), None
+
+    def tick(self, gen: int) -> str:
+        now = time.perf_counter()
+        if gen == 0:
+            self.t1 = now
+            return f"{now - self.t0:.0f} s (compile included)"
+        eta = (now - self.t1) / gen * (self.total - 1 - gen)
+        return f"{now - self.t0:.0f} s, ETA {eta:.0f} s"
+
+
+# -- what the stages call ------------------------------------------------------------------------
+
+
+def optimise(env, start, target: float, free_params, cfg, csv_path=None, mesh=None, say=print, label="") -> dict:
+    """One search (T = 1 of the driver) for the kick that rests at `target` m.
+
+    start: params (14,); free_params: names of the parameters it moves (the rest stay at start);
+    cfg: population_size, generations, repetitions, sigma_init, seed and fitness weights (the
+    prior's config section). csv_path: a per-generation progress CSV (`PROGRESS_FIELDS`), begun
+    anew. Returns {"params": best candidate (14,), "best_cost", "mean_params": final mean (14,),
+    "history": Stats field -> (generations,)}.
+    """
+    start = np.asarray(start, np.float32)
+    unknown = [n for n in free_params if n not in kick_model.PARAM_NAMES]
+    if start.shape != (kick_model.N_PARAMS,) or unknown or not free_params:
+        raise ValueError(f"need start ({kick_model.N_PARAMS},) and free_params among PARAM_NAMES, got "
+                         f"{start.shape} and {tuple(free_params)!r}")  # fmt: skip
+    _check_search(env, [target], cfg.population_size, cfg.repetitions, cfg.sigma_init, cfg.generations)
+    mesh = mesh or sharding.device_mesh()
+    search = kick_search(env, mesh, int(cfg.population_size), int(cfg.repetitions), float(cfg.sigma_init),
+                         _fitness_json(cfg.fitness))  # fmt: skip
+    free = np.array([n in free_params for n in kick_model.PARAM_NAMES])
+    on_generation = None
+    if csv_path is not None:
+        csv_path = Path(csv_path)
+        csv_path.parent.mkdir(parents=True, exist_ok=True)
+        runio.trim_csv(csv_path, PROGRESS_FIELDS, "generation", -1)  # a search always restarts at 0
+        on_generation = _progress_writer(csv_path)
+    result = run_search(search, start[None], [target], free[None], int(cfg.generations), int(cfg.seed),
+                        say=say, label=label or f"kick {target:g} m", on_generation=on_generation)  # fmt: skip
+    return {
+        "params": result.best[0],
+        "best_cost": float(result.best_cost[0]),
+        "mean_params": result.mean[0],
+        "history": {k: v[:, 0] for k, v in result.history.items()},
+    }
+
+
+def _progress_writer(path: Path):
+    """on_generation for one search: appends a row of PROGRESS_FIELDS per generation."""
+    state = {"best": np.inf, "t": time.perf_counter()}
+
+    def write(gen, stats):
+        now = time.perf_counter()
+        state["best"] = min(state["best"], float(stats.best[0]))
+        row = [gen, float(stats.best[0]), float(stats.mean[0]), state["best"], float(stats.valid[0]), now - state["t"]]
+        state["t"] = now
+        runio.append_csv(path, PROGRESS_FIELDS, [dict(zip(PROGRESS_FIELDS, row, strict=True))])
+
+    return write
+
+
+def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init: float, *, fitness, mesh=None,
+                   say=print) -> dict:  # fmt: skip
+    """CMA-ES on every task's own kick at once: one search per target, every parameter free.
+
+    targets: (T,) m; starts: (T, 14). tune_cfg: population_size, repetitions, eval_repetitions,
+    seed (`cfg.experts.tune`); fitness: the cost weights (`cfg.prior.fitness`). Each task keeps
+    the better of its start and its final CMA-ES mean on `eval_repetitions` fresh noisy episodes
+    shared by both, so a task's kick never gets worse than its start.
+
+    Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
+    "history": (generations, T) best cost per generation, "episodes": int}.
+    """
+    targets = np.asarray(targets, np.float32)
+    starts = np.asarray(kick_model.clip_params(jnp.asarray(starts, jnp.float32)))
+    if targets.ndim != 1 or starts.shape != (targets.shape[0], kick_model.N_PARAMS):
+        raise ValueError(
+            f"need targets (T,) and starts (T, {kick_model.N_PARAMS}), got {targets.shape} and {starts.shape}"
+        )
+    if isinstance(generations, bool) or not isinstance(generations, int | np.integer) or generations < 0:
+        raise ValueError(f"generations must be an integer >= 0, got {generations!r}")
+    _check_search(env, targets, tune_cfg.population_size, tune_cfg.repetitions, sigma_init, 1)
+    _check_count("eval_repetitions", tune_cfg.eval_repetitions)
+    mesh = mesh or sharding.device_mesh()
+    P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
+    fitness_json = _fitness_json(fitness)
+    search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json)
+    result = run_search(search, starts, targets, np.ones_like(starts, bool), int(generations), int(tune_cfg.seed),
+                        say=say, label="tuning")  # fmt: skip
+    key = result.key
+    keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
+    pair = sharding.pad((jnp.stack([starts, result.mean], 1), jnp.asarray(targets)), sharding.padded_size(T, mesh))
+    costs = np.asarray(sharding.unpad(_cost_program(env, mesh, fitness_json)(pair[0], keys, pair[1]), T))
+    improved = costs[:, 1] < costs[:, 0]
+    return {
+        "params": np.where(improved[:, None], result.mean, starts),
+        "start_cost": costs[:, 0],
+        "tuned_cost": costs[:, 1],
+        "improved": improved,
+        "history": result.history["best"],
+        "episodes": int(T * (generations * P * R + 2 * E)),
+    }
+
+
+def best_starts(env, targets, candidates, fitness, repetitions: int = 16, seed: int = 3, mesh=None):
+    """Each target's best candidate kick: the lowest mean cost over `repetitions` noisy kicks, the
+    same episodes for every candidate (common random numbers); tasks split over `mesh`.
+
+    targets: (T,) m; candidates: (T, C, 14). Returns (params (T, 14), index (T,), costs (T, C)).
+    """
+    targets = np.asarray(targets, np.float32)
+    candidates = np.asarray(kick_model.clip_params(jnp.asarray(candidates, jnp.float32)))
+    if targets.ndim != 1 or candidates.ndim != 3 or candidates.shape[::2] != (targets.shape[0], kick_model.N_PARAMS):
+        raise ValueError(f"need targets (T,) and candidates (T, C, {kick_model.N_PARAMS}), got "
+                         f"{targets.shape} and {candidates.shape}")  # fmt: skip
+    _check_count("repetitions", repetitions)
+    kick_env.check_targets(targets.tolist(), env.config.task_range)
+    mesh = mesh or sharding.device_mesh()
+    n_tasks, n_candidates = candidates.shape[:2]
+    keys = jnp.broadcast_to(jax.random.split(jax.random.key(seed), repetitions), (n_candidates, repetitions))
+    padded = sharding.pad((jnp.asarray(candidates), jnp.asarray(targets)), sharding.padded_size(n_tasks, mesh))
+    costs = np.asarray(
+        sharding.unpad(_cost_program(env, mesh, _fitness_json(fitness))(padded[0], keys, padded[1]), n_tasks)
+    )
+    index = np.argmin(costs, axis=1)
+    return candidates[np.arange(n_tasks), index], index, costs
+
+
+def replay(env, params, targets, keys, mesh=None) -> dict:
+    """Kicks params (N, 14) at targets (N,) m over keys (N, R): the env's final metrics, (N, R) numpy."""
+    mesh = mesh or sharding.device_mesh()
+    n = len(targets)
+    tables = kick_model.action_tables(kick_model.clip_params(jnp.asarray(params, jnp.float32)), env.n_steps, env.dt)
+    targets = jnp.asarray(targets, jnp.float32)
+    args = sharding.pad((tables, targets, targets, keys), sharding.padded_size(n, mesh))
+    return {k: np.asarray(v) for k, v in sharding.unpad(_metrics_program(env, mesh)(*args), n).items()}
+
+
+def evaluate_kick(env, params, target: float, fitness, repetitions: int, seed: int = 1, mesh=None) -> dict:
+    """One kick (14,) replayed over `repetitions` noisy episodes: plain floats of its resting error
+    (mean, std), distance, sideways offset, mean cost and valid / struck / fallen fractions."""
+    _check_count("repetitions", repetitions)
+    kick_env.check_targets(target, env.config.task_range)
+    keys = jax.random.split(jax.random.key(seed), repetitions)[None]
+    out = replay(env, np.asarray(params, np.float32)[None], [target], keys, mesh)
+    cost = kick_model.fitness(out, target, _weights(_fitness_json(fitness)))
+    summary = {
+        "repetitions": int(repetitions),
+        "target": float(target),
+        "mean_error": float(np.mean(out["final_error"])),
+        "std_error": float(np.std(out["final_error"])),
+        "mean_distance": float(np.mean(out["distance"])),
+        "mean_lateral": float(np.mean(out["lateral"])),
+        "mean_fitness": float(np.mean(cost)),
+    }
+    return summary | {f"{k}_fraction": float(np.mean(out[k])) for k in ("valid", "struck", "fallen")}
+
+
+def sweep(env, anchors, strengths, target: float, repetitions: int = 8, seed: int = 2, mesh=None) -> list[dict]:
+    """The blended kick (`kick_model.blend_params` of anchors (3, 14)) at each strength in [0, 1]:
+    rows of its mean and std resting distance, sideways offset, valid and fallen fractions over
+    `repetitions` noisy episodes, the same for every strength."""
+    strengths = np.asarray(strengths, np.float32)
+    if strengths.ndim != 1 or not len(strengths) or not np.all((strengths >= 0) & (strengths <= 1)):
+        raise ValueError(f"strengths must be a 1-d list in [0, 1], got {strengths.tolist()!r}")
+    _check_count("repetitions", repetitions)
+    kick_env.check_targets(target, env.config.task_range)
+    batch = jax.vmap(kick_model.blend_params, in_axes=(None, 0))(jnp.asarray(anchors), jnp.asarray(strengths))
+    keys = jnp.broadcast_to(jax.random.split(jax.random.key(seed), repetitions), (len(strengths), repetitions))
+    out = replay(env, batch, np.full(len(strengths), target, np.float32), keys, mesh)
+    return [
+        {
+            "strength": float(s),
+            "distance_m": float(np.mean(out["distance"][i])),
+            "distance_std_m": float(np.std(out["distance"][i])),
+            "lateral_m": float(np.mean(out["lateral"][i])),
+            "valid_fraction": float(np.mean(out["valid"][i])),
+            "fallen_fraction": float(np.mean(out["fallen"][i])),
+        }
+        for i, s in enumerate(strengths)
+    ]
+
+
+def _check_count(name: str, value) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+
+
+def _check_search(env, targets, population, repetitions, sigma_init, generations) -> None:
+    """ValueError naming the first bad setting of a search, before anything compiles."""
+    _check_count("population_size", population)
+    if population < 2:
+        raise ValueError(f"population_size must be >= 2 for CMA-ES, got {population}")
+    _check_count("repetitions", repetitions)
+    _check_count("generations", generations)
+    if not np.isfinite(sigma_init) or sigma_init <= 0:
+        raise ValueError(f"sigma_init must be > 0, got {sigma_init!r}")
+    kick_env.check_targets(np.asarray(targets).tolist(), env.config.task_range)

@@ -1,0 +1,146 @@
+"""The CMA-ES driver (bumps_jax.cmaes): a toy cost for its bookkeeping, then the kick searches."""
+
+import csv
+
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import pytest
+
+from bumps_jax import cmaes, config, kick_model, sharding
+
+FITNESS = config.make_config("tiny").prior.fitness
+
+
+def _toy_search(population=8):
+    """Searches whose cost is the squared distance of the first two params from (target, extra)."""
+
+    def cost_fn(params, keys, target, extra):
+        cost = (params[:, 0] - target) ** 2 + (params[:, 1] - extra) ** 2
+        return cost, {"valid": jnp.ones(keys.shape)}
+
+    return cmaes.make_search(cost_fn, population, 2, 1.0, sharding.device_mesh())
+
+
+def test_searches_reach_their_own_targets_and_keep_the_rest_fixed():
+    x0 = np.tile(kick_model.DEFAULT_PARAMS, (2, 1)).astype(np.float32)  # lean 13, support_hip 0
+    free = np.zeros((2, kick_model.N_PARAMS), bool)
+    free[:, :2] = True
+    free[1, 1] = False  # the second search may not move support_hip
+    calls = []
+    result = cmaes.run_search(_toy_search(), x0, [15.0, 10.0], free, 60, seed=0, extra=[5.0, 5.0],
+                              say=lambda msg: None, on_generation=lambda g, s: calls.append(g))  # fmt: skip
+    assert calls == list(range(60))
+    assert result.mean.shape == result.best.shape == (2, kick_model.N_PARAMS)
+    np.testing.assert_allclose(result.best[:, 0], [15.0, 10.0], atol=0.1)
+    np.testing.assert_allclose(result.best[0, 1], 5.0, atol=0.1)
+    np.testing.assert_allclose(result.mean[:, 0], [15.0, 10.0], atol=0.25)
+    # Fixed parameters stay exactly at the start, in the mean and in the best candidate.
+    for params in (result.mean, result.best):
+        np.testing.assert_array_equal(params[:, 2:], x0[:, 2:])
+        assert params[1, 1] == x0[1, 1]
+    # The best candidate so far is the lowest cost any generation drew, and it is that candidate's cost.
+    np.testing.assert_allclose(result.best_cost, result.history["best"].min(axis=0), rtol=1e-6)
+    expected = (result.best[:, 0] - [15.0, 10.0]) ** 2 + (result.best[:, 1] - 5.0) ** 2
+    np.testing.assert_allclose(result.best_cost, expected, rtol=1e-4, atol=1e-6)
+    assert result.history["valid"].shape == (60, 2) and (result.history["valid"] == 1).all()
+
+
+def test_a_search_is_reproducible_from_its_seed():
+    search = _toy_search()
+    x0 = np.asarray(kick_model.DEFAULT_PARAMS, np.float32)[None]
+    free = np.ones((1, kick_model.N_PARAMS), bool)
+    a, b = (cmaes.run_search(search, x0, [14.0], free, 3, seed=4, say=lambda m: None) for _ in range(2))
+    np.testing.assert_array_equal(a.mean, b.mean)
+    np.testing.assert_array_equal(a.best, b.best)
+    c = cmaes.run_search(search, x0, [14.0], free, 3, seed=5, say=lambda m: None)
+    assert not np.array_equal(a.mean, c.mean)
+
+
+def test_progress_reports_an_eta():
+    lines = []
+    x0 = np.asarray(kick_model.DEFAULT_PARAMS, np.float32)[None]
+    cmaes.run_search(_toy_search(), x0, [14.0], np.ones((1, 14), bool), 3, 0, say=lines.append, label="toy")
+    assert len(lines) == 3 and lines[0].startswith("toy gen 1/3") and "ETA" in lines[-1]
+
+
+TUNE = ml_collections.ConfigDict({"population_size": 4, "repetitions": 2, "eval_repetitions": 2, "seed": 0})
+
+
+def test_tuning_for_tasks_rejects_bad_inputs_before_compiling(env):
+    starts = np.tile(kick_model.DEFAULT_PARAMS, (2, 1))
+    with pytest.raises(ValueError, match="starts"):
+        cmaes.tune_for_tasks(env, [8.0, 12.0], starts[:1], TUNE, 1, 0.5, fitness=FITNESS)
+    with pytest.raises(ValueError, match="generations"):
+        cmaes.tune_for_tasks(env, [8.0, 12.0], starts, TUNE, -1, 0.5, fitness=FITNESS)
+    with pytest.raises(ValueError, match="40.0"):
+        cmaes.tune_for_tasks(env, [8.0, 40.0], starts, TUNE, 1, 0.5, fitness=FITNESS)
+    with pytest.raises(ValueError, match="sigma_init"):
+        cmaes.tune_for_tasks(env, [8.0, 12.0], starts, TUNE, 1, 0.0, fitness=FITNESS)
+    one = ml_collections.ConfigDict({**TUNE.to_dict(), "population_size": 1})
+    with pytest.raises(ValueError, match="population_size"):
+        cmaes.tune_for_tasks(env, [8.0, 12.0], starts, one, 1, 0.5, fitness=FITNESS)
+
+
+def test_best_starts_rejects_bad_inputs_before_compiling(env):
+    candidates = np.tile(kick_model.DEFAULT_PARAMS, (2, 3, 1))
+    with pytest.raises(ValueError, match="candidates"):
+        cmaes.best_starts(env, [8.0, 12.0], candidates[0], FITNESS)
+    with pytest.raises(ValueError, match="repetitions"):
+        cmaes.best_starts(env, [8.0, 12.0], candidates, FITNESS, repetitions=0)
+    with pytest.raises(ValueError, match="40.0"):
+        cmaes.best_starts(env, [8.0, 40.0], candidates, FITNESS)
+
+
+def test_optimise_rejects_bad_inputs_before_compiling(env):
+    cfg = config.make_config("tiny").prior
+    with pytest.raises(ValueError, match="no_such_param"):
+        cmaes.optimise(env, kick_model.DEFAULT_PARAMS, 12.0, ("lean", "no_such_param"), cfg)
+    with pytest.raises(ValueError, match="30.0"):
+        cmaes.optimise(env, kick_model.DEFAULT_PARAMS, 30.0, ("lean",), cfg)
+    with pytest.raises(ValueError, match="strengths"):
+        cmaes.sweep(env, np.tile(kick_model.DEFAULT_PARAMS, (3, 1)), [0.5, 1.5], 12.0)
+
+
+def test_tiny_optimisation_improves(tmp_path, env):
+    # Start from a poor kick (swing too weak for 12 m) so there is something to improve.
+    start = kick_model.load_record()["params"].copy()
+    start[kick_model.PARAM_NAMES.index("strength")] = 0.45
+    cfg = config.make_config("tiny", {"prior.population_size": 6, "prior.generations": 4, "prior.repetitions": 1,
+                                      "prior.sigma_init": 1.5}).prior  # fmt: skip
+    free = ("strength", "swing_hip", "back_knee")
+    out = cmaes.optimise(env, start, 12.0, free, cfg, csv_path=tmp_path / "progress.csv", say=lambda m: None)
+    with open(tmp_path / "progress.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["generation"]) for r in rows] == [0, 1, 2, 3]
+    assert float(rows[-1]["best_so_far"]) < float(rows[0]["mean_fitness"])
+    assert out["best_cost"] == pytest.approx(float(rows[-1]["best_so_far"]))
+    moved = [kick_model.PARAM_NAMES.index(n) for n in free]
+    fixed = np.setdiff1d(np.arange(kick_model.N_PARAMS), moved)
+    np.testing.assert_array_equal(out["params"][fixed], np.asarray(kick_model.clip_params(start))[fixed])
+    # The same replay program as the committed prior's test below (one kick, 4 episodes).
+    evaluation = cmaes.evaluate_kick(env, out["params"], 12.0, FITNESS, 4)
+    assert evaluation["repetitions"] == 4 and np.isfinite(evaluation["mean_error"])
+
+
+def test_committed_prior_kicks_the_ball(env):
+    record = kick_model.load_record()
+    assert record["params"].shape == (kick_model.N_PARAMS,)
+    result = cmaes.evaluate_kick(env, record["params"], 12.0, FITNESS, 4)
+    assert result["struck_fraction"] == 1.0
+    assert result["fallen_fraction"] == 0.0
+    assert result["mean_distance"] > 3.0
+
+
+def test_best_starts_picks_the_candidate_that_kicks_nearest(env):
+    # Per target, the committed 12 m kick against the same kick at a tenth of its swing speed
+    # (a few metres at most): the 12 m kick must win at 12 m, whichever order they come in.
+    main = kick_model.load_record()["params"]
+    slow = main.copy()
+    slow[kick_model.PARAM_NAMES.index("strength")] = 0.1
+    slow[kick_model.PARAM_NAMES.index("t_swing")] = kick_model.PARAM_HIGH[kick_model.PARAM_NAMES.index("t_swing")]
+    candidates = np.stack([[slow, main], [main, slow]])
+    params, index, costs = cmaes.best_starts(env, [12.0, 12.0], candidates, FITNESS, repetitions=2)
+    assert index.tolist() == [1, 0] and costs.shape == (2, 2)
+    np.testing.assert_allclose(params, np.stack([main, main]), atol=1e-6)
+    assert costs[0, 1] < costs[0, 0] and costs[1, 0] < costs[1, 1]
