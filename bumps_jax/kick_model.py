@@ -182,7 +182,6 @@ def fitness(metrics: dict, target, weights) -> jax.Array:
     return weights.distance * along + weights.lateral * lateral + weights.invalid * invalid
 
 
-
 def action_tables(params, n_steps: int, ctrl_dt: float) -> jax.Array:
     """Joint targets (P, n_steps, 22) of a batch of kicks (P, 14): `rollout.table_policy` plays them."""
     return jax.vmap(lambda p: keyframes_to_actions(p, n_steps, ctrl_dt))(jnp.asarray(params, jnp.float32))

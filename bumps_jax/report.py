@@ -11,6 +11,7 @@ import shutil
 from pathlib import Path
 
 from bumps_jax import tables
+
 STAGES = {
     "prior": "prior/kick_prior.json",
     "experts": "experts/experts.json",
@@ -158,7 +159,7 @@ def pipeline_lines(pipeline: dict | None, stages_total_s: float | None = None) -
     if killed:
         how += f"; {killed} of them killed, each counted up to its stage's last write"
     lines = [
-        f"One `reproduce` of the pipeline: **{pipeline['total_wall_s'] / 60:.1f} min** in all ({parts}; "
+        f"The pipeline (`demo` or `reproduce`): **{pipeline['total_wall_s'] / 60:.1f} min** in all ({parts}; "
         f"on {pipeline.get('device', 'the device above')}, {how}).",
         *([f"Note: {pipeline['note']}"] if pipeline.get("note") else []),
     ]

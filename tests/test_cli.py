@@ -39,7 +39,7 @@ def test_a_stage_reads_its_own_keys_without_their_section():
     ("command", "item", "named"),
     [
         ("train-experts", "tasks=12", r"--set experts.tasks=12: expected a list like \[7.0, 7.5, 8.0, ...\]"),
-        ("train-experts", "ppo.learning_rate=fast", r'--set experts.ppo.learning_rate="fast": expected a finite number'),
+        ("train-experts", "ppo.learning_rate=fast", r'--set experts.ppo.learning_rate="fast": expected a finite'),
         ("train-experts", "eval.repetitions=2.5", r"--set experts.eval.repetitions=2.5: expected an integer"),
         ("filter", "seed=1.5", r"--set filter.seed=1.5: expected an integer"),
         ("filter", "net_seed=5", r"filter.net_seed 5 names no network: meta.train.n_seeds is 1"),

@@ -1,4 +1,4 @@
-"""Expert training: config errors, vmapped = alone, checkpoint resume (also past a corrupt checkpoint), Table-1 record."""
+"""Expert training: config errors, vmapped = alone, resume (also past a corrupt checkpoint), Table-1 record."""
 
 import json
 import re
@@ -154,8 +154,9 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
     stage_dir = tmp_path / "whole" / "experts"
     record = experts.evaluate_experts(cfg, stage_dir, want, programs, whole["wall_s"], **quiet)
     on_disk = json.loads((stage_dir / "experts.json").read_text())
-    for key in ("tasks_m", "per_task", "accuracy_mean", "accuracy_std", "error_mean_m", "error_std_m",
-                "env_steps", "env_steps_breakdown", "device", "versions", "date", "command", "preset", "wall_s"):  # fmt: skip
+    keys = ("tasks_m", "per_task", "accuracy_mean", "accuracy_std", "error_mean_m", "error_std_m", "env_steps",
+            "env_steps_breakdown", "device", "versions", "date", "command", "preset", "wall_s")  # fmt: skip
+    for key in keys:
         assert key in on_disk, key
     assert on_disk["env"]["physics_dt"] == 0.0025 and on_disk["env"]["impl"] == "jax"
     assert on_disk["tasks_m"] == [8.0, 12.0] and on_disk["env_steps"] == 2 * 4 * N_STEPS

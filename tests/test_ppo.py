@@ -9,7 +9,7 @@ import numpy as np
 import optax
 import pytest
 
-from bumps_jax import config, kick_env, kick_model, ppo
+from bumps_jax import config, kick_model, ppo
 from bumps_jax.stages import experts
 
 N_STEPS = 75

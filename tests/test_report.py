@@ -3,8 +3,6 @@
 import json
 from pathlib import Path
 
-import numpy as np
-
 from bumps_jax import config, report, runio
 
 ROOT = Path(__file__).resolve().parent.parent

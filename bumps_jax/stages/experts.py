@@ -166,7 +166,8 @@ def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
             )
             names = ("blend", *kick_model.ANCHORS)
             info.update(candidates=list(names), candidate_costs=costs.tolist(), chosen=[names[i] for i in chosen])
-            say(f"starting kicks chosen from blend and anchors: {dict(zip(targets.tolist(), info['chosen']))}")
+            chosen_by_task = dict(zip(targets.tolist(), info["chosen"], strict=True))
+            say(f"starting kicks chosen from blend and anchors: {chosen_by_task}")
     else:
         starts = np.tile(np.asarray(record["params"], np.float32), (len(targets), 1))
     if e.tune.generations > 0:
@@ -265,7 +266,8 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
             state, metrics = run_chunk(programs, state, targets)
             update = int(np.asarray(state.update)[0])
             # Rows first: if the run dies before the checkpoint lands, the resume trims and redoes them.
-            runio.append_csv(progress, CSV_FIELDS, chunk_rows(before, metrics, tasks, programs.trainer.steps_per_update))
+            rows = chunk_rows(before, metrics, tasks, programs.trainer.steps_per_update)
+            runio.append_csv(progress, CSV_FIELDS, rows)
             manager.save(update, args=ocp.args.StandardSave(state))
             manager.wait_until_finished()
             clock[str(update)] = previous + time.perf_counter() - start
@@ -290,7 +292,8 @@ def load_final_params(stage_dir: Path, programs: Compiled, n_tasks: int) -> Expe
     try:
         return ocp.StandardCheckpointer().restore(final, expert_params(abstract_state(programs, n_tasks)))
     except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
-        raise ValueError(f"{final}: cannot read the trained experts ({type(err).__name__}); rerun train-experts") from None
+        reason = type(err).__name__
+        raise ValueError(f"{final}: cannot read the trained experts ({reason}); rerun train-experts") from None
 
 
 def load_family(cfg, run_dir: Path) -> Family:
