@@ -13,6 +13,7 @@ import csv
 import datetime
 import hashlib
 import json
+import logging
 import math
 import os
 import shutil
@@ -207,8 +208,17 @@ def checkpoint_manager(directory: Path, keep: int, read_only: bool = False):
     when complete, so a run killed mid-save leaves the previous checkpoint as the latest."""
     import orbax.checkpoint as ocp  # noqa: PLC0415
 
-    options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only, read_only=read_only)
-    return ocp.CheckpointManager(Path(directory).resolve(), options=options)
+    if not read_only:
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True)
+        return ocp.CheckpointManager(Path(directory).resolve(), options=options)
+    # Orbax logs a warning for every read-only manager; reading a policy is not worth one.
+    absl_logger = logging.getLogger("absl")
+    level = absl_logger.level
+    absl_logger.setLevel(logging.ERROR)
+    try:
+        return ocp.CheckpointManager(Path(directory).resolve(), options=ocp.CheckpointManagerOptions(read_only=True))
+    finally:
+        absl_logger.setLevel(level)
 
 
 def restore_latest(manager, restore_args, say=print):
