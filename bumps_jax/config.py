@@ -243,19 +243,21 @@ def set_leaf(cfg: ml_collections.ConfigDict, key: str, value) -> None:
         raise ValueError(f"unknown config key {key!r}")
     if isinstance(node[leaf], ml_collections.ConfigDict):
         raise ValueError(f"config key {key!r} is a section; set one of its keys: {sorted(node[leaf])}")
-    node[leaf] = coerce(key, value, node.get_type(leaf), node[leaf])
+    optional = isinstance(node._fields.get(leaf), FieldReference)  # declared with a type: may be null
+    node[leaf] = coerce(key, value, node.get_type(leaf), node[leaf], optional)
 
 
-def coerce(key: str, value, kind: type, current):
-    """`value` as the type of a leaf (kind; current: its value now), or ValueError naming both."""
+def coerce(key: str, value, kind: type, current, optional: bool = False):
+    """`value` as the type of a leaf (kind; current: its value now; optional: null allowed), or
+    ValueError naming the key, the value and what the leaf takes."""
 
     def bad(expected: str):
         return ValueError(f"--set {key}={json.dumps(value, default=str)}: expected {expected}")
 
     if value is None:
-        if current is None or kind in (str,):
+        if optional or current is None:
             return value
-        raise bad(kind.__name__)
+        raise bad(f"a value of type {kind.__name__}, not null")
     if kind is bool:
         if isinstance(value, bool):
             return value
