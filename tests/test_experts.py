@@ -189,3 +189,25 @@ def test_read_starting_kicks_finds_each_target_and_names_missing_ones():
     np.testing.assert_array_equal(kicks[12.0], np.float32(record["params"][record["tasks_m"].index(12.0)]))
     with pytest.raises(ValueError, match=r"\[12.3\]"):
         experts.read_starting_kicks(path, [12.0, 12.3])
+
+
+def test_trained_experts_without_a_record_are_evaluated_not_retrained(tmp_path, monkeypatch, programs):  # defect 7
+    """A call killed during the final evaluation left final_params but no experts.json: the rerun
+    evaluates the saved experts (it must neither train again nor fail)."""
+    stage_dir = tmp_path / "experts"
+    final = stage_dir / "final_params"
+    final.mkdir(parents=True)
+    runio.write_json(stage_dir / "wall_time.json", {"0": 1.0, "2": 7.5})
+    monkeypatch.setattr(experts, "compile_programs", lambda cfg: programs)
+    monkeypatch.setattr(experts, "train", lambda *a, **k: pytest.fail("trained again"))
+    monkeypatch.setattr(experts, "load_final_params", lambda d, p, n: ("params of", d))
+    seen = {}
+
+    def evaluate(cfg, stage_dir, params, programs, wall_s, say=print):
+        seen.update(params=params, wall_s=wall_s)
+        return runio.write_json(stage_dir / experts.OUTPUT, {"error_mean_m": 0.5}) and {"error_mean_m": 0.5}
+
+    monkeypatch.setattr(experts, "evaluate_experts", evaluate)
+    monkeypatch.setattr(experts.tables, "experts_markdown", lambda record: "table")
+    experts.run(pipeline_config(), tmp_path, say=lambda *a, **k: None)
+    assert seen == {"params": ("params of", stage_dir), "wall_s": 7.5}

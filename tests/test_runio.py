@@ -1,0 +1,55 @@
+"""The run-I/O layer: Ctrl-C stops a chunk loop between chunks, with a resumable state."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from bumps_jax import runio
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_sigint_sets_a_flag_and_a_second_one_stops_at_once():
+    said = []
+    with runio.stop_on_interrupt(lambda *a, **k: said.append(a[0])) as stop:
+        stop.check()  # nothing pressed yet
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)  # the handler runs between bytecodes: no exception here
+        assert stop.requested and "stopping after this chunk" in said[0]
+        with pytest.raises(runio.Interrupted):
+            stop.check()
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+def test_ctrl_c_stops_a_training_run_within_a_chunk_and_it_resumes(tmp_path):  # issue: defect 10
+    env = dict(
+        os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])
+    )
+    cmd = [sys.executable, str(ROOT / "tests" / "interrupted_run.py"), str(tmp_path / "net")]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    lines = []
+    for line in proc.stdout:  # wait until training runs (compiled, a chunk done)
+        lines.append(line)
+        if "epoch" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    lines += out.splitlines()
+    assert proc.returncode == 1, (lines, err)
+    assert "interrupted: rerun the same command to resume" in err
+    assert "Exception ignored" not in err and "Traceback" not in err and "free()" not in err
+    assert not any("finished" in line for line in lines)  # it stopped, it did not run on
+    saved = sorted(int(p.name) for p in (tmp_path / "net" / "checkpoints").iterdir() if p.name.isdigit())
+    assert saved and max(saved) < 30  # stopped early (30 steps in all), after a saved chunk
+    # The same command resumes from the last checkpoint and finishes.
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "resumed from epoch" in done.stdout and "finished" in done.stdout
