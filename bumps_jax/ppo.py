@@ -23,6 +23,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import ml_collections
+import numpy as np
 import optax
 from brax.training import gradients, types
 from brax.training.acme import running_statistics
@@ -70,11 +71,38 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
     return kick_env.make_config(default_config() if config is None else config, overrides)
 
 
-def validate_config(cfg: ml_collections.ConfigDict, n_steps: int) -> None:
-    """ValueError naming the first bad value of a PPO section (`n_steps`: the env's episode length)."""
-    from bumps_jax import validation  # noqa: PLC0415
-
-    validation.ppo_section(cfg, "ppo.", n_steps, (0.0, float("inf")))
+def validate_config(cfg: ml_collections.ConfigDict, n_steps: int, prefix: str = "ppo.") -> None:
+    """ValueError naming the first bad value of a PPO section (`n_steps`: the env's episode length;
+    `prefix`: where the section sits in the config tree, for the message)."""
+    for key in ("num_envs", "num_minibatches", "num_epochs", "total_env_steps"):
+        value = cfg[key]
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+            raise ValueError(f"{prefix}{key} must be a positive integer, got {value!r}")
+    if cfg.num_envs % cfg.num_minibatches:
+        raise ValueError(
+            f"{prefix}num_minibatches {cfg.num_minibatches} must divide {prefix}num_envs {cfg.num_envs}"
+            " (minibatches are whole episodes)"
+        )
+    if cfg.total_env_steps < cfg.num_envs * n_steps:
+        raise ValueError(
+            f"{prefix}total_env_steps {cfg.total_env_steps} is less than one update "
+            f"(num_envs {cfg.num_envs} x {n_steps} steps)"
+        )
+    for key in ("learning_rate", "value_learning_rate", "max_grad_norm", "clip_epsilon", "reward_scaling"):
+        if not np.isfinite(cfg[key]) or cfg[key] <= 0:
+            raise ValueError(f"{prefix}{key} must be > 0, got {cfg[key]!r}")
+    for key in ("discount", "gae_lambda"):
+        if not 0.0 <= cfg[key] <= 1.0:
+            raise ValueError(f"{prefix}{key} must be in [0, 1], got {cfg[key]!r}")
+    for key in ("entropy_cost", "vf_coefficient"):
+        if cfg[key] < 0:
+            raise ValueError(f"{prefix}{key} must be >= 0, got {cfg[key]!r}")
+    for key in ("policy_hidden", "value_hidden"):
+        if not cfg[key] or any(int(h) < 1 for h in cfg[key]):
+            raise ValueError(f"{prefix}{key} must be positive layer sizes, got {tuple(cfg[key])!r}")
+    low_high = cfg.sample_task_range
+    if low_high is not None and (len(low_high) != 2 or not 0.0 < low_high[0] < low_high[1]):
+        raise ValueError(f"{prefix}sample_task_range must be (low, high) with 0 < low < high, got {tuple(low_high)}")
 
 
 def n_updates(cfg: ml_collections.ConfigDict, n_steps: int) -> int:

@@ -76,31 +76,10 @@ def prior(p) -> None:
 
 
 def ppo_section(c, prefix: str, n_steps: int, task_range) -> None:
-    positive_ints(c, prefix, ("num_envs", "num_minibatches", "num_epochs", "total_env_steps"))
-    if c.num_envs % c.num_minibatches:
-        raise ValueError(
-            f"{prefix}num_minibatches {c.num_minibatches} must divide {prefix}num_envs {c.num_envs}"
-            " (minibatches are whole episodes)"
-        )
-    if c.total_env_steps < c.num_envs * n_steps:
-        raise ValueError(
-            f"{prefix}total_env_steps {c.total_env_steps} is less than one update "
-            f"(num_envs {c.num_envs} x {n_steps} steps)"
-        )
-    positive_floats(c, prefix, ("learning_rate", "value_learning_rate", "max_grad_norm", "clip_epsilon"))
-    positive_floats(c, prefix, ("reward_scaling",))
-    for key in ("discount", "gae_lambda"):
-        if not 0.0 <= c[key] <= 1.0:
-            raise ValueError(f"{prefix}{key} must be in [0, 1], got {c[key]!r}")
-    for key in ("entropy_cost", "vf_coefficient"):
-        if c[key] < 0:
-            raise ValueError(f"{prefix}{key} must be >= 0, got {c[key]!r}")
-    for key in ("policy_hidden", "value_hidden"):
-        if not c[key] or any(int(h) < 1 for h in c[key]):
-            raise ValueError(f"{prefix}{key} must be positive layer sizes, got {tuple(c[key])!r}")
+    from bumps_jax import ppo  # noqa: PLC0415
+
+    ppo.validate_config(c, n_steps, prefix)
     if c.sample_task_range is not None:
-        if len(c.sample_task_range) != 2 or not 0.0 < c.sample_task_range[0] < c.sample_task_range[1]:
-            raise ValueError(f"{prefix}sample_task_range must be (low, high), got {tuple(c.sample_task_range)}")
         targets(c.sample_task_range, task_range, f"{prefix}sample_task_range")
 
 
