@@ -69,7 +69,7 @@ train-experts: $(STAMP)
 # PRESET=paper (a GPU) writes benchmarks/results/training.json, and with more than one GPU
 # visible also scaling.json (one GPU vs all); the tiny preset is a CPU smoke test in runs/bench.
 bench: $(STAMP)
-	$(PY) benchmarks/bench.py --preset $(PRESET) $(if $(filter paper,$(PRESET)),,--out-dir runs/bench)
+	$(PY) -m benchmarks.bench --preset $(PRESET) $(if $(filter paper,$(PRESET)),,--out-dir runs/bench)
 
 # Behaviour cloning of the experts (runs/$(PRESET)/experts) into the two meta-policies.
 meta-train: $(STAMP)

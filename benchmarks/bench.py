@@ -13,35 +13,34 @@ each its own seed; K times the filtering repetitions), for a lab that outgrows o
 Every time is a program's second call (its first compiles); compile times are reported apart.
 Results are written after each section, so a run cut short keeps what it measured.
 
-    python benchmarks/bench.py --preset paper                 # GPU: benchmarks/results/*.json
-    python benchmarks/bench.py --preset tiny --out-dir runs/bench   # CPU smoke test
-    python benchmarks/bench.py --only scaling --scale-workload 2    # several GPUs, twice the work
+    python -m benchmarks.bench --preset paper                        # GPU: benchmarks/results/*.json
+    python -m benchmarks.bench --preset tiny --out-dir runs/bench    # CPU smoke test
+    python -m benchmarks.bench --only scaling --scale-workload 2     # several GPUs, twice the work
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import sys
+import copy
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # `experiments`, `benchmarks` as scripts
-
-from benchmarks import scene_bench  # noqa: E402
-from bumps_jax import evaluate, experts, filtering, kick_env, meta, results, sharding, synthetic_experts  # noqa: E402
+from benchmarks import scene_bench
+from bumps_jax import bc, brax_compat, cli, config, filtering, kick_env, kick_model, rollout, runio, sharding
+from bumps_jax.stages import experts
 
 # What each preset measures: the paper's sizes on a GPU; CPU-sized for a smoke test.
 SIZES = {
     "paper": {"bench_updates": 2, "brax_epochs": 4, "bc_chunk": 1000, "filter_step": 0.01, "filter_reps": 10},
     "tiny": {"bench_updates": 1, "brax_epochs": 2, "bc_chunk": 20, "filter_step": 2.0, "filter_reps": 1},
 }
-
-
+# Ten of our updates' worth of env steps per Brax training epoch, so that each epoch's own
+# timing is long enough to mean something.
 UPDATES_PER_BRAX_EPOCH = 10
 
 
@@ -55,8 +54,8 @@ def timed(fn, *args):
     return out, first, time.perf_counter() - t0
 
 
-def bench_scene(batch: int) -> dict:
-    env = kick_env.KickEnv()
+def bench_scene(cfg, batch: int) -> dict:
+    env = kick_env.KickEnv(cfg.env)
     return {
         "scene_batch": batch,
         "physics_steps_per_s": scene_bench.physics_rate(env.mj_model, batch),
@@ -64,25 +63,40 @@ def bench_scene(batch: int) -> dict:
     }
 
 
-def expert_config(preset: str, updates: int, workload: int = 1):
-    """The preset's experts with the budget cut to `updates` updates (one chunk); with
-    `workload` K, every task K times (K experts per task, each on its own seed)."""
-    cfg = experts.preset_config(preset)
-    steps = cfg.ppo.num_envs * kick_env.KickEnv().n_steps * updates
-    overrides = {"ppo.total_env_steps": steps, "updates_per_chunk": updates, "tasks": tuple(cfg.tasks) * workload}
-    return experts.make_config(cfg, overrides)
+def derived(cfg, overrides: dict):
+    """A copy of the pipeline config `cfg` with dotted `overrides` set, checked as `make_config` checks."""
+    out = copy.deepcopy(cfg)
+    for key, value in overrides.items():
+        config.set_leaf(out, key, value)
+    config.validate(out)
+    return out
 
 
-def bench_experts(preset: str, updates: int, mesh, method: str = "jit", workload: int = 1) -> dict:
+def expert_config(cfg, updates: int, workload: int = 1):
+    """`cfg` with its experts' budget cut to `updates` updates (one chunk), starting from the
+    prior's blended kicks as they are; with `workload` K, every task K times (each its own seed)."""
+    n_steps = kick_env.KickEnv(cfg.env).n_steps
+    return derived(cfg, {
+        "experts.ppo.total_env_steps": cfg.experts.ppo.num_envs * n_steps * updates,
+        "experts.updates_per_chunk": updates,
+        "experts.tasks": tuple(cfg.experts.tasks) * workload,
+        "experts.tune.generations": 0,
+        "experts.tune.anchor_starts": False,
+    })  # fmt: skip
+
+
+def bench_experts(cfg, updates: int, mesh, workload: int = 1) -> dict:
     """One chunk of PPO updates of every task at once; aggregate env-steps/s over real tasks."""
-    cfg = expert_config(preset, updates, workload)
-    programs = experts.compile_programs(cfg, mesh=mesh, method=method)
-    n = len(cfg.tasks)
-    kicks, _ = experts.starting_kicks(experts.make_config(cfg, {"tune.generations": 0}), verbose=False)
-    state, _ = experts.run_init(programs, experts.task_rngs(cfg.seed, n), cfg.tasks, kicks)
-    _, first, wall = timed(lambda s: experts.run_chunk(programs, s, cfg.tasks), state)
+    cut = expert_config(cfg, updates, workload)
+    programs = experts.compile_programs(cut, mesh=mesh)
+    tasks = np.asarray(cut.experts.tasks, np.float32)
+    n = len(tasks)
+    record = kick_model.load_record(kick_model.ASSET)  # the starting kicks are a workload here, whatever the env
+    kicks, _ = experts.starting_kicks(cut, record)
+    state, _ = experts.run_init(programs, experts.task_rngs(cut.experts.seed, n), tasks, kicks)
+    _, first, wall = timed(lambda s: experts.run_chunk(programs, s, tasks), state)
     steps = n * updates * programs.trainer.steps_per_update
-    full = experts.preset_config(preset).ppo.total_env_steps * n
+    full = cfg.experts.ppo.total_env_steps * n
     return {
         "n_tasks": n,
         "workload": workload,
@@ -94,78 +108,90 @@ def bench_experts(preset: str, updates: int, mesh, method: str = "jit", workload
     }
 
 
-def bench_brax(preset: str, epochs: int) -> dict:
+def bench_brax(cfg, epochs: int) -> dict:
     """Brax's ppo.train on one task with the preset's per-task batch; its own post-compile sps."""
-    from experiments import compare_brax_ppo  # noqa: PLC0415 (installs the device_put_replicated shim)
-
-    cfg = experts.preset_config(preset)
-    target = float(cfg.tasks[len(cfg.tasks) // 2])
-    env = kick_env.KickEnv(config_overrides={"tasks": (target,)})
-    p = cfg.ppo
+    target = float(cfg.experts.tasks[len(cfg.experts.tasks) // 2])
+    env = kick_env.KickEnv(derived(cfg, {"env.tasks": (target,)}).env)
+    p = cfg.experts.ppo
     sps = []
     start = time.perf_counter()
-    compare_brax_ppo.brax_ppo.train(
-        **compare_brax_ppo.brax_settings(p, env),
-        # Ten of our updates' worth of env steps per Brax training epoch, so that each epoch's
-        # own timing is long enough to mean something.
+    brax_compat.train(
+        p,
+        env,
         num_timesteps=epochs * UPDATES_PER_BRAX_EPOCH * p.num_envs * env.n_steps,
         num_evals=epochs + 1,  # one report per training epoch; the first includes compiling
         run_evals=False,
-        max_devices_per_host=1,  # one GPU, as our experts in this measurement
+        max_devices_per_host=1,  # one device, as our experts in this measurement
         progress_fn=lambda step, metrics: sps.append(float(metrics.get("training/sps", float("nan")))),
     )
     return {"brax_ppo_env_steps_per_s": sps[-1], "brax_ppo_sps_per_epoch": sps, "brax_task_m": target,
             "brax_ppo_wall_s": time.perf_counter() - start}  # fmt: skip
 
 
-def bench_bc(preset: str, chunk: int) -> dict:
+def bench_bc(cfg, chunk: int) -> dict:
     """Gradient steps/s of each meta-policy's BC loop on a dataset of the experts' size, timed
     over `chunk` epochs."""
-    cfg = meta.make_config(preset, {"train.chunk": chunk})
-    n_rows = len(experts.preset_config(preset).tasks) * kick_env.KickEnv().n_steps
+    train_cfg = derived(cfg, {"meta.train.chunk": chunk}).meta.train
+    n_rows = len(cfg.experts.tasks) * kick_env.KickEnv(cfg.env).n_steps
     rng = np.random.default_rng(0)
     obs = jnp.asarray(rng.uniform(size=(n_rows, 2)), jnp.float32)
     actions = jnp.asarray(rng.normal(size=(n_rows, 22)), jnp.float32)
-    keys = meta.seed_keys(cfg.train)
-    epoch_steps = meta.steps_per_epoch(cfg.train, n_rows)
+    keys = bc.seed_keys(train_cfg)
+    epoch_steps = bc.steps_per_epoch(train_cfg, n_rows)
     out, total = {"bc_steps_per_epoch": epoch_steps}, 0.0
-    for name, (depth, width) in cfg.nets.items():
-        init, step_chunk = meta.make_trainer(meta.MetaPolicy(depth, width), cfg.train, n_rows)
-        state = init(keys)
-        _, first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), state)
-        rate = chunk * epoch_steps * cfg.train.n_seeds / wall
+    for name, (depth, width) in cfg.meta.nets.items():
+        init, step_chunk = bc.make_trainer(bc.MetaPolicy(depth, width), train_cfg, n_rows)
+        _, first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
+        rate = chunk * epoch_steps * train_cfg.n_seeds / wall
         out[f"bc_steps_per_s_{name}"] = rate
-        total += cfg.train.epochs * epoch_steps / rate
+        total += train_cfg.epochs * epoch_steps / rate
     out["bc_steps_per_s"] = min(v for k, v in out.items() if k.startswith("bc_steps_per_s_"))
     # Both nets' full schedules (train.epochs passes each) at the measured rates.
     out["bc_wall_s"] = total
     return out
 
 
-def bench_filter(preset: str, step: float, reps: int, mesh, method: str = "jit", workload: int = 1) -> dict:
+class KickFamily(NamedTuple):
+    """A contextual policy of known cost and real kicks: the committed prior's family at the
+    strength its calibration gives for the asked distance. Leaves may carry a stacking axis."""
+
+    anchors: jax.Array  # (3, 14) short, main, long
+    calibration: jax.Array  # (n, 2) rows (strength, distance m)
+
+
+def kick_family_policy(env: kick_env.KickEnv):
+    """apply_fn(KickFamily, obs (2,)) -> action (22,): the blended kick for the context obs[1] asks."""
+    lo, hi = env.config.task_range
+
+    def apply(params: KickFamily, obs):
+        kick = kick_model.kick_for(params.anchors, params.calibration, lo + obs[1] * (hi - lo))
+        return rollout.table_policy(kick_model.keyframes_to_actions(kick, env.n_steps, env.config.ctrl_dt), obs)
+
+    return apply
+
+
+def bench_filter(cfg, step: float, reps: int, mesh, workload: int = 1) -> dict:
     """The high-sample-rate variant end to end (selection over the fine context grid, then the
-    fresh evaluation of each test task), with the contextual stand-in policy: rollouts/s."""
-    cfg = filtering.make_config(preset)
+    fresh evaluation of each test task), with the prior's kick family as the contextual policy: rollouts/s."""
+    f = cfg.filter
     reps *= workload
-    env = kick_env.KickEnv()
-    params = jax.tree.map(lambda a: a[None], synthetic_experts.synthetic_contextual_params())
-    grid = evaluate.grid_fn(env, synthetic_experts.contextual_apply, mesh, method)
-    tasks = np.asarray(cfg.tasks)
-    contexts = filtering.candidate_contexts(tasks, filtering.context_grid(*cfg.context_range, step))
+    env = kick_env.KickEnv(cfg.env)
+    record = kick_model.load_record(kick_model.ASSET)  # a workload here, whatever the env
+    family = KickFamily(jnp.asarray(record["anchors"]), jnp.asarray(kick_model.calibration(record)))
+    params = jax.tree.map(lambda a: a[None], family)
+    grid = rollout.grid_fn(env, kick_family_policy(env), mesh)
+    tasks = np.asarray(f.tasks)
+    contexts = filtering.candidate_contexts(tasks, filtering.context_grid(*f.context_range, step))
     sel_key, eval_key = filtering.noise_keys(0)
-    ball = filtering.ball_start_xy(env)
 
     def run(_):
-        sel = filtering.filter_policy(
-            grid, params, contexts, tasks, cfg.width, reps, sel_key, ball, cfg.block, mesh.size
-        )
+        sel = filtering.filter_policy(grid, params, contexts, tasks, f.width, reps, sel_key,
+                                      task_range=cfg.env.task_range, block=f.block, multiple=mesh.size)  # fmt: skip
         chosen = sel.contexts[sel.chosen]
-        return filtering.evaluate_chosen(
-            grid, params, chosen, tasks, cfg.eval_repetitions, eval_key, cfg.block, mesh.size
-        )
+        return filtering.evaluate_chosen(grid, params, chosen, tasks, f.eval_repetitions, eval_key, f.block, mesh.size)
 
     _, first, wall = timed(run, None)
-    rollouts = len(contexts) * reps + len(tasks) * cfg.eval_repetitions
+    rollouts = len(contexts) * reps + len(tasks) * f.eval_repetitions
     return {
         "n_devices": mesh.size,
         "workload": workload,
@@ -183,8 +209,8 @@ def reproduce_record(pipeline_json: Path, device: str) -> dict:
     another device (e.g. a CPU smoke test) would set the GPU's pipeline time beside its own."""
     if not pipeline_json.exists():
         return {}
-    pipeline = json.loads(pipeline_json.read_text())
-    if pipeline["device"] != device:
+    pipeline = runio.read_json(pipeline_json, "the committed pipeline record")
+    if pipeline.get("device") != device:
         return {}
     return {
         "reproduce_wall_s": pipeline["total_wall_s"],
@@ -194,15 +220,17 @@ def reproduce_record(pipeline_json: Path, device: str) -> dict:
     }
 
 
-def main(argv=None) -> dict:
+def parse_args(argv=None):
+    """(args, pipeline config), every argument checked (parser errors) before any work."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", choices=tuple(SIZES), default="paper")
+    parser.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="config overrides, e.g. env.physics_dt=0.005")  # fmt: skip
     parser.add_argument("--out-dir", default="benchmarks/results")
     parser.add_argument(
         "--skip", nargs="*", default=(), choices=("scene", "experts", "brax", "bc", "filter", "scaling")
     )
     parser.add_argument("--only", nargs="*", default=(), choices=("scaling",), help="run only the scale-out sections")
-    parser.add_argument("--sharding", choices=sharding.METHODS, default="jit", help="how batches are split")
     parser.add_argument(
         "--scale-workload",
         type=int,
@@ -210,57 +238,68 @@ def main(argv=None) -> dict:
         help="the scale-out sections run K times the preset's work, on one device and on all",
     )
     args = parser.parse_args(argv)
-    size = SIZES[args.preset]
+    if args.scale_workload < 1:
+        parser.error(f"--scale-workload must be a positive integer, got {args.scale_workload}")
+    try:
+        cfg = config.make_config(args.preset, cli.parse_overrides(args.set))
+        runio.check_writable(args.out_dir)
+    except ValueError as err:
+        parser.error(str(err))
+    return args, cfg
+
+
+def sections(cfg, size: dict, one, every, k: int) -> list:
+    """(name, measurement, where its result goes) in the order they run. A scaling section's
+    measurement is a pair: on one device and on `every` device, at `k` times the preset's work.
+
+    Each scale-out measurement follows its one-device run (a run cut short keeps whole ratios);
+    the experts' one comes last, as the program most likely to fail to compile. A scale-out
+    section at the preset's own workload reuses the one-device value just measured; at a larger
+    workload it measures one device itself, then all.
+    """
+
+    def experts_on(mesh, workload=1):
+        return lambda: bench_experts(cfg, size["bench_updates"], mesh, workload)
+
+    def filter_on(mesh, workload=1):
+        return lambda: bench_filter(cfg, size["filter_step"], size["filter_reps"], mesh, workload)
+
+    batch = len(cfg.experts.tasks) * cfg.experts.ppo.num_envs
+    return [
+        ("experts", experts_on(one), "training"),
+        ("filter", filter_on(one), "training"),
+        ("scaling-filter", (filter_on(one, k), filter_on(every, k)), "filter_rollouts_per_s"),
+        ("brax", lambda: bench_brax(cfg, size["brax_epochs"]), "training"),
+        ("scene", lambda: bench_scene(cfg, batch), "training"),
+        ("bc", lambda: bench_bc(cfg, size["bc_chunk"]), "training"),
+        ("scaling-experts", (experts_on(one, k), experts_on(every, k)), "experts_env_steps_per_s"),
+    ]
+
+
+def main(argv=None) -> dict:
+    args, cfg = parse_args(argv)
     out_dir = Path(args.out_dir)
     start = time.perf_counter()
     one = sharding.device_mesh(1)
     n_dev = len(jax.devices())
-    training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": args.sharding}
+    # Every program splits its batch with `jax.jit` over a mesh (`sharding.over_batch`).
+    training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": "jit"}
     pipeline_json = Path(__file__).resolve().parent.parent / "results" / "pipeline.json"
-    training.update(reproduce_record(pipeline_json, results.device_name()))
-    scaling: dict = {"devices": n_dev, "sharding": args.sharding}
-    physics_dt = kick_env.KickEnv().physics_dt  # every section's env is the default one
+    training.update(reproduce_record(pipeline_json, runio.device_name()))
+    scaling: dict = {"devices": n_dev, "sharding": "jit", "workload": args.scale_workload}
 
     def save(section: str) -> None:
         print(f"[bench] {section} done at {time.perf_counter() - start:.0f} s", flush=True)
-        prov = results.provenance(args.preset, time.perf_counter() - start, physics_dt_s=physics_dt)
+        prov = runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env)
         if "scaling" not in args.only:  # a scale-out-only run leaves the one-device record alone
-            results.write_json(out_dir / "training.json", {**training, **prov})
+            runio.write_json(out_dir / "training.json", {**training, **prov})
         if any(k.endswith("_speedup") for k in scaling):  # at least one ratio measured
-            results.write_json(out_dir / "scaling.json", {**scaling, **prov})
+            runio.write_json(out_dir / "scaling.json", {**scaling, **prov})
 
-    cfg = experts.preset_config(args.preset)
-    batch = len(cfg.tasks) * cfg.ppo.num_envs
     scale_out = n_dev > 1 and "scaling" not in args.skip
     every = sharding.device_mesh() if scale_out else one
-
-    if args.scale_workload < 1:
-        parser.error(f"--scale-workload must be a positive integer, got {args.scale_workload}")
     k = args.scale_workload
-    scaling["workload"] = k
-
-    def experts_on(mesh, workload=1):
-        return lambda: bench_experts(args.preset, size["bench_updates"], mesh, args.sharding, workload)
-
-    def filter_on(mesh, workload=1):
-        return lambda: bench_filter(
-            args.preset, size["filter_step"], size["filter_reps"], mesh, args.sharding, workload
-        )
-
-    # Each scale-out measurement follows its one-device run (a run cut short keeps whole
-    # ratios); the experts' one comes last, as the program most likely to fail to compile.
-    # A scale-out section at the preset's own workload reuses the one-device value just measured;
-    # at a larger workload it measures one device itself, then all.
-    sections = [
-        ("experts", experts_on(one), "training"),
-        ("filter", filter_on(one), "training"),
-        ("scaling-filter", (filter_on(one, k), filter_on(every, k)), "filter_rollouts_per_s"),
-        ("brax", lambda: bench_brax(args.preset, size["brax_epochs"]), "training"),
-        ("scene", lambda: bench_scene(batch), "training"),
-        ("bc", lambda: bench_bc(args.preset, size["bc_chunk"]), "training"),
-        ("scaling-experts", (experts_on(one, k), experts_on(every, k)), "experts_env_steps_per_s"),
-    ]
-    for name, fn, into in sections:
+    for name, fn, into in sections(cfg, SIZES[args.preset], one, every, k):
         source = name.removeprefix("scaling-")
         if name in args.skip or (name == source and "scaling" in args.only):
             continue

@@ -1,11 +1,12 @@
 """Scene benchmark: raw MJX physics steps/s and env steps/s of the kick scene, by batch size,
 and the solver/contact design choices measured against each other.
 
-    python benchmarks/scene_bench.py --out benchmarks/results/scene.json [--quick]
+    python -m benchmarks.scene_bench --out benchmarks/results/scene.json [--quick]
 
-Each design variant is timed on the GPU (physics steps/s at one batch size) and checked for
-physics with the C MuJoCo engine: the committed kick prior replayed without noise, where the
-ball rests and whether the robot stays up. A faster variant only counts if the kick survives.
+Each design variant is timed on the device (physics steps/s at one batch size) and checked for
+physics with the C MuJoCo engine (`bumps_jax.c_replay`): the committed kick prior replayed
+without noise, where the ball rests and whether the robot stays up. A faster variant only counts
+if the kick survives.
 """
 
 from __future__ import annotations
@@ -19,13 +20,21 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from bumps_jax import kick_env, prior, results, scene
+from bumps_jax import c_replay, cli, config, kick_env, kick_model, rollout, runio, scene
 
 BATCHES = (1024, 4096, 8192, 16384)
+VARIANTS = (
+    "default", "converged", "iterations_1", "iterations_4", "ls_iterations_2", "cg_4", "eulerdamp_on",
+    "elliptic_cone", "ball_condim_6", "timestep_4ms", "with_fall_and_r_foot_contacts", "with_joint_limits",
+)  # fmt: skip
+# Variants that change the physics step: the env they are replayed in runs at it too.
+VARIANT_PHYSICS_DT = {"timestep_4ms": 0.004}
 
 
-def variant_model(name: str) -> mujoco.MjModel:
-    """The scene with one design choice changed (name 'default' = as committed)."""
+def variant_model(name: str, timestep: float) -> mujoco.MjModel:
+    """The scene at `timestep` s with one design choice changed (name 'default' = as committed)."""
+    if name not in VARIANTS:
+        raise ValueError(f"unknown variant {name!r}; choose from {VARIANTS}")
     spec = mujoco.MjSpec.from_file(str(scene.SCENE_XML))
     if name == "with_fall_and_r_foot_contacts":  # the contacts we dropped, put back
         for geom in ("torso", "r_foot"):
@@ -34,6 +43,7 @@ def variant_model(name: str) -> mujoco.MjModel:
     if name == "with_joint_limits":
         spec.option.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
     model = spec.compile()
+    model.opt.timestep = VARIANT_PHYSICS_DT.get(name, timestep)
     if name == "iterations_1":
         model.opt.iterations, model.opt.ls_iterations = 1, 4
     elif name == "iterations_4":
@@ -49,19 +59,9 @@ def variant_model(name: str) -> mujoco.MjModel:
     elif name == "ball_condim_6":
         ball_pairs = [i for i in range(model.npair) if "ball" in mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_PAIR, i)]
         model.pair_dim[ball_pairs] = 6
-    elif name == "timestep_4ms":
-        model.opt.timestep = 0.004
     elif name == "converged":  # the reference the others are judged against
         model.opt.iterations, model.opt.ls_iterations = 20, 20
-    elif name not in ("default", "with_fall_and_r_foot_contacts", "with_joint_limits"):
-        raise ValueError(f"unknown variant {name!r}")
     return model
-
-
-VARIANTS = (
-    "default", "converged", "iterations_1", "iterations_4", "ls_iterations_2", "cg_4", "eulerdamp_on",
-    "elliptic_cone", "ball_condim_6", "timestep_4ms", "with_fall_and_r_foot_contacts", "with_joint_limits",
-)  # fmt: skip
 
 
 def physics_rate(model: mujoco.MjModel, batch: int, n_steps: int = 100, repeats: int = 3) -> float:
@@ -83,84 +83,77 @@ def physics_rate(model: mujoco.MjModel, batch: int, n_steps: int = 100, repeats:
         return jax.lax.scan(body, data, None, n_steps)[0]
 
     data = jax.jit(jax.vmap(init))(jax.random.split(jax.random.key(0), batch))
-    jax.block_until_ready(run(data))  # compile
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(run(data))
-        best = min(best, time.perf_counter() - t0)
-    return batch * n_steps / best
+    return batch * n_steps / best_time(run, data, repeats)
 
 
 def env_rate(env: kick_env.KickEnv, batch: int, repeats: int = 3) -> float:
-    """Env steps per second (one step = 4 physics steps + reward and metrics), whole episodes."""
-    actions = prior.keyframes_to_actions(jnp.asarray(prior.load_prior()["params"]), env.n_steps)
+    """Env steps per second (one step = env.n_substeps physics steps + reward and metrics): whole
+    noisy episodes of the committed prior's main kick (`rollout.matched_fn`, one policy x `batch`)."""
+    params = kick_model.load_record(kick_model.ASSET)["params"]  # a fixed workload, whatever the env
+    tables = kick_model.action_tables(params[None], env.n_steps, env.config.ctrl_dt)
+    program = rollout.matched_fn(env, rollout.table_policy)
+    target = jnp.full((1,), 12.0, jnp.float32)
+    keys = rollout.repetition_keys(1, 1, batch)
+    return batch * env.n_steps / best_time(lambda k: program(tables, target, target, k), keys, repeats)
 
-    @jax.jit
-    def run(keys):
-        def episode(key):
-            state = env.reset(key, 12.0)
-            state, _ = jax.lax.scan(lambda s, a: (env.step(s, a), None), state, actions)
-            return state.metrics["final_error"]
 
-        return jax.vmap(episode)(keys)
-
-    keys = jax.random.split(jax.random.key(1), batch)
-    jax.block_until_ready(run(keys))
+def best_time(fn, arg, repeats: int) -> float:
+    """The fastest of `repeats` calls of fn(arg) after a first (compiling) one, in seconds."""
+    jax.block_until_ready(fn(arg))
     best = np.inf
     for _ in range(repeats):
         t0 = time.perf_counter()
-        jax.block_until_ready(run(keys))
+        jax.block_until_ready(fn(arg))
         best = min(best, time.perf_counter() - t0)
-    return batch * env.n_steps / best
+    return best
 
 
-def replay_prior_in_c(model: mujoco.MjModel) -> dict:
-    """The committed prior, no noise, in C MuJoCo: where the ball rests, whether the robot falls."""
-    ids = scene.scene_ids(model)
-    data = kick_env.mj_data_for(model)
-    n_sub = int(round(0.02 / model.opt.timestep))
-    actions = np.asarray(prior.keyframes_to_actions(jnp.asarray(prior.load_prior()["params"]), 75))
-    command = scene.STANCE.copy()
-    lo, hi = ids.joint_range[:, 0], ids.joint_range[:, 1]
-    min_torso, top_speed = np.inf, 0.0
-    for action in actions:
-        ramp = kick_env.servo_ramp(command, action, lo, hi, scene.MAX_JOINT_SPEED * 0.02, n_sub)
-        command = ramp[-1]
-        for ctrl in ramp:
-            data.ctrl[:] = ctrl
-            mujoco.mj_step(model, data)
-            top_speed = max(top_speed, np.linalg.norm(data.qvel[ids.ball_qvel : ids.ball_qvel + 3]))
-        min_torso = min(min_torso, data.xpos[ids.torso_body][2])
-    rot = np.zeros(9)
-    mujoco.mju_quat2Mat(rot, data.qpos[ids.ball_qpos + 3 : ids.ball_qpos + 7])
-    angvel = rot.reshape(3, 3) @ data.qvel[ids.ball_qvel + 3 : ids.ball_qvel + 6]
-    rest = np.asarray(
-        kick_env.rest_point(
-            data.qpos[ids.ball_qpos : ids.ball_qpos + 3], data.qvel[ids.ball_qvel : ids.ball_qvel + 3],
-            angvel, scene.rolling_decel_rate(),
-        )
-    )  # fmt: skip
+def replay_prior_in_c(env: kick_env.KickEnv, model: mujoco.MjModel) -> dict:
+    """The committed prior's main kick, no noise, in C MuJoCo (`model`, at env's physics step):
+    where the ball rests (world frame, and as the env scores it), whether the robot stays up."""
+    params = kick_model.load_record(kick_model.ASSET)["params"]  # the probe kick, whatever the variant
+    out = c_replay.replay(env, c_replay.kick_actions(env, params), model=model)
     return {
-        "rest_x_m": float(rest[0]),
-        "rest_y_m": float(rest[1]),
-        "ball_top_speed_m_s": float(top_speed),
-        "robot_stood": bool(min_torso > kick_env.default_config().fall_height),
+        "rest_x_m": out.rest_x,
+        "rest_y_m": out.rest_y,
+        "distance_m": out.distance,
+        "lateral_m": out.lateral,
+        "ball_top_speed_m_s": out.max_ball_speed,
+        "robot_stood": not out.fallen,
     }
 
 
-def main(argv=None) -> None:
+def parse_args(argv=None):
+    """(args, preset, overrides), every argument checked (parser errors) before any work."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="benchmarks/results/scene.json")
     parser.add_argument("--quick", action="store_true", help="small batches, for a CPU smoke test")
     parser.add_argument("--variant-batch", type=int, default=8192)
     parser.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated subset of VARIANTS")
+    parser.add_argument("--preset", default="paper", help="the config whose env is measured")
+    parser.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="config overrides, e.g. env.physics_dt=0.005")  # fmt: skip
     args = parser.parse_args(argv)
+    unknown = [v for v in args.variants.split(",") if v not in VARIANTS]
+    if unknown:
+        parser.error(f"--variants: unknown {unknown}; choose from {list(VARIANTS)}")
+    try:
+        overrides = cli.parse_overrides(args.set)
+        for dt in {None, *VARIANT_PHYSICS_DT.values()}:
+            config.make_config(args.preset, {**overrides, **({"env.physics_dt": dt} if dt else {})})
+    except ValueError as err:
+        parser.error(str(err))
+    return args, overrides
+
+
+def main(argv=None) -> None:
+    args, overrides = parse_args(argv)
     batches = (8, 16) if args.quick else BATCHES
     variant_batch = 8 if args.quick else args.variant_batch
     t_start = time.perf_counter()
-    env = kick_env.KickEnv()
-    model = scene.load_model()
+    cfg = config.make_config(args.preset, overrides)
+    env = kick_env.KickEnv(cfg.env)
+    model = env.mj_model
     physics, env_steps = {}, {}
     for b in batches:
         physics[str(b)] = physics_rate(model, b)
@@ -170,6 +163,7 @@ def main(argv=None) -> None:
             flush=True,
         )
     payload = {
+        "quick": args.quick,
         "physics_steps_per_s": physics,
         "env_steps_per_s": env_steps,
         "variants_batch": variant_batch,
@@ -182,21 +176,27 @@ def main(argv=None) -> None:
             "nv": int(model.nv),
         },
     }
-    preset = "quick" if args.quick else "paper"
-    results.write_json(args.out, {**results.provenance(preset, time.perf_counter() - t_start), **payload})
-    variants = payload["variants"]
+    runio.write_json(args.out, {**runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env), **payload})
     for name in args.variants.split(","):
-        m = variant_model(name)
+        dt = VARIANT_PHYSICS_DT.get(name)
+        variant_env = (
+            kick_env.KickEnv(config.make_config(args.preset, {**overrides, "env.physics_dt": dt}).env) if dt else env
+        )
+        m = variant_model(name, variant_env.physics_dt)
         rate = physics_rate(m, variant_batch)
-        row = {"physics_steps_per_s": rate, "sim_seconds_per_s": rate * m.opt.timestep, **replay_prior_in_c(m)}
-        variants[name] = row
+        row = {
+            "physics_steps_per_s": rate,
+            "sim_seconds_per_s": rate * m.opt.timestep,
+            **replay_prior_in_c(variant_env, m),
+        }
+        payload["variants"][name] = row
         print(
             f"{name:18s} {rate:12,.0f} steps/s  {row['sim_seconds_per_s']:10,.0f} sim-s/s  "
             f"rest {row['rest_x_m']:6.2f} m  stood {row['robot_stood']}",
             flush=True,
         )
         # Written after every variant: a run cut short still leaves what it measured.
-        results.write_json(args.out, {**results.provenance(preset, time.perf_counter() - t_start), **payload})
+        runio.write_json(args.out, {**runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env), **payload})
     print(f"wrote {args.out}")
 
 

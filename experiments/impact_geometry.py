@@ -1,12 +1,12 @@
 """Where the experts' starting kicks strike the ball, and how the strike moves with the ball.
 
-Replays kicks (an experts run's starting_kicks.json) without noise in C MuJoCo (the scene's
-model, the env's servo ramp) with the ball moved a few millimetres along the kick line, and
-records the first contact between the robot and the ball: how far above the ball's centre it
-is, how steeply its normal points up, how fast the foot moves, and where the ball comes to rest.
-A strike through the centre with a level foot would change little when the ball moves; one on
-the ball's upper back changes its angle, and with it the ball's speed. Writes
-<out-dir>/impact_geometry_cpu.json.
+Replays kicks (an experts run's starting_kicks.json) without noise in C MuJoCo
+(`bumps_jax.c_replay`: the env's control loop and scoring) with the ball moved a few
+millimetres along the kick line, and records the first contact between the robot and the ball:
+how far above the ball's centre it is, how steeply its normal points up, how fast the foot
+moves, and where the ball comes to rest. A strike through the centre with a level foot would
+change little when the ball moves; one on the ball's upper back changes its angle, and with it
+the ball's speed. Writes <out-dir>/impact_geometry_cpu.json.
 
     python experiments/impact_geometry.py --kicks docs/experts_starting_kicks.json --targets 8 12 18
 """
@@ -20,44 +20,28 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from bumps_jax import experts, kick_env, prior, results, scene
+from bumps_jax import c_replay, cli, config, kick_env, runio, scene
+from bumps_jax.stages import experts as experts_stage
 
 OFFSETS_MM = (-10.0, -5.0, 0.0, 5.0, 10.0)
 
 
-def strike(model, params: np.ndarray, ball_dx: float, ctrl_dt: float = 0.02, horizon_s: float = 1.5) -> dict:
-    """One noise-free kick in `model` (the scene) with the ball moved `ball_dx` m forward: the
-    first robot-ball contact and the ball's resting distance (m ahead of its nominal start)."""
-    ids = scene.scene_ids(model)
-    data = mujoco.MjData(model)
-    qpos = scene.stance_qpos(model)
-    start_x = qpos[ids.ball_qpos]
-    qpos[ids.ball_qpos] += ball_dx
-    data.qpos[:] = qpos
-    data.ctrl[:] = scene.STANCE
-    mujoco.mj_forward(model, data)
-    n_substeps = round(ctrl_dt / model.opt.timestep)
-    n_steps = round(horizon_s / ctrl_dt)
-    actions = np.asarray(prior.keyframes_to_actions(params, n_steps, ctrl_dt))
-    low, high = ids.joint_range[:, 0], ids.joint_range[:, 1]
-    command, contact = scene.STANCE.copy(), None
-    for k in range(n_steps):
-        ramp = kick_env.servo_ramp(command, actions[k], low, high, scene.MAX_JOINT_SPEED * ctrl_dt, n_substeps)
-        for ctrl in ramp:
-            data.ctrl[:] = ctrl
-            mujoco.mj_step(model, data)
-            if contact is None:
-                contact = _robot_ball_contact(model, data, ids, k)
-        command = ramp[-1]
-    q, v = ids.ball_qpos, ids.ball_qvel
-    quat = data.qpos[q + 3 : q + 7]
-    angvel = np.zeros(3)
-    mujoco.mju_rotVecQuat(angvel, data.qvel[v + 3 : v + 6], quat)
-    rest = kick_env.rest_point(data.qpos[q : q + 3], data.qvel[v : v + 3], angvel, scene.rolling_decel_rate())
-    return {"contact": contact, "distance_m": float(rest[0] - start_x), "lateral_m": float(rest[1] - qpos[q + 1])}
+def strike(env: kick_env.KickEnv, params: np.ndarray, ball_dx: float) -> dict:
+    """One noise-free kick (params (14,)) in C MuJoCo with the ball moved `ball_dx` m forward: the
+    first robot-ball contact and where the ball rests (m ahead of its nominal start, and left)."""
+    first: dict = {}
+    ids = scene.scene_ids(env.mj_model)
+
+    def watch(model, data, step):
+        if not first:
+            first.update(robot_ball_contact(model, data, ids, step) or {})
+
+    out = c_replay.replay(env, c_replay.kick_actions(env, params), ball_offset=(ball_dx, 0.0), on_substep=watch)
+    return {"contact": first or None, "distance_m": out.distance, "lateral_m": out.lateral}
 
 
-def _robot_ball_contact(model, data, ids, step: int) -> dict | None:
+def robot_ball_contact(model: mujoco.MjModel, data: mujoco.MjData, ids: scene.SceneIds, step: int) -> dict | None:
+    """The first contact of the ball with anything but the floor (control step `step`), or None."""
     con = data.contact
     for i in range(data.ncon):
         pair = (int(con.geom1[i]), int(con.geom2[i]))
@@ -83,17 +67,21 @@ def main(argv=None) -> None:
     parser.add_argument("--kicks", default="docs/experts_starting_kicks.json", help="an experts run's kicks")
     parser.add_argument("--targets", type=float, nargs="+", default=[8.0, 12.0, 15.0, 18.0])
     parser.add_argument("--out-dir", default="experiments/results")
+    parser.add_argument("--preset", default="paper", help="the config whose env replays the kicks")
+    parser.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="config overrides, e.g. env.physics_dt=0.005")  # fmt: skip
     args = parser.parse_args(argv)
     try:
-        kicks = experts.read_starting_kicks(args.kicks, args.targets)
+        cfg = config.make_config(args.preset, cli.parse_overrides(args.set))
+        kicks = experts_stage.read_starting_kicks(args.kicks, args.targets)
     except ValueError as err:
-        parser.error(f"--targets: {err}")
+        parser.error(str(err))
 
     start = time.perf_counter()
-    model = scene.load_model()
+    env = kick_env.KickEnv(cfg.env)
     rows = {}
     for target, params in kicks.items():
-        rows[str(target)] = by_offset = {str(mm): strike(model, params, mm / 1000.0) for mm in OFFSETS_MM}
+        rows[str(target)] = by_offset = {str(mm): strike(env, params, mm / 1000.0) for mm in OFFSETS_MM}
         distances = [by_offset[str(mm)]["distance_m"] for mm in OFFSETS_MM]
         slope = np.polyfit(np.asarray(OFFSETS_MM) / 10.0, distances, 1)[0]
         rows[str(target)]["distance_per_cm_of_ball_m"] = float(slope)
@@ -105,10 +93,13 @@ def main(argv=None) -> None:
             f" normal {hit.get('normal_elevation_deg', np.nan):.0f} deg down into it",
             flush=True,
         )
-    payload = {"kicks": args.kicks, "offsets_mm": list(OFFSETS_MM), "targets": rows,
-               **results.provenance("impact_geometry", time.perf_counter() - start,
-                                    physics_dt_s=model.opt.timestep)}  # fmt: skip
-    print(results.write_json(Path(args.out_dir) / "impact_geometry_cpu.json", payload))
+    payload = {
+        "kicks": args.kicks,
+        "offsets_mm": list(OFFSETS_MM),
+        "targets": rows,
+        **runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env),
+    }
+    print(runio.write_json(Path(args.out_dir) / "impact_geometry_cpu.json", payload))
 
 
 if __name__ == "__main__":

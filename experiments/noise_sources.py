@@ -19,30 +19,35 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import experts, kick_env, prior, results
+from bumps_jax import cli, config, kick_env, kick_model, rollout, runio
+from bumps_jax.stages import experts as experts_stage
 
 
-def noise_settings() -> dict[str, dict]:
-    """Name -> noise overrides: all sources, none, and each source alone."""
-    sources = dict(kick_env.default_config().noise)
-    settings = {"all": {}, "none": {f"noise.{k}": 0.0 for k in sources}}
+def noise_settings(env_cfg) -> dict[str, dict]:
+    """Name -> config overrides (env.noise.*): all of env_cfg's noise sources, none, and each alone."""
+    sources = dict(env_cfg.noise)
+    settings = {"all": {}, "none": {f"env.noise.{k}": 0.0 for k in sources}}
     for name in sources:
-        settings[f"only_{name}"] = {f"noise.{k}": 0.0 for k in sources if k != name}
+        settings[f"only_{name}"] = {f"env.noise.{k}": 0.0 for k in sources if k != name}
     return settings
 
 
-def spread(params: np.ndarray, target: float, overrides: dict, repetitions: int, seed: int) -> dict:
-    env = kick_env.KickEnv(config_overrides=overrides)
-    rollout = prior.make_rollout(env)
-    keys = jax.random.split(jax.random.key(seed), repetitions)[None]
-    out = rollout(jnp.asarray(params, jnp.float32)[None], keys, target)
-    distance = np.asarray(out["distance"][0])
-    error = np.asarray(out["final_error"][0])
+def spread(env: kick_env.KickEnv, kicks: dict, repetitions: int, seed: int) -> dict[float, dict]:
+    """Each kick (target m -> params (14,)) on its own target, the same `repetitions` noisy
+    episodes each: resting distance mean and std, final error, valid fraction."""
+    targets = np.asarray(list(kicks), np.float32)
+    tables = kick_model.action_tables(np.stack(list(kicks.values())), env.n_steps, env.config.ctrl_dt)
+    keys = jnp.broadcast_to(jax.random.split(jax.random.key(seed), repetitions), (len(targets), repetitions))
+    out = rollout.matched_fn(env, rollout.table_policy)(tables, jnp.asarray(targets), jnp.asarray(targets), keys)
+    distance, error = np.asarray(out["distance"]), np.asarray(out["final_error"])
     return {
-        "distance_mean_m": float(distance.mean()),
-        "distance_std_m": float(distance.std()),
-        "error_mean_m": float(error.mean()),
-        "valid_fraction": float(np.mean(out["valid"][0])),
+        float(t): {
+            "distance_mean_m": float(distance[i].mean()),
+            "distance_std_m": float(distance[i].std()),
+            "error_mean_m": float(error[i].mean()),
+            "valid_fraction": float(np.mean(out["valid"][i])),
+        }
+        for i, t in enumerate(targets)
     }
 
 
@@ -55,20 +60,26 @@ def main(argv=None) -> None:
     parser.add_argument("--repetitions", type=int, default=64)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out-dir", default="experiments/results")
+    parser.add_argument("--preset", default="paper", help="the config whose env (and noise) the kicks run in")
+    parser.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="config overrides, e.g. env.physics_dt=0.005")  # fmt: skip
     args = parser.parse_args(argv)
     if args.repetitions < 2:
         parser.error(f"--repetitions must be at least 2, got {args.repetitions}")
     try:
-        kicks = experts.read_starting_kicks(args.kicks, args.targets)
+        overrides = cli.parse_overrides(args.set)
+        cfg = config.make_config(args.preset, overrides)
+        kick_env.check_targets(args.targets, cfg.env.task_range)
+        kicks = experts_stage.read_starting_kicks(args.kicks, args.targets)
     except ValueError as err:
-        parser.error(f"--targets: {err}")
+        parser.error(str(err))
 
     start = time.perf_counter()
-    rows = {}
-    for target, params in kicks.items():
-        rows[str(target)] = {}
-        for name, overrides in noise_settings().items():
-            rows[str(target)][name] = row = spread(params, target, overrides, args.repetitions, args.seed)
+    rows = {str(t): {} for t in kicks}
+    for name, noise in noise_settings(cfg.env).items():
+        env = kick_env.KickEnv(config.make_config(args.preset, {**overrides, **noise}).env)
+        for target, row in spread(env, kicks, args.repetitions, args.seed).items():
+            rows[str(target)][name] = row
             print(
                 f"{target:5.1f} m  {name:20s} distance {row['distance_mean_m']:6.2f} +- {row['distance_std_m']:.2f} m"
                 f"  error {row['error_mean_m']:.2f} m  valid {row['valid_fraction']:.2f}",
@@ -77,12 +88,12 @@ def main(argv=None) -> None:
     payload = {
         "kicks": args.kicks,
         "repetitions": args.repetitions,
-        "noise": dict(kick_env.default_config().noise),
+        "noise": dict(cfg.env.noise),
         "targets": rows,
-        **results.provenance("noise_sources", time.perf_counter() - start, physics_dt_s=kick_env.KickEnv().physics_dt),
+        **runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env),
     }
     device = "cpu" if jax.default_backend() == "cpu" else "gpu"
-    print(results.write_json(Path(args.out_dir) / f"noise_sources_{device}.json", payload))
+    print(runio.write_json(Path(args.out_dir) / f"noise_sources_{device}.json", payload))
 
 
 if __name__ == "__main__":

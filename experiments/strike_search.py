@@ -34,6 +34,7 @@ import numpy as np
 from mujoco import mjx
 
 from bumps_jax import cmaes, config, kick_env, kick_model, rollout, runio, sharding
+from bumps_jax.stages import experts as experts_stage
 
 # Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
 # back less (the foot stays lower through the swing), varied in the knee and hip of the swing.
@@ -110,19 +111,6 @@ def height_cost(env: kick_env.KickEnv, fitness):
     return cost_fn
 
 
-def read_kicks(path, targets) -> dict[float, np.ndarray]:
-    """Each of `targets`' (m) kick params (14,) from a starting-kicks record; ValueError naming
-    the targets it lacks."""
-    if not targets:
-        return {}
-    record = runio.read_json(path, "starting kicks")
-    tasks = [float(t) for t in record["tasks_m"]]
-    missing = [t for t in targets if t not in tasks]
-    if missing:
-        raise ValueError(f"{path}: targets {missing} not among the kicks' tasks {tasks}")
-    return {t: np.asarray(record["params"][tasks.index(t)], np.float32) for t in targets}
-
-
 def summarise(out: dict, i: int) -> dict:
     distance, error = np.asarray(out["distance"][i]), np.asarray(out["final_error"][i])
     height = np.asarray(out["height"][i])
@@ -172,7 +160,9 @@ def setup(argv=None):
         parser.error(f"--physics-dt: {err}")
     try:
         kick_env.check_targets(args.targets, env.config.task_range)
-        reference = read_kicks(args.kicks, [t for t in args.targets if t in kick_env.meta_train_tasks()])
+        reference = experts_stage.read_starting_kicks(
+            args.kicks, [t for t in args.targets if t in kick_env.meta_train_tasks()]
+        )
     except ValueError as err:
         parser.error(str(err))
     starts = start_kicks()

@@ -1,7 +1,5 @@
 """The strike-height search (experiments/strike_search.py): its geometry and its argument checks."""
 
-import json
-
 import mujoco
 import numpy as np
 import pytest
@@ -27,31 +25,6 @@ def test_start_kicks_are_inside_the_parameter_bounds():
     assert {"default", "prior_main", "prior_short", "prior_long"} <= set(starts)
     for params in starts.values():
         assert np.all(params >= kick_model.PARAM_LOW - 1e-6) and np.all(params <= kick_model.PARAM_HIGH + 1e-6)
-
-
-def test_reference_kicks_are_read_by_target(tmp_path):
-    path = tmp_path / "kicks.json"
-    path.write_text(json.dumps({"tasks_m": [8.0, 12.0], "params": [[1.0] * 14, [2.0] * 14]}))
-    kicks = strike_search.read_kicks(path, [12.0])
-    assert list(kicks) == [12.0] and kicks[12.0].tolist() == [2.0] * 14
-    with pytest.raises(ValueError, match="16.0"):
-        strike_search.read_kicks(path, [16.0])
-
-
-@pytest.mark.parametrize(
-    ("argv", "message"),
-    [
-        (["--starts", "nosuch"], "nosuch"),
-        (["--targets", "30"], "30"),
-        (["--population", "1"], "population"),
-        (["--sigma", "0"], "sigma"),
-        (["--targets", "8", "--kicks", "no_such_kicks.json"], "no_such_kicks.json"),
-    ],
-)
-def test_bad_arguments_are_named(argv, message, capsys):
-    with pytest.raises(SystemExit):
-        strike_search.main(argv)
-    assert message in capsys.readouterr().err
 
 
 def test_a_physics_step_that_does_not_divide_the_control_step_is_named(capsys):

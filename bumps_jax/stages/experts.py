@@ -341,10 +341,12 @@ def run(cfg, run_dir: Path, say=print) -> dict:
 
 def read_starting_kicks(path, targets) -> dict[float, np.ndarray]:
     """Each of `targets`' (m) kick params (14,) from a run's starting_kicks.json; ValueError naming
-    the targets the record lacks."""
+    the path and the targets the record lacks."""
+    if not targets:
+        return {}
     record = runio.read_json(path, "starting kicks of an experts run")
     tasks = [float(t) for t in record["tasks_m"]]
     missing = [t for t in targets if t not in tasks]
     if missing:
-        raise ValueError(f"targets {missing} not among the kicks' tasks {tasks}")
+        raise ValueError(f"{path}: targets {missing} not among the kicks' tasks {tasks}")
     return {t: np.asarray(record["params"][tasks.index(t)], np.float32) for t in targets}
