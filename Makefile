@@ -18,9 +18,11 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 # pytest exits 5 when it collects nothing: that must fail, and it does (no `|| true`).
+# Two workers (the tests are compile-bound, one core each); files that share conftest's
+# compiled programs run on one worker (their xdist_group).
 test: $(STAMP)
 	$(PY) -m ruff check bumps_jax tests benchmarks experiments
-	JAX_PLATFORMS=cpu $(PY) -m pytest -q tests
+	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n 2 --dist loadgroup tests
 
 lint: $(STAMP)
 	$(PY) -m ruff check bumps_jax tests benchmarks experiments

@@ -36,3 +36,11 @@ def expert_programs(env):
     from bumps_jax.stages import experts as experts_stage
 
     return experts_stage.compile_programs(tiny_experts.pipeline_config(), env)
+
+
+def pytest_collection_modifyitems(config, items):
+    """With `-n 2 --dist loadgroup`, every test file runs whole on one worker (its module-scoped
+    compiled programs are built once); files that share conftest's programs name one group."""
+    for item in items:
+        if not item.get_closest_marker("xdist_group"):
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__))

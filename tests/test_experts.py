@@ -14,6 +14,9 @@ from tiny_experts import N_STEPS, pipeline_config
 from bumps_jax import bc, config, kick_model, runio
 from bumps_jax.stages import experts
 
+# Shares conftest's compiled expert and contextual programs: one test worker runs these files.
+pytestmark = pytest.mark.xdist_group("compiled_programs")
+
 
 @pytest.fixture(scope="module")
 def programs(expert_programs):
