@@ -23,7 +23,7 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-from bumps_jax import kick_env, kick_model, scene
+from bumps_jax import kick_env, kick_model, physics, scene
 
 # on_substep(model, data, control_step) runs after every physics substep.
 SubstepHook = Callable[[mujoco.MjModel, mujoco.MjData, int], None]
@@ -99,7 +99,7 @@ class Replay:
         action = np.asarray(action, np.float64)
         if action.shape != (scene.N_JOINTS,) or not np.all(np.isfinite(action)):
             raise ValueError(f"action must be {scene.N_JOINTS} finite joint targets, got shape {action.shape}")
-        ramp = kick_env.servo_ramp(
+        ramp = physics.servo_ramp(
             self.command, action, self.low, self.high, self.max_delta, self.env.n_substeps
         )  # fmt: skip
         for ctrl in ramp:
@@ -127,7 +127,7 @@ class Replay:
         """The kick scored now, as the env scores its final state (see `Outcome`)."""
         cfg = self.env.config
         pos, vel, angvel = self.ball_state()
-        rest = np.asarray(kick_env.rest_point(pos, vel, angvel, self.env.decel_rate), np.float64)
+        rest = np.asarray(physics.rest_point(pos, vel, angvel, self.env.decel_rate), np.float64)
         struck = self.max_ball_speed >= cfg.strike_speed
         fallen = self.min_torso_z < cfg.fall_height
         return Outcome(

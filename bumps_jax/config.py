@@ -301,37 +301,6 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
     validation.validate(cfg)
 
 
-def env_key(env_cfg: ml_collections.ConfigDict | dict) -> dict:
-    """The part of an env config that changes the physics or the scoring: what must match
-    between a record and the run that reads it (the task list and range only choose targets)."""
-    d = kick_env.resolved(env_cfg)  # physics_dt None -> the scene's own step, as records carry it
-    return {k: _jsonable(v) for k, v in sorted(d.items()) if k not in ("tasks", "task_range")}
-
-
-def differing_keys(a: dict, b: dict, prefix: str = "") -> list[str]:
-    """Dotted keys whose values differ between two nested dicts (missing on one side included)."""
-    out = []
-    for k in sorted(set(a) | set(b)):
-        va, vb = a.get(k, "<missing>"), b.get(k, "<missing>")
-        if isinstance(va, dict) and isinstance(vb, dict):
-            out += differing_keys(va, vb, f"{prefix}{k}.")
-        elif _jsonable(va) != _jsonable(vb):
-            out.append(f"{prefix}{k}")
-    return out
-
-
-def check_same_env(record_env: dict | None, env_cfg, what: str) -> None:
-    """ValueError naming the differing keys if `what` (a record or asset) was made under another
-    env config than `env_cfg`; a record that names none is refused too."""
-    if record_env is None:
-        raise ValueError(f"{what} does not record the env config it was made under; remake it")
-    diff = differing_keys(env_key(record_env), env_key(env_cfg))
-    if diff:
-        mine, theirs = env_key(env_cfg), env_key(record_env)
-        shown = ", ".join(f"env.{k}: {_get(theirs, k)} there, {_get(mine, k)} here" for k in diff)
-        raise ValueError(f"{what} was made under another env config ({shown})")
-
-
 def section(cfg: ml_collections.ConfigDict, stage: str) -> dict:
     """What one stage's results depend on: its section, the env and the preset, as plain data."""
     return {"preset": cfg.preset, "env": _jsonable(cfg.env.to_dict()), stage: _jsonable(cfg[stage].to_dict())}
@@ -345,9 +314,3 @@ def fingerprint(data) -> str:
 
 def _jsonable(value):
     return json.loads(json.dumps(value, default=str, sort_keys=True))
-
-
-def _get(d: dict, dotted: str):
-    for part in dotted.split("."):
-        d = d.get(part, "<missing>") if isinstance(d, dict) else "<missing>"
-    return d

@@ -12,20 +12,20 @@ different tasks: `jax.vmap(env.reset)(rngs, targets)`.
 from __future__ import annotations
 
 import copy
+import functools
+import importlib.util
 import json
 import math
 
 import jax
 import jax.numpy as jnp
 import ml_collections
-import mujoco
 import numpy as np
 from brax.envs.base import Env, State
 from mujoco import mjx
 
-from bumps_jax import scene
-
-GRAVITY = 9.81
+from bumps_jax import physics, scene
+from bumps_jax.physics import read_flags, rest_point, rolling, servo_ramp
 
 
 def meta_train_tasks() -> tuple[float, ...]:
@@ -44,7 +44,17 @@ def default_config() -> ml_collections.ConfigDict:
     cfg.ctrl_dt = 0.02  # 50 Hz, SimSpark's agent cycle
     # Physics step (s), a divisor of ctrl_dt; None: the scene's own (2.5 ms).
     cfg.physics_dt = ml_collections.FieldReference(None, field_type=float)
-    cfg.impl = "jax"  # MJX backend that steps the physics
+    cfg.impl = "jax"  # MJX backend that steps the physics: "jax" or "warp" (MuJoCo Warp)
+    # Constraint-solver iterations; None: the scene's own (2).
+    cfg.solver_iterations = ml_collections.FieldReference(None, field_type=int)
+    # Warp only: contact slots of one compiled program, shared by all its episodes (Warp pools
+    # them over the vmapped episodes). The scene's six contact pairs make at most 12 contacts
+    # per episode (box-floor 4 per foot, 1 per sphere pair): this fits 16384 episodes. A program
+    # that runs out marks its episodes invalid (`metrics['overflow']`); on a CPU, slots cost
+    # time every step: size it to the batch.
+    cfg.warp_contacts = 12 * 16384
+    # Warp only: constraint rows per episode: 4 per contact (pyramidal cone, condim 3) x 12.
+    cfg.warp_constraints_per_world = 48
     cfg.horizon_s = 1.5  # kick phase; the paper's kicks last 1.3-1.5 s
     cfg.task_range = (7.0, 18.0)  # metres; targets outside are refused
     cfg.tasks = meta_train_tasks()  # what brax-style `reset(rng)` draws from
@@ -88,23 +98,40 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
     return cfg
 
 
-IMPLS = ("jax",)
+IMPLS = ("jax", "warp")
 
 
 def resolved(env_cfg) -> dict:
-    """An env config as plain data with its physics step resolved (None: the scene's own), as
-    records carry it: `physics_dt` (s) and `impl` always present."""
+    """An env config as plain data with its physics step and solver iterations resolved (None:
+    the scene's own), as records carry it; keys an older record lacks take their defaults."""
     d = env_cfg.to_dict() if isinstance(env_cfg, ml_collections.ConfigDict) else dict(env_cfg)
     if d.get("physics_dt") is None:
         d["physics_dt"] = scene.default_timestep()
-    d.setdefault("impl", "jax")
+    if d.get("solver_iterations") is None:
+        d["solver_iterations"] = _scene_iterations()
+    defaults = default_config()
+    for key in ("impl", "warp_contacts", "warp_constraints_per_world"):
+        d.setdefault(key, defaults[key])
     return json.loads(json.dumps(d, default=list))
+
+
+@functools.lru_cache(maxsize=1)
+def _scene_iterations() -> int:
+    return int(scene.load_model().opt.iterations)
 
 
 def validate_config(cfg: ml_collections.ConfigDict) -> None:
     """ValueError naming the first bad value of an env config."""
     if cfg.impl not in IMPLS:
         raise ValueError(f"env.impl must be one of {IMPLS}, got {cfg.impl!r}")
+    if cfg.impl == "warp" and importlib.util.find_spec("warp") is None:
+        raise ValueError("env.impl 'warp' needs the warp-lang package: pip install -e '.[warp]'")
+    for key in ("solver_iterations", "warp_contacts", "warp_constraints_per_world"):
+        value = cfg[key]
+        if (value is not None or key != "solver_iterations") and (
+            isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1
+        ):
+            raise ValueError(f"env.{key} must be a positive integer, got {value!r}")
     lo, hi = cfg.task_range
     if not 0.0 < lo < hi:
         raise ValueError(f"task_range must be 0 < low < high, got {tuple(cfg.task_range)}")
@@ -130,43 +157,6 @@ def check_targets(targets, task_range) -> np.ndarray:
     return arr
 
 
-def rest_point(pos, vel, angvel, decel_rate, radius=scene.BALL_RADIUS, rest_speed=scene.BALL_REST_SPEED):
-    """Where a ball in state (pos, vel, angvel) comes to rest on the floor.
-
-    pos, vel, angvel: (..., 3), world frame. Returns (..., 2), the resting x, y.
-
-    1. A ball in the air flies ballistically until it touches the floor.
-    2. From then on, friction at the contact point and the normal force through it cannot
-       change the ball's angular momentum about that point, so slipping and bouncing end in
-       rolling at v = (m r v_h - I z x w_h) / (m r + I / r), I = 2/5 m r^2 (solid sphere).
-    3. Rolling obeys dv/dt = -c v: it covers (|v| - v_rest) / c more before resting.
-    Exact (to the simulator's accuracy) for a rolling ball, which is what a kick leaves at the
-    end of the kick phase; for a ball still slipping or in flight it ignores the distance
-    gained while slipping (tests/test_scene.py measures both).
-    """
-    height = jnp.maximum(pos[..., 2] - radius, 0.0)
-    vz = vel[..., 2]
-    t_land = (vz + jnp.sqrt(vz**2 + 2.0 * GRAVITY * height)) / GRAVITY
-    landing = pos[..., :2] + vel[..., :2] * t_land[..., None]
-    # z x w for horizontal components: (-w_y, w_x).
-    z_cross_w = jnp.stack([-angvel[..., 1], angvel[..., 0]], axis=-1)
-    roll_vel = (vel[..., :2] - 0.4 * radius * z_cross_w) / 1.4
-    speed = jnp.linalg.norm(roll_vel, axis=-1)
-    direction = roll_vel / jnp.maximum(speed, 1e-9)[..., None]
-    distance = jnp.maximum(speed - rest_speed, 0.0) / decel_rate
-    return landing + direction * distance[..., None]
-
-
-def rolling(vel, angvel, radius=scene.BALL_RADIUS, tolerance=0.05):
-    """Whether the ball rolls without slipping (contact-point speed under `tolerance` m/s).
-
-    vel, angvel: (..., 3) world frame. Returns (...) bool.
-    """
-    z_cross_w = jnp.stack([-angvel[..., 1], angvel[..., 0]], axis=-1)
-    slip = vel[..., :2] + radius * z_cross_w
-    return (jnp.linalg.norm(slip, axis=-1) < tolerance) & (jnp.abs(vel[..., 2]) < tolerance)
-
-
 class KickEnv(Env):
     """The NAO kicks a ball to a target distance.
 
@@ -182,13 +172,15 @@ class KickEnv(Env):
         self.mj_model = scene.load_model()
         if cfg.physics_dt is not None:
             self.mj_model.opt.timestep = cfg.physics_dt
+        if cfg.solver_iterations is not None:
+            self.mj_model.opt.iterations = cfg.solver_iterations
         self.ids = scene.scene_ids(self.mj_model)
         physics_dt = self.physics_dt = float(self.mj_model.opt.timestep)
         self.n_substeps = int(round(cfg.ctrl_dt / physics_dt))
         if not math.isclose(self.n_substeps * physics_dt, cfg.ctrl_dt, rel_tol=1e-6):
             raise ValueError(f"ctrl_dt {cfg.ctrl_dt} is not a multiple of the physics step {physics_dt}")
         self.n_steps = int(round(cfg.horizon_s / cfg.ctrl_dt))
-        self.mjx_model = mjx.put_model(self.mj_model)
+        self.mjx_model, self._warp_data = physics.put_physics(self.mj_model, cfg)
         self.decel_rate = scene.rolling_decel_rate(timestep=cfg.physics_dt)
         self._qpos0 = jnp.asarray(scene.stance_qpos(self.mj_model))
         self._stance = jnp.asarray(scene.STANCE)
@@ -238,7 +230,8 @@ class KickEnv(Env):
         joint_noise = cfg.noise.joint_angle * jax.random.normal(rng_q, (scene.N_JOINTS,))
         qpos = qpos.at[self.ids.joint_qpos].set(jnp.clip(self._stance + joint_noise, self._lo, self._hi))
 
-        data = mjx.make_data(self.mjx_model).replace(qpos=qpos, ctrl=self._stance)
+        blank = mjx.make_data(self.mjx_model) if self._warp_data is None else self._warp_data
+        data = blank.replace(qpos=qpos, ctrl=self._stance)
         info = {
             "target": clipped_target,
             # The target point: `target` metres ahead of the nominal ball start.
@@ -252,8 +245,11 @@ class KickEnv(Env):
             "min_torso_z": jnp.full((), jnp.inf, jnp.float32),
             "blown_up": jnp.zeros((), bool),
             "nan_action": jnp.zeros((), bool),
+            "overflow": jnp.zeros((), bool),
+            "solver_limit_steps": jnp.zeros((), jnp.int32),
         }
-        data = mjx.forward(self._episode_model(info), data)
+        data, overflow, _ = read_flags(mjx.forward(self._episode_model(info), data))
+        info["overflow"] = overflow
         metrics = self._outcome(data, info)
         metrics["target_clipped"] = (clipped_target != target).astype(jnp.float32)
         return State(
@@ -280,10 +276,13 @@ class KickEnv(Env):
         command = ramp[-1]
         model = self._episode_model(info)
 
-        def substep(data, ctrl):
-            return mjx.step(model, data.replace(ctrl=ctrl)), None
+        def substep(carry, ctrl):
+            data, overflow, limit_steps = carry
+            data, overflowed, hit_limit = read_flags(mjx.step(model, data.replace(ctrl=ctrl)))
+            return (data, overflow | overflowed, limit_steps + hit_limit.astype(jnp.int32)), None
 
-        data, _ = jax.lax.scan(substep, state.pipeline_state, ramp)
+        carry = (state.pipeline_state, info["overflow"], info["solver_limit_steps"])
+        (data, overflow, limit_steps), _ = jax.lax.scan(substep, carry, ramp)
 
         ball_vel = data.qvel[self.ids.ball_qvel : self.ids.ball_qvel + 3]
         finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
@@ -295,6 +294,8 @@ class KickEnv(Env):
             min_torso_z=jnp.minimum(info["min_torso_z"], data.xpos[self.ids.torso_body, 2]),
             blown_up=blown_up,
             nan_action=info["nan_action"] | jnp.any(nan),
+            overflow=overflow,
+            solver_limit_steps=limit_steps,
         )
         done = info["step"] >= self.n_steps
         metrics = self._outcome(data, info)
@@ -326,7 +327,7 @@ class KickEnv(Env):
         pos = data.qpos[q : q + 3]
         # MuJoCo's free-joint angular velocity is in the body frame: rotate it to the world.
         quat = data.qpos[q + 3 : q + 7]
-        angvel = _rotate(data.qvel[v + 3 : v + 6], quat)
+        angvel = physics.rotate(data.qvel[v + 3 : v + 6], quat)
         return pos, data.qvel[v : v + 3], angvel
 
     def _outcome(self, data, info) -> dict:
@@ -339,7 +340,7 @@ class KickEnv(Env):
         error = jnp.where(info["blown_up"], info["target"], jnp.nan_to_num(error, nan=info["target"]))
         struck = info["max_ball_speed"] >= cfg.strike_speed
         fallen = info["min_torso_z"] < cfg.fall_height
-        valid = struck & ~fallen & ~info["blown_up"] & ~info["nan_action"]
+        valid = struck & ~fallen & ~info["blown_up"] & ~info["nan_action"] & ~info["overflow"]
         return {
             "final_error": error,
             "rel_error": error / info["target"],
@@ -353,6 +354,12 @@ class KickEnv(Env):
             "blown_up": info["blown_up"].astype(jnp.float32),
             # 1 when the ball rolls: then the resting point is exact, not an approximation.
             "ball_rolling": rolling(vel, angvel).astype(jnp.float32),
+            # 1 when a Warp contact or constraint buffer overflowed: the physics dropped
+            # contacts, so the episode is invalid (`config.warp_contacts`).
+            "overflow": info["overflow"].astype(jnp.float32),
+            # Physics steps whose solver stopped at its iteration limit unconverged (Warp only:
+            # MJX-JAX does not report it, 0).
+            "solver_limit_steps": info["solver_limit_steps"].astype(jnp.float32),
             "rest_x": jnp.nan_to_num(rest[0]),
             "rest_y": jnp.nan_to_num(rest[1]),
         }
@@ -382,7 +389,7 @@ class KickEnv(Env):
         if not self.config.proprioception:
             return obs
         torso_quat = data.qpos[3:7]
-        gravity = _rotate(jnp.array([0.0, 0.0, -1.0]), _conjugate(torso_quat))
+        gravity = physics.rotate(jnp.array([0.0, 0.0, -1.0]), physics.conjugate(torso_quat))
         ball_rel = data.qpos[self.ids.ball_qpos : self.ids.ball_qpos + 3] - data.qpos[:3]
         extra = jnp.concatenate([
             data.qpos[self.ids.joint_qpos],
@@ -399,42 +406,3 @@ def error_against(distance, lateral, blown_up, targets):
     A blown-up episode scores the target distance, as the env scores it."""
     err = np.hypot(np.asarray(distance, np.float64) - targets, np.asarray(lateral, np.float64))
     return np.where(np.asarray(blown_up) > 0, np.broadcast_to(targets, err.shape), err)
-
-
-def servo_ramp(command, wanted, low, high, max_delta, n_substeps):
-    """The servo targets for each physics substep of one control step: (n_substeps, 22).
-
-    SimSpark's motors turn at most 6.1395 rad/s. We emulate that on the target: it moves from
-    `command` toward `wanted` (clipped to the joint limits) by at most `max_delta` per control
-    step, as a ramp over the substeps rather than a jump, so that the servo tracks a target
-    moving at the speed limit instead of chasing steps (which made joints overshoot it).
-    Works on numpy and jax arrays alike.
-    """
-    xp = jnp if isinstance(command, jax.Array) or isinstance(wanted, jax.Array) else np
-    delta = xp.clip(xp.clip(wanted, low, high) - command, -max_delta, max_delta)
-    fractions = xp.arange(1, n_substeps + 1) / n_substeps
-    return command + fractions[:, None] * delta
-
-
-def _conjugate(quat):
-    return quat * jnp.array([1.0, -1.0, -1.0, -1.0])
-
-
-def _rotate(vec, quat):
-    """vec (3,) rotated by the unit quaternion quat (4,), MuJoCo's (w, x, y, z) order."""
-    w, u = quat[0], quat[1:]
-    return vec + 2.0 * jnp.cross(u, jnp.cross(u, vec) + w * vec)
-
-
-def stance_command() -> np.ndarray:
-    """The 22 joint targets that hold the stance (an action that stands still)."""
-    return scene.STANCE.copy()
-
-
-def mj_data_for(model: mujoco.MjModel) -> mujoco.MjData:
-    """A C MuJoCo MjData in the stance, for the viewer, tests and rendering."""
-    data = mujoco.MjData(model)
-    data.qpos[:] = scene.stance_qpos(model)
-    data.ctrl[:] = scene.STANCE
-    mujoco.mj_forward(model, data)
-    return data

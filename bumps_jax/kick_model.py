@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import config, scene
+from bumps_jax import env_records, scene
 
 FORMAT_VERSION = 1
 # The committed kick prior: where a run's prior search starts, and the experts' prior when a
@@ -223,7 +223,7 @@ def load_record(path: str | Path = ASSET, env_cfg=None) -> dict:
     if tuple(record.get("param_names", ())) != PARAM_NAMES:
         raise ValueError(f"{path}: param_names {record.get('param_names')!r} do not match {PARAM_NAMES}")
     if env_cfg is not None:
-        config.check_same_env(record.get("env"), env_cfg, f"kick prior {path}")
+        env_records.check_same_env(record.get("env"), env_cfg, f"kick prior {path}")
     record["params"] = np.asarray(record["params"], np.float32)
     if "anchors" in record:
         record["anchors"] = np.asarray([record["anchors"][n] for n in ANCHORS], np.float32)

@@ -21,7 +21,7 @@ def stance_picture(path: str | Path, width: int = 960, height: int = 720) -> Pat
     import imageio.v3 as iio
 
     model = scene.load_model()
-    data = kick_env.mj_data_for(model)
+    data = scene.mj_data_for(model)
     with mujoco.Renderer(model, height=height, width=width) as renderer:
         renderer.update_scene(data, camera=_camera([0.1, 0.0, 0.22]))
         pixels = renderer.render()

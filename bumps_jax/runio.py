@@ -303,7 +303,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
     or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
     StaleRunError naming the differing keys and the two ways on.
     """
-    from bumps_jax import config as config_mod  # noqa: PLC0415
+    from bumps_jax import env_records  # noqa: PLC0415
 
     path = stage_dir / MANIFEST
     if not path.exists():
@@ -316,7 +316,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
             have = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError):
             have = {}
-        diff = config_mod.differing_keys(
+        diff = env_records.differing_keys(
             {"config": have.get("config", {}), "inputs": _hashes(have.get("inputs", {}))},
             {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
         )

@@ -194,3 +194,17 @@ def ball_only_model(path: str = str(SCENE_XML)) -> mujoco.MjModel:
         if pair.name != "ball_floor":
             spec.delete(pair)
     return spec.compile()
+
+
+def stance_command() -> np.ndarray:
+    """The 22 joint targets that hold the stance (an action that stands still)."""
+    return STANCE.copy()
+
+
+def mj_data_for(model: mujoco.MjModel) -> mujoco.MjData:
+    """A C MuJoCo MjData in the stance, for the viewer, tests and rendering."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = stance_qpos(model)
+    data.ctrl[:] = STANCE
+    mujoco.mj_forward(model, data)
+    return data

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax import c_replay, config, kick_env, kick_model, rollout
+from bumps_jax import c_replay, config, kick_env, kick_model, physics, rollout, scene
 
 # MJX's JAX backend and C MuJoCo do not rest a kick at the same point (docs/decisions.md gives
 # the measured gap): this bounds it for the committed main kick, noise-free, rather than asking
@@ -42,8 +42,8 @@ def test_control_step_and_substeps_come_from_the_env():
     calls = []
     sim = c_replay.Replay(env, on_substep=lambda model, data, step: calls.append((step, data.time)))
     assert sim.model.opt.timestep == pytest.approx(0.005)
-    sim.step(np.asarray(kick_env.stance_command()))
-    sim.step(np.asarray(kick_env.stance_command()))
+    sim.step(np.asarray(scene.stance_command()))
+    sim.step(np.asarray(scene.stance_command()))
     assert [s for s, _ in calls] == [0] * 4 + [1] * 4
     assert sim.data.time == pytest.approx(2 * env.config.ctrl_dt)
     assert calls[3][1] == pytest.approx(env.config.ctrl_dt)
@@ -65,7 +65,7 @@ def test_replay_is_deterministic_and_agrees_with_itself_split_into_parts(quiet_e
 
 def test_resting_point_is_the_envs_closed_form_of_its_final_ball_state(quiet_env, main_outcome):
     o = main_outcome
-    rest = np.asarray(kick_env.rest_point(o.ball_pos, o.ball_vel, o.ball_angvel, quiet_env.decel_rate))
+    rest = np.asarray(physics.rest_point(o.ball_pos, o.ball_vel, o.ball_angvel, quiet_env.decel_rate))
     assert (o.rest_x, o.rest_y) == (float(rest[0]), float(rest[1]))
     start = c_replay.Replay(quiet_env).ball_start
     assert o.distance == pytest.approx(o.rest_x - start[0]) and o.lateral == pytest.approx(o.rest_y - start[1])
@@ -111,7 +111,7 @@ def test_iterations_set_on_a_copy(quiet_env):
     ],
 )
 def test_bad_arguments_are_named(quiet_env, kwargs, message):
-    args = {"actions": np.tile(kick_env.stance_command(), (2, 1)), **kwargs}
+    args = {"actions": np.tile(scene.stance_command(), (2, 1)), **kwargs}
     with pytest.raises(ValueError, match=message):
         c_replay.replay(quiet_env, **args)
 

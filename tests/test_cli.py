@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from bumps_jax import cli, config, kick_env, pipeline, runio
+from bumps_jax import cli, config, env_records, kick_env, pipeline, runio
 
 
 def test_every_command_has_help(capsys):
@@ -130,4 +130,4 @@ def test_env_overrides_reach_every_stage():
     assert cfg.env.physics_dt == 0.005 and cfg.env.noise.friction == 0.0
     assert config.section(cfg, "meta")["env"]["physics_dt"] == 0.005
     with pytest.raises(ValueError, match=r"env.physics_dt: 0.0025 there, 0.005 here"):
-        config.check_same_env(kick_env.resolved(config.make_config("tiny").env), cfg.env, "kick prior x")
+        env_records.check_same_env(kick_env.resolved(config.make_config("tiny").env), cfg.env, "kick prior x")

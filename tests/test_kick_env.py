@@ -7,7 +7,7 @@ import pytest
 
 from bumps_jax import kick_env, scene
 
-STAND = jnp.asarray(kick_env.stance_command())
+STAND = jnp.asarray(scene.stance_command())
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from bumps_jax import kick_env, scene
+from bumps_jax import physics, scene
 
 # SimSpark's joint table (degrees): name -> (low, high).
 LIMITS_DEG = {
@@ -73,7 +73,7 @@ def test_only_listed_contacts_exist(model):
 
 
 def test_stance_holds_for_five_seconds(model):
-    data = kick_env.mj_data_for(model)
+    data = scene.mj_data_for(model)
     ids = scene.scene_ids(model)
     start = data.xpos[ids.torso_body].copy()
     for _ in range(int(5.0 / model.opt.timestep)):
@@ -86,7 +86,7 @@ def test_stance_holds_for_five_seconds(model):
 def test_servo_respects_speed_and_torque_limits(model):
     """A target 90 deg away, fed through the env's rate limiter: the joint never exceeds
     SimSpark's speed limit by more than the servo's overshoot, the motor never 10 N m."""
-    data = kick_env.mj_data_for(model)
+    data = scene.mj_data_for(model)
     ids = scene.scene_ids(model)
     j = scene.JOINTS.index("laj1")  # a free-swinging arm: the fastest joint there is
     command = scene.STANCE.copy()
@@ -96,7 +96,7 @@ def test_servo_respects_speed_and_torque_limits(model):
     ids_range = ids.joint_range
     n_substeps = round(0.02 / model.opt.timestep)  # one 20 ms control step
     for _ in range(40):
-        ramp = kick_env.servo_ramp(
+        ramp = physics.servo_ramp(
             command, goal, ids_range[:, 0], ids_range[:, 1], scene.MAX_JOINT_SPEED * 0.02, n_substeps
         )
         command = ramp[-1]
@@ -144,7 +144,7 @@ BALL_STARTS = {
 def _full_scene_ball(kind):
     model = scene.load_model()
     ids = scene.scene_ids(model)
-    data = kick_env.mj_data_for(model)
+    data = scene.mj_data_for(model)
     qvel, z = BALL_STARTS[kind]
     data.qpos[ids.ball_qpos : ids.ball_qpos + 3] = [0.3, 0.06, z]
     data.qvel[ids.ball_qvel : ids.ball_qvel + 6] = qvel
@@ -179,8 +179,8 @@ def test_rest_point_matches_full_simulation_once_ball_rolls(kind):
     for _ in range(int(0.5 / model.opt.timestep)):
         mujoco.mj_step(model, data)
     pos, vel, angvel = _ball_world_state(data, ids)
-    assert bool(kick_env.rolling(vel, angvel))
-    expected = np.asarray(kick_env.rest_point(pos, vel, angvel, scene.rolling_decel_rate()))
+    assert bool(physics.rolling(vel, angvel))
+    expected = np.asarray(physics.rest_point(pos, vel, angvel, scene.rolling_decel_rate()))
     rest = _simulate_to_rest(model, ids, data)
     assert np.linalg.norm(rest - expected) < 0.05, (kind, rest, expected)
 
@@ -191,7 +191,7 @@ def test_rest_point_of_a_ball_not_yet_rolling_is_flagged(kind):
     error stays bounded (measured: 7, 17 and 20 cm)."""
     model, ids, data = _full_scene_ball(kind)
     pos, vel, angvel = _ball_world_state(data, ids)
-    assert not bool(kick_env.rolling(vel, angvel))
-    expected = np.asarray(kick_env.rest_point(pos, vel, angvel, scene.rolling_decel_rate()))
+    assert not bool(physics.rolling(vel, angvel))
+    expected = np.asarray(physics.rest_point(pos, vel, angvel, scene.rolling_decel_rate()))
     rest = _simulate_to_rest(model, ids, data)
     assert np.linalg.norm(rest - expected) < 0.3, (kind, rest, expected)

@@ -16,7 +16,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from bumps_jax import bc, config, evaluate, filtering, kick_env, rollout, runio, sharding, tables
+from bumps_jax import bc, env_records, evaluate, filtering, kick_env, rollout, runio, sharding, tables
 from bumps_jax.stages import meta as meta_stage
 
 OUTPUT = "table2.json"
@@ -35,11 +35,11 @@ def inputs(cfg, run_dir: Path) -> dict:
     meta_dir = Path(run_dir) / "meta"
     table1 = meta_dir / meta_stage.OUTPUT
     record = runio.read_json(table1, "the meta-policies' record: run meta-train first")
-    config.check_same_env(record.get("env"), kick_env.resolved(cfg.env), f"the meta record {table1}")
+    env_records.check_same_env(record.get("env"), kick_env.resolved(cfg.env), f"the meta record {table1}")
     if "config" not in record:
         raise ValueError(f"{table1} does not record its meta config: rerun meta-train")
     wanted = {k: cfg.meta[k].to_dict() for k in ("nets", "train")}
-    diff = config.differing_keys({k: record["config"].get(k) for k in wanted}, wanted)
+    diff = env_records.differing_keys({k: record["config"].get(k) for k in wanted}, wanted)
     if diff:
         shown = ", ".join(f"meta.{k}" for k in diff)
         raise ValueError(f"{table1} was trained under other meta settings ({shown}): rerun meta-train")

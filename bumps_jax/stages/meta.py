@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bumps_jax import bc, config, evaluate, kick_env, rollout, runio, tables
+from bumps_jax import bc, env_records, evaluate, kick_env, rollout, runio, tables
 from bumps_jax.stages import experts as experts_stage
 
 OUTPUT = "table1.json"
@@ -36,7 +36,7 @@ def inputs(cfg, run_dir: Path) -> dict:
     stage = Path(run_dir) / "experts"
     record_path = stage / experts_stage.OUTPUT
     record = runio.read_json(record_path, "the experts' record: run train-experts first")
-    config.check_same_env(record.get("env"), kick_env.resolved(cfg.env), f"the experts' record {record_path}")
+    env_records.check_same_env(record.get("env"), kick_env.resolved(cfg.env), f"the experts' record {record_path}")
     experts_row(record, record_path)
     params = stage / "final_params"
     if not params.is_dir():

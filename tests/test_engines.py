@@ -1,0 +1,138 @@
+"""The physics backends (`env.impl`): config checks, and the MuJoCo Warp env against C MuJoCo.
+
+The Warp tests skip where warp-lang is not installed. On a CPU each Warp program compiles in
+seconds once Warp's kernel cache holds its kernels (the first run on a machine builds them).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bumps_jax import c_replay, config, kick_env, kick_model, ppo, rollout, scene
+
+NO_NOISE = {f"noise.{k}": 0.0 for k in ("ball_xy", "joint_angle", "friction", "actuator_gain")}
+MAIN = kick_model.ANCHORS.index("main")
+AGREE_M = 0.01  # Warp against C MuJoCo at the same solver iterations
+
+
+@pytest.mark.parametrize(
+    "overrides, named",
+    [
+        ({"impl": "torch"}, "env.impl must be one of"),
+        ({"solver_iterations": 0}, "env.solver_iterations must be a positive integer"),
+        ({"warp_contacts": 0}, "env.warp_contacts must be a positive integer"),
+        ({"warp_constraints_per_world": -3}, "env.warp_constraints_per_world must be a positive integer"),
+    ],
+)
+def test_backend_settings_are_refused_in_one_line(overrides, named):
+    with pytest.raises(ValueError, match=named) as err:
+        kick_env.KickEnv(config_overrides=overrides)
+    assert "\n" not in str(err.value)
+
+
+def test_missing_warp_is_refused_in_one_line(monkeypatch):
+    monkeypatch.setattr(kick_env.importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(ValueError, match="warp-lang") as err:
+        config.make_config("tiny", {"env.impl": "warp"})
+    assert "\n" not in str(err.value)
+
+
+def test_solver_iterations_reach_the_model_and_records():
+    assert kick_env.KickEnv().mj_model.opt.iterations == 2  # None: the scene's own
+    assert kick_env.KickEnv(config_overrides={"solver_iterations": 4}).mj_model.opt.iterations == 4
+    assert kick_env.resolved(kick_env.default_config())["solver_iterations"] == 2
+    # A record from before these keys reads as made under the defaults: the committed prior loads.
+    old = {k: v for k, v in kick_env.resolved(kick_env.default_config()).items() if not k.startswith(("warp", "sol"))}
+    assert kick_env.resolved(old) == kick_env.resolved(kick_env.default_config())
+    kick_model.load_record(kick_model.ASSET, kick_env.resolved(config.make_config("tiny").env))
+
+
+# -- MuJoCo Warp ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def warp():
+    return pytest.importorskip("warp")
+
+
+def warp_env(iterations=None, contacts=12 * 8, **overrides):
+    cfg = {"impl": "warp", "solver_iterations": iterations, "warp_contacts": contacts, **overrides}
+    return kick_env.KickEnv(config.make_config("tiny").env, cfg)
+
+
+@pytest.fixture(scope="module")
+def anchors():
+    return kick_model.load_record()["anchors"]
+
+
+def play(env, params, reps=1, seed=0):
+    """Keyframe kicks (N, 14) through `rollout.matched_fn`, `reps` episodes each: metrics (N, reps)."""
+    tables = kick_model.action_tables(params, env.n_steps, env.config.ctrl_dt)
+    targets = jnp.full(len(params), 12.0)
+    fn = rollout.matched_fn(env, rollout.table_policy)
+    return jax.tree.map(np.asarray, fn(tables, targets, targets, rollout.repetition_keys(seed, len(params), reps)))
+
+
+def test_warp_env_steps_under_jit_and_vmap_with_the_jax_metrics(warp):
+    env = warp_env(iterations=1)  # one solver iteration: the solver stops at its limit
+    keys, targets = jax.random.split(jax.random.key(0), 3), jnp.array([8.0, 12.0, 16.0])
+    state = jax.jit(jax.vmap(env.reset))(keys, targets)
+    step = jax.jit(jax.vmap(env.step))
+    for _ in range(2):
+        state = step(state, jnp.tile(jnp.asarray(scene.stance_command()), (3, 1)))
+    assert state.obs.shape == (3, env.observation_size)
+    assert np.isfinite(np.asarray(state.obs)).all() and np.isfinite(np.asarray(state.reward)).all()
+    assert not np.asarray(state.metrics["overflow"]).any()
+    assert (np.asarray(state.metrics["solver_limit_steps"]) > 0).all()  # counted, not printed
+    jax_env = kick_env.KickEnv(config.make_config("tiny").env)
+    jax_state = jax.eval_shape(
+        jax_env.step, jax.eval_shape(jax_env.reset, jax.random.key(0), 12.0), state.info["command"][0]
+    )
+    assert set(state.metrics) == set(jax_state.metrics)
+    assert all(np.isfinite(np.asarray(v)).all() for v in state.metrics.values())
+
+
+def test_warp_rests_the_noise_free_anchors_where_c_mujoco_does(warp, anchors):
+    """Measured on a CPU: within 0.3 mm of C MuJoCo at 4 iterations (the long kick is 5 cm off at 2)."""
+    env = warp_env(iterations=4, **NO_NOISE)
+    metrics = play(env, anchors)
+    for i, params in enumerate(anchors):
+        c = c_replay.replay(env, c_replay.kick_actions(env, params))
+        assert metrics["distance"][i, 0] == pytest.approx(c.distance, abs=AGREE_M)
+        assert metrics["lateral"][i, 0] == pytest.approx(c.lateral, abs=AGREE_M)
+    assert metrics["valid"].all() and not metrics["overflow"].any()
+    assert (metrics["solver_limit_steps"] <= env.n_steps * env.n_substeps).all()
+
+
+def test_per_episode_friction_and_gain_jitter_reach_warp(warp, anchors):
+    """Two episodes of the main kick with only the friction and servo-gain jitter: they rest
+    apart, each where C MuJoCo rests it with the same scales."""
+    env = warp_env(iterations=4, **{**NO_NOISE, "noise.friction": 0.1, "noise.actuator_gain": 0.05})
+    metrics = play(env, anchors[MAIN : MAIN + 1], reps=2)
+    keys = rollout.repetition_keys(0, 1, 2)[0]
+    info = jax.vmap(env.reset)(keys, jnp.full(2, 12.0)).info
+    actions = c_replay.kick_actions(env, anchors[MAIN])
+    for r in range(2):
+        model = c_replay.scene_model(env)
+        model.pair_friction[:] *= float(info["friction_scale"][r])
+        model.actuator_gainprm[:, 0] *= float(info["gain_scale"][r])
+        model.actuator_biasprm[:, 1] *= float(info["gain_scale"][r])
+        c = c_replay.replay(env, actions, model=model)
+        assert metrics["distance"][0, r] == pytest.approx(c.distance, abs=AGREE_M)
+    assert abs(metrics["distance"][0, 0] - metrics["distance"][0, 1]) > 5 * AGREE_M
+
+
+def test_a_contact_overflow_invalidates_the_episode(warp, anchors):
+    env = warp_env(contacts=4, **NO_NOISE)  # a standing robot alone makes 9
+    metrics = play(env, anchors[MAIN : MAIN + 1])
+    assert metrics["overflow"][0, 0] == 1.0 and metrics["valid"][0, 0] == 0.0
+
+
+def test_one_ppo_update_over_two_tasks_runs_on_warp(warp):
+    env = warp_env(contacts=12 * 8)
+    cfg = ppo.make_config(overrides={"num_envs": 4, "num_minibatches": 2, "num_epochs": 1, "total_env_steps": 4 * 75})
+    trainer = ppo.make_train(cfg, env)
+    state, metrics = jax.jit(jax.vmap(trainer.train))(jax.random.split(jax.random.key(0), 2), jnp.array([9.0, 15.0]))
+    assert np.asarray(state.update).tolist() == [1, 1]
+    assert all(np.isfinite(np.asarray(v)).all() for v in metrics)
