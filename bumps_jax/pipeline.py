@@ -120,6 +120,7 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
             timing["call_wall_s"] = time.perf_counter() - t_call
             timing.update(runio.provenance(cfg.preset, total, cfg.env))
             timing["total_wall_s"] = total
+            timing["stages_s"] = dict(timing["stages"])  # the results contract's name
             runio.write_json(timing_path, timing)
     path = report.write(run_dir)
     say(path.read_text())
