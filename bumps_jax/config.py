@@ -19,7 +19,6 @@ leaf here; `docs/decisions.md` says how the numbers were chosen.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 
@@ -27,8 +26,7 @@ import ml_collections
 from ml_collections import FieldReference
 
 from bumps_jax import kick_env, ppo
-
-STAGES = ("prior", "experts", "meta", "filter", "baseline")
+from bumps_jax.env_records import differing_keys, jsonable
 
 
 def _prior() -> ml_collections.ConfigDict:
@@ -302,15 +300,18 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
 
 
 def section(cfg: ml_collections.ConfigDict, stage: str) -> dict:
-    """What one stage's results depend on: its section, the env and the preset, as plain data."""
-    return {"preset": cfg.preset, "env": _jsonable(cfg.env.to_dict()), stage: _jsonable(cfg[stage].to_dict())}
+    """What one stage's results depend on, as plain data: its section, the env (its physics step
+    resolved, as records carry it) and the preset."""
+    return {"preset": cfg.preset, "env": kick_env.resolved(cfg.env), stage: jsonable(cfg[stage].to_dict())}
 
 
-def fingerprint(data) -> str:
-    """A short stable hash of JSON-able data."""
-    text = json.dumps(_jsonable(data), sort_keys=True, separators=(",", ":"))
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
-def _jsonable(value):
-    return json.loads(json.dumps(value, default=str, sort_keys=True))
+def overrides_of(cfg: ml_collections.ConfigDict) -> dict:
+    """{dotted key: value} of every leaf where `cfg` differs from its preset."""
+    base, mine = jsonable(make_config(cfg.preset).to_dict()), jsonable(cfg.to_dict())
+    out = {}
+    for key in differing_keys(base, mine):
+        value = mine
+        for part in key.split("."):
+            value = value[part]
+        out[key] = value
+    return out

@@ -16,7 +16,7 @@ def env_key(env_cfg: ml_collections.ConfigDict | dict) -> dict:
     """The part of an env config that changes the physics or the scoring: what must match
     between a record and the run that reads it (the task list and range only choose targets)."""
     d = kick_env.resolved(env_cfg)  # physics_dt None -> the scene's own step, as records carry it
-    return {k: _jsonable(v) for k, v in sorted(d.items()) if k not in ("tasks", "task_range", *CAPACITY_KEYS)}
+    return {k: jsonable(v) for k, v in sorted(d.items()) if k not in ("tasks", "task_range", *CAPACITY_KEYS)}
 
 
 def differing_keys(a: dict, b: dict, prefix: str = "") -> list[str]:
@@ -26,7 +26,7 @@ def differing_keys(a: dict, b: dict, prefix: str = "") -> list[str]:
         va, vb = a.get(k, "<missing>"), b.get(k, "<missing>")
         if isinstance(va, dict) and isinstance(vb, dict):
             out += differing_keys(va, vb, f"{prefix}{k}.")
-        elif _jsonable(va) != _jsonable(vb):
+        elif jsonable(va) != jsonable(vb):
             out.append(f"{prefix}{k}")
     return out
 
@@ -36,9 +36,9 @@ def check_same_env(record_env: dict | None, env_cfg, what: str) -> None:
     env config than `env_cfg`; a record that names none is refused too."""
     if record_env is None:
         raise ValueError(f"{what} does not record the env config it was made under; remake it")
-    diff = differing_keys(env_key(record_env), env_key(env_cfg))
+    mine, theirs = env_key(env_cfg), env_key(record_env)
+    diff = differing_keys(theirs, mine)
     if diff:
-        mine, theirs = env_key(env_cfg), env_key(record_env)
         shown = ", ".join(f"env.{k}: {_get(theirs, k)} there, {_get(mine, k)} here" for k in diff)
         raise ValueError(f"{what} was made under another env config ({shown})")
 
@@ -49,5 +49,6 @@ def _get(d: dict, dotted: str):
     return d
 
 
-def _jsonable(value):
+def jsonable(value):
+    """Plain JSON data (tuples as lists, keys sorted, anything else as its string)."""
     return json.loads(json.dumps(value, default=str, sort_keys=True))

@@ -39,30 +39,26 @@ def stage_module(name: str):
 def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]:
     """(manifest wanted, status) of one stage, checked before any work: every input exists and
     parses (ValueError naming it), and the stage directory holds nothing of another config
-    (runio.StaleRunError unless `force`). status: "new", "same", "done" or "forced"."""
+    (runio.StaleRunError; with `force` such a directory is wiped). status: "new", "same" (resume),
+    "done" (its record exists) or "forced"."""
     module = stage_module(name)
-    inputs = module.inputs(cfg, run_dir)
-    wanted = runio.manifest(config.section(cfg, name), inputs)
-    stage_dir = run_dir / name
-    status = runio.check_manifest(stage_dir, wanted, force=False) if not force else _forced(stage_dir, wanted)
-    if status == "same" and (stage_dir / module.OUTPUT).exists():
+    wanted = runio.manifest(config.section(cfg, name), module.inputs(cfg, run_dir))
+    status = runio.check_manifest(run_dir / name, wanted, force)
+    if status == "same" and (run_dir / name / module.OUTPUT).exists():
         status = "done"
     return wanted, status
-
-
-def _forced(stage_dir: Path, wanted: dict) -> str:
-    try:
-        return runio.check_manifest(stage_dir, wanted, force=False)
-    except runio.StaleRunError:
-        return runio.check_manifest(stage_dir, wanted, force=True)
 
 
 def run_stage(name: str, cfg, run_dir: Path, force: bool = False, say=print) -> dict:
     """Run (or resume, or reuse) one stage; returns its record. With `force`, a stage whose
     outputs were made otherwise is wiped with every stage after it, and recomputed."""
     run_dir = runio.check_writable(run_dir)
+    return execute(name, cfg, run_dir, *plan(name, cfg, run_dir, force), say=say)
+
+
+def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print) -> dict:
+    """One stage after `plan`: reuse its record, or write its manifest and run it."""
     module = stage_module(name)
-    wanted, status = plan(name, cfg, run_dir, force)
     output = run_dir / name / module.OUTPUT
     if status == "done":
         say(f"== {name}: up to date ({output})")
@@ -79,7 +75,8 @@ def run_stage(name: str, cfg, run_dir: Path, force: bool = False, say=print) -> 
 
 def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> dict:
     """Run `stages` in order into `run_dir`, then write the report. Writes run_dir/pipeline.json:
-    each stage's wall time over every call, the number of calls, and the whole call's time.
+    each stage's wall time over every call (`stages_s`; their sum is `wall_s`), the number of
+    calls, and this call's own time.
 
     Every stage's inputs and manifest are checked up front where they already exist, so a stale
     later stage stops the call before the first stage does any work.
@@ -96,14 +93,14 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
             except ValueError:
                 pass  # an input that an earlier stage of this call writes
     timing_path = run_dir / "pipeline.json"
-    timing = runio.read_json(timing_path) if timing_path.exists() else {"stages": {}}
+    timing = runio.read_json(timing_path) if timing_path.exists() else {"stages_s": {}}
     count_killed_call(run_dir, timing, say)
     counted = False
     t_call = time.perf_counter()
     for name in stages:
-        _, status = plan(name, cfg, run_dir, force)
+        wanted, status = plan(name, cfg, run_dir, force)
         if status == "done":
-            say(f"== {name}: up to date ({run_dir / name / stage_module(name).OUTPUT})")
+            execute(name, cfg, run_dir, wanted, status, say)
             continue
         if not counted:  # a report says whether the run was resumed
             timing["calls"], counted = timing.get("calls", 0) + 1, True
@@ -112,15 +109,13 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
         runio.write_json(timing_path, timing)
         t0 = time.perf_counter()
         try:
-            run_stage(name, cfg, run_dir, force, say)
+            execute(name, cfg, run_dir, wanted, status, say)
         finally:  # also when interrupted: a resumed stage adds up its parts
             timing.pop("open", None)
-            timing["stages"][name] = timing["stages"].get(name, 0.0) + time.perf_counter() - t0
-            total = sum(timing["stages"].values())
+            timing["stages_s"][name] = timing["stages_s"].get(name, 0.0) + time.perf_counter() - t0
             timing["call_wall_s"] = time.perf_counter() - t_call
-            timing.update(runio.provenance(cfg.preset, total, cfg.env))
-            timing["total_wall_s"] = total
-            timing["stages_s"] = dict(timing["stages"])  # the results contract's name
+            timing.update(runio.provenance(cfg.preset, sum(timing["stages_s"].values()), cfg.env))
+            timing["overrides"] = config.overrides_of(cfg)
             runio.write_json(timing_path, timing)
     path = report.write(run_dir)
     say(path.read_text())
@@ -139,6 +134,6 @@ def count_killed_call(run_dir: Path, timing: dict, say=print) -> None:
     stage_dir = run_dir / opened["stage"]
     writes = [p.stat().st_mtime for p in stage_dir.rglob("*") if p.is_file()] if stage_dir.exists() else []
     lost = max([0.0, *(t - opened["started"] for t in writes)])
-    timing["stages"][opened["stage"]] = timing["stages"].get(opened["stage"], 0.0) + lost
+    timing["stages_s"][opened["stage"]] = timing["stages_s"].get(opened["stage"], 0.0) + lost
     timing["killed_calls"] = timing.get("killed_calls", 0) + 1
     say(f"== a previous call was killed during {opened['stage']}: counting its {lost:.0f} s up to its last write")

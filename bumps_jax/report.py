@@ -150,7 +150,8 @@ def pipeline_lines(pipeline: dict | None, stages_total_s: float | None = None) -
     checkpoints) shows up a record that missed calls killed before they could write it."""
     if not pipeline:
         return []
-    parts = ", ".join(f"{k} {v:.0f} s" for k, v in pipeline["stages"].items())
+    stages = pipeline.get("stages_s", pipeline.get("stages", {}))  # "stages" in records before the contract's name
+    parts = ", ".join(f"{k} {v:.0f} s" for k, v in stages.items())
     calls = pipeline.get("calls")  # absent in records older than the count
     how = {None: "resumed across calls where a stage was cut", 1: "in one call"}.get(
         calls, f"resumed across {calls} calls, each stage's time added up"
@@ -159,11 +160,11 @@ def pipeline_lines(pipeline: dict | None, stages_total_s: float | None = None) -
     if killed:
         how += f"; {killed} of them killed, each counted up to its stage's last write"
     lines = [
-        f"The pipeline (`demo` or `reproduce`): **{pipeline['total_wall_s'] / 60:.1f} min** in all ({parts}; "
+        f"The pipeline (`demo` or `reproduce`): **{pipeline['wall_s'] / 60:.1f} min** in all ({parts}; "
         f"on {pipeline.get('device', 'the device above')}, {how}).",
         *([f"Note: {pipeline['note']}"] if pipeline.get("note") else []),
     ]
-    if stages_total_s and pipeline["total_wall_s"] < 0.99 * stages_total_s:
+    if stages_total_s and pipeline["wall_s"] < 0.99 * stages_total_s:
         lines.append(
             f"This record is short of the stages' own {stages_total_s / 60:.1f} min: calls that were killed "
             "before they could write it are missing. The stages' times above are counted to their checkpoints."

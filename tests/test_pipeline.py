@@ -81,6 +81,7 @@ def test_force_recomputes_every_later_stage(tmp_path, stages):
     assert log == ["experts", "meta"]
     pipeline.run_pipeline(("experts", "meta"), changed, tmp_path, force=True)
     assert log == ["experts", "meta", "experts", "meta"]
+    assert json.loads((tmp_path / "pipeline.json").read_text())["overrides"] == {"experts.seed": 3}
 
 
 def test_the_pipeline_never_reports_up_to_date_over_stale_outputs(tmp_path, stages):  # defect 4
@@ -128,8 +129,10 @@ def test_pipeline_skips_finished_stages_and_counts_its_calls(tmp_path, stages, m
     pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)
     assert log == ["experts", "meta", "meta"]  # the finished stage is not rerun
     record = json.loads((tmp_path / "pipeline.json").read_text())
-    assert record["calls"] == 2 and set(record["stages"]) == {"experts", "meta"}
+    assert record["calls"] == 2 and set(record["stages_s"]) == {"experts", "meta"}
     assert record["env"]["physics_dt"] == 0.0025 and record["env"]["impl"] == "jax"
+    assert record["wall_s"] == pytest.approx(sum(record["stages_s"].values()), abs=1e-3)
+    assert record["overrides"] == {}
     assert "resumed across 2 calls" in report.pipeline_lines(record)[0]
     assert "in one call" in report.pipeline_lines({**record, "calls": 1})[0]
 
@@ -157,6 +160,6 @@ def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, stages, 
     pipeline.run_pipeline(("experts",), cfg(), tmp_path)
     record = json.loads((tmp_path / "pipeline.json").read_text())
     assert "open" not in record and record["calls"] == 2 and record["killed_calls"] == 1
-    assert 42.0 <= record["stages"]["experts"] <= 42.0 + time.perf_counter() - start
+    assert 42.0 <= record["stages_s"]["experts"] <= 42.0 + time.perf_counter() - start
     assert "1 of them killed" in report.pipeline_lines(record)[0]
     assert "calls that were killed" in report.pipeline_lines(record, stages_total_s=1000.0)[1]

@@ -53,7 +53,7 @@ def _paper_run(tmp_path):
     baseline = {**common, "seeds": 6, "env_steps": 2000, "error_mean_m": 3.5, "accuracy_mean": 0.8,
                 "eval_tasks": [7.1, 7.2]}  # fmt: skip
     (run / "baseline" / "baseline.json").write_text(json.dumps(baseline))
-    pipeline = {**common, "stages": {"train-experts": 60.0, "filter": 30.0}, "total_wall_s": 90.0,
+    pipeline = {**common, "stages_s": {"train-experts": 60.0, "filter": 30.0}, "wall_s": 90.0,
                 "overrides": {"experts.ppo.total_env_steps": "1000"}}  # fmt: skip
     (run / "pipeline.json").write_text(json.dumps(pipeline))
     return run

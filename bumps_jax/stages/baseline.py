@@ -23,9 +23,8 @@ OUTPUT = "baseline.json"
 
 
 def inputs(cfg, run_dir: Path) -> dict:
-    path = experts_stage.prior_path(cfg, run_dir)
-    kick_model.load_record(path, env_cfg=cfg.env)
-    return {"prior": path}
+    """The kick prior the experts of this run start from (checked the same way)."""
+    return experts_stage.inputs(cfg, run_dir)
 
 
 def clone_start(cfg, env: kick_env.KickEnv, trainer: ppo.Trainer, kick) -> tuple:

@@ -24,9 +24,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from bumps_jax import bc, evaluate, kick_env, kick_model, ppo, runio, sharding, tables
+from bumps_jax.stages import prior as prior_stage
 
 OUTPUT = "experts.json"
-PRIOR = "kick_prior_asset.json"  # the record a prior stage writes, and the copy an experts run keeps
+PRIOR = prior_stage.ASSET  # the record a prior stage writes, and the copy an experts run keeps
 
 
 # -- the kick prior the experts start from ------------------------------------------------------
