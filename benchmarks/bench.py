@@ -1,16 +1,20 @@
 """`make bench`: every speed of the pipeline, measured side by side in one run on one device.
 
-- raw MJX physics steps/s of our scene and env-steps/s of the kick task, at the experts' batch;
-- aggregate PPO env-steps/s of all experts in one vmapped program vs Brax's `ppo.train` on one
-  task (same env, same batch per task, same device);
-- BC (meta-training) gradient steps/s of both meta-policies;
+For each physics backend (`--backends`, default MJX-JAX and MuJoCo Warp), at the env's step:
+- raw physics steps/s of our scene and env-steps/s of the kick task, at the experts' batch;
+- aggregate PPO env-steps/s of all experts in one vmapped program;
 - filtering rollouts/s and the wall time of the high-sample-rate variant (1091 contexts).
+On the config's own backend (`env.impl`) only:
+- Brax's `ppo.train` on one task (one expert's batch) and at the experts' total batch;
+- BC (meta-training) gradient steps/s of both meta-policies, as the loop is compiled today and
+  with an epoch's steps unrolled into one loop iteration.
 With more than one device visible it also measures the experts and filtering on a mesh of one
 device and on a mesh of all of them (`bumps_jax.sharding`) and writes the scaling record;
 `--scale-workload K` runs those two on K times the preset's work (K copies of every expert,
 each its own seed; K times the filtering repetitions), for a lab that outgrows one device.
 
 Every time is a program's second call (its first compiles); compile times are reported apart.
+Wall times of whole stages computed from a measured rate are named `*_projected_s`.
 Results are written after each section, so a run cut short keeps what it measured.
 
     python -m benchmarks.bench --preset paper                        # GPU: benchmarks/results/*.json
@@ -58,7 +62,7 @@ def bench_scene(cfg, batch: int) -> dict:
     env = kick_env.KickEnv(cfg.env)
     return {
         "scene_batch": batch,
-        "physics_steps_per_s": scene_bench.physics_rate(env.mj_model, batch),
+        "physics_steps_per_s": scene_bench.physics_rate(env.mj_model, batch, env_cfg=env.config),
         "env_steps_per_s": scene_bench.env_rate(env, batch),
     }
 
@@ -104,15 +108,18 @@ def bench_experts(cfg, updates: int, mesh, workload: int = 1) -> dict:
         "experts_env_steps_per_s": steps / wall,
         "experts_chunk_compile_s": first - wall,
         # The preset's whole PPO budget at this rate (BC, tuning and host work between chunks aside).
-        "experts_wall_s": full / (steps / wall),
+        "experts_ppo_projected_s": full / (steps / wall),
     }
 
 
-def bench_brax(cfg, epochs: int) -> dict:
-    """Brax's ppo.train on one task with the preset's per-task batch; its own post-compile sps."""
-    target = float(cfg.experts.tasks[len(cfg.experts.tasks) // 2])
-    env = kick_env.KickEnv(derived(cfg, {"env.tasks": (target,)}).env)
-    p = cfg.experts.ppo
+def bench_brax(cfg, epochs: int, all_tasks: bool = False) -> dict:
+    """Brax's ppo.train on one task with one expert's batch, or (`all_tasks`) on every expert's
+    task at once with the experts' total batch; its own post-compile sps. Keys get the suffix
+    `_total_batch` for the second."""
+    tasks = tuple(cfg.experts.tasks) if all_tasks else (float(cfg.experts.tasks[len(cfg.experts.tasks) // 2]),)
+    env = kick_env.KickEnv(derived(cfg, {"env.tasks": tasks}).env)
+    p = copy.deepcopy(cfg.experts.ppo)
+    p.num_envs = cfg.experts.ppo.num_envs * len(tasks)
     sps = []
     start = time.perf_counter()
     brax_compat.train(
@@ -124,30 +131,41 @@ def bench_brax(cfg, epochs: int) -> dict:
         max_devices_per_host=1,  # one device, as our experts in this measurement
         progress_fn=lambda step, metrics: sps.append(float(metrics.get("training/sps", float("nan")))),
     )
-    return {"brax_ppo_env_steps_per_s": sps[-1], "brax_ppo_sps_per_epoch": sps, "brax_task_m": target,
-            "brax_ppo_wall_s": time.perf_counter() - start}  # fmt: skip
+    suffix = "_total_batch" if all_tasks else ""
+    out = {"brax_ppo_env_steps_per_s": sps[-1], "brax_ppo_sps_per_epoch": sps, "brax_ppo_num_envs": p.num_envs,
+           "brax_ppo_wall_s": time.perf_counter() - start}  # fmt: skip
+    out = {k + suffix: v for k, v in out.items()}
+    out["brax_tasks_m" + suffix] = list(tasks)
+    return out
 
 
 def bench_bc(cfg, chunk: int) -> dict:
     """Gradient steps/s of each meta-policy's BC loop on a dataset of the experts' size, timed
-    over `chunk` epochs."""
-    train_cfg = derived(cfg, {"meta.train.chunk": chunk}).meta.train
+    over `chunk` epochs: as configured (`meta.train.unroll`) and with a whole epoch's steps in
+    one loop iteration; both nets' full schedules projected at each."""
     n_rows = len(cfg.experts.tasks) * kick_env.KickEnv(cfg.env).n_steps
+    base = derived(cfg, {"meta.train.chunk": chunk}).meta.train
+    epoch_steps = bc.steps_per_epoch(base, n_rows)
     rng = np.random.default_rng(0)
     obs = jnp.asarray(rng.uniform(size=(n_rows, 2)), jnp.float32)
     actions = jnp.asarray(rng.normal(size=(n_rows, 22)), jnp.float32)
-    keys = bc.seed_keys(train_cfg)
-    epoch_steps = bc.steps_per_epoch(train_cfg, n_rows)
-    out, total = {"bc_steps_per_epoch": epoch_steps}, 0.0
-    for name, (depth, width) in cfg.meta.nets.items():
-        init, step_chunk = bc.make_trainer(bc.MetaPolicy(depth, width), train_cfg, n_rows)
-        _, first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
-        rate = chunk * epoch_steps * train_cfg.n_seeds / wall
-        out[f"bc_steps_per_s_{name}"] = rate
-        total += train_cfg.epochs * epoch_steps / rate
-    out["bc_steps_per_s"] = min(v for k, v in out.items() if k.startswith("bc_steps_per_s_"))
-    # Both nets' full schedules (train.epochs passes each) at the measured rates.
-    out["bc_wall_s"] = total
+    keys = bc.seed_keys(base)
+    out: dict = {"bc_steps_per_epoch": epoch_steps, "bc_unroll_configured": int(base.unroll)}
+    for label, unroll in (("", int(base.unroll)), ("_unrolled_epoch", epoch_steps)):
+        train_cfg = derived(cfg, {"meta.train.chunk": chunk, "meta.train.unroll": unroll}).meta.train
+        total, losses = 0.0, {}
+        for name, (depth, width) in cfg.meta.nets.items():
+            init, step_chunk = bc.make_trainer(bc.MetaPolicy(depth, width), train_cfg, n_rows)
+            (_, loss), first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
+            rate = chunk * epoch_steps * train_cfg.n_seeds / wall
+            out[f"bc_steps_per_s_{name}{label}"] = rate
+            out[f"bc_compile_s_{name}{label}"] = first - wall
+            losses[name] = float(np.asarray(loss)[:, -1].mean())
+            total += train_cfg.epochs * epoch_steps / rate
+        out[f"bc_last_loss{label}"] = losses  # the same steps: equal up to float rounding
+        # Both nets' full schedules (train.epochs passes each), one after the other, at the measured rates.
+        out[f"bc_wall_projected_s{label}"] = total
+    out["bc_steps_per_s"] = min(v for k, v in out.items() if k.startswith("bc_steps_per_s_") and "unrolled" not in k)
     return out
 
 
@@ -203,23 +221,6 @@ def bench_filter(cfg, step: float, reps: int, mesh, workload: int = 1) -> dict:
     }
 
 
-def reproduce_record(pipeline_json: Path, device: str) -> dict:
-    """The committed full `reproduce`'s wall time, with the device it ran on, if that is `device`
-    (it is not measured here: the pipeline records it). Empty otherwise: a bench record on
-    another device (e.g. a CPU smoke test) would set the GPU's pipeline time beside its own."""
-    if not pipeline_json.exists():
-        return {}
-    pipeline = runio.read_json(pipeline_json, "the committed pipeline record")
-    if pipeline.get("device") != device:
-        return {}
-    return {
-        "reproduce_wall_s": pipeline["total_wall_s"],
-        "reproduce_stages_s": pipeline["stages"],
-        "reproduce_device": pipeline["device"],
-        "reproduce_date": pipeline["date"],
-    }
-
-
 def parse_args(argv=None):
     """(args, pipeline config), every argument checked (parser errors) before any work."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -230,6 +231,8 @@ def parse_args(argv=None):
     parser.add_argument(
         "--skip", nargs="*", default=(), choices=("scene", "experts", "brax", "bc", "filter", "scaling")
     )
+    parser.add_argument("--backends", nargs="+", default=list(kick_env.IMPLS), choices=kick_env.IMPLS,
+                        help="physics backends measured side by side (the config's own is measured last)")  # fmt: skip
     parser.add_argument("--only", nargs="*", default=(), choices=("scaling",), help="run only the scale-out sections")
     parser.add_argument(
         "--scale-workload",
@@ -248,15 +251,27 @@ def parse_args(argv=None):
     return args, cfg
 
 
-def sections(cfg, size: dict, one, every, k: int) -> list:
-    """(name, measurement, where its result goes) in the order they run. A scaling section's
+def sections(cfg, size: dict, backends, one, every, k: int) -> list:
+    """(name, measurement, where its result goes) in the order they run: a backend's sections
+    go into `backends.<impl>`, the others into the record's top level. A scaling section's
     measurement is a pair: on one device and on `every` device, at `k` times the preset's work.
 
+    The config's own backend (`env.impl`) runs last, with Brax, BC and the scale-out sections.
     Each scale-out measurement follows its one-device run (a run cut short keeps whole ratios);
     the experts' one comes last, as the program most likely to fail to compile. A scale-out
     section at the preset's own workload reuses the one-device value just measured; at a larger
     workload it measures one device itself, then all.
     """
+    own = cfg.env.impl
+    batch = len(cfg.experts.tasks) * cfg.experts.ppo.num_envs
+    out = []
+    for impl in sorted(backends, key=lambda b: b == own):
+        b_cfg = derived(cfg, {"env.impl": impl})
+        out += [
+            ("experts", lambda c=b_cfg: bench_experts(c, size["bench_updates"], one), impl),
+            ("filter", lambda c=b_cfg: bench_filter(c, size["filter_step"], size["filter_reps"], one), impl),
+            ("scene", lambda c=b_cfg: bench_scene(c, batch), impl),
+        ]
 
     def experts_on(mesh, workload=1):
         return lambda: bench_experts(cfg, size["bench_updates"], mesh, workload)
@@ -264,16 +279,26 @@ def sections(cfg, size: dict, one, every, k: int) -> list:
     def filter_on(mesh, workload=1):
         return lambda: bench_filter(cfg, size["filter_step"], size["filter_reps"], mesh, workload)
 
-    batch = len(cfg.experts.tasks) * cfg.experts.ppo.num_envs
-    return [
-        ("experts", experts_on(one), "training"),
-        ("filter", filter_on(one), "training"),
+    return out + [
         ("scaling-filter", (filter_on(one, k), filter_on(every, k)), "filter_rollouts_per_s"),
-        ("brax", lambda: bench_brax(cfg, size["brax_epochs"]), "training"),
-        ("scene", lambda: bench_scene(cfg, batch), "training"),
-        ("bc", lambda: bench_bc(cfg, size["bc_chunk"]), "training"),
+        ("brax", lambda: bench_brax(cfg, size["brax_epochs"]), None),
+        ("brax", lambda: bench_brax(cfg, size["brax_epochs"], all_tasks=True), None),
+        ("bc", lambda: bench_bc(cfg, size["bc_chunk"]), None),
         ("scaling-experts", (experts_on(one, k), experts_on(every, k)), "experts_env_steps_per_s"),
     ]
+
+
+def ratios(training: dict, own: str) -> None:
+    """The side-by-side ratios of what `training` holds so far (in place)."""
+    per = training["backends"]
+    for key in ("experts_env_steps_per_s", "physics_steps_per_s", "env_steps_per_s", "filter_rollouts_per_s"):
+        if key in per.get("jax", {}) and key in per.get("warp", {}):
+            training[f"{key.removesuffix('_per_s')}_warp_vs_jax"] = per["warp"][key] / per["jax"][key]
+    mine = per.get(own, {})
+    for suffix in ("", "_total_batch"):
+        brax = training.get(f"brax_ppo_env_steps_per_s{suffix}")
+        if brax and "experts_env_steps_per_s" in mine:
+            training[f"experts_vs_brax{suffix}"] = mine["experts_env_steps_per_s"] / brax
 
 
 def main(argv=None) -> dict:
@@ -282,11 +307,12 @@ def main(argv=None) -> dict:
     start = time.perf_counter()
     one = sharding.device_mesh(1)
     n_dev = len(jax.devices())
+    own = cfg.env.impl
     # Every program splits its batch with `jax.jit` over a mesh (`sharding.over_batch`).
-    training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": "jit"}
-    pipeline_json = Path(__file__).resolve().parent.parent / "results" / "pipeline.json"
-    training.update(reproduce_record(pipeline_json, runio.device_name()))
-    scaling: dict = {"devices": n_dev, "sharding": "jit", "workload": args.scale_workload}
+    training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": "jit", "backend": own,
+                      "backends": {}, "projections": ["experts_ppo_projected_s", "bc_wall_projected_s",
+                                                      "bc_wall_projected_s_unrolled_epoch"]}  # fmt: skip
+    scaling: dict = {"devices": n_dev, "sharding": "jit", "workload": args.scale_workload, "backend": own}
 
     def save(section: str) -> None:
         print(f"[bench] {section} done at {time.perf_counter() - start:.0f} s", flush=True)
@@ -299,28 +325,26 @@ def main(argv=None) -> dict:
     scale_out = n_dev > 1 and "scaling" not in args.skip
     every = sharding.device_mesh() if scale_out else one
     k = args.scale_workload
-    for name, fn, into in sections(cfg, SIZES[args.preset], one, every, k):
+    for name, fn, into in sections(cfg, SIZES[args.preset], args.backends, one, every, k):
         source = name.removeprefix("scaling-")
         if name in args.skip or (name == source and "scaling" in args.only):
             continue
         if name != source and (not scale_out or (k == 1 and source in args.skip)):
             continue
-        if into == "training":
+        if into is None or into in kick_env.IMPLS:
             part = fn()
             part.pop("n_devices", None)
-            training.update(part)
+            (training["backends"].setdefault(into, {}) if into else training).update(part)
         else:  # the same measurement on one device and on every device
-            alone = training[into] if k == 1 and into in training else fn[0]()[into]
+            own_rates = training["backends"].get(own, {})
+            alone = own_rates[into] if k == 1 and into in own_rates else fn[0]()[into]
             part = fn[1]()
             scaling[into] = {"1": alone, str(n_dev): part[into]}  # {n_devices: value}
             scaling[into.replace("_per_s", "_speedup")] = part[into] / alone
             scaling[f"{source}_workload_detail"] = {kk: v for kk, v in part.items() if not isinstance(v, list)}
         print({kk: v for kk, v in part.items() if not isinstance(v, list)}, flush=True)
-        if "brax_ppo_env_steps_per_s" in training and "experts_env_steps_per_s" in training:
-            training["experts_vs_brax"] = training["experts_env_steps_per_s"] / training["brax_ppo_env_steps_per_s"]
-        if "env_steps_per_s" in training and "experts_env_steps_per_s" in training:
-            training["experts_vs_env_rate"] = training["experts_env_steps_per_s"] / training["env_steps_per_s"]
-        save(name if into == "training" else f"scaling {into}")
+        ratios(training, own)
+        save(f"{name} ({into})" if into in kick_env.IMPLS else name)
     return training
 
 

@@ -20,7 +20,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from bumps_jax import c_replay, cli, config, kick_env, kick_model, rollout, runio, scene
+from bumps_jax import c_replay, cli, config, kick_env, kick_model, physics, rollout, runio, scene
 
 BATCHES = (1024, 4096, 8192, 16384)
 VARIANTS = (
@@ -64,16 +64,18 @@ def variant_model(name: str, timestep: float) -> mujoco.MjModel:
     return model
 
 
-def physics_rate(model: mujoco.MjModel, batch: int, n_steps: int = 100, repeats: int = 3) -> float:
-    """mjx.step calls per second, summed over a batch of standing robots."""
-    mx = mjx.put_model(model)
+def physics_rate(model: mujoco.MjModel, batch: int, n_steps: int = 100, repeats: int = 3, env_cfg=None) -> float:
+    """mjx.step calls per second, summed over a batch of standing robots; on the backend of
+    `env_cfg` (`physics.put_physics`; None: MJX-JAX)."""
+    mx, blank = physics.put_physics(model, env_cfg) if env_cfg is not None else (mjx.put_model(model), None)
     qpos0 = jnp.asarray(scene.stance_qpos(model))
     ids = scene.scene_ids(model)
 
     def init(key):
         noise = 0.01 * jax.random.normal(key, (scene.N_JOINTS,))
         qpos = qpos0.at[ids.joint_qpos].add(noise)
-        return mjx.make_data(mx).replace(qpos=qpos, ctrl=jnp.asarray(scene.STANCE))
+        data = mjx.make_data(mx) if blank is None else blank
+        return data.replace(qpos=qpos, ctrl=jnp.asarray(scene.STANCE))
 
     @jax.jit
     def run(data):

@@ -107,7 +107,7 @@ class SeedCarry(NamedTuple):
     opt_state: Any
 
 
-def _epoch(apply_fn, optimizer, batch_size, epoch_steps, obs, actions, seed_key, carry: SeedCarry, epoch):
+def _epoch(apply_fn, optimizer, batch_size, epoch_steps, unroll, obs, actions, seed_key, carry: SeedCarry, epoch):
     """One pass over the dataset, shuffled with key fold_in(seed_key, epoch): (carry, losses (epoch_steps,))."""
     n = obs.shape[0]
     order = jax.random.permutation(jax.random.fold_in(seed_key, epoch), n)
@@ -123,7 +123,7 @@ def _epoch(apply_fn, optimizer, batch_size, epoch_steps, obs, actions, seed_key,
         updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
         return SeedCarry(optax.apply_updates(carry.params, updates), opt_state), loss
 
-    return jax.lax.scan(step, carry, (order.reshape(epoch_steps, batch_size), slots))
+    return jax.lax.scan(step, carry, (order.reshape(epoch_steps, batch_size), slots), unroll=unroll)
 
 
 def make_trainer(model: MetaPolicy, train_cfg, n_rows: int):
@@ -136,6 +136,9 @@ def make_trainer(model: MetaPolicy, train_cfg, n_rows: int):
     optimizer = optax.flatten(optax.adam(lr_schedule(train_cfg, epoch_steps)))
     apply_fn = policy_apply(model)
     chunk_epochs = int(train_cfg.chunk)
+    # Gradient steps per iteration of the compiled loop: the same steps either way; fewer
+    # iterations cost the device fewer loop round trips (`meta.train.unroll`).
+    unroll = min(int(train_cfg.unroll), epoch_steps)
 
     def init_one(key):
         params = model.init(key, jnp.zeros((1, 2)))["params"]
@@ -147,7 +150,9 @@ def make_trainer(model: MetaPolicy, train_cfg, n_rows: int):
         return TrainState(params, opt_state, jnp.zeros((), jnp.int32))
 
     def chunk_one(params, opt_state, seed_key, obs, actions, epochs):
-        body = functools.partial(_epoch, apply_fn, optimizer, train_cfg.batch_size, epoch_steps, obs, actions, seed_key)
+        body = functools.partial(
+            _epoch, apply_fn, optimizer, train_cfg.batch_size, epoch_steps, unroll, obs, actions, seed_key
+        )
         carry, losses = jax.lax.scan(body, SeedCarry(params, opt_state), epochs)
         return carry.params, carry.opt_state, losses.reshape(-1)
 

@@ -23,10 +23,29 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
     meta(cfg.meta, task_range)
     filtering(cfg.filter, task_range)
     baseline(cfg.baseline, task_range, n_steps)
+    physics_capacity(cfg)
     if cfg.filter.net_seed >= cfg.meta.train.n_seeds:
         raise ValueError(
             f"filter.net_seed {cfg.filter.net_seed} names no network: meta.train.n_seeds is {cfg.meta.train.n_seeds}"
         )
+
+
+def physics_capacity(cfg) -> None:
+    """Warp's contact pool holds every episode of each training program (rollouts larger than
+    the pool run in chunks; a PPO program cannot)."""
+    if cfg.env.impl != "warp":
+        return
+    most = cfg.env.warp_contacts // kick_env.CONTACTS_PER_EPISODE
+    programs = {
+        "experts (len(experts.tasks) x experts.ppo.num_envs)": len(cfg.experts.tasks) * cfg.experts.ppo.num_envs,
+        "baseline (baseline.seeds x baseline.ppo.num_envs)": cfg.baseline.seeds * cfg.baseline.ppo.num_envs,
+    }
+    for name, n in programs.items():
+        if n > most:
+            raise ValueError(
+                f"env.warp_contacts {cfg.env.warp_contacts} holds {most} episodes, but the {name} program "
+                f"runs {n}: set env.warp_contacts to at least {n * kick_env.CONTACTS_PER_EPISODE}"
+            )
 
 
 def positive_ints(node, prefix: str, keys) -> None:
@@ -105,7 +124,7 @@ def experts(e, task_range, n_steps: int) -> None:
 
 
 def meta(m, task_range) -> None:
-    positive_ints(m.train, "meta.train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every"))
+    positive_ints(m.train, "meta.train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every", "unroll"))
     if m.train.epochs % m.train.chunk:
         raise ValueError(f"meta.train.epochs {m.train.epochs} must be a multiple of meta.train.chunk {m.train.chunk}")
     positive_floats(m.train, "meta.train.", ("learning_rate",))
