@@ -38,21 +38,29 @@ def meta_test_tasks() -> tuple[float, ...]:
     return tuple(round(7.1 + 0.1 * i, 1) for i in range(110))
 
 
+# The most contacts one episode makes: box-floor 4 per foot, 1 per sphere pair of the six pairs.
+CONTACTS_PER_EPISODE = 12
+
+
 def default_config() -> ml_collections.ConfigDict:
     """Every number of the task, in one place. See README of assets/nao_mjcf for the scene."""
     cfg = ml_collections.ConfigDict()
     cfg.ctrl_dt = 0.02  # 50 Hz, SimSpark's agent cycle
     # Physics step (s), a divisor of ctrl_dt; None: the scene's own (2.5 ms).
     cfg.physics_dt = ml_collections.FieldReference(None, field_type=float)
-    cfg.impl = "jax"  # MJX backend that steps the physics: "jax" or "warp" (MuJoCo Warp)
-    # Constraint-solver iterations; None: the scene's own (2).
-    cfg.solver_iterations = ml_collections.FieldReference(None, field_type=int)
-    # Warp only: contact slots of one compiled program, shared by all its episodes (Warp pools
-    # them over the vmapped episodes). The scene's six contact pairs make at most 12 contacts
-    # per episode (box-floor 4 per foot, 1 per sphere pair): this fits 16384 episodes. A program
-    # that runs out marks its episodes invalid (`metrics['overflow']`); on a CPU, slots cost
-    # time every step: size it to the batch.
-    cfg.warp_contacts = 12 * 16384
+    # MJX backend that steps the physics: "warp" (MuJoCo Warp: C MuJoCo's physics, on a GPU or
+    # the CPU) or "jax" (MJX's JAX backend: an approximation, see benchmarks/results/engines.json).
+    cfg.impl = "warp"
+    # Constraint-solver iterations; None: the scene's own (2, not converged). 4: converged for
+    # our kicks (the engines check).
+    cfg.solver_iterations = ml_collections.FieldReference(4, field_type=int)
+    # Warp only: contact slots of one physics call, shared by all its episodes (Warp pools them
+    # over the vmapped episodes). The scene's six contact pairs make at most CONTACTS_PER_EPISODE
+    # per episode: this fits 6144 episodes (the experts' 23 x 256). Rollouts of more episodes run
+    # in chunks (`rollout.in_chunks`); a training program that needs more is refused before it
+    # compiles; a call that still runs out marks its episodes invalid (`metrics['overflow']`).
+    # Unused slots cost time every step (14 % of the experts' speed at 12 x 16384 on a GPU).
+    cfg.warp_contacts = CONTACTS_PER_EPISODE * 6144
     # Warp only: constraint rows per episode: 4 per contact (pyramidal cone, condim 3) x 12.
     cfg.warp_constraints_per_world = 48
     cfg.horizon_s = 1.5  # kick phase; the paper's kicks last 1.3-1.5 s
@@ -180,6 +188,8 @@ class KickEnv(Env):
         if not math.isclose(self.n_substeps * physics_dt, cfg.ctrl_dt, rel_tol=1e-6):
             raise ValueError(f"ctrl_dt {cfg.ctrl_dt} is not a multiple of the physics step {physics_dt}")
         self.n_steps = int(round(cfg.horizon_s / cfg.ctrl_dt))
+        # Episodes one physics call holds: Warp's contact pool; None: no limit (MJX-JAX).
+        self.max_episodes = cfg.warp_contacts // CONTACTS_PER_EPISODE if cfg.impl == "warp" else None
         self.mjx_model, self._warp_data = physics.put_physics(self.mj_model, cfg)
         self.decel_rate = scene.rolling_decel_rate(timestep=cfg.physics_dt)
         self._qpos0 = jnp.asarray(scene.stance_qpos(self.mj_model))

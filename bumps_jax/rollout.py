@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from bumps_jax import kick_env, sharding
 
@@ -54,17 +55,52 @@ def over_reps(episode):
     return jax.vmap(episode, in_axes=(None, None, None, 0))
 
 
+def in_chunks(program, env: kick_env.KickEnv, axis: int, per_item: int, n_devices: int = 1):
+    """`program(params, contexts (n,), targets (n,), keys (n, R))` run over chunks of the n axis
+    so that no call holds more episodes per device than the env's physics can (Warp's contact
+    pool: `env.max_episodes`); outputs joined along `axis`. Every chunk has the same size (the
+    last padded by repeating its first item), so one compiled program serves them all.
+    per_item: episodes per item of the n axis besides the repetitions (policies P of a grid)."""
+    if env.max_episodes is None:
+        return program
+
+    def run(params, contexts, targets, keys):
+        n, reps = keys.shape[:2]
+        per_call = env.max_episodes // (per_item * reps) * n_devices
+        if per_call < n_devices:
+            raise ValueError(
+                f"{per_item * reps} episodes per item exceed env.warp_contacts {env.config.warp_contacts} "
+                f"({kick_env.CONTACTS_PER_EPISODE} per episode): raise env.warp_contacts"
+            )
+        per_call = -(-n // -(-n // per_call))  # equal chunks, as few as fit
+        per_call = -(-per_call // n_devices) * n_devices
+        if per_call >= n:
+            return program(params, contexts, targets, keys)
+        outs = []
+        for start in range(0, n, per_call):
+            idx = np.arange(start, start + per_call)
+            idx = np.where(idx < n, idx, start)
+            chunk_params = jax.tree.map(lambda a, i=idx: a[i], params) if axis == 0 else params
+            out = program(chunk_params, contexts[idx], targets[idx], keys[idx])
+            kept = min(per_call, n - start)
+            outs.append(jax.tree.map(lambda a, k=kept: jax.lax.slice_in_dim(a, 0, k, axis=axis), out))
+        return jax.tree.map(lambda *parts: jnp.concatenate(parts, axis=axis), *outs)
+
+    return run
+
+
 def matched_fn(env: kick_env.KickEnv, apply_fn, record: str | None = None, mesh=None):
-    """Jitted (params (N, ...), contexts (N,), targets (N,), keys (N, R)) -> outputs of (N, R, ...).
+    """(params (N, ...), contexts (N,), targets (N,), keys (N, R)) -> outputs of (N, R, ...), jitted.
 
     Policy i on its own (context i, target i), R noisy repetitions: experts on their tasks,
     the kick prior's candidates, the meta-policy's dataset. With a `mesh` the N axis is split
-    over its devices (N must then be a multiple of the mesh size: `sharding.pad`).
+    over its devices (N must then be a multiple of the mesh size: `sharding.pad`). A batch
+    larger than the physics holds runs in chunks (`in_chunks`).
     """
     fn = jax.vmap(over_reps(episode_fn(env, apply_fn, record)), in_axes=(0, 0, 0, 0))
     if mesh is None:
-        return jax.jit(fn)
-    return sharding.over_batch(fn, mesh, (True, True, True, True))
+        return in_chunks(jax.jit(fn), env, axis=0, per_item=1)
+    return in_chunks(sharding.over_batch(fn, mesh, (True, True, True, True)), env, 0, 1, mesh.size)
 
 
 def grid_fn(env: kick_env.KickEnv, apply_fn, mesh=None):
@@ -76,9 +112,18 @@ def grid_fn(env: kick_env.KickEnv, apply_fn, mesh=None):
     """
     over_pairs = jax.vmap(over_reps(episode_fn(env, apply_fn)), in_axes=(None, 0, 0, 0))
     over_policies = jax.vmap(over_pairs, in_axes=(0, None, None, None))
-    if mesh is None:
-        return jax.jit(over_policies)
-    return sharding.over_batch(over_policies, mesh, (False, True, True, True), out_axis=1)
+    program = (
+        jax.jit(over_policies)
+        if mesh is None
+        else sharding.over_batch(over_policies, mesh, (False, True, True, True), out_axis=1)
+    )
+
+    def run(params, contexts, targets, keys):
+        n_policies = jax.tree.leaves(params)[0].shape[0]
+        chunked = in_chunks(program, env, axis=1, per_item=n_policies, n_devices=1 if mesh is None else mesh.size)
+        return chunked(params, contexts, targets, keys)
+
+    return run
 
 
 def repetition_keys(seed: int, n: int, n_reps: int) -> jax.Array:
