@@ -23,6 +23,7 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
     meta(cfg.meta, task_range)
     filtering(cfg.filter, task_range)
     baseline(cfg.baseline, task_range, n_steps)
+    heldout(cfg.heldout, task_range, cfg.preset)
     if cfg.filter.net_seed >= cfg.meta.train.n_seeds:
         raise ValueError(
             f"filter.net_seed {cfg.filter.net_seed} names no network: meta.train.n_seeds is {cfg.meta.train.n_seeds}"
@@ -137,3 +138,23 @@ def baseline(b, task_range, n_steps: int) -> None:
     ppo_section(b.ppo, "baseline.ppo.", n_steps, task_range)
     if b.ppo.sample_task_range is None:
         raise ValueError("baseline.ppo.sample_task_range must be (low, high): the baseline is multi-task")
+
+
+def heldout(h, task_range, preset: str) -> None:
+    from bumps_jax import config  # noqa: PLC0415
+
+    targets(h.targets, task_range, "heldout.targets")
+    arr = np.asarray(h.targets, np.float64)
+    on_grid = np.abs(arr - np.round(arr, 1)) < 0.005 - 1e-9
+    if on_grid.any():
+        raise ValueError(
+            f"heldout.targets: {float(arr[on_grid][0])!r} m lies within 0.005 m of the 0.1 m grid of the "
+            "meta-test tasks; held-out targets must be off it"
+        )
+    if preset == "paper" and len(arr) < config.HELDOUT_MIN_TARGETS:
+        raise ValueError(
+            f"heldout.targets holds {len(arr)} targets; the paper preset needs at least {config.HELDOUT_MIN_TARGETS}"
+        )
+    positive_ints(h, "heldout.", ("repetitions", "selection_repetitions"))
+    if isinstance(h.seed, bool) or not isinstance(h.seed, int) or h.seed < 0:
+        raise ValueError(f"heldout.seed must be an integer >= 0, got {h.seed!r}")
