@@ -145,6 +145,9 @@ def _baseline() -> ml_collections.ConfigDict:
     cfg.ppo = _experts().ppo  # one expert's PPO settings and budget per seed ...
     cfg.ppo.policy_hidden = (256,) * 11  # ... with the paper's 11 x 256 policy
     cfg.ppo.sample_task_range = (7.0, 18.0)  # each episode draws its target from U[7, 18] m
+    # A second arm: the same seeds at this policy learning rate, trained beside the paper's
+    # (ppo.learning_rate) in one program; None: the paper's arm only.
+    cfg.extra_learning_rate = FieldReference(1e-5, field_type=float)
     return cfg
 
 
@@ -234,6 +237,7 @@ PRESETS: dict[str, dict] = {
         "baseline.ppo.num_epochs": 2,
         "baseline.ppo.total_env_steps": 8 * 75 * 3,
         "baseline.ppo.learning_rate": 1e-5,
+        "baseline.extra_learning_rate": 1e-4,
         "baseline.ppo.init_log_std": -4.0,
         "baseline.ppo.policy_hidden": (64, 64),
         "heldout.targets": HELDOUT_TARGETS[::10],

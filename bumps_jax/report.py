@@ -210,6 +210,13 @@ def baseline_lines(baseline: dict | None, experts: dict | None, filtered: dict |
         f"{len(baseline['eval_tasks'])} tasks, accuracy {baseline['accuracy_mean']:.2f} ({baseline['preset']} preset, "
         f"{baseline.get('device', 'device unknown')}, physics step {physics_step(baseline)}).",
     ]
+    for arm in baseline.get("arms", []):
+        curve = arm.get("error_curve")
+        trend = f"; training episodes' error {curve['mean'][0]:.2f} -> {curve['mean'][-1]:.2f} m" if curve else ""
+        lines.append(
+            f"- learning rate {arm['learning_rate']:g}: meta-test error {arm['error_mean_m']:.2f} m, "
+            f"accuracy {arm['accuracy_mean']:.2f}{trend}"
+        )
     if "start" in baseline:
         start = baseline["start"]
         lines.append(

@@ -138,6 +138,12 @@ def baseline(b, task_range, n_steps: int) -> None:
     ppo_section(b.ppo, "baseline.ppo.", n_steps, task_range)
     if b.ppo.sample_task_range is None:
         raise ValueError("baseline.ppo.sample_task_range must be (low, high): the baseline is multi-task")
+    if b.extra_learning_rate is not None:
+        positive_floats(b, "baseline.", ("extra_learning_rate",))
+        if b.extra_learning_rate == b.ppo.learning_rate:
+            raise ValueError(f"baseline.extra_learning_rate {b.extra_learning_rate!r} is the paper arm's own rate")
+    if b.ppo.anneal_learning_rate:
+        raise ValueError("baseline.ppo.anneal_learning_rate must be false: the baseline's arms keep a constant rate")
 
 
 def heldout(h, task_range, preset: str) -> None:
