@@ -39,6 +39,8 @@ OTHER = {
     "render": "render the robot in its stance to a PNG",
     "video": "render a GIF of filtered kicks at three distances from a finished run",
     "showcase": "replay the committed prior over a batch of noisy episodes",
+    "evaluate": "evaluate a finished run (experts, meta and filter done) on the held-out targets (--heldout)",
+    "kick": "kick to a target with the shipped meta-policy (assets/policies/): filter a context, then N noisy kicks",
 }
 
 
@@ -82,6 +84,16 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--out", default=None, help="the picture's path")
         if name == "showcase":
             p.add_argument("--episodes", type=int, default=16)
+        if name == "evaluate":
+            p.add_argument("--heldout", action="store_true", help="the held-out targets and seed (config: heldout)")
+        if name == "kick":
+            p.add_argument("--target", type=float, required=True, help="target distance (m)")
+            p.add_argument("--kicks", type=int, default=16, help="noisy kicks at the chosen context (default 16)")
+            p.add_argument("--net", default="meta_4x256", help="meta_4x256 (default) or meta_11x128")
+            p.add_argument("--gif", default=None, help="also render one kick to this GIF")
+            p.add_argument("--selection-reps", type=int, default=4, help="noisy kicks per candidate context")
+            p.add_argument("--seed", type=int, default=0, help="noise of the selection and the kicks")
+            p.add_argument("--policies", type=Path, default=None, help="shipped policies (default: assets/policies)")
     return parser
 
 
@@ -111,7 +123,7 @@ def dispatch(args) -> None:
 
 def main(argv=None) -> None:
     args = build_parser().parse_args(argv)
-    if args.command in ("render", "video"):
+    if args.command in ("render", "video") or getattr(args, "gif", None):
         # Offscreen rendering needs a GL backend before mujoco loads one: EGL unless told
         # otherwise. Only here: with MUJOCO_GL set, importing mujoco loads that GL library, and
         # a host without one could then not even simulate.

@@ -1,4 +1,4 @@
-"""The commands besides the stages: report, publish, render, video, showcase.
+"""The commands besides the stages: report, publish, render, video, showcase, evaluate, kick.
 
 Each takes the pipeline config, the run directory and the parsed arguments; each checks its
 inputs (with their paths) before any long work.
@@ -14,9 +14,9 @@ from bumps_jax import runio
 
 
 def run(command: str, cfg, run_dir: Path, args) -> None:
-    {"report": report, "publish": publish, "render": render, "video": video, "showcase": showcase}[command](
-        cfg, Path(run_dir), args
-    )
+    commands = {"report": report, "publish": publish, "render": render, "video": video, "showcase": showcase,
+                "evaluate": evaluate, "kick": kick}  # fmt: skip
+    commands[command](cfg, Path(run_dir), args)
 
 
 def report(cfg, run_dir: Path, args) -> None:
@@ -34,7 +34,7 @@ def report(cfg, run_dir: Path, args) -> None:
 def publish(cfg, run_dir: Path, args) -> None:
     from bumps_jax import report as report_mod  # noqa: PLC0415
 
-    for path in report_mod.publish(run_dir):
+    for path in report_mod.publish(run_dir, cfg=cfg):
         print(f"wrote {path}")
 
 
@@ -83,3 +83,51 @@ def showcase(cfg, run_dir: Path, args) -> None:
     print(f"{args.episodes} noisy kicks of the committed 12 m prior:")
     print(f"  resting distance {np.mean(out['distance']):.2f} +- {np.std(out['distance']):.2f} m")
     print(f"  final error      {np.mean(out['final_error']):.2f} m, valid {np.mean(out['valid']):.2f}")
+
+
+def evaluate(cfg, run_dir: Path, args) -> None:
+    """The held-out evaluation of a finished run (`heldout.run`): run_dir/heldout/heldout.json."""
+    from bumps_jax import heldout  # noqa: PLC0415
+
+    if not args.heldout:
+        raise ValueError("evaluate runs the held-out evaluation only: add --heldout")
+    heldout.run(cfg, run_dir)
+    print(f"wrote {run_dir / 'heldout' / heldout.OUTPUT}")
+
+
+def kick(cfg, run_dir: Path, args) -> None:
+    """Kick to --target with a shipped meta-policy: filter a context, then --kicks noisy kicks."""
+    import time  # noqa: PLC0415
+
+    from bumps_jax import config, policies  # noqa: PLC0415
+
+    t0 = time.perf_counter()
+    for name, value in (("--kicks", args.kicks), ("--selection-reps", args.selection_reps)):
+        if value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value}")
+    directory = args.policies or policies.ASSET_DIR
+    if not (Path(directory) / policies.MANIFEST).is_file():
+        raise ValueError(f"no shipped policies in {directory}: {policies.HOW_TO_MAKE}")
+    manifest = runio.read_json(Path(directory) / policies.MANIFEST, "a shipped-policies manifest")
+    # The policies' own physics, with only the env keys the user set on the command line.
+    env_overrides = {k.removeprefix("env."): v for k, v in config.overrides_of(cfg).items() if k.startswith("env.")}
+    env_cfg = policies.env_config(manifest, env_overrides)
+    if args.net not in manifest.get("nets", {}):
+        raise ValueError(f"--net {args.net!r}: the shipped nets are {sorted(manifest.get('nets', {}))}")
+    from bumps_jax import kick_env  # noqa: PLC0415
+
+    target = float(kick_env.check_targets([args.target], tuple(env_cfg.task_range))[0])
+    if args.gif:
+        runio.check_writable(Path(args.gif).parent)
+    shipped = policies.load(directory, env_cfg)
+    out = policies.filtered_kicks(shipped, args.net, target, args.kicks, env_cfg, args.selection_reps, args.seed)
+    for line in policies.describe(shipped, args.net, target, out, time.perf_counter() - t0):
+        print(line)
+    if args.gif:
+        from bumps_jax import bc, render  # noqa: PLC0415
+
+        entry = shipped.manifest["nets"][args.net]
+        apply_fn = bc.policy_apply(bc.MetaPolicy(entry["depth"], entry["width"]))
+        env = kick_env.KickEnv(env_cfg)
+        path = render.kick_gif(args.gif, env, apply_fn, shipped.nets[args.net], [out.context], [target], args.seed)
+        print(f"wrote {path}")

@@ -11,6 +11,7 @@ The tree has one section per stage plus the env every stage builds its simulatio
     meta      behaviour cloning into the contextual meta-policies, and their evaluation
     filter    policy filtering over sampled contexts (Table 2)
     baseline  the multi-task PPO baseline (the paper's Figure 1)
+    heldout   the held-out evaluation (`evaluate --heldout`): targets and noise no other stage uses
 
 Defaults are the `paper` preset (the paper's budgets, for a GPU); `tiny` overrides the
 sizes so that the whole pipeline runs on a CPU in minutes. Every value a user can set is a
@@ -147,6 +148,34 @@ def _baseline() -> ml_collections.ConfigDict:
     cfg.ppo = _experts().ppo  # one expert's PPO settings and budget per seed ...
     cfg.ppo.policy_hidden = (256,) * 11  # ... with the paper's 11 x 256 policy
     cfg.ppo.sample_task_range = (7.0, 18.0)  # each episode draws its target from U[7, 18] m
+    # A second arm: the same seeds at this policy learning rate, trained beside the paper's
+    # (ppo.learning_rate) in one program; None: the paper's arm only.
+    cfg.extra_learning_rate = FieldReference(1e-5, field_type=float)
+    return cfg
+
+
+# 60 held-out targets (m): numpy.random.default_rng(2222).uniform(7, 18), rounded to 3 decimals,
+# a draw within 0.005 m of the 0.1 m grid rejected, the first 60 kept. Off the grid of the meta-test
+# tasks and the filter's contexts; fixed here so that every run is scored on the same ones.
+HELDOUT_TARGETS = (
+    10.023, 8.649, 11.981, 10.512, 16.969, 14.137, 14.509, 11.635, 17.767, 15.541, 16.057, 12.994,
+    16.615, 7.46, 15.916, 10.653, 8.442, 8.75, 8.468, 13.14, 12.987, 11.056, 17.863, 13.479,
+    13.165, 17.183, 13.251, 17.248, 15.754, 8.149, 17.52, 9.884, 13.229, 15.22, 8.206, 11.318,
+    10.649, 14.37, 17.263, 13.754, 16.452, 10.338, 14.592, 13.407, 15.578, 15.439, 8.121, 16.521,
+    11.153, 7.159, 8.236, 8.574, 9.47, 9.56, 7.261, 16.828, 15.066, 17.259, 9.526, 10.958,
+)  # fmt: skip
+# The paper preset's held-out set must hold at least this many targets.
+HELDOUT_MIN_TARGETS = 50
+
+
+def _heldout() -> ml_collections.ConfigDict:
+    cfg = ml_collections.ConfigDict()
+    cfg.targets = HELDOUT_TARGETS  # m, off the 0.1 m grid
+    cfg.seed = 2222  # noise of the held-out episodes (selection and fresh); no other section uses it
+    cfg.repetitions = 100  # fresh noisy kicks per target and variant
+    # Filtering a held-out target: candidates are filter.context_range / context_step's grid and the
+    # target itself within +- filter.width, each rolled out this many times on its own episodes.
+    cfg.selection_repetitions = 10
     return cfg
 
 
@@ -160,6 +189,7 @@ def default_config() -> ml_collections.ConfigDict:
     cfg.meta = _meta()
     cfg.filter = _filter()
     cfg.baseline = _baseline()
+    cfg.heldout = _heldout()
     return cfg
 
 
@@ -212,8 +242,12 @@ PRESETS: dict[str, dict] = {
         "baseline.ppo.num_epochs": 2,
         "baseline.ppo.total_env_steps": 8 * 75 * 3,
         "baseline.ppo.learning_rate": 1e-5,
+        "baseline.extra_learning_rate": 1e-4,
         "baseline.ppo.init_log_std": -4.0,
         "baseline.ppo.policy_hidden": (64, 64),
+        "heldout.targets": HELDOUT_TARGETS[::10],
+        "heldout.repetitions": 2,
+        "heldout.selection_repetitions": 2,
     },
 }
 

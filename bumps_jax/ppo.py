@@ -140,9 +140,9 @@ class UpdateMetrics(NamedTuple):
 class Trainer(NamedTuple):
     """The pure functions of one PPO configuration (from `make_train`).
 
-    init(rng, policy_params=None) -> TrainState
+    init(rng, policy_params=None, learning_rate=None) -> TrainState
     run_updates(state, target, n) -> (TrainState, UpdateMetrics of (n,)); n static
-    train(rng, target, policy_params=None) -> (TrainState, UpdateMetrics of (n_updates,))
+    train(rng, target, policy_params=None, learning_rate=None) -> (TrainState, UpdateMetrics of (n_updates,))
     """
 
     networks: ppo_networks.PPONetworks
@@ -367,42 +367,57 @@ def sgd_steps(cfg: ml_collections.ConfigDict, n_steps: int) -> int:
     return n_updates(cfg, n_steps) * cfg.num_epochs * cfg.num_minibatches
 
 
-def make_optimizer(cfg: ml_collections.ConfigDict, n_steps: int) -> optax.GradientTransformation:
+def make_optimizer(
+    cfg: ml_collections.ConfigDict, n_steps: int, traced_learning_rate: bool = False
+) -> optax.GradientTransformation:
     """Adam with separate learning rates for the policy and the value net, after norm clipping.
 
     With `anneal_learning_rate` the policy's rate falls linearly to 0 over the run; the
-    critic's stays constant, so it keeps tracking the returns of the settling policy.
+    critic's stays constant, so it keeps tracking the returns of the settling policy. With
+    `traced_learning_rate` the policy's rate is a value of the optimiser state
+    (`optax.inject_hyperparams`), so that runs at several rates vmap as one program.
     """
     policy_lr = cfg.learning_rate
     if cfg.anneal_learning_rate:
+        if traced_learning_rate:
+            raise ValueError("a traced learning rate is constant: anneal_learning_rate must be false")
         policy_lr = optax.linear_schedule(cfg.learning_rate, 0.0, sgd_steps(cfg, n_steps))
+    policy_adam = optax.inject_hyperparams(optax.adam)(learning_rate=policy_lr) if traced_learning_rate else None
     adam = optax.multi_transform(
-        {"policy": optax.adam(policy_lr), "value": optax.adam(cfg.value_learning_rate)}, _labels
+        {"policy": policy_adam or optax.adam(policy_lr), "value": optax.adam(cfg.value_learning_rate)}, _labels
     )
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), adam)
 
 
-def make_train(config, env: kick_env.KickEnv) -> Trainer:
+def make_train(config, env: kick_env.KickEnv, traced_learning_rate: bool = False) -> Trainer:
     """Validate `config` (a PPO ConfigDict) and build the pure trainer for `env`.
 
     All returned functions are pure and unjitted: jit / vmap them as needed. The target is a
     traced argument, so one compiled program serves any task (and a vmapped batch of tasks).
+    With `traced_learning_rate`, `init` and `train` take the policy's learning rate too
+    (`learning_rate`, default config.learning_rate), so a vmapped batch may mix rates.
     """
     cfg = make_config(config)
     validate_config(cfg, env.n_steps)
     networks = make_networks(cfg, env.observation_size, env.action_size)
-    optimizer = make_optimizer(cfg, env.n_steps)
+    optimizer = make_optimizer(cfg, env.n_steps, traced_learning_rate)
     ctx = _Context(env, networks, optimizer, cfg)
     total = n_updates(cfg, env.n_steps)
 
-    def init(rng: jax.Array, policy_params=None) -> TrainState:
-        """A fresh state; `policy_params` (e.g. from behaviour cloning) replace the random policy."""
+    def init(rng: jax.Array, policy_params=None, learning_rate=None) -> TrainState:
+        """A fresh state; `policy_params` (e.g. from behaviour cloning) replace the random policy;
+        `learning_rate` (traced trainers only) the policy's rate."""
         rng, key_policy, key_value = jax.random.split(rng, 3)
         policy = networks.policy_network.init(key_policy) if policy_params is None else policy_params
         params = PPONetworkParams(policy=policy, value=networks.value_network.init(key_value))
+        opt_state = optimizer.init(params)
+        if learning_rate is not None:
+            if not traced_learning_rate:
+                raise ValueError("this trainer's learning rate is fixed: make_train(..., traced_learning_rate=True)")
+            opt_state = optax.tree_utils.tree_set(opt_state, learning_rate=jnp.asarray(learning_rate, jnp.float32))
         return TrainState(
             params=params,
-            opt_state=optimizer.init(params),
+            opt_state=opt_state,
             normalizer=init_normalizer(env.observation_size),
             rng=rng,
             update=jnp.zeros((), jnp.int32),
@@ -414,8 +429,8 @@ def make_train(config, env: kick_env.KickEnv) -> Trainer:
         body = functools.partial(_update_step, ctx, jnp.asarray(target, jnp.float32))
         return jax.lax.scan(body, state, None, n)
 
-    def train(rng: jax.Array, target, policy_params=None):
+    def train(rng: jax.Array, target, policy_params=None, learning_rate=None):
         """The whole budget in one scan: (final TrainState, UpdateMetrics of (n_updates,))."""
-        return run_updates(init(rng, policy_params), target, total)
+        return run_updates(init(rng, policy_params, learning_rate), target, total)
 
     return Trainer(networks, init, run_updates, train, total, cfg.num_envs * env.n_steps)

@@ -10,7 +10,7 @@ import json
 import shutil
 from pathlib import Path
 
-from bumps_jax import tables
+from bumps_jax import env_records, tables
 
 STAGES = {
     "prior": "prior/kick_prior.json",
@@ -19,7 +19,7 @@ STAGES = {
     "filter": "filter/table2.json",
 }
 # Besides the stages: the multi-task PPO baseline and the pipeline's own timing (`reproduce`).
-EXTRAS = {"baseline": "baseline/baseline.json", "pipeline": "pipeline.json"}
+EXTRAS = {"baseline": "baseline/baseline.json", "pipeline": "pipeline.json", "heldout": "heldout/heldout.json"}
 # The committed GPU results, relative to the repository root (docs/results.md is built from them).
 COMMITTED = {
     "prior": "results/kick_prior.json",
@@ -28,10 +28,12 @@ COMMITTED = {
     "filter": "results/table2.json",
     "baseline": "results/baseline.json",
     "pipeline": "results/pipeline.json",
+    "heldout": "results/heldout.json",
 }
 BENCH = "benchmarks/results/training.json"
 SCALING = "benchmarks/results/scaling.json"
 PRIOR_ASSET = "assets/kick_prior.json"
+POLICIES = "assets/policies"  # the shipped policies (`policies.write`)
 # What `publish` copies from a finished paper run into the repository: run file -> committed path.
 PUBLISHED = {
     "prior/kick_prior.json": "results/kick_prior.json",
@@ -52,6 +54,7 @@ PUBLISHED = {
     "baseline/baseline.json": "results/baseline.json",
     "baseline/baseline_curve.png": "docs/baseline_curve.png",
     "pipeline.json": "results/pipeline.json",
+    "heldout/heldout.json": "results/heldout.json",
     "filtered_kicks.gif": "docs/filtered_kicks.gif",
 }
 
@@ -96,7 +99,7 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
         total += payload["wall_s"]
         lines.append(f"| {name} | {payload['wall_s']:.0f} | {physics_step(payload)} | `{payload['command']}` |")
     lines += [f"| **sum of the stages' own wall times** | **{total:.0f}** | | |", ""]
-    lines += mixed_steps_lines({**found, "baseline": extras["baseline"]})
+    lines += mixed_steps_lines({**found, "baseline": extras["baseline"], "heldout": extras["heldout"]})
     lines += pipeline_lines(extras["pipeline"], total)
 
     if found["prior"]:
@@ -117,6 +120,10 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
         lines += [f"Experts: {found['experts']['env_steps']:,} PPO env steps each.", ""]
     rows2 = found["filter"]["rows"] if found["filter"] else {}
     lines += ["## Table 2: BUMPS after policy filtering", "", *tables.table2_beside_paper(rows2), ""]
+    if extras["heldout"]:
+        lines += ["## Held-out targets (`evaluate --heldout`; no paper column: the paper has none)", ""]
+        lines += [*differing_env_lines({"Tables 1-2": found["filter"] or found["meta"], "held-out": extras["heldout"]})]
+        lines += [*tables.heldout_lines(extras["heldout"]), ""]
     lines += baseline_lines(extras["baseline"], found["experts"], rows2)
     pictures = [*run_dir.glob(f"{figures_dir}/*.png"), *run_dir.glob(f"{figures_dir}/*.gif")]
     figures = sorted(p.relative_to(run_dir).as_posix() for p in pictures)
@@ -137,12 +144,33 @@ def physics_step(payload: dict | None) -> str:
 
 
 def mixed_steps_lines(payloads: dict) -> list[str]:
-    """A warning when the records shown together ran under different physics (step or backend)."""
+    """A warning when the records shown together ran under different physics (step or backend),
+    naming the env keys that differ, and a note naming the records that carry no env config."""
     steps = {name: physics_step(p) for name, p in payloads.items() if p and physics_step(p) != "not recorded"}
-    if len(set(steps.values())) < 2:
+    lines = []
+    if len(set(steps.values())) >= 2:
+        listed = ", ".join(f"{name} {step}" for name, step in steps.items())
+        lines += [f"**These records ran under different physics ({listed}): they are not comparable.**", ""]
+    lines += differing_env_lines(payloads)
+    unknown = [name for name, p in payloads.items() if p and physics_step(p) == "not recorded"]
+    if unknown and len(unknown) < sum(1 for p in payloads.values() if p):
+        lines += [f"Physics not recorded for {', '.join(unknown)}: their comparison with the rest is unchecked.", ""]
+    return lines
+
+
+def differing_env_lines(payloads: dict) -> list[str]:
+    """A warning line naming the env keys (`env_records.env_key`: physics and scoring) in which the
+    records shown side by side differ; none where they agree or carry no env."""
+    envs = {name: env_records.env_key(p["env"]) for name, p in payloads.items() if p and p.get("env")}
+    if len(envs) < 2:
         return []
-    listed = ", ".join(f"{name} {step}" for name, step in steps.items())
-    return [f"**These records ran under different physics ({listed}): they are not comparable.**", ""]
+    (first, base), *rest = envs.items()
+    keys = sorted({k for _, env in rest for k in env_records.differing_keys(base, env)})
+    if not keys:
+        return []
+    names = ", ".join(envs)
+    return [f"**Warning: {names} ran under different env configs (differing: {', '.join(f'env.{k}' for k in keys)}).**",
+            ""]  # fmt: skip
 
 
 def pipeline_lines(pipeline: dict | None, stages_total_s: float | None = None) -> list[str]:
@@ -182,6 +210,13 @@ def baseline_lines(baseline: dict | None, experts: dict | None, filtered: dict |
         f"{len(baseline['eval_tasks'])} tasks, accuracy {baseline['accuracy_mean']:.2f} ({baseline['preset']} preset, "
         f"{baseline.get('device', 'device unknown')}, physics step {physics_step(baseline)}).",
     ]
+    for arm in baseline.get("arms", []):
+        curve = arm.get("error_curve")
+        trend = f"; training episodes' error {curve['mean'][0]:.2f} -> {curve['mean'][-1]:.2f} m" if curve else ""
+        lines.append(
+            f"- learning rate {arm['learning_rate']:g}: meta-test error {arm['error_mean_m']:.2f} m, "
+            f"accuracy {arm['accuracy_mean']:.2f}{trend}"
+        )
     if "start" in baseline:
         start = baseline["start"]
         lines.append(
@@ -241,9 +276,11 @@ def speed_lines(bench: dict | None, scaling: dict | None) -> list[str]:
     return [*lines, ""]
 
 
-def publish(run_dir: str | Path, root: str | Path = ".") -> list[Path]:
+def publish(run_dir: str | Path, root: str | Path = ".", cfg=None) -> list[Path]:
     """Copy a finished paper run's results, tables and figures into results/ and docs/, and its
-    kick prior into assets/, then rebuild docs/results.md. Returns the paths written."""
+    kick prior into assets/; with `cfg` (the run's config) and a finished filter stage, ship its
+    policies into assets/policies/ (`policies.write`). Then rebuild docs/results.md and README's
+    results table. Returns the paths written."""
     run_dir, root = Path(run_dir), Path(root)
     written = []
     for rel, dest in PUBLISHED.items():
@@ -253,7 +290,13 @@ def publish(run_dir: str | Path, root: str | Path = ".") -> list[Path]:
             written.append(root / dest)
     if not any(p.suffix == ".json" for p in written):
         raise ValueError(f"{run_dir} holds no stage results to publish")
+    if cfg is not None and (run_dir / "filter" / "table2.json").exists():
+        from bumps_jax import policies  # noqa: PLC0415
+
+        written += policies.write(cfg, run_dir, root / POLICIES)
     written.append(write_committed(root))
+    if (root / "README.md").exists():
+        written.append(write_readme(root))
     return written
 
 
@@ -282,4 +325,98 @@ def write_committed(root: str | Path = ".") -> Path:
     head, _, rest = text.partition("\n\n")
     body = rest.replace("](docs/", "](")  # figures sit beside the report
     path.write_text(head + "\n\n" + note + body + ("\n" + "\n".join(speed) + "\n" if speed else ""))
+    return path
+
+
+# -- README's results table -------------------------------------------------------------------
+
+README_BEGIN = "<!-- results table: generated by `python -m bumps_jax publish` from results/*.json; do not edit -->"
+README_END = "<!-- end of the generated results table -->"
+
+
+def readme_rows(root: str | Path = ".") -> list[tuple[str, str, str, str, str]]:
+    """(what, ours, paper, physics, record) for README's results table, from the committed records
+    that exist: every number in `ours` is the record's, rounded as shown."""
+    root = Path(root)
+    rec = {name: _load(root, rel) for name, rel in COMMITTED.items()}
+    rows = []
+    p = rec["prior"]
+    if p:
+        rows.append((f"{p['target_m']:.0f} m keyframe prior, {p['n_reps']} noisy kicks",
+                     f"error {p['mean_error_m']:.2f} m, valid {p['valid_fraction']:.2f}",
+                     "(a hand-made keyframe kick)", physics_step(p), COMMITTED["prior"]))  # fmt: skip
+    e = rec["experts"]
+    if e:
+        paper = tables.PAPER_TABLE1["experts"]
+        rows.append(("experts on their own tasks (accuracy; error)",
+                     f"{e['accuracy_mean']:.2f}; {tables.pm(e['error_mean_m'], e['error_std_m'])} m",
+                     f"{paper[0]:.2f}; {tables.pm(paper[2], paper[3])} m", physics_step(e),
+                     COMMITTED["experts"]))  # fmt: skip
+    t1 = rec["meta"]
+    for net in ("meta_4x256", "meta_11x128"):
+        r = (t1 or {}).get("rows", {}).get(net)
+        if r:
+            paper = tables.PAPER_TABLE1[net]
+            rows.append((f"meta-policy {net.removeprefix('meta_')}, unfiltered (accuracy; error)",
+                         f"{r['accuracy_mean']:.2f}; {tables.num(r['error_mean_m'])} m "
+                         f"({r['tasks_above_threshold']} of {r['n_tasks']} tasks above {tables.ACCURACY_THRESHOLD})",
+                         f"{paper[0]:.2f}; {paper[2]:.2f} m", physics_step(t1), COMMITTED["meta"]))  # fmt: skip
+    t2 = rec["filter"]
+    if t2:
+        names = [n for n in tables.PAPER_TABLE2 if n in t2["rows"]]
+        rows.append(("BUMPS filtered: " + " / ".join(names) + " (error)",
+                     " / ".join(f"{t2['rows'][n]['error_mean_m']:.2f}" for n in names) + " m",
+                     " / ".join(f"{tables.PAPER_TABLE2[n][0]:.2f}" for n in names) + " m",
+                     physics_step(t2), COMMITTED["filter"]))  # fmt: skip
+    h = rec["heldout"]
+    if h:
+        names = list(h["rows"])
+        rows.append((f"held-out, {len(h['targets_m'])} targets off the grid: " + " / ".join(names) + " (error)",
+                     " / ".join(f"{h['rows'][n]['error_mean_m']:.2f}" for n in names) + " m",
+                     "(no held-out set)", physics_step(h), COMMITTED["heldout"]))  # fmt: skip
+    pl = rec["pipeline"]
+    if pl:
+        stages = pl.get("stages_s", pl.get("stages", {}))
+        rows.append(("whole pipeline, the stages' own wall times",
+                     f"{sum(stages.values()) / 60:.1f} min (" + ", ".join(f"{k} {v / 60:.1f} min"
+                                                                         for k, v in stages.items()) + ")",
+                     "~14 CPU-hours per expert", physics_step(pl), COMMITTED["pipeline"]))  # fmt: skip
+    b = rec["baseline"]
+    if b:
+        start = b.get("start", {}).get("error_mean_all_m")
+        head = f"{start:.2f} m at its start -> " if start is not None else ""
+        rows.append((f"multi-task PPO baseline ({b['seeds']} seeds, {b['env_steps'] / 1e6:.2f} M steps each), error",
+                     f"{head}{b['error_mean_m']:.2f} m, accuracy {b['accuracy_mean']:.2f}", "reward collapsed",
+                     physics_step(b), COMMITTED["baseline"]))  # fmt: skip
+    return rows
+
+
+def readme_table(root: str | Path = ".") -> str:
+    """README's results table (markdown, with its markers), from the committed records."""
+    lines = [
+        README_BEGIN,
+        "",
+        "| what | ours | paper (SimSpark) | physics (step, backend) | record |",
+        "|---|---|---|---|---|",
+        *(
+            f"| {what} | {ours} | {paper} | {phys} | `{record}` |"
+            for what, ours, paper, phys, record in readme_rows(root)
+        ),
+        "",
+        "The paper column is SimSpark's: a qualitative comparison only (another simulator, ball, noise model and "
+        "reward; `docs/deviations.md`).",
+        "",
+        README_END,
+    ]
+    return "\n".join(lines)
+
+
+def write_readme(root: str | Path = ".") -> Path:
+    """Replace the generated results table in root/README.md (between its markers) by `readme_table`."""
+    path = Path(root) / "README.md"
+    text = path.read_text()
+    start, end = text.find(README_BEGIN), text.find(README_END)
+    if start < 0 or end < start:
+        raise ValueError(f"{path} has no generated results table (its markers {README_BEGIN!r} ... {README_END!r})")
+    path.write_text(text[:start] + readme_table(root) + text[end + len(README_END) :])
     return path

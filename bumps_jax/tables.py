@@ -122,3 +122,20 @@ def table2_markdown(rows: dict) -> str:
             f"| {pm(r['rel_error_mean'], r['rel_error_std'], 1, 100, '%')} | {paper_rel} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def heldout_lines(record: dict) -> list[str]:
+    """The held-out table (no paper column: the paper has no held-out set)."""
+    lines = [
+        f"{len(record['targets_m'])} targets off the 0.1 m grid, {record['repetitions']} fresh kicks each "
+        f"(noise seed {record['seed']}); error: mean over every target of its mean final error.",
+        "",
+        "| policy | accuracy | error m (all targets) | rel. error | selection error m |",
+        "|---|---|---|---|---|",
+    ]
+    for name, r in record["rows"].items():
+        lines.append(
+            f"| {name} | {pm(r['accuracy_mean'], r['accuracy_std'])} | {pm(r['error_mean_m'], r['error_std_m'])} "
+            f"| {num(r['rel_error_mean'], 1, 100, '%')} | {num(r.get('selection_error_m'))} |"
+        )
+    return lines

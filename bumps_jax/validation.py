@@ -23,6 +23,7 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
     meta(cfg.meta, task_range)
     filtering(cfg.filter, task_range)
     baseline(cfg.baseline, task_range, n_steps)
+    heldout(cfg.heldout, task_range, cfg.preset)
     physics_capacity(cfg)
     if cfg.filter.net_seed >= cfg.meta.train.n_seeds:
         raise ValueError(
@@ -38,7 +39,9 @@ def physics_capacity(cfg) -> None:
     most = cfg.env.warp_contacts // kick_env.CONTACTS_PER_EPISODE
     programs = {
         "experts (len(experts.tasks) x experts.ppo.num_envs)": len(cfg.experts.tasks) * cfg.experts.ppo.num_envs,
-        "baseline (baseline.seeds x baseline.ppo.num_envs)": cfg.baseline.seeds * cfg.baseline.ppo.num_envs,
+        "baseline (baseline.seeds x learning rates x baseline.ppo.num_envs)": cfg.baseline.seeds
+        * (1 if cfg.baseline.extra_learning_rate is None else 2)
+        * cfg.baseline.ppo.num_envs,
     }
     for name, n in programs.items():
         if n > most:
@@ -156,3 +159,29 @@ def baseline(b, task_range, n_steps: int) -> None:
     ppo_section(b.ppo, "baseline.ppo.", n_steps, task_range)
     if b.ppo.sample_task_range is None:
         raise ValueError("baseline.ppo.sample_task_range must be (low, high): the baseline is multi-task")
+    if b.extra_learning_rate is not None:
+        positive_floats(b, "baseline.", ("extra_learning_rate",))
+        if b.extra_learning_rate == b.ppo.learning_rate:
+            raise ValueError(f"baseline.extra_learning_rate {b.extra_learning_rate!r} is the paper arm's own rate")
+    if b.ppo.anneal_learning_rate:
+        raise ValueError("baseline.ppo.anneal_learning_rate must be false: the baseline's arms keep a constant rate")
+
+
+def heldout(h, task_range, preset: str) -> None:
+    from bumps_jax import config  # noqa: PLC0415
+
+    targets(h.targets, task_range, "heldout.targets")
+    arr = np.asarray(h.targets, np.float64)
+    on_grid = np.abs(arr - np.round(arr, 1)) < 0.005 - 1e-9
+    if on_grid.any():
+        raise ValueError(
+            f"heldout.targets: {float(arr[on_grid][0])!r} m lies within 0.005 m of the 0.1 m grid of the "
+            "meta-test tasks; held-out targets must be off it"
+        )
+    if preset == "paper" and len(arr) < config.HELDOUT_MIN_TARGETS:
+        raise ValueError(
+            f"heldout.targets holds {len(arr)} targets; the paper preset needs at least {config.HELDOUT_MIN_TARGETS}"
+        )
+    positive_ints(h, "heldout.", ("repetitions", "selection_repetitions"))
+    if isinstance(h.seed, bool) or not isinstance(h.seed, int) or h.seed < 0:
+        raise ValueError(f"heldout.seed must be an integer >= 0, got {h.seed!r}")

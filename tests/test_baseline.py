@@ -7,12 +7,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax import bc, config, kick_env, kick_model, ppo
+from bumps_jax import bc, config, evaluate, kick_env, kick_model, ppo
 from bumps_jax.stages import baseline
 
 
-def test_tiny_baseline_writes_curve_for_two_seeds(tmp_path):
+def test_tiny_baseline_writes_curve_for_two_seeds_and_two_arms(tmp_path, monkeypatch):
     cfg = config.make_config("tiny")
+    scored = []  # the per-episode metrics of every policy evaluated, in order
+    original = evaluate.summarise_tasks
+    monkeypatch.setattr(evaluate, "summarise_tasks", lambda m: scored.append(m) or original(m))
     payload = baseline.run(cfg, tmp_path, say=lambda *a, **k: None)
     saved = json.loads((tmp_path / "baseline" / "baseline.json").read_text())
     assert saved["seeds"] == 2 and saved["env"]["physics_dt"] == 0.0025 and saved["env"]["impl"] == "jax"
@@ -23,13 +26,39 @@ def test_tiny_baseline_writes_curve_for_two_seeds(tmp_path):
     assert np.all(np.asarray(curve["mean"]) <= np.asarray(curve["ci_high"]) + 1e-6)
     assert curve["env_steps"][-1] == payload["env_steps"] == payload["env_steps_per_seed"] == 3 * 8 * 75
     assert np.isfinite(saved["error_mean_m"])
-    # Accuracy is the mean of the seeds' accuracies on the same tasks.
-    assert saved["accuracy_mean"] == pytest.approx(np.mean([r["accuracy_mean"] for r in saved["per_seed"]]))
+    # Two arms (the paper's rate first), the same seeds each, in one program: the start, then 2 x 2 runs.
+    assert saved["learning_rates"] == [1e-5, 1e-4] and [a["learning_rate"] for a in saved["arms"]] == [1e-5, 1e-4]
+    assert len(scored) == 1 + 2 * 2
+    for i, arm in enumerate(saved["arms"]):
+        assert len(arm["per_seed"]) == 2 and len(arm["error_curve"]["mean"]) == n
+        band = arm["error_curve"]
+        assert np.all(np.asarray(band["ci_low"]) <= np.asarray(band["mean"]) + 1e-6)
+        # Each seed's accuracy is its fraction of valid kicks, its error the mean final error,
+        # recomputed from the per-episode metrics of its evaluation.
+        for seed, row in enumerate(arm["per_seed"]):
+            m = scored[1 + 2 * i + seed]
+            assert m["valid"].shape == (len(saved["eval_tasks"]), 2)
+            assert row["accuracy_mean"] == pytest.approx(float(np.mean(m["valid"])))
+            assert row["error_mean_all_m"] == pytest.approx(float(np.mean(m["final_error"])))
+        assert arm["error_mean_m"] == pytest.approx(np.mean([r["error_mean_all_m"] for r in arm["per_seed"]]))
+    assert saved["error_mean_m"] == saved["arms"][0]["error_mean_m"] and saved["curve"] == saved["arms"][0]["curve"]
+    # The two arms trained differently: another rate moves the same seeds elsewhere.
+    assert saved["arms"][0]["curve"]["mean"] != saved["arms"][1]["curve"]["mean"]
     assert (tmp_path / "baseline" / "baseline_curve.png").stat().st_size > 0
     # The clone every seed started from is evaluated on the same tasks, and its fit recorded.
     # Cloned at every context, the 12 m kick strikes whatever the target.
     assert saved["start"]["accuracy_mean"] == 1.0 and saved["start"]["n_tasks"] == len(saved["eval_tasks"])
     assert 0.0 <= saved["bc_final_loss"] < 1e-3
+
+
+def test_extra_arm_is_validated():
+    with pytest.raises(ValueError, match="baseline.extra_learning_rate 1e-05 is the paper arm's own rate"):
+        config.make_config("tiny", {"baseline.extra_learning_rate": 1e-5})
+    with pytest.raises(ValueError, match="baseline.extra_learning_rate must be > 0"):
+        config.make_config("tiny", {"baseline.extra_learning_rate": -1.0})
+    assert config.make_config("tiny", {"baseline.extra_learning_rate": None}).baseline.extra_learning_rate is None
+    paper = config.make_config("paper").baseline
+    assert (paper.seeds, paper.ppo.total_env_steps, paper.ppo.learning_rate) == (6, 12_000_000, 1e-6)
 
 
 def test_sampled_task_range_is_validated():

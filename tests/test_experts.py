@@ -123,7 +123,7 @@ def _same_trees(a, b):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
-def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
+def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monkeypatch):
     # One generation of tuning: the fresh run tunes and records its starting kicks, the resumed
     # one must not tune again (its cloning came from the checkpoint).
     cfg = pipeline_config(**{"experts.tune.generations": 1, "experts.tune.eval_repetitions": 2})
@@ -155,6 +155,14 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
 
     # Table 1's first row, under the run directory, with the results contract's keys.
     stage_dir = tmp_path / "whole" / "experts"
+    seen = {}
+    original = experts.evaluate.evaluate_experts
+
+    def spy(*args, **kwargs):
+        seen["metrics"] = original(*args, **kwargs)
+        return seen["metrics"]
+
+    monkeypatch.setattr(experts.evaluate, "evaluate_experts", spy)
     record = experts.evaluate_experts(cfg, stage_dir, want, programs, whole["wall_s"], **quiet)
     on_disk = json.loads((stage_dir / "experts.json").read_text())
     keys = ("tasks_m", "per_task", "accuracy_mean", "accuracy_std", "error_mean_m", "error_std_m", "env_steps",
@@ -165,8 +173,14 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path):
     assert on_disk["tasks_m"] == [8.0, 12.0] and on_disk["env_steps"] == 2 * 4 * N_STEPS
     assert on_disk["env_steps_breakdown"]["tuning"] > 0
     assert set(on_disk["per_task"][0]) >= {"target_m", "accuracy", "error_mean_m", "error_std_m"}
-    # Accuracy is the fraction of valid kicks, which the env scores per episode.
-    assert record["accuracy_mean"] == pytest.approx(np.mean([r["accuracy"] for r in on_disk["per_task"]]))
+    # Accuracy is each task's fraction of valid kicks (struck, not fallen, no blow-up) of its
+    # episodes, the error their mean final error, both recomputed from the per-episode metrics.
+    m = seen["metrics"]
+    assert m["valid"].shape == (2, cfg.experts.eval.repetitions)
+    assert np.all(m["valid"] <= m["struck"] * (1 - m["fallen"]) * (1 - m["blown_up"]))
+    np.testing.assert_allclose([r["accuracy"] for r in on_disk["per_task"]], m["valid"].mean(axis=1))
+    np.testing.assert_allclose([r["error_mean_m"] for r in on_disk["per_task"]], m["final_error"].mean(axis=1))
+    assert record["accuracy_mean"] == pytest.approx(m["valid"].mean())
     assert "single-task experts" in (stage_dir / "experts.md").read_text()
 
     # A corrupt newest checkpoint: reported with its path, and the run resumes from the one before.

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import stand_ins
 
-from bumps_jax import bc, config, evaluate, filtering, kick_env, pipeline, runio, tables
+from bumps_jax import bc, cli, config, evaluate, filtering, heldout, kick_env, pipeline, policies, report, runio, tables
 from bumps_jax.stages import experts as experts_stage
 from bumps_jax.stages import filter as filter_stage
 from bumps_jax.stages import meta as meta_stage
@@ -235,6 +235,11 @@ OVERRIDES = {
     "filter.context_step": 2.5,
     "filter.high_context_step": 1.25,
     "filter.block": 8,
+    # Two held-out targets, both nearest the 12 m stand-in expert; few kicks: one new program (the
+    # experts'), the meta-policies' is the filter stage's.
+    "heldout.targets": (10.023, 12.987),
+    "heldout.repetitions": 3,
+    "heldout.selection_repetitions": 2,
 }
 
 
@@ -376,3 +381,124 @@ def test_filter_inputs_refuse_another_meta_config(stage_run):
         filter_stage.inputs(config.make_config("tiny", overrides), run_dir)
     with pytest.raises(ValueError, match=re.escape(str(run_dir / "nothing" / "meta" / "table1.json"))):
         filter_stage.inputs(stage_run["cfg"], run_dir / "nothing")
+
+
+# -- the held-out evaluation, shipped policies and `kick`, on the same run ------------------------
+
+
+@pytest.fixture(scope="module")
+def heldout_run(stage_run, tmp_path_factory):
+    """evaluate --heldout on the finished stand-in run, then `publish` into a fresh repository root
+    (results/heldout.json, assets/policies/)."""
+    cfg, run_dir = stage_run["cfg"], stage_run["dir"]
+    root = tmp_path_factory.mktemp("repo")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(experts_stage, "load_family", lambda c, d: stage_run["family"])
+        record = heldout.run(cfg, run_dir, say=quiet)
+        written = report.publish(run_dir, root, cfg=cfg)
+    return {"record": record, "root": root, "written": written}
+
+
+def test_heldout_scores_every_variant_on_its_own_targets(stage_run, heldout_run):
+    cfg, record = stage_run["cfg"], heldout_run["record"]
+    saved = json.loads((stage_run["dir"] / "heldout" / "heldout.json").read_text())
+    assert saved == record and saved["env"]["physics_dt"] == 0.0025 and saved["env"]["impl"] == cfg.env.impl
+    assert saved["targets_m"] == [10.023, 12.987] and saved["seed"] == cfg.heldout.seed == 2222
+    assert list(saved["rows"]) == ["experts_nearest", "meta_4x256", "meta_11x128", "filtered_4x256",
+                                   "filtered_11x128", "filtered_ensemble"]  # fmt: skip
+    assert saved["nearest_expert_task_m"] == [12.0, 12.0]  # of the stand-ins' 8, 12 and 16 m
+    for name, row in saved["rows"].items():
+        errors = np.asarray(row["per_target_error_m"])
+        assert errors.shape == (2,) and np.all(np.isfinite(errors)), name
+        assert row["error_mean_m"] == pytest.approx(errors.mean()), name
+        assert row["accuracy_mean"] == pytest.approx(np.mean(row["per_target_accuracy"])), name
+    for name, chosen in saved["chosen_contexts"].items():
+        gap = np.abs(np.asarray(chosen) - saved["targets_m"])
+        assert np.all(gap <= cfg.filter.width + 1e-6), name
+    rows = saved["rows"]
+    best = min(rows["filtered_4x256"]["selection_error_m"], rows["filtered_11x128"]["selection_error_m"])
+    assert rows["filtered_ensemble"]["selection_error_m"] <= best + 1e-12
+    # Candidates: the filter's grid (9, 11.5, 14) and the two targets.
+    assert rows["filtered_4x256"]["n_contexts"] == 5 and rows["filtered_4x256"]["rollouts"] == 5 * 2
+    text = report.build(stage_run["dir"])
+    assert "## Held-out targets" in text and "| experts_nearest |" in text and "different env" not in text
+
+
+def test_publish_ships_the_runs_results_and_policies(stage_run, heldout_run):
+    root = heldout_run["root"]
+    assert json.loads((root / "results" / "heldout.json").read_text()) == heldout_run["record"]
+    shipped = policies.load(root / "assets" / "policies", stage_run["cfg"].env)
+    assert set(shipped.nets) == {"meta_4x256", "meta_11x128"}
+    _, params = bc.load_policy(stage_run["dir"] / "meta" / "meta_4x256", 1, 16, stage_run["cfg"].meta.train)
+    for a, b in zip(jax.tree.leaves(shipped.nets["meta_4x256"]), jax.tree.leaves(params), strict=True):
+        np.testing.assert_array_equal(a, np.asarray(b)[0])
+    np.testing.assert_array_equal(shipped.experts, np.asarray(stage_run["family"].params))
+    m = shipped.manifest
+    assert (m["physics_dt"], m["impl"]) == (0.0025, stage_run["cfg"].env.impl)
+    assert m["filtering_choices"]["chosen_contexts"] == stage_run["table2"]["chosen_contexts"]
+    assert m["heldout_choices"]["targets_m"] == [10.023, 12.987]
+    assert sum(p.stat().st_size for p in (root / "assets" / "policies").iterdir()) < 5e6
+    # Another physics step is refused, naming it.
+    with pytest.raises(ValueError, match=re.escape("env.physics_dt: 0.0025 there, 0.005 here")):
+        policies.load(root / "assets" / "policies", config.make_config("tiny", {"env.physics_dt": 0.005}).env)
+
+
+def test_kick_filters_a_context_and_reports_the_resting_distances(stage_run, heldout_run, capsys):
+    directory = heldout_run["root"] / "assets" / "policies"
+    shipped = policies.load(directory)
+    env_cfg = policies.env_config(shipped.manifest)
+    # 8 kicks: the filter stage's block, so the meta-policy's compiled program is reused.
+    out = policies.filtered_kicks(shipped, "meta_4x256", 12.3, 8, env_cfg, selection_repetitions=2)
+    assert out.context in (11.5, 12.3) and list(out.candidates) == [11.5, 12.3]
+    assert out.distance.shape == (8,) and np.all(np.isfinite(out.distance))
+    # The error is the resting point's distance to the target: at least its miss along the line.
+    assert np.all(out.final_error >= np.abs(out.distance - 12.3) - 1e-4)
+    cli.main(["kick", "--target", "12.3", "--kicks", "8", "--selection-reps", "2", "--policies", str(directory)])
+    printed = capsys.readouterr().out
+    assert "physics backend " + stage_run["cfg"].env.impl + ", step 2.5 ms" in printed
+    each = next(line for line in printed.splitlines() if line.startswith("each kick (m): "))
+    np.testing.assert_allclose([float(d) for d in each.split(":")[1].split()], out.distance, atol=0.006)
+    with pytest.raises(SystemExit, match="publish a paper run"):
+        cli.main(["kick", "--target", "12.3", "--policies", str(heldout_run["root"] / "nothing")])
+    with pytest.raises(SystemExit, match="target 19.0 m is outside"):
+        cli.main(["kick", "--target", "19", "--policies", str(directory)])
+
+
+def test_heldout_refuses_a_run_without_its_stages(tmp_path):
+    with pytest.raises(SystemExit, match=re.escape(str(tmp_path / "experts" / "experts.json"))):
+        cli.main(["evaluate", "--heldout", "--run-dir", str(tmp_path)])
+    with pytest.raises(SystemExit, match="add --heldout"):
+        cli.main(["evaluate", "--run-dir", str(tmp_path)])
+
+
+@pytest.mark.parametrize(
+    ("overrides", "match"),
+    [
+        ({"heldout.targets": (12.3, 13.517)}, "12.3 m lies within 0.005 m of the 0.1 m grid"),
+        ({"heldout.targets": (12.345, 18.5)}, "heldout.targets: target 18.5 m is outside"),
+        ({"heldout.repetitions": 0}, "heldout.repetitions must be a positive integer"),
+    ],
+)
+def test_bad_heldout_config_names_the_value(overrides, match):
+    with pytest.raises(ValueError, match=match):
+        config.make_config("tiny", overrides)
+
+
+def test_the_paper_heldout_set_is_large_and_off_the_grid():
+    targets = np.asarray(config.make_config("paper").heldout.targets)
+    assert len(targets) >= 50 and len(set(targets.tolist())) == len(targets)
+    assert targets.min() >= 7.0 and targets.max() <= 18.0 and np.all(np.abs(targets - np.round(targets, 1)) >= 0.005)
+    with pytest.raises(ValueError, match="heldout.targets holds 6 targets; the paper preset needs at least 50"):
+        config.make_config("paper", {"heldout.targets": config.HELDOUT_TARGETS[:6]})
+    seeds = [
+        v for k, v in _leaves(config.make_config("paper").to_dict()) if "seed" in k and not k.startswith("heldout")
+    ]
+    assert config.make_config("paper").heldout.seed not in seeds
+
+
+def _leaves(d, prefix=""):
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _leaves(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v

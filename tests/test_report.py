@@ -1,6 +1,7 @@
 """The report puts our numbers beside the paper's and names stages that did not run."""
 
 import json
+import re
 from pathlib import Path
 
 from bumps_jax import config, report, runio
@@ -111,3 +112,47 @@ def test_records_of_different_physics_are_flagged(tmp_path):
     assert "physics step 5 ms, jax)." in text
     assert report.physics_step({"physics_dt_s": 0.005}) == "5 ms, backend not recorded"
     assert report.physics_step({"device": "cpu"}) == "not recorded"
+
+
+def test_readme_results_table_is_the_committed_records():
+    """Every number of README's results table is its record's, rounded as shown; the table is
+    exactly what `publish` generates from results/*.json."""
+    readme = (ROOT / "README.md").read_text()
+    start, end = readme.index(report.README_BEGIN), readme.index(report.README_END) + len(report.README_END)
+    assert readme[start:end] == report.readme_table(ROOT)
+    rows = {}
+    for line in readme[start:end].splitlines():
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if len(cells) == 5 and cells[4].startswith("`results/"):
+            rows[cells[0]] = (cells[1], json.loads((ROOT / cells[4].strip("`")).read_text()))
+    assert len(rows) >= 6, rows
+
+    def numbers(text):
+        return [float(x) for x in re.findall(r"\d+\.\d+", text)]
+
+    ours, record = rows["experts on their own tasks (accuracy; error)"]
+    assert numbers(ours) == [round(record[k], 2) for k in ("accuracy_mean", "error_mean_m", "error_std_m")]
+    for net in ("4x256", "11x128"):
+        ours, record = rows[f"meta-policy {net}, unfiltered (accuracy; error)"]
+        row = record["rows"][f"meta_{net}"]
+        assert numbers(ours)[:2] == [round(row["accuracy_mean"], 2), round(row["error_mean_m"], 2)]
+    (label, (ours, record)), *_ = [(k, v) for k, v in rows.items() if k.startswith("BUMPS filtered")]
+    names = label.removeprefix("BUMPS filtered: ").removesuffix(" (error)").split(" / ")
+    assert numbers(ours) == [round(record["rows"][n]["error_mean_m"], 2) for n in names]
+    ours, record = next(v for k, v in rows.items() if k.endswith("noisy kicks"))
+    assert numbers(ours) == [round(record["mean_error_m"], 2), round(record["valid_fraction"], 2)]
+    ours, record = next(v for k, v in rows.items() if k.startswith("multi-task PPO baseline"))
+    start_error = record["start"]["error_mean_all_m"]
+    assert numbers(ours) == [round(x, 2) for x in (start_error, record["error_mean_m"], record["accuracy_mean"])]
+
+
+def test_records_of_different_env_configs_name_the_differing_keys(tmp_path):
+    (tmp_path / "experts").mkdir()
+    (tmp_path / "meta").mkdir()
+    row = {"accuracy_mean": 0.9, "accuracy_std": 0.05, "error_mean_m": 0.5, "error_std_m": 0.1}
+    experts = {**_common("paper"), "tasks_m": [7.0], "env_steps": 75, **row, "wall_s": 5.0}
+    (tmp_path / "experts" / "experts.json").write_text(json.dumps(experts))
+    meta = {**_common("paper", **{"env.noise.friction": 0.2, "env.impl": "warp"}), "rows": {"meta_4x256": row}}
+    (tmp_path / "meta" / "table1.json").write_text(json.dumps(meta))
+    text = report.build(tmp_path)
+    assert "experts, meta ran under different env configs (differing: env.impl, env.noise.friction)" in text

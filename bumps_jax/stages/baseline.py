@@ -3,8 +3,12 @@
 The experts' PPO trainer on one policy (the `baseline` section: 11 x 256 in the paper preset)
 whose episodes each draw their target from U[7, 18] m, started by cloning the main kick of the
 run's prior at every training context, several seeds trained side by side (vmap over seeds).
-Writes run_dir/baseline/baseline.json (the return curve with a 95 % bootstrap band over seeds,
-and the meta-test error evaluated like the BUMPS variants) and baseline_curve.png.
+Besides the paper's learning rate (`baseline.ppo.learning_rate`) an optional second arm
+(`baseline.extra_learning_rate`) trains the same seeds in the same program (the rate is a value
+of each run's optimiser state). Writes run_dir/baseline/baseline.json (per arm: the return curve
+and the training error curve in m, each with a 95 % bootstrap band over seeds, and the meta-test
+error evaluated like the BUMPS variants; the paper arm's also at the top level) and
+baseline_curve.png.
 """
 
 from __future__ import annotations
@@ -50,22 +54,33 @@ def bootstrap_curve(returns: np.ndarray, steps_per_update: int) -> dict:
     }
 
 
+def learning_rates(b) -> tuple[float, ...]:
+    """The arms' policy learning rates: the paper's first."""
+    return (float(b.ppo.learning_rate),) + (() if b.extra_learning_rate is None else (float(b.extra_learning_rate),))
+
+
 def run(cfg, run_dir: Path, say=print) -> dict:
-    """Train the seeds, evaluate them on the meta-test tasks, write the record and the figure."""
+    """Train every arm's seeds, evaluate them on the meta-test tasks, write the record and the figure."""
     start = time.perf_counter()
     b = cfg.baseline
     stage_dir = Path(run_dir) / "baseline"
     env = kick_env.KickEnv(cfg.env)
-    trainer = ppo.make_train(b.ppo, env)
+    trainer = ppo.make_train(b.ppo, env, traced_learning_rate=True)
     record = kick_model.load_record(experts_stage.prior_path(cfg, run_dir), env_cfg=cfg.env)
     say(f"cloning the main kick into the {len(b.ppo.policy_hidden)}-layer policy ({b.bc_steps} steps)", flush=True)
     policy0, bc_losses = clone_start(cfg, env, trainer, jnp.asarray(record["params"]))
-    say(f"training {b.seeds} seeds x {trainer.n_updates} updates in one program (compiling first)", flush=True)
-    train = jax.jit(jax.vmap(lambda rng: trainer.train(rng, 12.0, policy0)))
-    state, metrics = jax.block_until_ready(train(jax.random.split(jax.random.key(1), b.seeds)))
+    rates = learning_rates(b)
+    n_runs = len(rates) * b.seeds
+    say(f"training {len(rates)} arm(s) x {b.seeds} seeds x {trainer.n_updates} updates in one program "
+        "(compiling first)", flush=True)  # fmt: skip
+    # Every arm trains the same seeds; run i is arm i // seeds, seed i % seeds.
+    rngs = jnp.concatenate([jax.random.split(jax.random.key(1), b.seeds)] * len(rates))
+    lrs = jnp.repeat(jnp.asarray(rates, jnp.float32), b.seeds)
+    train = jax.jit(jax.vmap(lambda rng, lr: trainer.train(rng, 12.0, policy0, lr)))
+    state, metrics = jax.block_until_ready(train(rngs, lrs))
     train_s = time.perf_counter() - start
 
-    # Policy 0 is where every seed started (the clone, before PPO); then the seeds' results.
+    # Policy 0 is where every seed started (the clone, before PPO); then every arm's seeds.
     cloned = experts_stage.ExpertParams(ppo.init_normalizer(env.observation_size), policy0)
     params = jax.tree.map(
         lambda a, s: jnp.concatenate([jnp.asarray(a, s.dtype)[None], s]),
@@ -75,19 +90,32 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     tasks = np.asarray(b.eval_tasks, np.float32)
     keys = rollout.repetition_keys(b.eval_seed, len(tasks), b.eval_repetitions)
     grid = rollout.grid_fn(env, experts_stage.expert_policy(trainer.networks))
-    m = grid(params, tasks, tasks, keys)  # (1 + seeds, tasks, reps)
-    rows = [evaluate.table_row(evaluate.summarise_tasks({k: v[s] for k, v in m.items()})) for s in range(1 + b.seeds)]
-    start_row, per_seed = rows[0], rows[1:]
+    m = grid(params, tasks, tasks, keys)  # (1 + runs, tasks, reps)
+    rows = [evaluate.table_row(evaluate.summarise_tasks({k: v[s] for k, v in m.items()})) for s in range(1 + n_runs)]
     env_steps = trainer.n_updates * trainer.steps_per_update
+    returns = np.asarray(metrics.episode_return).reshape(len(rates), b.seeds, -1)
+    errors = np.asarray(metrics.final_error).reshape(len(rates), b.seeds, -1)
+    arms = []
+    for i, lr in enumerate(rates):
+        per_seed = rows[1 + i * b.seeds : 1 + (i + 1) * b.seeds]
+        arms.append({
+            "learning_rate": lr,
+            "curve": bootstrap_curve(returns[i], trainer.steps_per_update),
+            "error_curve": bootstrap_curve(errors[i], trainer.steps_per_update),
+            "error_mean_m": float(np.mean([r["error_mean_all_m"] for r in per_seed])),
+            "accuracy_mean": float(np.mean([r["accuracy_mean"] for r in per_seed])),
+            "per_seed": per_seed,
+        })  # fmt: skip
+    paper = arms[0]
     payload = {
         **runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env),
         "seeds": int(b.seeds),
         "env_steps_per_seed": int(env_steps),
-        "curve": bootstrap_curve(np.asarray(metrics.episode_return), trainer.steps_per_update),
-        "error_mean_m": float(np.mean([r["error_mean_all_m"] for r in per_seed])),
-        "accuracy_mean": float(np.mean([r["accuracy_mean"] for r in per_seed])),
-        "per_seed": per_seed,
-        "start": start_row,  # the cloned main kick every seed started from, before PPO
+        "learning_rates": list(rates),
+        # The paper arm (ppo.learning_rate) at the top level, as the results contract names it.
+        **{k: paper[k] for k in ("learning_rate", "curve", "error_curve", "error_mean_m", "accuracy_mean", "per_seed")},
+        "arms": arms,
+        "start": rows[0],  # the cloned main kick every seed started from, before PPO
         "bc_final_loss": float(bc_losses[-1]),
         "env_steps": int(env_steps),
         "train_wall_s": train_s,
@@ -96,27 +124,36 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     }
     runio.write_json(stage_dir / OUTPUT, payload)
     plot_curve(payload, stage_dir / "baseline_curve.png")
-    say(
-        f"baseline: error {payload['error_mean_m']:.2f} m, accuracy {payload['accuracy_mean']:.2f}, "
-        f"{env_steps:,} env steps per seed; at the start (the cloned main kick): "
-        f"error {start_row['error_mean_all_m']:.2f} m, accuracy {start_row['accuracy_mean']:.2f}"
-    )
+    for arm in arms:
+        say(f"baseline, lr {arm['learning_rate']:g}: error {arm['error_mean_m']:.2f} m, "
+            f"accuracy {arm['accuracy_mean']:.2f}, {env_steps:,} env steps per seed")  # fmt: skip
+    say(f"at the start (the cloned main kick): error {rows[0]['error_mean_all_m']:.2f} m, "
+        f"accuracy {rows[0]['accuracy_mean']:.2f}")  # fmt: skip
     return payload
 
 
 def plot_curve(payload: dict, path: Path) -> Path:
-    """Mean episode return over env steps with its 95 % bootstrap band."""
+    """Per arm, over env steps: the training episodes' mean final error (m) and mean return, each
+    with its 95 % bootstrap band over seeds."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
-    c = payload["curve"]
-    fig, ax = plt.subplots(figsize=(6, 4))
-    ax.plot(c["env_steps"], c["mean"], label=f"mean over {payload['seeds']} seeds")
-    ax.fill_between(c["env_steps"], c["ci_low"], c["ci_high"], alpha=0.3, label="95% bootstrap CI")
-    ax.set_xlabel("environment steps (per seed)")
-    ax.set_ylabel("mean episode return")
-    ax.set_title(f"Multi-task PPO, targets U[7, 18] m ({payload['device']}, {payload['preset']})", fontsize=9)
-    ax.legend(fontsize=8)
+    arms = payload.get("arms") or [payload]
+    fig, (ax_err, ax_ret) = plt.subplots(1, 2, figsize=(10, 4))
+    for arm in arms:
+        label = f"lr {arm['learning_rate']:g}" if "learning_rate" in arm else "baseline"
+        for ax, key in ((ax_err, "error_curve"), (ax_ret, "curve")):
+            c = arm.get(key)
+            if c is None:
+                continue
+            (line,) = ax.plot(c["env_steps"], c["mean"], label=f"{label}, mean over {payload['seeds']} seeds")
+            ax.fill_between(c["env_steps"], c["ci_low"], c["ci_high"], alpha=0.25, color=line.get_color())
+    ax_err.set_ylabel("training episodes' mean final error (m)")
+    ax_ret.set_ylabel("mean episode return")
+    for ax in (ax_err, ax_ret):
+        ax.set_xlabel("environment steps (per seed)")
+        ax.legend(fontsize=8, title="95% bootstrap bands", title_fontsize=8)
+    fig.suptitle(f"Multi-task PPO, targets U[7, 18] m ({payload['device']}, {payload['preset']})", fontsize=9)
     return runio.save_figure(fig, path)

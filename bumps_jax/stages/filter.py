@@ -10,6 +10,7 @@ Writes run_dir/filter/: table2.json, table2.md, error_vs_target.png, context_map
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -53,6 +54,25 @@ def inputs(cfg, run_dir: Path) -> dict:
     return out
 
 
+_PROGRAMS: dict = {}
+
+
+def meta_grid(env_cfg, depth: int, width: int, mesh):
+    """The `rollout.grid_fn` program of a (depth, width) meta-policy in the env of `env_cfg`, built
+    once per process and reused by the filter stage, the held-out evaluation and `kick` (each
+    MJX program costs tens of seconds to compile on a CPU). Its apply_fn is bc.policy_apply."""
+    key = (
+        json.dumps(kick_env.resolved(env_cfg), sort_keys=True),
+        int(depth),
+        int(width),
+        tuple(d.id for d in mesh.devices.flat),
+    )
+    if key not in _PROGRAMS:
+        apply_fn = bc.policy_apply(bc.MetaPolicy(int(depth), int(width)))
+        _PROGRAMS[key] = rollout.grid_fn(kick_env.KickEnv(env_cfg), apply_fn, mesh)
+    return _PROGRAMS[key]
+
+
 def filter_variant(cfg, grid, params, contexts, mesh_size: int):
     """Selection over `contexts` (C,) and the fresh evaluation of each task's choice:
     (filtering.Selection, metrics of (T, R), Table 2 row, timings)."""
@@ -80,23 +100,21 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     run_dir = Path(run_dir)
     inputs(cfg, run_dir)
     f, stage_dir = cfg.filter, run_dir / "filter"
-    env = kick_env.KickEnv(cfg.env)
     tasks = np.asarray(f.tasks, np.float64)
     mesh = sharding.device_mesh()  # a mesh of one on a single device: the same program
     grids = {
         "low": filtering.candidate_contexts(tasks, filtering.context_grid(*f.context_range, f.context_step)),
         "high": filtering.candidate_contexts(tasks, filtering.context_grid(*f.context_range, f.high_context_step)),
     }
-    selections, evals, rows, timings, programs = {}, {}, {}, {}, {}
+    selections, evals, rows, timings = {}, {}, {}, {}
     for net in meta_stage.NETS:
         depth, width = cfg.meta.nets[net]
-        apply_fn, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train)
+        _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train)
         params = jax.tree.map(lambda a: a[f.net_seed : f.net_seed + 1], params)
-        if (depth, width) not in programs:  # one program per architecture
-            programs[depth, width] = rollout.grid_fn(env, apply_fn, mesh)
+        grid = meta_grid(cfg.env, depth, width, mesh)  # one program per architecture
         for name in (v for v, (n, _) in VARIANTS.items() if n == net):
             contexts = grids[VARIANTS[name][1]]
-            out = filter_variant(cfg, programs[depth, width], params, contexts, mesh.size)
+            out = filter_variant(cfg, grid, params, contexts, mesh.size)
             selections[name], evals[name], rows[name], timings[name] = out
             say(
                 f"{name}: {len(contexts)} contexts, error {rows[name]['error_mean_m']:.2f} m"

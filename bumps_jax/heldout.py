@@ -1,0 +1,158 @@
+"""The held-out evaluation (`python -m bumps_jax evaluate --heldout`): a finished run's policies on
+target distances off the 0.1 m grid, with noise that no stage draws.
+
+The meta-test tasks and their seed were also used to choose settings (the learning rate, the
+physics step, the starting kicks); the `heldout` config section is used for nothing else. On each
+held-out target it scores
+
+    experts_nearest    the expert of the nearest training task, its context set to the target
+    meta_<net>         each meta-policy asked for the target itself (unfiltered)
+    filtered_<net>     each meta-policy filtered for the target: the filter's context grid and
+                       the target within +- filter.width, selected on their own episodes
+    filtered_ensemble  per target, the net whose best candidate scored lower
+
+Selection and the fresh evaluation draw independent noise from `heldout.seed`
+(`filtering.noise_keys`); every variant's fresh kicks share the same noise, target by target.
+Writes run_dir/heldout/heldout.json and heldout.md.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bumps_jax import bc, env_records, evaluate, filtering, kick_env, rollout, runio, sharding, tables
+from bumps_jax.stages import experts as experts_stage
+from bumps_jax.stages import filter as filter_stage
+from bumps_jax.stages import meta as meta_stage
+
+OUTPUT = "heldout.json"
+ENSEMBLE = ("filtered_ensemble", "filtered_4x256", "filtered_11x128")
+
+
+def filtered_name(net: str) -> str:
+    return "filtered_" + net.removeprefix("meta_")
+
+
+def inputs(cfg, run_dir: Path) -> dict:
+    """The finished stages the evaluation reads; ValueError naming the first missing one, or a
+    record made under another env config or experts' task list than cfg's."""
+    run_dir = Path(run_dir)
+    experts_json = run_dir / "experts" / experts_stage.OUTPUT
+    record = runio.read_json(experts_json, "the experts' record: run train-experts first")
+    env_records.check_same_env(record.get("env"), kick_env.resolved(cfg.env), f"the experts record {experts_json}")
+    if [float(t) for t in record.get("tasks_m", [])] != [float(t) for t in cfg.experts.tasks]:
+        raise ValueError(f"{experts_json} trained the tasks {record.get('tasks_m')}, not experts.tasks of this config")
+    final = run_dir / "experts" / "final_params"
+    if not final.is_dir():
+        raise ValueError(f"{final}: no trained experts: run train-experts first")
+    out = {"experts": experts_json, **filter_stage.inputs(cfg, run_dir)}
+    table2 = run_dir / "filter" / filter_stage.OUTPUT
+    record = runio.read_json(table2, "the filter stage's record: run filter first")
+    env_records.check_same_env(record.get("env"), kick_env.resolved(cfg.env), f"the filter record {table2}")
+    return {**out, "filter": table2}
+
+
+def nearest_tasks(tasks, targets) -> np.ndarray:
+    """Index (T,) into tasks (E,) of each target's nearest training task (the lower one on a tie)."""
+    return np.argmin(np.abs(np.asarray(tasks, np.float64)[None, :] - np.asarray(targets, np.float64)[:, None]), axis=1)
+
+
+def row(metrics: dict) -> dict:
+    """One held-out row from metrics of (T, R): accuracy and error over every target, and the error
+    over targets of accuracy > evaluate.ACCURACY_THRESHOLD as Table 1 counts it."""
+    per = evaluate.summarise_tasks(metrics)
+    table1 = evaluate.table_row(per)
+    return {
+        "error_mean_m": float(per["error_mean_m"].mean()),
+        "error_std_m": float(per["error_mean_m"].std()),
+        "accuracy_mean": table1["accuracy_mean"],
+        "accuracy_std": table1["accuracy_std"],
+        "rel_error_mean": float(per["rel_error_mean"].mean()),
+        "error_mean_above_threshold_m": table1["error_mean_m"],
+        "targets_above_threshold": table1["tasks_above_threshold"],
+        "per_target_error_m": per["error_mean_m"].tolist(),
+        "per_target_accuracy": per["accuracy"].tolist(),
+    }
+
+
+def run(cfg, run_dir: Path, say=print) -> dict:
+    """Every variant on the held-out targets; writes run_dir/heldout/heldout.json and heldout.md."""
+    t_start = time.perf_counter()
+    run_dir = Path(run_dir)
+    inputs(cfg, run_dir)
+    runio.check_writable(run_dir / "heldout")
+    h, f = cfg.heldout, cfg.filter
+    targets = np.asarray(h.targets, np.float64)
+    n, reps = len(targets), int(h.repetitions)
+    task_range = tuple(cfg.env.task_range)
+    sel_key, eval_key = filtering.noise_keys(h.seed)
+    mesh = sharding.device_mesh()
+    metrics, selections, rows = {}, {}, {}
+
+    family = experts_stage.load_family(cfg, run_dir)
+    nearest = nearest_tasks(family.tasks, targets)
+    say(f"held-out: {n} targets x {reps} kicks; experts of the nearest task (compiling first)", flush=True)
+    env = kick_env.KickEnv(cfg.env)
+    params = jax.tree.map(lambda a: jnp.asarray(a)[nearest], family.params)
+    keys = filtering.stage_keys(eval_key, n, reps).reshape(n, reps)  # the same noise as evaluate_chosen's
+    tj = jnp.asarray(targets, jnp.float32)
+    metrics["experts_nearest"] = jax.tree.map(
+        np.asarray, rollout.matched_fn(env, family.apply_fn)(params, tj, tj, keys)
+    )
+
+    contexts = filtering.candidate_contexts(targets, filtering.context_grid(*f.context_range, f.context_step))
+    for net in meta_stage.NETS:
+        depth, width = cfg.meta.nets[net]
+        _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train)
+        params = jax.tree.map(lambda a: a[f.net_seed : f.net_seed + 1], params)
+        grid = filter_stage.meta_grid(cfg.env, depth, width, mesh)
+        say(f"{net}: unfiltered, then filtered over {len(contexts)} contexts", flush=True)
+        metrics[net] = filtering.evaluate_chosen(grid, params, targets, targets, reps, eval_key, f.block, mesh.size)
+        name = filtered_name(net)
+        sel = filtering.filter_policy(
+            grid, params, contexts, targets, f.width, h.selection_repetitions, sel_key,
+            task_range=task_range, block=f.block, multiple=mesh.size,
+        )  # fmt: skip
+        chosen = sel.contexts[sel.chosen]
+        metrics[name] = filtering.evaluate_chosen(grid, params, chosen, targets, reps, eval_key, f.block, mesh.size)
+        selections[name] = sel
+    name, a, b = ENSEMBLE
+    ens = filtering.ensemble_choice(selections[a], selections[b], metrics[a], metrics[b])
+    metrics[name] = ens.metrics
+
+    for key in ("experts_nearest", *meta_stage.NETS, a, b, name):
+        rows[key] = row(metrics[key])
+    for key, sel in selections.items():
+        rows[key].update(selection_error_m=float(sel.best_score.mean()), n_contexts=len(contexts),
+                         rollouts=len(contexts) * int(h.selection_repetitions))  # fmt: skip
+    rows[name].update(selection_error_m=float(ens.best_score.mean()), n_contexts=2 * len(contexts),
+                      rollouts=rows[a]["rollouts"] + rows[b]["rollouts"])  # fmt: skip
+    payload = {
+        "targets_m": targets.tolist(),
+        "seed": int(h.seed),
+        "repetitions": reps,
+        "selection_repetitions": int(h.selection_repetitions),
+        "rows": rows,
+        "error_rule": "error_mean_m: the mean over every target of its mean final error (invalid kicks included)",
+        "nearest_expert_task_m": family.tasks[nearest].tolist(),
+        "chosen_contexts": {k: s.contexts[s.chosen].tolist() for k, s in selections.items()},
+        "filtered_ensemble_uses_11x128": ens.use_b.tolist(),
+        "config": {
+            "heldout": cfg.heldout.to_dict(),
+            "filter": {k: f[k] for k in ("context_range", "context_step", "width", "net_seed")},
+        },  # fmt: skip
+        "run": str(run_dir),
+        **runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env),
+    }
+    runio.write_json(run_dir / "heldout" / OUTPUT, payload)
+    runio.write_text(
+        run_dir / "heldout" / "heldout.md", "# Held-out targets\n\n" + "\n".join(tables.heldout_lines(payload)) + "\n"
+    )
+    for line in tables.heldout_lines(payload):
+        say(line)
+    return runio.json_safe(payload)
