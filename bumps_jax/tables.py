@@ -48,6 +48,7 @@ def experts_markdown(record: dict) -> str:
         f"(the error columns count only those); {record['n_reps']} kicks per task, "
         f"{record['env_steps']} PPO env steps per expert.",
         "",
+        *starting_kicks_lines(record),
         "| target (m) | accuracy | error mean (m) | error std (m) |",
         "|---|---|---|---|",
     ]
@@ -57,6 +58,24 @@ def experts_markdown(record: dict) -> str:
             f"| {num(row['error_std_m'])} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def starting_kicks_lines(record: dict) -> list[str]:
+    """What the experts' PPO started from, scored as the experts are (an experts record's
+    "starting_kicks"), and its jump between neighbouring tasks; nothing for older records."""
+    kicks, jump = record.get("starting_kicks"), record.get("starting_kicks_smoothness")
+    lines = []
+    if kicks:
+        lines.append(
+            f"{ROW_LABELS['starting_kicks']}: accuracy {pm(kicks['accuracy_mean'], kicks['accuracy_std'])}, error "
+            f"{pm(kicks['error_mean_m'], kicks['error_std_m'])} m ({num(kicks['error_mean_all_m'])} m over all tasks)."
+        )
+    if jump:
+        lines.append(
+            f"Largest jump between neighbouring tasks' starting kicks: {jump['jump']:.2f} scale units of "
+            f"`{jump['param']}`, {jump['between_m'][0]:g} -> {jump['between_m'][1]:g} m."
+        )
+    return [*lines, ""] if lines else []
 
 
 def table1_markdown(rows: dict) -> str:

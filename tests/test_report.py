@@ -3,7 +3,7 @@
 import json
 from pathlib import Path
 
-from bumps_jax import config, report, runio
+from bumps_jax import config, report, runio, tables
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -40,6 +40,11 @@ def test_report_counts_the_experts_env_steps_and_shows_their_starting_kicks(tmp_
     assert "share of the kick prior 300, starting-kick tuning 50, PPO 1,000; 1,350 in all." in text
     assert "All 2 experts: 2,700 (PPO 2,000)." in text
     assert "1.50 scale units of `back_knee` between 7 and 7.5 m" in text
+    # experts.md says the same under the experts' row.
+    md = tables.experts_markdown({**experts, "rel_error_mean": 0.03, "tasks_above_threshold": 2, "n_tasks": 2,
+                                  "n_reps": 2, "per_task": []})  # fmt: skip
+    assert "starting kicks (before PPO): accuracy 0.50 +- 0.10, error 1.25 +- 0.50 m (1.50 m over all tasks)." in md
+    assert "1.50 scale units of `back_knee`, 7 -> 7.5 m." in md
     # A prior record that does not say how it was made leaves its share unknown, not zero.
     runio.write_json(tmp_path / "experts" / "experts.json",
                      {**experts, "env_steps_breakdown": {"prior": None, "tuning": 50, "ppo": 1000}})  # fmt: skip
