@@ -54,15 +54,17 @@ class Search(NamedTuple):
 
     es: Any
     es_params: Any
-    step: Any  # jitted (Carry, keys (T,), x0 (T, 14), targets (T,), scale (T, 14), extra (T,)) -> (Carry, Stats)
+    # jitted (Carry, keys (T,), x0 (T, *shape), targets (T,), scale (T, *shape), extra (T,)) -> (Carry, Stats)
+    step: Any
     mesh: Any
+    shape: tuple = (kick_model.N_PARAMS,)  # one search's solution: a kick (14,), or a family's knots (K, 14)
 
 
 class Result(NamedTuple):
     """Where T searches ended (host arrays, padding dropped)."""
 
-    mean: np.ndarray  # (T, 14) params at each search's final CMA-ES mean
-    best: np.ndarray  # (T, 14) each search's best candidate over all generations
+    mean: np.ndarray  # (T, *shape) params at each search's final CMA-ES mean
+    best: np.ndarray  # (T, *shape) each search's best candidate over all generations
     best_cost: np.ndarray  # (T,) its mean cost in the generation that drew it
     history: dict  # Stats field -> (generations, T)
     key: jax.Array  # the driver's PRNG key after the last generation
@@ -79,6 +81,29 @@ def kick_cost(env: kick_env.KickEnv, fitness):
     def cost_fn(params, keys, target, extra):
         metrics = episodes(kick_model.action_tables(params, env.n_steps, env.dt), target, target, keys)
         return jnp.mean(kick_model.fitness(metrics, target, fitness), axis=1), metrics
+
+    return cost_fn
+
+
+def family_cost(env: kick_env.KickEnv, fitness, knots, targets):
+    """The cost of a contextual kick over many tasks: fn(knot params (P, K, 14), keys (P, R),
+    target, extra) -> (mean cost (P,), metrics of (P, T, R)).
+
+    Each candidate's kick for task t is `kick_model.family_params` at targets[t] (T,) m between
+    `knots` (K,) m; its cost is the mean over tasks of `kick_cost`'s per-task cost, every task on
+    R noisy episodes of its own (the candidate's keys folded with the task's index: the same for
+    every candidate, independent across tasks). `target` and `extra` are unused.
+    """
+    knots, targets = jnp.asarray(knots, jnp.float32), jnp.asarray(targets, jnp.float32)
+    per_task = jax.vmap(kick_cost(env, fitness), in_axes=(1, 0, 0, None), out_axes=(1, 1))
+    fold = jax.vmap(lambda i, keys: jax.vmap(jax.vmap(lambda k: jax.random.fold_in(k, i)))(keys), in_axes=(0, None))
+    kicks_of = jax.vmap(lambda knot_params: jax.vmap(kick_model.family_params, in_axes=(None, None, 0))(
+        knot_params, knots, targets))  # fmt: skip
+
+    def cost_fn(knot_params, keys, target, extra):
+        task_keys = fold(jnp.arange(targets.shape[0]), keys)  # (T, P, R)
+        costs, metrics = per_task(kicks_of(knot_params), task_keys, targets, extra)  # (P, T), (P, T, R)
+        return jnp.mean(costs, axis=1), metrics
 
     return cost_fn
 
@@ -114,17 +139,21 @@ def _metrics_program(env, mesh):
 # -- the driver --------------------------------------------------------------------------------
 
 
-def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, mesh) -> Search:
+def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, mesh,
+                shape: tuple = (kick_model.N_PARAMS,)) -> Search:  # fmt: skip
     """One CMA-ES generation of T searches as a jitted program split over `mesh`.
 
-    cost_fn(params (P, 14), keys (P, R), target (), extra ()) -> (mean cost (P,), metrics of
-    (P, R) holding "valid"), e.g. `kick_cost`. Searches step in the 14-d z space of
-    `kick_model.PARAM_SCALE` units, starting at z = 0 with step `sigma_init`.
+    cost_fn(params (P, *shape), keys (P, R), target (), extra ()) -> (mean cost (P,), metrics of
+    (..., R) holding "valid"), e.g. `kick_cost` (shape (14,): one kick) or `family_cost` (shape
+    (K, 14): a family's knots). Searches step in z space of `kick_model.PARAM_SCALE` units along
+    the last axis, starting at z = 0 with step `sigma_init`.
     """
     from evosax.algorithms import CMA_ES  # noqa: PLC0415 (heavy import, only needed here)
 
-    P, R = int(population), int(repetitions)
-    es = CMA_ES(population_size=P, solution=jnp.zeros(kick_model.N_PARAMS))
+    P, R, shape = int(population), int(repetitions), tuple(int(n) for n in shape)
+    if not shape or shape[-1] != kick_model.N_PARAMS:
+        raise ValueError(f"a search's solution shape must end in {kick_model.N_PARAMS} kick params, got {shape}")
+    es = CMA_ES(population_size=P, solution=jnp.zeros(shape))
     es_params = es.default_params.replace(std_init=jnp.asarray(sigma_init))
 
     def generation(carry: Carry, key, x0, target, scale, extra):
@@ -144,7 +173,7 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
         return carry, Stats(jnp.min(cost), jnp.mean(cost), jnp.mean(metrics["valid"]))
 
     step = sharding.over_batch(jax.vmap(generation), mesh, (True,) * 6)
-    return Search(es, es_params, step, mesh)
+    return Search(es, es_params, step, mesh, shape)
 
 
 @functools.lru_cache(maxsize=8)
@@ -154,15 +183,26 @@ def kick_search(env, mesh, population: int, repetitions: int, sigma_init: float,
     return make_search(kick_cost(env, _weights(fitness_json)), population, repetitions, sigma_init, mesh)
 
 
+@functools.lru_cache(maxsize=4)
+def family_search(env, mesh, population: int, repetitions: int, sigma_init: float, fitness_json: str,
+                  knots: tuple, targets: tuple) -> Search:  # fmt: skip
+    """`make_search` of `family_cost` (one search's solution: the (K, 14) knot params), kept per
+    settings."""
+    cost = family_cost(env, _weights(fitness_json), knots, targets)
+    return make_search(cost, population, repetitions, sigma_init, mesh, shape=(len(knots), kick_model.N_PARAMS))
+
+
 def run_search(search: Search, x0, targets, free, generations: int, seed: int, extra=None, say=print,
                label: str = "cma-es", on_generation=None) -> Result:  # fmt: skip
     """Run T searches for `generations` generations from key(seed).
 
-    x0: (T, 14) starts; targets: (T,) m; free: (T, 14) bool, the parameters each search moves;
-    extra: (T,) numbers handed to the cost (default 0). on_generation(gen, stats) is called on the
-    host after each generation with `Stats` of (T,) numpy arrays.
+    x0: (T, *search.shape) starts; targets: (T,) m; free: (T, *search.shape) bool, the parameters
+    each search moves; extra: (T,) numbers handed to the cost (default 0). on_generation(gen,
+    stats) is called on the host after each generation with `Stats` of (T,) numpy arrays.
     """
     x0 = kick_model.clip_params(jnp.asarray(x0, jnp.float32))
+    if x0.shape[1:] != search.shape:
+        raise ValueError(f"starts must have shape (T, {', '.join(map(str, search.shape))}), got {x0.shape}")
     n = x0.shape[0]
     targets = jnp.asarray(targets, jnp.float32)
     scale = jnp.where(jnp.asarray(free, bool), jnp.asarray(kick_model.PARAM_SCALE, jnp.float32), 0.0)
@@ -171,7 +211,7 @@ def run_search(search: Search, x0, targets, free, generations: int, seed: int, e
     T = x0.shape[0]
     key = jax.random.key(seed)
     key, init_key = jax.random.split(key)
-    init = jax.vmap(lambda k: search.es.init(k, jnp.zeros(kick_model.N_PARAMS), search.es_params))
+    init = jax.vmap(lambda k: search.es.init(k, jnp.zeros(search.shape), search.es_params))
     carry = Carry(init(jax.random.split(init_key, T)), jnp.full(T, jnp.inf, jnp.float32), x0)
     # CMA-ES starts some fields weakly typed and returns them strongly typed: fix the types now
     # so that the generation program compiles once, not twice.
@@ -189,7 +229,7 @@ def run_search(search: Search, x0, targets, free, generations: int, seed: int, e
             f"{stats.best.max():.3f})  population mean {stats.mean.mean():.3f}  valid {stats.valid.mean():.2f}  "
             f"{clock.tick(gen)}")  # fmt: skip
     es, best_cost, best = sharding.unpad(tuple(carry), n)
-    mean = kick_model.clip_params(x0[:n] + scale[:n] * es.mean)
+    mean = kick_model.clip_params(x0[:n] + scale[:n] * es.mean.reshape(x0[:n].shape))
     names = Stats._fields
     hist = {k: np.asarray([getattr(s, k) for s in history]).reshape(generations, n) for k in names}
     return Result(np.asarray(mean), np.asarray(best), np.asarray(best_cost), hist, key)
@@ -302,6 +342,59 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
         "improved": improved,
         "history": result.history["best"],
         "episodes": int(T * (generations * P * R + 2 * E)),
+    }
+
+
+def tune_family(env, targets, knots, start_knots, tune_cfg, generations: int, sigma_init: float, *, fitness,
+                mesh=None, say=print) -> dict:  # fmt: skip
+    """ONE CMA-ES over a contextual kick scored on every task at once (`family_cost`).
+
+    targets: (T,) m, the tasks; knots: (K,) m, increasing; start_knots: (K, 14) the family's params
+    at the knots. tune_cfg: population_size, repetitions, eval_repetitions, seed
+    (`cfg.experts.tune`); fitness: the cost weights (`cfg.prior.fitness`). The result is the
+    better family, start or final CMA-ES mean, by the mean over tasks of each task's cost on
+    `eval_repetitions` fresh noisy episodes (the same for both; `tune_for_tasks`' rule for a whole
+    family), so the family never gets worse than its start on those episodes.
+
+    Returns {"params": (T, 14) each task's kick, "knot_params": (K, 14), "start_cost": (T,),
+    "tuned_cost": (T,), "improved": bool, "history": (generations,) best cost per generation,
+    "episodes": int}.
+    """
+    targets = np.asarray(targets, np.float32)
+    knots = np.asarray(knots, np.float32)
+    start_knots = np.asarray(kick_model.clip_params(jnp.asarray(start_knots, jnp.float32)))
+    if targets.ndim != 1 or knots.ndim != 1 or len(knots) < 2 or start_knots.shape != (len(knots), kick_model.N_PARAMS):
+        raise ValueError(f"need targets (T,), knots (K >= 2,) and start_knots (K, {kick_model.N_PARAMS}), got "
+                         f"{targets.shape}, {knots.shape} and {start_knots.shape}")  # fmt: skip
+    if not np.all(np.diff(knots) > 0):
+        raise ValueError(f"knots must increase, got {knots.tolist()}")
+    if isinstance(generations, bool) or not isinstance(generations, int | np.integer) or generations < 0:
+        raise ValueError(f"generations must be an integer >= 0, got {generations!r}")
+    _check_search(env, targets, tune_cfg.population_size, tune_cfg.repetitions, sigma_init, 1)
+    kick_env.check_targets(knots.tolist(), env.config.task_range)
+    _check_count("eval_repetitions", tune_cfg.eval_repetitions)
+    mesh = mesh or sharding.device_mesh()
+    P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
+    fitness_json = _fitness_json(fitness)
+    search = family_search(env, mesh, P, R, float(sigma_init), fitness_json, tuple(knots.tolist()),
+                           tuple(targets.tolist()))  # fmt: skip
+    result = run_search(search, start_knots[None], targets[:1], np.ones((1, *start_knots.shape), bool),
+                        int(generations), int(tune_cfg.seed), say=say, label="family tuning")  # fmt: skip
+    members = jax.vmap(jax.vmap(kick_model.family_params, in_axes=(None, None, 0)), in_axes=(0, None, None))
+    pair = np.asarray(members(jnp.stack([start_knots, result.mean[0]]), knots, targets))  # (2, T, 14)
+    key = result.key
+    keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
+    padded = sharding.pad((jnp.asarray(pair.transpose(1, 0, 2)), jnp.asarray(targets)), sharding.padded_size(T, mesh))
+    costs = np.asarray(sharding.unpad(_cost_program(env, mesh, fitness_json)(padded[0], keys, padded[1]), T))
+    improved = bool(costs[:, 1].mean() < costs[:, 0].mean())
+    return {
+        "params": pair[int(improved)],
+        "knot_params": np.asarray(result.mean[0] if improved else start_knots),
+        "start_cost": costs[:, 0],
+        "tuned_cost": costs[:, 1],
+        "improved": improved,
+        "history": result.history["best"][:, 0],
+        "episodes": int(generations * P * R * T + 2 * E * T),
     }
 
 

@@ -80,6 +80,12 @@ def _experts() -> ml_collections.ConfigDict:
     cfg.tune.seed = 0
     # Start each task from the best of its blended kick and the prior's three anchors.
     cfg.tune.anchor_starts = True
+    # "per_task": one CMA-ES per task on its own kick. "family": one CMA-ES over a contextual
+    # kick, every parameter linear in the target between `knots` evenly spaced knots over the
+    # tasks' range, started from the (blended or anchor) kicks at the knots and scored on every
+    # task at once. Which one the paper run uses is open (docs/decisions.md).
+    cfg.tune.scheme = "per_task"
+    cfg.tune.knots = 5  # knots of the "family" scheme's contextual kick (>= 2)
     cfg.ppo = ppo.default_config()
     cfg.ppo.num_envs = 256  # episodes per update (19,200 steps; the paper: 4,096)
     cfg.ppo.num_minibatches = 16  # 16 episodes = 1,200 steps each (the paper: 1,024)
@@ -127,7 +133,14 @@ def _filter() -> ml_collections.ConfigDict:
     cfg.context_step = 0.1  # ... of this step (110 contexts)
     cfg.high_context_step = 0.01  # the "high sample rate" variant (1091 contexts)
     cfg.width = 1.0  # m: a task's candidates are the contexts within +- width of it
-    cfg.selection_repetitions = 10  # noisy rollouts per sampled context
+    # "fixed": every candidate context gets `selection_repetitions` rollouts. "halving":
+    # successive halving: every candidate gets halving_rungs[0] rollouts, each task's best
+    # `halving_keep` fraction of its candidates goes on to the next rung's total, and so on; the
+    # scores at a rung use all of a context's rollouts so far.
+    cfg.selection = "fixed"
+    cfg.selection_repetitions = 10  # noisy rollouts per sampled context ("fixed")
+    cfg.halving_rungs = (2, 8, 32, 100)  # rollouts per surviving context after each rung ("halving")
+    cfg.halving_keep = 0.25  # fraction of a task's surviving candidates that goes on to the next rung
     cfg.eval_repetitions = 100  # fresh noisy rollouts of each task's chosen context
     cfg.seed = 0  # split into independent selection and evaluation noise
     cfg.net_seed = 0  # which initialisation of a meta-policy ensemble is filtered
@@ -230,6 +243,7 @@ PRESETS: dict[str, dict] = {
         "filter.context_step": 1.0,
         "filter.high_context_step": 0.5,
         "filter.selection_repetitions": 2,
+        "filter.halving_rungs": (1, 2),
         "filter.eval_repetitions": 2,
         "filter.block": 24,
         "baseline.seeds": 2,

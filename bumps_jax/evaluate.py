@@ -78,6 +78,12 @@ def experts_record(tasks, metrics: dict, env_steps: int) -> dict:
     metrics: final metrics of shape (n_tasks, n_reps) from `evaluate_experts`; env_steps:
     PPO env steps per expert.
     """
+    return {**tasks_record(tasks, metrics), "env_steps": int(env_steps)}
+
+
+def tasks_record(tasks, metrics: dict) -> dict:
+    """A Table 1 row of one policy per task (`table_row`) with its per-task list, from final
+    metrics of shape (n_tasks, n_reps) (`evaluate_experts`)."""
     per_task = summarise_tasks(metrics)
     row = table_row(per_task)
     return {
@@ -95,5 +101,4 @@ def experts_record(tasks, metrics: dict, env_steps: int) -> dict:
         **row,
         "rel_error_mean": float(per_task["rel_error_mean"].mean()),
         "n_reps": int(np.asarray(metrics["valid"]).shape[1]),
-        "env_steps": int(env_steps),
     }

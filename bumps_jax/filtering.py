@@ -18,6 +18,7 @@ candidate scored lower: the argmin over the union of candidates.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -84,25 +85,92 @@ def score_matrix(distance, lateral, blown_up, tasks) -> np.ndarray:
     return kick_env.error_against(distance, lateral, blown_up, tasks).mean(axis=-1)
 
 
+def candidate_mask(contexts, tasks, width, task_range) -> np.ndarray:
+    """(T, C) bool: context c is a candidate of task t (within +- width of it). Every task's own
+    context must be among `contexts` (`candidate_contexts`)."""
+    width = check_width(width)
+    contexts = check_contexts(contexts, task_range)
+    tasks = np.asarray(tasks, np.float64)
+    gap = np.abs(contexts[None, :] - tasks[:, None])
+    own = (gap < 1e-6).any(axis=1)
+    if not own.all():
+        raise ValueError(f"task {tasks[~own][0]!r} m has no own context among the candidates")
+    return gap <= width + 1e-6
+
+
 def select_contexts(scores, contexts, tasks, width, task_range) -> np.ndarray:
     """Index (T,) into `contexts` (C,) of each task's best candidate: lowest score within +- width.
 
     scores: (T, C). Every task's own context must be among `contexts` (`candidate_contexts`).
     """
-    width = check_width(width)
-    contexts = check_contexts(contexts, task_range)
-    tasks = np.asarray(tasks, np.float64)
+    mask = candidate_mask(contexts, tasks, width, task_range)
     scores = np.asarray(scores, np.float64)
-    if scores.shape != (len(tasks), len(contexts)):
-        raise ValueError(
-            f"scores must have shape (tasks, contexts) = {(len(tasks), len(contexts))}, got {scores.shape}"
-        )
-    gap = np.abs(contexts[None, :] - tasks[:, None])
-    own = (gap < 1e-6).any(axis=1)
-    if not own.all():
-        raise ValueError(f"task {tasks[~own][0]!r} m has no own context among the candidates")
-    masked = np.where(gap <= width + 1e-6, np.nan_to_num(scores, nan=np.inf), np.inf)
-    return np.argmin(masked, axis=1)
+    if scores.shape != mask.shape:
+        raise ValueError(f"scores must have shape (tasks, contexts) = {mask.shape}, got {scores.shape}")
+    return np.argmin(np.where(mask, np.nan_to_num(scores, nan=np.inf), np.inf), axis=1)
+
+
+class Halving(NamedTuple):
+    """Successive halving's choice (`successive_halving`)."""
+
+    chosen: np.ndarray  # (T,) index into the contexts
+    best_score: np.ndarray  # (T,) the chosen context's score on all its rollouts (m)
+    scores: np.ndarray  # (T, C) each context's score on all its rollouts against each task (inf: none)
+    reached: np.ndarray  # (C,) rollouts each context got
+    rollouts: int  # rollouts spent: reached.sum()
+
+
+def check_rungs(rungs, keep) -> tuple[tuple[int, ...], float]:
+    """Successive halving's rungs (increasing positive ints) and keep fraction in (0, 1), or
+    ValueError naming the bad one."""
+    rungs = tuple(rungs)
+    if (
+        not rungs
+        or any(isinstance(r, bool) or int(r) != r or r < 1 for r in rungs)
+        or any(b <= a for a, b in zip(rungs, rungs[1:], strict=False))
+    ):
+        raise ValueError(f"halving rungs must be increasing positive integers, got {rungs}")
+    if not 0.0 < keep < 1.0:
+        raise ValueError(f"halving keep must be in (0, 1), got {keep!r}")
+    return tuple(int(r) for r in rungs), float(keep)
+
+
+def successive_halving(errors_of, candidates, rungs, keep: float) -> Halving:
+    """Each task's context by successive halving over its candidates (pure: the rollouts come
+    from `errors_of`).
+
+    errors_of(index (n,), start, stop) -> errors (T, n, stop - start): rollouts start .. stop-1
+    of contexts `index`, each scored against every task (m). candidates: (T, C) bool
+    (`candidate_mask`). Rung k: every context that is still a candidate of some task is rolled
+    out up to rungs[k] times in all; each task's score of a context is the mean over all its
+    rollouts so far; after every rung but the last, each task keeps its best ceil(keep x n) of
+    its n surviving candidates (at least one; ties to the lower index). After the last rung each
+    task takes its best survivor.
+    """
+    rungs, keep = check_rungs(rungs, keep)
+    alive = np.array(candidates, bool)
+    if alive.ndim != 2 or not alive.any(axis=1).all():
+        raise ValueError(f"candidates must be (tasks, contexts) bool with one candidate per task at least, "
+                         f"got shape {alive.shape}")  # fmt: skip
+    n_tasks, n_contexts = alive.shape
+    sums, reached, done = np.zeros(alive.shape), np.zeros(n_contexts, int), 0
+    for k, rung in enumerate(rungs):
+        index = np.flatnonzero(alive.any(axis=0))
+        errors = np.asarray(errors_of(index, done, rung), np.float64)
+        if errors.shape != (n_tasks, len(index), rung - done):
+            raise ValueError(f"errors_of gave shape {errors.shape}, expected {(n_tasks, len(index), rung - done)}")
+        sums[:, index] += np.nan_to_num(errors, nan=np.inf).sum(axis=2)
+        reached[index], done = rung, rung
+        scores = np.where(reached > 0, sums / np.maximum(reached, 1), np.inf)
+        if k == len(rungs) - 1:
+            break
+        for t in range(n_tasks):
+            mine = np.flatnonzero(alive[t])
+            kept = mine[np.argsort(scores[t, mine], kind="stable")[: max(1, math.ceil(keep * len(mine) - 1e-9))]]
+            alive[t] = False
+            alive[t, kept] = True
+    chosen = np.argmin(np.where(alive, scores, np.inf), axis=1)
+    return Halving(chosen, scores[np.arange(n_tasks), chosen], scores, reached, int(reached.sum()))
 
 
 class Selection(NamedTuple):
@@ -114,6 +182,7 @@ class Selection(NamedTuple):
     scores: np.ndarray  # (T, C) mean final error of context c against task t (m)
     chosen: np.ndarray  # (T,) index into contexts
     best_score: np.ndarray  # (T,) the chosen context's selection score (m)
+    rollouts: int  # selection rollouts spent
 
 
 class Ensemble(NamedTuple):
@@ -137,16 +206,19 @@ def ensemble_choice(sel_a: Selection, sel_b: Selection, eval_a: dict, eval_b: di
 
 def table2_row(metrics: dict, n_contexts: int, best_score, rollouts: int) -> dict:
     """One Table 2 row: errors over tasks of each task's mean fresh error (m and relative), from
-    metrics of (T, R); beside them the chosen contexts' mean selection score best_score (T,) (m)
-    and the selection's cost in rollouts."""
+    metrics of (T, R); beside them the chosen contexts' mean selection score best_score (T,) (m),
+    the gap (fresh minus selection: what the selection overrated) and the selection's cost in
+    rollouts."""
     per_task = evaluate.summarise_tasks(metrics)
+    selection = float(np.mean(best_score))
     return {
         "error_mean_m": float(per_task["error_mean_m"].mean()),
         "error_std_m": float(per_task["error_mean_m"].std()),
         "rel_error_mean": float(per_task["rel_error_mean"].mean()),
         "rel_error_std": float(per_task["rel_error_mean"].std()),
         "accuracy_mean": float(per_task["accuracy"].mean()),
-        "selection_error_m": float(np.mean(best_score)),
+        "selection_error_m": selection,
+        "selection_gap_m": float(per_task["error_mean_m"].mean()) - selection,
         "n_contexts": int(n_contexts),
         "rollouts": int(rollouts),
         "n_tasks": int(len(per_task["accuracy"])),
@@ -179,15 +251,19 @@ def run_blocked(grid, params, contexts, targets, keys, block: int | None, multip
 
 
 def filter_policy(
-    grid, params, contexts, tasks, width, repetitions: int, key, *, task_range, block=None, multiple: int = 1
-) -> Selection:
-    """Roll every candidate context (C,) out `repetitions` times and choose one per task (T,).
+    grid, params, contexts, tasks, width, repetitions: int, key, *, task_range, block=None, multiple: int = 1,
+    rungs=None, keep: float = 0.25,
+) -> Selection:  # fmt: skip
+    """Roll every candidate context (C,) out `repetitions` times and choose one per task (T,);
+    with `rungs`, successive halving instead (`successive_halving`, keeping `keep`).
 
     The env needs a target to score against; the resting point does not depend on it, so each
     rollout uses its own context as target.
     """
     contexts = check_contexts(contexts, task_range)
     check_width(width)
+    if rungs is not None:
+        return _halving_policy(grid, params, contexts, tasks, width, key, task_range, block, multiple, rungs, keep)
     C, R = len(contexts), int(repetitions)
     flat_ctx = np.repeat(contexts, R)
     m = run_blocked(grid, params, flat_ctx, flat_ctx, stage_keys(key, C, R), block, multiple)
@@ -201,7 +277,32 @@ def filter_policy(
         scores=scores,
         chosen=chosen,
         best_score=scores[np.arange(len(chosen)), chosen],
+        rollouts=C * R,
     )
+
+
+def _halving_policy(grid, params, contexts, tasks, width, key, task_range, block, multiple, rungs, keep) -> Selection:
+    """`filter_policy` by successive halving. Rollout j of context c has key (c, j) of a
+    (C, rungs[-1]) grid from `key` (`stage_keys`), whatever rung it is drawn in: one rung of R
+    rollouts replays the fixed selection's episodes. distance and valid hold the first rung (NaN
+    for a context that is no task's candidate)."""
+    rungs, keep = check_rungs(rungs, keep)
+    tasks = np.asarray(tasks, np.float64)
+    keys = stage_keys(key, len(contexts), rungs[-1]).reshape(len(contexts), rungs[-1])
+    first = {k: np.full((len(contexts), rungs[0]), np.nan) for k in ("distance", "valid")}
+
+    def errors_of(index, start, stop):
+        r = stop - start
+        flat_ctx = np.repeat(contexts[index], r)
+        m = run_blocked(grid, params, flat_ctx, flat_ctx, keys[index, start:stop].reshape(-1), block, multiple)
+        m = {k: v.reshape(len(index), r) for k, v in m.items()}
+        if start == 0:
+            for k in first:
+                first[k][index] = m[k]
+        return kick_env.error_against(m["distance"], m["lateral"], m["blown_up"], tasks[:, None, None])
+
+    out = successive_halving(errors_of, candidate_mask(contexts, tasks, width, task_range), rungs, keep)
+    return Selection(contexts, first["distance"], first["valid"], out.scores, out.chosen, out.best_score, out.rollouts)
 
 
 def evaluate_chosen(grid, params, chosen_contexts, tasks, repetitions, key, block=None, multiple: int = 1) -> dict:

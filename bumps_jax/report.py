@@ -115,9 +115,11 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
     rows1 = dict(found["meta"]["rows"]) if found["meta"] else {}
     if found["experts"] and "experts" not in rows1:
         rows1["experts"] = found["experts"]
+    if found["experts"] and "starting_kicks" in found["experts"] and "starting_kicks" not in rows1:
+        rows1["starting_kicks"] = found["experts"]["starting_kicks"]
     lines += ["## Table 1: experts and unfiltered meta-policies", "", *tables.table1_beside_paper(rows1), ""]
     if found["experts"]:
-        lines += [f"Experts: {found['experts']['env_steps']:,} PPO env steps each.", ""]
+        lines += env_steps_lines(found["experts"])
     rows2 = found["filter"]["rows"] if found["filter"] else {}
     lines += ["## Table 2: BUMPS after policy filtering", "", *tables.table2_beside_paper(rows2), ""]
     if extras["heldout"]:
@@ -130,6 +132,27 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
+
+
+def env_steps_lines(experts: dict) -> list[str]:
+    """What the experts cost in env steps (their share of the prior, the starting kicks' tuning,
+    PPO), per expert and in all, and how smooth their starting kicks are as a family."""
+    n = len(experts["tasks_m"])
+    parts = experts.get("env_steps_breakdown")
+    if not parts:  # records older than the breakdown
+        return [f"Experts: {experts['env_steps']:,} PPO env steps each.", ""]
+    names = {"prior": "share of the kick prior", "tuning": "starting-kick tuning", "ppo": "PPO"}
+    shown = ", ".join(f"{names.get(k, k)} {'not recorded' if v is None else f'{v:,}'}" for k, v in parts.items())
+    total = sum(v for v in parts.values() if v is not None)
+    lines = [f"Env steps per expert: {shown}; {total:,} in all. All {n} experts: {n * total:,} "
+             f"(PPO {n * parts['ppo']:,})."]  # fmt: skip
+    jump = experts.get("starting_kicks_smoothness")
+    if jump:
+        lines.append(
+            f"Starting kicks as a family: the largest jump between neighbouring tasks is {jump['jump']:.2f} scale "
+            f"units of `{jump['param']}` between {jump['between_m'][0]:g} and {jump['between_m'][1]:g} m."
+        )
+    return [*lines, ""]
 
 
 def physics_step(payload: dict | None) -> str:

@@ -22,6 +22,8 @@ PAPER_TABLE2 = {
     "high_sample_rate_4x256": (0.40, 0.09, 0.033, 0.009),
 }
 TABLE2_COLUMNS = ("error_mean_m", "error_std_m", "rel_error_mean", "rel_error_std")
+# Rows the paper did not report, and how the tables name them.
+ROW_LABELS = {"starting_kicks": "starting kicks (before PPO)"}
 
 
 def num(x, digits: int = 2, scale: float = 1.0, suffix: str = "") -> str:
@@ -46,6 +48,7 @@ def experts_markdown(record: dict) -> str:
         f"(the error columns count only those); {record['n_reps']} kicks per task, "
         f"{record['env_steps']} PPO env steps per expert.",
         "",
+        *starting_kicks_lines(record),
         "| target (m) | accuracy | error mean (m) | error std (m) |",
         "|---|---|---|---|",
     ]
@@ -57,6 +60,24 @@ def experts_markdown(record: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def starting_kicks_lines(record: dict) -> list[str]:
+    """What the experts' PPO started from, scored as the experts are (an experts record's
+    "starting_kicks"), and its jump between neighbouring tasks; nothing for older records."""
+    kicks, jump = record.get("starting_kicks"), record.get("starting_kicks_smoothness")
+    lines = []
+    if kicks:
+        lines.append(
+            f"{ROW_LABELS['starting_kicks']}: accuracy {pm(kicks['accuracy_mean'], kicks['accuracy_std'])}, error "
+            f"{pm(kicks['error_mean_m'], kicks['error_std_m'])} m ({num(kicks['error_mean_all_m'])} m over all tasks)."
+        )
+    if jump:
+        lines.append(
+            f"Largest jump between neighbouring tasks' starting kicks: {jump['jump']:.2f} scale units of "
+            f"`{jump['param']}`, {jump['between_m'][0]:g} -> {jump['between_m'][1]:g} m."
+        )
+    return [*lines, ""] if lines else []
+
+
 def table1_markdown(rows: dict) -> str:
     """Table 1 of one run: experts and unfiltered meta-policies (rows: name -> `evaluate.table_row`)."""
     lines = [
@@ -65,7 +86,8 @@ def table1_markdown(rows: dict) -> str:
     ]
     for name, r in rows.items():
         lines.append(
-            f"| {name} | {pm(r['accuracy_mean'], r['accuracy_std'])} | {pm(r['error_mean_m'], r['error_std_m'])} "
+            f"| {ROW_LABELS.get(name, name)} | {pm(r['accuracy_mean'], r['accuracy_std'])} "
+            f"| {pm(r['error_mean_m'], r['error_std_m'])} "
             f"| {num(r.get('error_mean_all_m'))} | {r.get('tasks_above_threshold', '-')}/{r.get('n_tasks', '-')} |"
         )
     return "# Table 1: experts and unfiltered meta-policies\n\n" + "\n".join(lines) + "\n"
@@ -87,21 +109,29 @@ def table1_beside_paper(rows: dict) -> list[str]:
             f"| {pm(r['error_mean_m'], r['error_std_m'])} | {pm(paper[2], paper[3])} "
             f"| {num(r.get('error_mean_all_m', r['error_mean_m']))} |"
         )
+        if name == "experts" and "starting_kicks" in rows:  # what PPO started from, beside what it made
+            r = rows["starting_kicks"]
+            lines.append(
+                f"| {ROW_LABELS['starting_kicks']} | {pm(r['accuracy_mean'], r['accuracy_std'])} | - "
+                f"| {pm(r['error_mean_m'], r['error_std_m'])} | - | {num(r.get('error_mean_all_m'))} |"
+            )
     return lines
 
 
 def table2_beside_paper(rows: dict) -> list[str]:
     """Table 2 lines, every paper variant, ours beside (the report's form)."""
     lines = [
-        "| variant | contexts | error m (ours) | error m (paper) | rel. error (ours) | rel. error (paper) |",
-        "|---|---|---|---|---|---|",
+        "| variant | contexts | error m (ours) | error m (paper) | rel. error (ours) | rel. error (paper) "
+        "| at selection m (ours) | selection rollouts |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for name, (em, es, rm, rs) in PAPER_TABLE2.items():
         r = rows.get(name)
         ours = "not run" if r is None else pm(r["error_mean_m"], r["error_std_m"])
         rel = "" if r is None else pm(r["rel_error_mean"], r["rel_error_std"], 1, 100, "%")
         n = "" if r is None else r["n_contexts"]
-        lines.append(f"| {name} | {n} | {ours} | {pm(em, es)} | {rel} | {pm(rm, rs, 1, 100, '%')} |")
+        sel = " | " if r is None else f"{num(r.get('selection_error_m'))} | {r.get('rollouts', '')}"
+        lines.append(f"| {name} | {n} | {ours} | {pm(em, es)} | {rel} | {pm(rm, rs, 1, 100, '%')} | {sel} |")
     return lines
 
 
@@ -110,8 +140,9 @@ def table2_markdown(rows: dict) -> str:
     lines = [
         "# Table 2: BUMPS after policy filtering (this run vs the paper)",
         "",
-        "| variant | contexts | error m | paper error m | rel. error | paper rel. error |",
-        "|---|---|---|---|---|---|",
+        "| variant | contexts | error m | paper error m | rel. error | paper rel. error | at selection m "
+        "| selection rollouts |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for name, r in rows.items():
         p = PAPER_TABLE2.get(name)
@@ -119,9 +150,10 @@ def table2_markdown(rows: dict) -> str:
         paper_rel = pm(p[2], p[3], 1, 100, "%") if p else "-"
         lines.append(
             f"| {name} | {r['n_contexts']} | {pm(r['error_mean_m'], r['error_std_m'])} | {paper_err} "
-            f"| {pm(r['rel_error_mean'], r['rel_error_std'], 1, 100, '%')} | {paper_rel} |"
+            f"| {pm(r['rel_error_mean'], r['rel_error_std'], 1, 100, '%')} | {paper_rel} "
+            f"| {num(r.get('selection_error_m'))} | {r.get('rollouts', '-')} |"
         )
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n\n" + SELECTION_NOTE + "\n"
 
 
 def heldout_lines(record: dict) -> list[str]:
@@ -139,3 +171,10 @@ def heldout_lines(record: dict) -> list[str]:
             f"| {num(r['rel_error_mean'], 1, 100, '%')} | {num(r.get('selection_error_m'))} |"
         )
     return lines
+
+
+# Under Table 2: what its selection column means.
+SELECTION_NOTE = (
+    "At selection: the chosen contexts' mean score on the selection rollouts; the error columns are "
+    "fresh rollouts of the same choices. The gap between the two is what the noisy selection overrated."
+)

@@ -12,6 +12,9 @@ import numpy as np
 
 from bumps_jax import kick_env
 
+TUNE_SCHEMES = ("per_task", "family")  # experts.tune.scheme
+SELECTIONS = ("fixed", "halving")  # filter.selection
+
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
     """Every section of a pipeline config (`config.make_config`)."""
@@ -116,6 +119,14 @@ def experts(e, task_range, n_steps: int) -> None:
     if e.tune.population_size < 2:
         raise ValueError(f"experts.tune.population_size must be >= 2 for CMA-ES, got {e.tune.population_size}")
     positive_floats(e.tune, "experts.tune.", ("sigma_init",))
+    if e.tune.scheme not in TUNE_SCHEMES:
+        raise ValueError(f"experts.tune.scheme must be one of {TUNE_SCHEMES}, got {e.tune.scheme!r}")
+    if isinstance(e.tune.knots, bool) or e.tune.knots < 2:
+        raise ValueError(f"experts.tune.knots must be an integer >= 2, got {e.tune.knots!r}")
+    if e.tune.scheme == "family" and len(set(e.tasks)) < 2:
+        raise ValueError(
+            f"experts.tune.scheme 'family' needs at least two distinct experts.tasks, got {tuple(e.tasks)}"
+        )
     positive_ints(e.eval, "experts.eval.", ("repetitions",))
     ppo_section(e.ppo, "experts.ppo.", n_steps, task_range)
     total = int(e.ppo.total_env_steps // (e.ppo.num_envs * n_steps))
@@ -146,6 +157,17 @@ def filtering(f, task_range) -> None:
     targets(f.context_range, task_range, "filter.context_range")
     positive_floats(f, "filter.", ("width", "context_step", "high_context_step"))
     positive_ints(f, "filter.", ("selection_repetitions", "eval_repetitions"))
+    if f.selection not in SELECTIONS:
+        raise ValueError(f"filter.selection must be one of {SELECTIONS}, got {f.selection!r}")
+    rungs = tuple(f.halving_rungs)
+    if (
+        not rungs
+        or any(isinstance(r, bool) or not isinstance(r, int) or r < 1 for r in rungs)
+        or any(b <= a for a, b in zip(rungs, rungs[1:], strict=False))
+    ):
+        raise ValueError(f"filter.halving_rungs must be increasing positive integers, got {rungs}")
+    if not 0.0 < f.halving_keep < 1.0:
+        raise ValueError(f"filter.halving_keep must be in (0, 1), got {f.halving_keep!r}")
     if isinstance(f.net_seed, bool) or f.net_seed < 0:
         raise ValueError(f"filter.net_seed must be an integer >= 0, got {f.net_seed!r}")
     if f.block is not None:

@@ -144,3 +144,56 @@ def test_best_starts_picks_the_candidate_that_kicks_nearest(env):
     assert index.tolist() == [1, 0] and costs.shape == (2, 2)
     np.testing.assert_allclose(params, np.stack([main, main]), atol=1e-6)
     assert costs[0, 1] < costs[0, 0] and costs[1, 0] < costs[1, 1]
+
+
+def test_a_search_over_knots_moves_each_knot_on_its_own():
+    """The driver over a (2, 14) solution (a family's knots): the toy cost pulls knot 0's first
+    param to the target and knot 1's to `extra`; the other 26 numbers are fixed."""
+
+    def cost_fn(params, keys, target, extra):
+        cost = (params[:, 0, 0] - target) ** 2 + (params[:, 1, 0] - extra) ** 2
+        return cost, {"valid": jnp.ones(keys.shape)}
+
+    search = cmaes.make_search(cost_fn, 8, 2, 1.0, sharding.device_mesh(), shape=(2, kick_model.N_PARAMS))
+    x0 = np.tile(kick_model.DEFAULT_PARAMS, (1, 2, 1)).astype(np.float32)
+    free = np.zeros_like(x0, bool)
+    free[:, :, 0] = True
+    result = cmaes.run_search(search, x0, [15.0], free, 40, seed=0, extra=[10.0], say=lambda m: None)
+    assert result.mean.shape == result.best.shape == (1, 2, kick_model.N_PARAMS)
+    np.testing.assert_allclose(result.best[0, :, 0], [15.0, 10.0], atol=0.2)
+    np.testing.assert_array_equal(result.best[0, :, 1:], x0[0, :, 1:])
+    with pytest.raises(ValueError, match=r"\(T, 2, 14\)"):
+        cmaes.run_search(search, x0[:, 0], [15.0], free[:, 0], 1, seed=0, say=lambda m: None)
+
+
+def test_tuning_a_family_rejects_bad_inputs_before_compiling(env):
+    knots = np.array([8.0, 12.0])
+    start = np.tile(kick_model.DEFAULT_PARAMS, (2, 1))
+    with pytest.raises(ValueError, match="start_knots"):
+        cmaes.tune_family(env, [8.0, 12.0], knots, start[:1], TUNE, 1, 0.5, fitness=FITNESS)
+    with pytest.raises(ValueError, match="increase"):
+        cmaes.tune_family(env, [8.0, 12.0], knots[::-1], start, TUNE, 1, 0.5, fitness=FITNESS)
+    with pytest.raises(ValueError, match="40.0"):
+        cmaes.tune_family(env, [8.0, 40.0], knots, start, TUNE, 1, 0.5, fitness=FITNESS)
+    with pytest.raises(ValueError, match="generations"):
+        cmaes.tune_family(env, [8.0, 12.0], knots, start, TUNE, -1, 0.5, fitness=FITNESS)
+
+
+def test_a_tiny_family_tuning_keeps_or_improves_its_start(env):
+    """One CMA-ES over a three-knot contextual kick, scored on two tasks between the knots. The
+    tasks' kicks are the family's at their targets, and the family kept is the better of start
+    and tuned on the fresh episodes (2 tasks x 2 candidates x 2 kicks: the program
+    `test_best_starts_picks_the_candidate_that_kicks_nearest` compiled)."""
+    record = kick_model.load_record()
+    knots = np.array([7.0, 10.0, 13.0])
+    table = kick_model.calibration(record)
+    start = np.stack([np.asarray(kick_model.kick_for(record["anchors"], table, k)) for k in knots])
+    targets = [8.0, 12.0]
+    out = cmaes.tune_family(env, targets, knots, start, TUNE, 2, 0.5, fitness=FITNESS, say=lambda m: None)
+    assert out["history"].shape == (2,) and out["episodes"] == 2 * 4 * 2 * 2 + 2 * 2 * 2
+    kept = out["tuned_cost"] if out["improved"] else out["start_cost"]
+    assert kept.mean() <= out["start_cost"].mean() and np.all(np.isfinite(kept))
+    expected = [np.asarray(kick_model.family_params(out["knot_params"], knots, t)) for t in targets]
+    np.testing.assert_allclose(out["params"], expected, rtol=1e-6)
+    if not out["improved"]:
+        np.testing.assert_allclose(out["knot_params"], start, rtol=1e-6)

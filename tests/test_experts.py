@@ -13,6 +13,7 @@ from tiny_experts import N_STEPS, pipeline_config
 
 from bumps_jax import bc, config, kick_model, runio
 from bumps_jax.stages import experts
+from bumps_jax.stages import prior as prior_stage
 
 # Shares conftest's compiled expert and contextual programs: one test worker runs these files.
 pytestmark = pytest.mark.xdist_group("compiled_programs")
@@ -33,6 +34,12 @@ def programs(expert_programs):
         ({"experts.bc.steps": 0}, "bc.steps"),
         ({"experts.ppo.total_env_steps": 0}, "total_env_steps"),
         ({"experts.ppo.num_envs": 5}, "num_minibatches 2 must divide experts.ppo.num_envs 5"),
+        ({"experts.tune.scheme": "joint"}, "experts.tune.scheme .* 'joint'"),
+        ({"experts.tune.knots": 1}, "experts.tune.knots .* 1"),
+        (
+            {"experts.tune.scheme": "family", "experts.tasks": (9.0, 9.0)},
+            r"two distinct experts.tasks, got \(9.0, 9.0\)",
+        ),
     ],
 )
 def test_bad_config_names_the_value(overrides, named):
@@ -74,6 +81,27 @@ def test_starting_kicks_read_the_runs_prior(tmp_path):
         own = kick_model.load_record(experts.prior_path(cfg, tmp_path), env_cfg=cfg.env)
         kicks, _ = experts.starting_kicks(cfg, own, say=lambda *a, **k: None)
         np.testing.assert_allclose(kicks, expected, rtol=1e-6)
+
+
+def test_family_starting_kicks_are_the_prior_family_between_knots():
+    """Scheme "family", no tuning (nothing compiled): the prior's blended kicks at 3 knots over
+    the tasks' range make the contextual kick; each task's kick is it at the task's target."""
+    tasks = (8.0, 9.0, 12.0, 13.5)
+    cfg = pipeline_config(**{"experts.tune.scheme": "family", "experts.tune.knots": 3, "experts.tasks": tasks})
+    record = kick_model.load_record()
+    kicks, info = experts.starting_kicks(cfg, record, say=lambda *a, **k: None)
+    assert info["scheme"] == "family" and info["knots_m"] == [8.0, 10.75, 13.5] and info["episodes"] == 0
+    table = kick_model.calibration(record)
+    at_knots = np.stack([np.asarray(kick_model.kick_for(record["anchors"], table, k)) for k in info["knots_m"]])
+    np.testing.assert_allclose(info["knot_params"], at_knots, rtol=1e-6)
+    expected = [np.asarray(kick_model.family_params(at_knots, info["knots_m"], t)) for t in tasks]
+    np.testing.assert_allclose(kicks, expected, rtol=1e-6)
+    assert info["smoothness"] == kick_model.largest_jump(kicks, tasks)
+    # The per-task scheme's kicks at the same tasks: the blend at each task's own strength.
+    per_task, per_task_info = experts.starting_kicks(pipeline_config(**{"experts.tasks": tasks}), record,
+                                                     say=lambda *a, **k: None)  # fmt: skip
+    np.testing.assert_allclose(per_task[[0, 3]], kicks[[0, 3]], rtol=1e-6)  # the end knots are tasks
+    assert per_task_info["scheme"] == "per_task" and "knot_params" not in per_task_info
 
 
 def test_a_prior_of_another_env_config_is_refused(tmp_path):
@@ -171,7 +199,19 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
         assert key in on_disk, key
     assert on_disk["env"]["physics_dt"] == 0.0025 and on_disk["env"]["impl"] == "jax"
     assert on_disk["tasks_m"] == [8.0, 12.0] and on_disk["env_steps"] == 2 * 4 * N_STEPS
-    assert on_disk["env_steps_breakdown"]["tuning"] > 0
+    # Every env step an expert cost: its share of the committed prior's episodes, of the one
+    # generation of tuning (4 candidates x 2 kicks x 2 tasks, then start and tuned on 2 fresh
+    # kicks per task) and its PPO.
+    prior_steps = prior_stage.episodes_of(kick_model.load_record()) * N_STEPS // 2
+    tuning_steps = (1 * 4 * 2 * 2 + 2 * 2 * 2) * N_STEPS // 2
+    assert on_disk["env_steps_breakdown"] == {"prior": prior_steps, "tuning": tuning_steps, "ppo": 2 * 4 * N_STEPS}
+    assert on_disk["env_steps_total"] == prior_steps + tuning_steps + 2 * 4 * N_STEPS
+    kicks = json.loads((stage_dir / "starting_kicks.json").read_text())
+    assert on_disk["starting_kicks_smoothness"] == kick_model.largest_jump(kicks["params"], kicks["tasks_m"])
+    # The starting kicks scored as the experts are: the same tasks and number of noisy kicks.
+    start_row = on_disk["starting_kicks"]
+    assert [r["target_m"] for r in start_row["per_task"]] == [8.0, 12.0] and start_row["n_reps"] == 2
+    assert 0.0 <= start_row["accuracy_mean"] <= 1.0 and start_row["error_mean_all_m"] > 0.0
     assert set(on_disk["per_task"][0]) >= {"target_m", "accuracy", "error_mean_m", "error_std_m"}
     # Accuracy is each task's fraction of valid kicks (struck, not fallen, no blow-up) of its
     # episodes, the error their mean final error, both recomputed from the per-episode metrics.

@@ -84,7 +84,7 @@ def test_blown_up_rollouts_score_as_the_target_distance():
 def test_ensemble_takes_the_better_net_per_task():
     def sel(best):
         best = np.asarray(best, float)
-        return filtering.Selection(np.array([10.0]), None, None, None, np.zeros(2, int), best)
+        return filtering.Selection(np.array([10.0]), None, None, None, np.zeros(2, int), best, 2)
 
     eval_a = {"final_error": np.array([[1.0, 1.0], [2.0, 2.0]])}
     eval_b = {"final_error": np.array([[3.0, 3.0], [0.5, 0.5]])}
@@ -173,3 +173,86 @@ def test_filtering_end_to_end_in_mjx(env, contextual):
     assert row["n_contexts"] == 4 and np.isfinite(row["error_mean_m"]) and row["rollouts"] == 8
     assert row["selection_error_m"] == pytest.approx(sel.best_score.mean())
     assert row["rel_error_mean"] == pytest.approx(np.mean(m["final_error"] / tasks[:, None]), rel=1e-5)
+    # Successive halving draws rollout j of context c from the same key as the fixed selection:
+    # one rung of 2 replays it; rungs (1, 2) keeping half spend 4 + 2 x 1 (each task keeps one
+    # of its 3 candidates: contexts 11 and 13 m, or one shared) rollouts or fewer.
+    kw = dict(task_range=task_range, block=BLOCK)
+    one = filtering.filter_policy(grid, params, contexts, tasks, 2.0, 2, sel_key, rungs=(2,), **kw)
+    assert one.chosen.tolist() == sel.chosen.tolist() and one.rollouts == sel.rollouts == 8
+    np.testing.assert_allclose(one.scores, sel.scores, rtol=1e-6)
+    halved = filtering.filter_policy(grid, params, contexts, tasks, 2.0, 2, sel_key, rungs=(1, 2), keep=0.3, **kw)
+    assert halved.distance.shape == (4, 1) and halved.rollouts <= 4 + 2
+    np.testing.assert_allclose(halved.distance[:, 0], sel.distance[:, 0], rtol=1e-6)
+    assert np.all(np.abs(halved.contexts[halved.chosen] - tasks) <= 2.0 + 1e-6)
+
+
+# -- successive halving (pure) ------------------------------------------------------------------
+
+
+def _errors_from(matrix, calls):
+    """errors_of for `successive_halving` reading a known (T, C, R) matrix, logging each call."""
+
+    def errors_of(index, start, stop):
+        calls.append((index.tolist(), start, stop))
+        return matrix[:, index, start:stop]
+
+    return errors_of
+
+
+def test_halving_by_hand():
+    """One task, four candidates, rungs (1, 3), keep 0.5. After one rollout the scores are
+    0.2, 0.5, 0.1, 0.9: contexts 2 and 0 go on. Their two more rollouts make their means over
+    three 0.6 (0.2, 0.8, 0.8) and 0.4 (0.1, 0.5, 0.6): context 2 wins at 0.4. Context 1, whose
+    later rollouts would have been best, is never rolled out again. Cost 4 + 2 x 2 = 8."""
+    matrix = np.array([[[0.2, 0.8, 0.8], [0.5, 0.0, 0.0], [0.1, 0.5, 0.6], [0.9, 0.9, 0.9]]])
+    calls = []
+    out = filtering.successive_halving(_errors_from(matrix, calls), np.ones((1, 4), bool), (1, 3), 0.5)
+    assert calls == [([0, 1, 2, 3], 0, 1), ([0, 2], 1, 3)]
+    assert out.chosen.tolist() == [2] and out.best_score[0] == pytest.approx(0.4)
+    assert out.reached.tolist() == [3, 1, 3, 1] and out.rollouts == 8
+    np.testing.assert_allclose(out.scores[0], [0.6, 0.5, 0.4, 0.9])
+
+
+def test_halving_shares_rollouts_between_tasks_and_keeps_to_candidates():
+    """Two tasks, three contexts; task 0's candidates are contexts 0 and 1, task 1's are 1 and 2.
+    Rungs (2, 4), keep 0.5: each task keeps one. Task 0: means 0.3 vs 0.5 -> context 0; task 1:
+    1.0 vs 0.2 -> context 2 (context 0 scores lower for task 1 but is not its candidate). Then
+    contexts 0 and 2 get rollouts 2..3 once each, whichever task asked."""
+    matrix = np.zeros((2, 3, 4))
+    matrix[0] = [[0.2, 0.4, 0.9, 0.9], [0.5, 0.5, 0.0, 0.0], [0.1, 0.1, 0.1, 0.1]]
+    matrix[1] = [[0.0, 0.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0], [0.2, 0.2, 0.4, 0.4]]
+    candidates = np.array([[True, True, False], [False, True, True]])
+    calls = []
+    out = filtering.successive_halving(_errors_from(matrix, calls), candidates, (2, 4), 0.5)
+    assert calls == [([0, 1, 2], 0, 2), ([0, 2], 2, 4)]
+    assert out.chosen.tolist() == [0, 2]
+    np.testing.assert_allclose(out.best_score, [0.6, 0.3])  # (0.2 + 0.4 + 0.9 + 0.9) / 4, (0.2 + 0.2 + 0.4 + 0.4) / 4
+    assert out.rollouts == 3 * 2 + 2 * 2
+
+
+def test_one_rung_is_the_fixed_selection():
+    rng = np.random.default_rng(5)
+    tasks = np.array([8.0, 9.0, 11.0])
+    contexts = filtering.candidate_contexts(tasks, filtering.context_grid(7.5, 12.0, 0.5))
+    errors = rng.uniform(0.0, 2.0, size=(len(tasks), len(contexts), 6))
+    mask = filtering.candidate_mask(contexts, tasks, 1.0, TASK_RANGE)
+    out = filtering.successive_halving(_errors_from(errors, []), mask, (6,), 0.25)
+    fixed = filtering.select_contexts(errors.mean(axis=2), contexts, tasks, 1.0, TASK_RANGE)
+    assert out.chosen.tolist() == fixed.tolist()
+    np.testing.assert_allclose(out.best_score, errors.mean(axis=2)[np.arange(3), fixed])
+
+
+@pytest.mark.parametrize(
+    ("rungs", "keep", "match"),
+    [((), 0.5, "increasing"), ((2, 2), 0.5, r"\(2, 2\)"), ((0, 2), 0.5, "positive"), ((1, 2), 1.0, "keep")],
+)
+def test_bad_halving_settings_name_the_value(rungs, keep, match):
+    with pytest.raises(ValueError, match=match):
+        filtering.successive_halving(lambda i, a, b: None, np.ones((1, 2), bool), rungs, keep)
+
+
+def test_bad_halving_config_names_the_key():
+    with pytest.raises(ValueError, match=r"filter.halving_rungs .*\(4, 2\)"):
+        config.make_config("tiny", {"filter.halving_rungs": (4, 2)})
+    with pytest.raises(ValueError, match="filter.selection .* 'best'"):
+        config.make_config("tiny", {"filter.selection": "best"})

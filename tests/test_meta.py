@@ -251,6 +251,8 @@ def _experts_run(cfg, run_dir):
     err = rng.uniform(0.1, 0.5, size=(len(tasks), 4))
     metrics = {"final_error": err, "rel_error": err / np.asarray(tasks)[:, None], "valid": np.ones_like(err)}
     record = {**evaluate.experts_record(tasks, metrics, 600), **runio.provenance(cfg.preset, 0.0, cfg.env)}
+    # The starting kicks before PPO: made-up numbers a little worse than the experts'.
+    record["starting_kicks"] = evaluate.tasks_record(tasks, {**metrics, "final_error": err + 0.3})
     runio.write_json(run_dir / "experts" / "experts.json", record)
     (run_dir / "experts" / "final_params").mkdir()
     return record
@@ -300,15 +302,24 @@ def test_meta_stage_writes_table1(stage_run):
     old_keys = {"rows", "rows_per_seed", "per_task", "eval", "dataset_pairs", "timings", "device", "n_devices",
                 "versions", "date", "command", "preset", "wall_s"}  # fmt: skip
     assert old_keys <= set(saved) and saved["env"]["physics_dt"] == 0.0025
-    assert list(saved["rows"]) == ["experts", "meta_4x256", "meta_11x128"]
-    expected = {k: stage_run["experts"][k] for k in meta_stage.ROW_KEYS}
-    assert {k: saved["rows"]["experts"][k] for k in meta_stage.ROW_KEYS} == expected
+    assert list(saved["rows"]) == ["experts", "starting_kicks", "meta_4x256", "meta_11x128"]
+    for name, record in (("experts", stage_run["experts"]), ("starting_kicks", stage_run["experts"]["starting_kicks"])):
+        expected = {k: record[k] for k in meta_stage.ROW_KEYS}
+        assert {k: saved["rows"][name][k] for k in meta_stage.ROW_KEYS} == expected
+        assert saved["rows"][name]["per_task"] == [
+            {k: r[k] for k in meta_stage.PER_TASK_KEYS} for r in record["per_task"]
+        ]
+    assert saved["per_task"]["starting_kicks"]["error_mean_m"] == [
+        r["error_mean_m"] for r in stage_run["experts"]["starting_kicks"]["per_task"]
+    ]
     assert saved["per_task"]["experts"]["tasks"] == list(cfg.experts.tasks)
     assert saved["per_task"]["tasks"] == [10.0, 13.0] and saved["dataset_pairs"] == 3 * 75
     assert saved["eval"] == {"repetitions": 2, "n_tasks": 2, "seed": 1}
     for net in ("meta_4x256", "meta_11x128"):
         assert saved["rows"][net]["n_tasks"] == 2 and len(saved["rows_per_seed"][net]) == 1
         assert len(saved["per_task"][net]["error_mean_m"]) == 2
+        assert [r["target_m"] for r in saved["rows"][net]["per_task"]] == [10.0, 13.0]
+        assert [r["error_mean_m"] for r in saved["rows"][net]["per_task"]] == saved["per_task"][net]["error_mean_m"]
         assert set(saved["timings"][net]) == {"train_wall_s", "eval_wall_s"}
         with open(stage_run["dir"] / "meta" / net / "progress.csv") as f:
             assert [int(r["epoch"]) for r in csv.DictReader(f)] == [2, 4]
@@ -329,6 +340,12 @@ def test_filter_stage_writes_table2(stage_run):
     # Per task the ensemble keeps the lower of the two nets' selection scores.
     best = min(rows["filtered_4x256"]["selection_error_m"], rows["filtered_11x128"]["selection_error_m"])
     assert rows["filtered_ensemble"]["selection_error_m"] <= best + 1e-12
+    # Each task's selection score beside its fresh error; per variant their means and the gap.
+    for name, row in rows.items():
+        scores, fresh = saved["per_task_selection_error_m"][name], saved["per_task_error_m"][name]
+        assert len(scores) == len(fresh) == 2
+        assert row["selection_error_m"] == pytest.approx(np.mean(scores))
+        assert row["selection_gap_m"] == pytest.approx(np.mean(fresh) - np.mean(scores))
     for name, chosen in saved["chosen_contexts"].items():
         if name != "filtered_ensemble_uses_11x128":
             assert np.all(np.abs(np.asarray(chosen) - saved["tasks"]) <= cfg.filter.width + 1e-6), name

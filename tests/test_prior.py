@@ -127,6 +127,11 @@ def test_the_stage_writes_the_record_later_stages_start_from(tmp_path, monkeypat
     assert (short["target"], long["target"]) == (6.0, 21.0)
     timing = json.loads((out / prior.TIMING).read_text())
     assert timing["env"] == payload["env"] and timing["episodes_per_optimisation"] == 3 * 8 * 2
+    # What the stage cost: 3 anchors x (3 generations x 8 candidates x 2 kicks + 8 to evaluate), and
+    # 9 strengths x 4 kicks of sweep; the record the experts read says so too.
+    assert payload["episodes"] == record["episodes"] == prior.episodes_of(record) == 3 * (3 * 8 * 2 + 8) + 9 * 4
+    del record["episodes"]  # an older record: counted from its config and sweep
+    assert prior.episodes_of(record) == 3 * (3 * 8 * 2 + 8) + 9 * 4
     assert (out / prior.SWEEP_PLOT).stat().st_size > 0
     assert (out / prior.START).read_bytes() == asset.read_bytes()
 

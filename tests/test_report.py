@@ -4,7 +4,7 @@ import json
 import re
 from pathlib import Path
 
-from bumps_jax import config, report, runio
+from bumps_jax import config, report, runio, tables
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -26,6 +26,32 @@ def test_report_fills_tables_and_names_missing_stages(tmp_path):
     assert "| meta_4x256 | 0.90 +- 0.05 | 0.84 +- 0.10 | 0.50 +- 0.10 | 0.72 +- 0.25 | 0.60 |" in text
     assert "| filter | not run | | |" in text
     assert "| filtered_ensemble |  | not run | 0.40 +- 0.11 |  | 3.3% +- 1.1 |" in text
+
+
+def test_report_counts_the_experts_env_steps_and_shows_their_starting_kicks(tmp_path):
+    row = {"accuracy_mean": 0.5, "accuracy_std": 0.1, "error_mean_m": 1.25, "error_std_m": 0.5,
+           "error_mean_all_m": 1.5}  # fmt: skip
+    experts = {**_common(), "tasks_m": [7.0, 7.5], "env_steps": 1000, "accuracy_mean": 1.0, "accuracy_std": 0.0,
+               "error_mean_m": 0.3, "error_std_m": 0.1, "error_mean_all_m": 0.3, "starting_kicks": row,
+               "env_steps_breakdown": {"prior": 300, "tuning": 50, "ppo": 1000},
+               "starting_kicks_smoothness": {"jump": 1.5, "param": "back_knee", "between_m": [7.0, 7.5]}}  # fmt: skip
+    runio.write_json(tmp_path / "experts" / "experts.json", experts)
+    text = report.build(tmp_path)
+    assert "| starting kicks (before PPO) | 0.50 +- 0.10 | - | 1.25 +- 0.50 | - | 1.50 |" in text
+    assert "share of the kick prior 300, starting-kick tuning 50, PPO 1,000; 1,350 in all." in text
+    assert "All 2 experts: 2,700 (PPO 2,000)." in text
+    assert "1.50 scale units of `back_knee` between 7 and 7.5 m" in text
+    # experts.md says the same under the experts' row.
+    md = tables.experts_markdown({**experts, "rel_error_mean": 0.03, "tasks_above_threshold": 2, "n_tasks": 2,
+                                  "n_reps": 2, "per_task": []})  # fmt: skip
+    assert "starting kicks (before PPO): accuracy 0.50 +- 0.10, error 1.25 +- 0.50 m (1.50 m over all tasks)." in md
+    assert "1.50 scale units of `back_knee`, 7 -> 7.5 m." in md
+    # A prior record that does not say how it was made leaves its share unknown, not zero.
+    runio.write_json(tmp_path / "experts" / "experts.json",
+                     {**experts, "env_steps_breakdown": {"prior": None, "tuning": 50, "ppo": 1000}})  # fmt: skip
+    assert "share of the kick prior not recorded, starting-kick tuning 50, PPO 1,000; 1,050 in all" in report.build(
+        tmp_path
+    )
 
 
 def test_empty_run_dir_says_so(tmp_path):

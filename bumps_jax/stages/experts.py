@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import bc, evaluate, kick_env, kick_model, ppo, runio, sharding, tables
+from bumps_jax import bc, evaluate, kick_env, kick_model, ppo, rollout, runio, sharding, tables
 from bumps_jax.stages import prior as prior_stage
 
 OUTPUT = "experts.json"
@@ -143,45 +143,86 @@ def abstract_state(programs: Compiled, n_tasks: int):
 # -- starting kicks -----------------------------------------------------------------------------
 
 
+def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray, dict, int]:
+    """The prior family's kick (N, 14) for each of `targets` (N,) m, what was chosen, and the
+    episodes the choice cost.
+
+    The family at each target's calibrated strength (or the main kick for every target), or
+    with `tune.anchor_starts` the best of that and the prior's anchors on `tune.eval_repetitions`
+    noisy kicks at the target.
+    """
+    from bumps_jax import cmaes  # noqa: PLC0415
+
+    e = cfg.experts
+    targets = np.asarray(targets, np.float32)
+    info = {"start_targets_m": targets.tolist()}
+    if not e.bc.per_task_strength:
+        return np.tile(np.asarray(record["params"], np.float32), (len(targets), 1)), info, 0
+    anchors = jnp.asarray(record["anchors"], jnp.float32)
+    table = jnp.asarray(kick_model.calibration(record))
+    starts = np.asarray(jax.vmap(lambda t: kick_model.kick_for(anchors, table, t))(jnp.asarray(targets)))
+    if not e.tune.anchor_starts:
+        return starts, info, 0
+    candidates = np.concatenate([starts[:, None], np.broadcast_to(anchors, (len(targets), *anchors.shape))], 1)
+    starts, chosen, costs = cmaes.best_starts(env, targets, candidates, cfg.prior.fitness, e.tune.eval_repetitions,
+                                              seed=3)  # fmt: skip
+    names = ("blend", *kick_model.ANCHORS)
+    info.update(candidates=list(names), candidate_costs=costs.tolist(), chosen=[names[i] for i in chosen])
+    say(f"starting kicks chosen from blend and anchors: {dict(zip(targets.tolist(), info['chosen'], strict=True))}")
+    return starts, info, int(candidates.shape[0] * candidates.shape[1] * e.tune.eval_repetitions)
+
+
 def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
     """The keyframe kick (T, 14) each expert clones, and a record of how it was made.
 
-    The prior's family at each task's calibrated strength (or its main kick for every task), or
-    with `tune.anchor_starts` the best of that and the prior's anchors at the task's distance;
-    then, with `tune.generations` > 0, CMA-ES on every task's kick at once.
+    Scheme "per_task": each task's `prior_kicks` start, then with `tune.generations` > 0 one
+    CMA-ES per task (`cmaes.tune_for_tasks`). Scheme "family": the `prior_kicks` at
+    `tune.knots` knots over the tasks' range make a contextual kick (`kick_model.family_params`),
+    then with `tune.generations` > 0 one CMA-ES over it scored on every task
+    (`cmaes.tune_family`); each task's kick is the family's at its target. The record counts
+    every episode the kicks cost (`episodes`) and the largest jump between neighbouring tasks'
+    kicks (`smoothness`, `kick_model.largest_jump`).
     """
     from bumps_jax import cmaes  # noqa: PLC0415
 
     e = cfg.experts
     targets = np.asarray(e.tasks, np.float32)
     tune_env = kick_env.KickEnv(cfg.env, {"task_range": tuple(cfg.prior.task_range)})
-    info = {"tasks_m": targets.tolist(), "tuned": False}
-    if e.bc.per_task_strength:
-        anchors = jnp.asarray(record["anchors"], jnp.float32)
-        table = jnp.asarray(kick_model.calibration(record))
-        starts = np.asarray(jax.vmap(lambda t: kick_model.kick_for(anchors, table, t))(jnp.asarray(targets)))
-        if e.tune.anchor_starts:
-            candidates = np.concatenate([starts[:, None], np.broadcast_to(anchors, (len(targets), *anchors.shape))], 1)
-            starts, chosen, costs = cmaes.best_starts(
-                tune_env, targets, candidates, cfg.prior.fitness, e.tune.eval_repetitions, seed=3
-            )
-            names = ("blend", *kick_model.ANCHORS)
-            info.update(candidates=list(names), candidate_costs=costs.tolist(), chosen=[names[i] for i in chosen])
-            chosen_by_task = dict(zip(targets.tolist(), info["chosen"], strict=True))
-            say(f"starting kicks chosen from blend and anchors: {chosen_by_task}")
+    info = {"tasks_m": targets.tolist(), "scheme": e.tune.scheme, "tuned": False}
+    family = e.tune.scheme == "family"
+    if family:
+        knots = kick_model.knot_targets(float(targets.min()), float(targets.max()), e.tune.knots)
+        knot_params, start_info, episodes = prior_kicks(cfg, record, knots, tune_env, say)
+        members = jax.vmap(kick_model.family_params, in_axes=(None, None, 0))
+        starts = np.asarray(members(jnp.asarray(knot_params), jnp.asarray(knots), jnp.asarray(targets)))
+        info.update(knots_m=knots.tolist(), knot_params=np.asarray(knot_params).tolist())
     else:
-        starts = np.tile(np.asarray(record["params"], np.float32), (len(targets), 1))
+        starts, start_info, episodes = prior_kicks(cfg, record, targets, tune_env, say)
+    info.update(start_info)
     if e.tune.generations > 0:
         t0 = time.perf_counter()
-        out = cmaes.tune_for_tasks(
-            tune_env, targets, starts, e.tune, e.tune.generations, e.tune.sigma_init, fitness=cfg.prior.fitness, say=say
-        )
+        common = dict(fitness=cfg.prior.fitness, say=say)
+        if family:
+            out = cmaes.tune_family(tune_env, targets, knots, knot_params, e.tune, e.tune.generations,
+                                    e.tune.sigma_init, **common)  # fmt: skip
+            info["knot_params"] = out["knot_params"].tolist()
+        else:
+            out = cmaes.tune_for_tasks(tune_env, targets, starts, e.tune, e.tune.generations, e.tune.sigma_init,
+                                       **common)  # fmt: skip
         starts = out["params"]
-        info.update(tuned=True, wall_s=time.perf_counter() - t0, episodes=out["episodes"],
-                    start_cost=out["start_cost"], tuned_cost=out["tuned_cost"], improved=out["improved"],
-                    history_best_cost=out["history"])  # fmt: skip
+        episodes += out["episodes"]
+        improved = out["improved"].tolist() if isinstance(out["improved"], np.ndarray) else out["improved"]
+        info.update(tuned=True, wall_s=time.perf_counter() - t0, start_cost=out["start_cost"],
+                    tuned_cost=out["tuned_cost"], improved=improved, history_best_cost=out["history"])  # fmt: skip
+    info["episodes"] = int(episodes)  # every episode the starting kicks cost: choice of starts and tuning
+    info["smoothness"] = smoothness(starts, targets)
     info["params"] = np.asarray(starts).tolist()
     return np.asarray(starts, np.float32), info
+
+
+def smoothness(kicks, targets) -> dict | None:
+    """`kick_model.largest_jump` of the tasks' kicks (T, 14), or None for fewer than two tasks."""
+    return kick_model.largest_jump(kicks, targets) if len(set(np.asarray(targets).tolist())) > 1 else None
 
 
 # -- training -----------------------------------------------------------------------------------
@@ -313,13 +354,41 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
     metrics = evaluate.evaluate_experts(programs.env, apply, params, e.tasks, e.eval.repetitions, e.eval.seed)
     record = evaluate.experts_record(e.tasks, metrics, programs.trainer.n_updates * programs.trainer.steps_per_update)
     kicks = runio.read_json(stage_dir / "starting_kicks.json")
-    tuning = kicks.get("episodes", 0) * programs.env.n_steps / len(e.tasks)
-    record["env_steps_breakdown"] = {"tuning": int(tuning), "ppo": record["env_steps"]}
+    record["starting_kicks"] = evaluate_starting_kicks(cfg, programs.env, kicks["params"])
+    record["starting_kicks_smoothness"] = smoothness(kicks["params"], e.tasks)
+    record["env_steps_breakdown"] = env_steps_breakdown(cfg, stage_dir.parent, kicks, programs.env.n_steps,
+                                                        record["env_steps"])  # fmt: skip
+    known = [v for v in record["env_steps_breakdown"].values() if v is not None]
+    record["env_steps_total"] = int(sum(known))  # per expert, the parts that are known
     record.update(runio.provenance(cfg.preset, wall_s + time.perf_counter() - start, cfg.env))
     record["eval_repetitions"] = int(e.eval.repetitions)
     runio.write_text(stage_dir / "experts.md", tables.experts_markdown(record))
     runio.write_json(stage_dir / OUTPUT, record)
     return record
+
+
+def evaluate_starting_kicks(cfg, env: kick_env.KickEnv, kicks) -> dict:
+    """The tasks' starting kicks (T, 14) scored exactly as their experts are (the same tasks,
+    `experts.eval` noisy kicks and seed, `evaluate`'s statistics): Table 1's "starting kicks
+    (before PPO)" row, with its per-task list."""
+    e = cfg.experts
+    tables_ = kick_model.action_tables(jnp.asarray(kicks, jnp.float32), env.n_steps, env.dt)
+    metrics = evaluate.evaluate_experts(env, rollout.table_policy, tables_, e.tasks, e.eval.repetitions, e.eval.seed)
+    return evaluate.tasks_record(e.tasks, metrics)
+
+
+def env_steps_breakdown(cfg, run_dir: Path, kicks: dict, n_steps: int, ppo_steps: int) -> dict:
+    """Env steps one expert cost: {"prior": its share (1 / n tasks) of the prior stage's
+    episodes (None where the prior's record does not say how it was made), "tuning": its share of
+    the starting kicks' episodes, "ppo": its PPO steps}."""
+    n = len(cfg.experts.tasks)
+    record = kick_model.load_record(prior_path(cfg, run_dir))
+    prior_episodes = prior_stage.episodes_of(record)
+    return {
+        "prior": None if prior_episodes is None else int(prior_episodes * n_steps / n),
+        "tuning": int(kicks.get("episodes", 0) * n_steps / n),
+        "ppo": int(ppo_steps),
+    }
 
 
 def run(cfg, run_dir: Path, say=print) -> dict:

@@ -80,15 +80,16 @@ def filter_variant(cfg, grid, params, contexts, mesh_size: int):
     tasks = np.asarray(f.tasks, np.float64)
     sel_key, eval_key = filtering.noise_keys(f.seed)
     t0 = time.perf_counter()
+    rungs = tuple(f.halving_rungs) if f.selection == "halving" else None
     sel = filtering.filter_policy(
         grid, params, contexts, tasks, f.width, f.selection_repetitions, sel_key,
-        task_range=tuple(cfg.env.task_range), block=f.block, multiple=mesh_size,
+        task_range=tuple(cfg.env.task_range), block=f.block, multiple=mesh_size, rungs=rungs, keep=f.halving_keep,
     )  # fmt: skip
     chosen = sel.contexts[sel.chosen]
+    # Fresh episodes: the evaluation key is independent of every selection rollout's (`noise_keys`).
     metrics = filtering.evaluate_chosen(grid, params, chosen, tasks, f.eval_repetitions, eval_key, f.block, mesh_size)
-    selection = len(contexts) * f.selection_repetitions
-    row = filtering.table2_row(metrics, len(contexts), sel.best_score, selection)
-    rollouts = selection + len(tasks) * f.eval_repetitions
+    row = filtering.table2_row(metrics, len(contexts), sel.best_score, sel.rollouts)
+    rollouts = sel.rollouts + len(tasks) * f.eval_repetitions
     wall = time.perf_counter() - t0  # selection and fresh evaluation, compiling included
     return sel, metrics, row, {"wall_s": wall, "rollouts": rollouts, "rollouts_per_s": rollouts / wall}
 
@@ -118,8 +119,8 @@ def run(cfg, run_dir: Path, say=print) -> dict:
             selections[name], evals[name], rows[name], timings[name] = out
             say(
                 f"{name}: {len(contexts)} contexts, error {rows[name]['error_mean_m']:.2f} m"
-                f" ({100 * rows[name]['rel_error_mean']:.1f}%), at selection {rows[name]['selection_error_m']:.2f} m,"
-                f" in {timings[name]['wall_s']:.1f} s"
+                f" ({100 * rows[name]['rel_error_mean']:.1f}%), at selection {rows[name]['selection_error_m']:.2f} m"
+                f" ({rows[name]['rollouts']} selection rollouts), in {timings[name]['wall_s']:.1f} s"
             )
     name, a, b = ENSEMBLE
     ens = filtering.ensemble_choice(selections[a], selections[b], evals[a], evals[b])
@@ -127,6 +128,8 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     rows[name] = filtering.table2_row(ens.metrics, n_contexts, ens.best_score, rollouts)
     evals[name] = ens.metrics
     rows = {k: rows[k] for k in tables.PAPER_TABLE2}
+    selection_scores = {n: sel.best_score.tolist() for n, sel in selections.items()}
+    selection_scores[name] = ens.best_score.tolist()
     chosen = {n: sel.contexts[sel.chosen].tolist() for n, sel in selections.items()}
     chosen["filtered_ensemble_uses_11x128"] = ens.use_b.tolist()
     payload = {
@@ -135,6 +138,8 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         "tasks": tasks.tolist(),
         "chosen_contexts": chosen,
         "per_task_error_m": {k: evaluate.summarise_tasks(v)["error_mean_m"].tolist() for k, v in evals.items()},
+        # Each task's chosen context's score on the selection rollouts, beside its fresh error above.
+        "per_task_selection_error_m": selection_scores,
         "config": cfg.filter.to_dict(),
         "meta_run": str(run_dir / "meta"),
         "timings": timings,
@@ -164,6 +169,9 @@ def unfiltered_curves(table1: dict) -> dict:
     curves = {}
     if "experts" in per_task:
         curves["experts"] = (per_task["experts"]["tasks"], per_task["experts"]["error_mean_m"])
+    if "starting_kicks" in per_task:  # what the experts' PPO started from
+        kicks = per_task["starting_kicks"]
+        curves[tables.ROW_LABELS["starting_kicks"]] = (kicks["tasks"], kicks["error_mean_m"])
     for net in meta_stage.NETS:
         if net in per_task:
             curves[f"{net} unfiltered"] = (per_task["tasks"], per_task[net]["error_mean_m"])

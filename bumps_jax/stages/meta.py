@@ -29,6 +29,7 @@ ROW_KEYS = (
     "accuracy_mean", "accuracy_std", "error_mean_m", "error_std_m", "error_mean_all_m", "tasks_above_threshold",
     "n_tasks",
 )  # fmt: skip
+PER_TASK_KEYS = ("target_m", "accuracy", "error_mean_m")  # each row's per-task list
 
 
 def inputs(cfg, run_dir: Path) -> dict:
@@ -45,18 +46,32 @@ def inputs(cfg, run_dir: Path) -> dict:
 
 
 def experts_row(record: dict, path) -> tuple[dict, dict | None]:
-    """The experts' Table 1 row from their record (`evaluate.experts_record`), and their per-task
-    errors {"tasks", "error_mean_m"} if it lists them; ValueError naming `path` if it has no row."""
+    """The experts' Table 1 row from their record (`evaluate.experts_record`, or its
+    "starting_kicks" entry), and their per-task errors {"tasks", "error_mean_m"} if it lists
+    them; ValueError naming `path` if it has no row."""
     if "accuracy_mean" not in record:
         raise ValueError(f"{path}: no experts row (accuracy_mean missing): rerun train-experts")
     row = {k: record[k] for k in ROW_KEYS if k in record}
     per_task = None
     if isinstance(record.get("per_task"), list):
+        row["per_task"] = [{k: r[k] for k in PER_TASK_KEYS} for r in record["per_task"]]
         per_task = {
             "tasks": [r["target_m"] for r in record["per_task"]],
             "error_mean_m": [r["error_mean_m"] for r in record["per_task"]],
         }
     return {**row, "source": str(path)}, per_task
+
+
+def per_task_list(tasks, summary: dict) -> list[dict]:
+    """A row's per-task list [{target_m, accuracy, error_mean_m}] from `evaluate.summarise_tasks`."""
+    return [
+        {
+            "target_m": float(t),
+            "accuracy": float(summary["accuracy"][i]),
+            "error_mean_m": float(summary["error_mean_m"][i]),
+        }
+        for i, t in enumerate(tasks)
+    ]
 
 
 def net_names(nets) -> list[str]:
@@ -158,7 +173,7 @@ def train_and_evaluate(cfg, stage_dir: Path, name: str, data: bc.Dataset, env, g
     metrics = evaluate_unfiltered(grid, state.params, m.eval.tasks, m.eval.repetitions, m.eval.seed)
     summaries = [evaluate.summarise_tasks({k: v[s] for k, v in metrics.items()}) for s in range(m.train.n_seeds)]
     timing["eval_wall_s"] = time.perf_counter() - t0
-    row = evaluate.table_row(summaries[0])
+    row = {**evaluate.table_row(summaries[0]), "per_task": per_task_list(m.eval.tasks, summaries[0])}
     kept = "no task" if row["error_mean_m"] is None else f"{row['error_mean_m']:.2f} m"
     say(
         f"{name}: evaluated in {timing['eval_wall_s']:.1f} s: accuracy {row['accuracy_mean']:.2f},"
@@ -186,9 +201,12 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     data = dataset(cfg, run_dir, say)
     env, e = kick_env.KickEnv(cfg.env), cfg.meta.eval
     rows, per_task = {}, {"tasks": [float(t) for t in e.tasks]}
-    rows["experts"], experts_per_task = experts_row(runio.read_json(record_path), record_path)
+    experts_record = runio.read_json(record_path)
+    rows["experts"], experts_per_task = experts_row(experts_record, record_path)
     if experts_per_task:
         per_task["experts"] = experts_per_task
+    if "starting_kicks" in experts_record:  # the experts' starting kicks, scored as the experts are
+        rows["starting_kicks"], per_task["starting_kicks"] = experts_row(experts_record["starting_kicks"], record_path)
     rows_per_seed, timings, grids = {}, {}, {}
     for name in net_names(cfg.meta.nets):
         out = train_and_evaluate(cfg, stage_dir, name, data, env, grids, say)

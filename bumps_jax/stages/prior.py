@@ -64,13 +64,13 @@ def run(cfg, run_dir, say=print) -> dict:
     anchors = {n: [float(x) for x in found[n]["params"]] for n in kick_model.ANCHORS}
     stacked = np.asarray([anchors[n] for n in kick_model.ANCHORS], np.float32)
     say(f"prior: sweeping the family over {len(p.sweep_strengths)} strengths")
-    reps = max(4, p.eval_repetitions // 4)
-    rows = cmaes.sweep(env, stacked, p.sweep_strengths, p.target, repetitions=reps, mesh=mesh)
+    rows = cmaes.sweep(env, stacked, p.sweep_strengths, p.target, repetitions=sweep_repetitions(p), mesh=mesh)
     reused = sum(found[n]["wall_s"] for n in found if found[n]["reused"])  # time spent in earlier calls
     payload = _payload(cfg, time.perf_counter() - t0 + reused, found, anchors, rows)
     evaluation = found["main"]["evaluation"]
     record = kick_model.make_record(anchors["main"], p, env=kick_env.resolved(cfg.env), evaluation=evaluation,
-                                    generations_run=p.generations, anchors=anchors, sweep=rows)  # fmt: skip
+                                    generations_run=p.generations, anchors=anchors, sweep=rows,
+                                    episodes=payload["episodes"])  # fmt: skip
     kick_model.save_record(record, stage_dir / ASSET)
     runio.write_json(stage_dir / TIMING, timing_record(payload))
     plot_sweep(payload, stage_dir / SWEEP_PLOT, tuple(cfg.env.task_range))
@@ -78,6 +78,33 @@ def run(cfg, run_dir, say=print) -> dict:
     say(f"prior: main kick {p.target:g} m, error {evaluation['mean_error']:.2f} m, valid "
         f"{evaluation['valid_fraction']:.2f}; wrote {stage_dir / OUTPUT}")  # fmt: skip
     return payload
+
+
+def sweep_repetitions(p) -> int:
+    """Noisy kicks per strength of the family's sweep (`prior` config section, or its dict)."""
+    return max(4, int(p["eval_repetitions"]) // 4)
+
+
+def episodes(p, n_sweep: int) -> int:
+    """Episodes a prior stage of config section `p` (or its dict) costs: each anchor's CMA-ES
+    generations and evaluation, and a sweep of `n_sweep` strengths (anchors reused from an
+    earlier call count: they were paid for once)."""
+    search = int(p["generations"]) * int(p["population_size"]) * int(p["repetitions"])
+    return len(kick_model.ANCHORS) * (search + int(p["eval_repetitions"])) + n_sweep * sweep_repetitions(p)
+
+
+def episodes_of(record: dict) -> int | None:
+    """The episodes that made a kick prior record (`kick_model.load_record`): its own count, else
+    counted from its config and sweep; None if it records neither."""
+    if "episodes" in record:
+        return int(record["episodes"])
+    config = record.get("config")
+    keys = ("generations", "population_size", "repetitions", "eval_repetitions")
+    if not isinstance(config, dict) or not all(k in config for k in keys) or "sweep" not in record:
+        return None
+    return episodes(
+        {**config, "generations": record.get("generations_run", config["generations"])}, len(record["sweep"])
+    )
 
 
 def _anchor(stage_dir: Path, name: str, target: float, start, free, p, env, mesh, say) -> dict:
@@ -143,6 +170,7 @@ def _payload(cfg, wall_s: float, found: dict, anchors: dict, rows: list) -> dict
         "population_size": int(p.population_size),
         "repetitions_per_candidate": int(p.repetitions),
         "sweep": rows,
+        "episodes": episodes(p, len(rows)),  # what the stage cost: anchors' searches and evaluations, sweep
         "extremes": extremes,
         "anchors": anchors,
     }
