@@ -6,8 +6,8 @@ For each physics backend (`--backends`, default MJX-JAX and MuJoCo Warp), at the
 - filtering rollouts/s and the wall time of the high-sample-rate variant (1091 contexts).
 On the config's own backend (`env.impl`) only:
 - Brax's `ppo.train` on one task (one expert's batch) and at the experts' total batch;
-- BC (meta-training) gradient steps/s of both meta-policies, as the loop is compiled today and
-  with an epoch's steps unrolled into one loop iteration.
+- BC (meta-training) gradient steps/s of both meta-policies, each in its own program and both
+  in one.
 With more than one device visible it also measures the experts and filtering on a mesh of one
 device and on a mesh of all of them (`bumps_jax.sharding`) and writes the scaling record;
 `--scale-workload K` runs those two on K times the preset's work (K copies of every expert,
@@ -140,32 +140,37 @@ def bench_brax(cfg, epochs: int, all_tasks: bool = False) -> dict:
 
 
 def bench_bc(cfg, chunk: int) -> dict:
-    """Gradient steps/s of each meta-policy's BC loop on a dataset of the experts' size, timed
-    over `chunk` epochs: as configured (`meta.train.unroll`) and with a whole epoch's steps in
-    one loop iteration; both nets' full schedules projected at each."""
+    """Gradient steps/s of the meta-policies' BC loop on a dataset of the experts' size, timed
+    over `chunk` epochs: each net in its own program, and both nets in one (`bc.make_joint_trainer`,
+    the same steps); both nets' full schedules projected from each."""
     n_rows = len(cfg.experts.tasks) * kick_env.KickEnv(cfg.env).n_steps
-    base = derived(cfg, {"meta.train.chunk": chunk}).meta.train
-    epoch_steps = bc.steps_per_epoch(base, n_rows)
+    train_cfg = derived(cfg, {"meta.train.chunk": chunk}).meta.train
+    epoch_steps = bc.steps_per_epoch(train_cfg, n_rows)
     rng = np.random.default_rng(0)
     obs = jnp.asarray(rng.uniform(size=(n_rows, 2)), jnp.float32)
     actions = jnp.asarray(rng.normal(size=(n_rows, 22)), jnp.float32)
-    keys = bc.seed_keys(base)
-    out: dict = {"bc_steps_per_epoch": epoch_steps, "bc_unroll_configured": int(base.unroll)}
-    for label, unroll in (("", int(base.unroll)), ("_unrolled_epoch", epoch_steps)):
-        train_cfg = derived(cfg, {"meta.train.chunk": chunk, "meta.train.unroll": unroll}).meta.train
-        total, losses = 0.0, {}
-        for name, (depth, width) in cfg.meta.nets.items():
-            init, step_chunk = bc.make_trainer(bc.MetaPolicy(depth, width), train_cfg, n_rows)
-            (_, loss), first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
-            rate = chunk * epoch_steps * train_cfg.n_seeds / wall
-            out[f"bc_steps_per_s_{name}{label}"] = rate
-            out[f"bc_compile_s_{name}{label}"] = first - wall
-            losses[name] = float(np.asarray(loss)[:, -1].mean())
-            total += train_cfg.epochs * epoch_steps / rate
-        out[f"bc_last_loss{label}"] = losses  # the same steps: equal up to float rounding
-        # Both nets' full schedules (train.epochs passes each), one after the other, at the measured rates.
-        out[f"bc_wall_projected_s{label}"] = total
-    out["bc_steps_per_s"] = min(v for k, v in out.items() if k.startswith("bc_steps_per_s_") and "unrolled" not in k)
+    keys = bc.seed_keys(train_cfg)
+    models = {name: bc.MetaPolicy(depth, width) for name, (depth, width) in cfg.meta.nets.items()}
+    steps = chunk * epoch_steps * train_cfg.n_seeds  # per net
+    out: dict = {"bc_steps_per_epoch": epoch_steps}
+    total, last = 0.0, {}
+    for name, model in models.items():
+        init, step_chunk = bc.make_trainer(model, train_cfg, n_rows)
+        (_, loss), first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
+        out[f"bc_steps_per_s_{name}"] = steps / wall
+        out[f"bc_compile_s_{name}"] = first - wall
+        last[name] = float(np.asarray(loss)[:, -1].mean())
+        total += train_cfg.epochs * epoch_steps / (steps / wall)
+    out["bc_steps_per_s"] = min(out[f"bc_steps_per_s_{name}"] for name in models)
+    out["bc_last_loss"] = last
+    # Both nets' full schedules (train.epochs passes each), one after the other, at the measured rates.
+    out["bc_wall_projected_s"] = total
+    init, step_chunk = bc.make_joint_trainer(models, train_cfg, n_rows)
+    (_, losses), first, wall = timed(lambda s: step_chunk(s, obs, actions, keys), init(keys))
+    out["bc_joint_steps_per_s"] = steps / wall  # gradient steps of each net per second, both nets at once
+    out["bc_joint_compile_s"] = first - wall
+    out["bc_joint_last_loss"] = {name: float(np.asarray(v)[:, -1].mean()) for name, v in losses.items()}
+    out["bc_joint_wall_projected_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
     return out
 
 
@@ -311,7 +316,7 @@ def main(argv=None) -> dict:
     # Every program splits its batch with `jax.jit` over a mesh (`sharding.over_batch`).
     training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": "jit", "backend": own,
                       "backends": {}, "projections": ["experts_ppo_projected_s", "bc_wall_projected_s",
-                                                      "bc_wall_projected_s_unrolled_epoch"]}  # fmt: skip
+                                                      "bc_joint_wall_projected_s"]}  # fmt: skip
     scaling: dict = {"devices": n_dev, "sharding": "jit", "workload": args.scale_workload, "backend": own}
 
     def save(section: str) -> None:

@@ -107,8 +107,9 @@ class SeedCarry(NamedTuple):
     opt_state: Any
 
 
-def _epoch(apply_fn, optimizer, batch_size, epoch_steps, unroll, obs, actions, seed_key, carry: SeedCarry, epoch):
-    """One pass over the dataset, shuffled with key fold_in(seed_key, epoch): (carry, losses (epoch_steps,))."""
+def _epoch(apply_fns, optimizers, batch_size, epoch_steps, obs, actions, seed_key, carry: dict, epoch):
+    """One pass over the dataset, shuffled with key fold_in(seed_key, epoch), of every net of the
+    dicts (name -> apply_fn / optimizer / SeedCarry) on the same batches: (carry, losses {name: (epoch_steps,)})."""
     n = obs.shape[0]
     order = jax.random.permutation(jax.random.fold_in(seed_key, epoch), n)
     # Static shapes: every batch takes batch_size slots; the last, partial one masks the
@@ -116,55 +117,81 @@ def _epoch(apply_fn, optimizer, batch_size, epoch_steps, unroll, obs, actions, s
     order = jnp.concatenate([order, jnp.zeros(epoch_steps * batch_size - n, order.dtype)])
     slots = jnp.arange(epoch_steps * batch_size).reshape(epoch_steps, batch_size)
 
-    def step(carry: SeedCarry, batch):
+    def step(carry: dict, batch):
         idx, slot = batch
         weights = (slot < n).astype(obs.dtype)
-        loss, grads = jax.value_and_grad(mae_loss)(carry.params, apply_fn, obs[idx], actions[idx], weights)
-        updates, opt_state = optimizer.update(grads, carry.opt_state, carry.params)
-        return SeedCarry(optax.apply_updates(carry.params, updates), opt_state), loss
+        new, losses = {}, {}
+        for name, c in carry.items():
+            loss, grads = jax.value_and_grad(mae_loss)(c.params, apply_fns[name], obs[idx], actions[idx], weights)
+            updates, opt_state = optimizers[name].update(grads, c.opt_state, c.params)
+            new[name], losses[name] = SeedCarry(optax.apply_updates(c.params, updates), opt_state), loss
+        return new, losses
 
-    return jax.lax.scan(step, carry, (order.reshape(epoch_steps, batch_size), slots), unroll=unroll)
+    return jax.lax.scan(step, carry, (order.reshape(epoch_steps, batch_size), slots))
 
 
-def make_trainer(model: MetaPolicy, train_cfg, n_rows: int):
-    """(init, chunk) for a dataset of `n_rows` pairs: init(seed_keys (S,)) -> TrainState;
-    chunk(state, obs (N, 2), actions (N, 22), seed_keys (S,)) -> (state after train_cfg.chunk
-    more epochs, losses (S, chunk epochs x steps per epoch)). Both jitted."""
+def make_joint_trainer(models: dict, train_cfg, n_rows: int):
+    """(init, chunk) training every net of `models` (name -> MetaPolicy) in one compiled loop, each
+    on the same batches as it would see alone (the shuffles depend on the seed only), so each
+    ends exactly where its own trainer would: init(seed_keys (S,)) -> {name: TrainState};
+    chunk(states, obs (N, 2), actions (N, 22), seed_keys (S,)) -> (states after train_cfg.chunk
+    more epochs, {name: losses (S, chunk epochs x steps per epoch)}). Both jitted.
+
+    One loop for several nets: the loop is launch-bound (tiny nets, batches of 128), and the
+    device can overlap the independent nets' kernels of one step."""
     epoch_steps = steps_per_epoch(train_cfg, n_rows)
-    # Adam over one flat vector: the same update, elementwise, in fewer kernels per step (the
-    # loop is launch-bound: tiny nets, batches of 128).
-    optimizer = optax.flatten(optax.adam(lr_schedule(train_cfg, epoch_steps)))
-    apply_fn = policy_apply(model)
+    # Adam over one flat vector: the same update, elementwise, in fewer kernels per step.
+    optimizers = {name: optax.flatten(optax.adam(lr_schedule(train_cfg, epoch_steps))) for name in models}
+    apply_fns = {name: policy_apply(model) for name, model in models.items()}
     chunk_epochs = int(train_cfg.chunk)
-    # Gradient steps per iteration of the compiled loop: the same steps either way; fewer
-    # iterations cost the device fewer loop round trips (`meta.train.unroll`).
-    unroll = min(int(train_cfg.unroll), epoch_steps)
 
     def init_one(key):
-        params = model.init(key, jnp.zeros((1, 2)))["params"]
-        return params, optimizer.init(params)
+        out = {}
+        for name, model in models.items():
+            params = model.init(key, jnp.zeros((1, 2)))["params"]
+            out[name] = SeedCarry(params, optimizers[name].init(params))
+        return out
 
     @jax.jit
     def init(seed_keys):
-        params, opt_state = jax.vmap(init_one)(seed_keys)
-        return TrainState(params, opt_state, jnp.zeros((), jnp.int32))
+        carries = jax.vmap(init_one)(seed_keys)
+        return {name: TrainState(c.params, c.opt_state, jnp.zeros((), jnp.int32)) for name, c in carries.items()}
 
-    def chunk_one(params, opt_state, seed_key, obs, actions, epochs):
+    def chunk_one(carry, seed_key, obs, actions, epochs):
         body = functools.partial(
-            _epoch, apply_fn, optimizer, train_cfg.batch_size, epoch_steps, unroll, obs, actions, seed_key
+            _epoch, apply_fns, optimizers, train_cfg.batch_size, epoch_steps, obs, actions, seed_key
         )
-        carry, losses = jax.lax.scan(body, SeedCarry(params, opt_state), epochs)
-        return carry.params, carry.opt_state, losses.reshape(-1)
+        carry, losses = jax.lax.scan(body, carry, epochs)
+        return carry, {name: v.reshape(-1) for name, v in losses.items()}
+
+    @jax.jit
+    def chunk(states: dict, obs, actions, seed_keys):
+        if obs.shape[0] != n_rows:
+            raise ValueError(f"the trainer was built for {n_rows} pairs, got {obs.shape[0]}")
+        step = next(iter(states.values())).step
+        epochs = step // epoch_steps + jnp.arange(chunk_epochs, dtype=jnp.int32)
+        carry = {name: SeedCarry(s.params, s.opt_state) for name, s in states.items()}
+        carry, losses = jax.vmap(chunk_one, in_axes=(0, 0, None, None, None))(carry, seed_keys, obs, actions, epochs)
+        done = step + chunk_epochs * epoch_steps
+        return {name: TrainState(c.params, c.opt_state, done) for name, c in carry.items()}, losses
+
+    return init, chunk
+
+
+def make_trainer(model: MetaPolicy, train_cfg, n_rows: int):
+    """(init, chunk) for one net (`make_joint_trainer` of one): init(seed_keys (S,)) -> TrainState;
+    chunk(state, obs (N, 2), actions (N, 22), seed_keys (S,)) -> (state after train_cfg.chunk
+    more epochs, losses (S, chunk epochs x steps per epoch)). Both jitted."""
+    init_all, chunk_all = make_joint_trainer({"net": model}, train_cfg, n_rows)
+
+    @jax.jit
+    def init(seed_keys):
+        return init_all(seed_keys)["net"]
 
     @jax.jit
     def chunk(state: TrainState, obs, actions, seed_keys):
-        if obs.shape[0] != n_rows:
-            raise ValueError(f"the trainer was built for {n_rows} pairs, got {obs.shape[0]}")
-        epochs = state.step // epoch_steps + jnp.arange(chunk_epochs, dtype=jnp.int32)
-        params, opt_state, losses = jax.vmap(chunk_one, in_axes=(0, 0, 0, None, None, None))(
-            state.params, state.opt_state, seed_keys, obs, actions, epochs
-        )
-        return TrainState(params, opt_state, state.step + chunk_epochs * epoch_steps), losses
+        states, losses = chunk_all({"net": state}, obs, actions, seed_keys)
+        return states["net"], losses["net"]
 
     return init, chunk
 

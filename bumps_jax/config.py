@@ -114,9 +114,6 @@ def _meta() -> ml_collections.ConfigDict:
     cfg.train.batch_size = 128
     cfg.train.epochs = 150_000  # passes over the dataset
     cfg.train.chunk = 2500  # epochs per host sync (progress, CSV, checkpoint)
-    # Gradient steps per iteration of the compiled loop (up to an epoch's): speed only, the
-    # same steps and numbers either way.
-    cfg.train.unroll = 1
     cfg.train.n_seeds = 1  # initialisations trained side by side; seed 0 is the table's row
     cfg.train.seed = 0
     cfg.eval = ml_collections.ConfigDict()

@@ -111,14 +111,16 @@ IMPLS = ("jax", "warp")
 
 def resolved(env_cfg) -> dict:
     """An env config as plain data with its physics step and solver iterations resolved (None:
-    the scene's own), as records carry it; keys an older record lacks take their defaults."""
+    the scene's own), as records carry it; a record older than the backend keys reads as MJX-JAX."""
     d = env_cfg.to_dict() if isinstance(env_cfg, ml_collections.ConfigDict) else dict(env_cfg)
     if d.get("physics_dt") is None:
         d["physics_dt"] = scene.default_timestep()
     if d.get("solver_iterations") is None:
         d["solver_iterations"] = _scene_iterations()
+    # A record from before the backend keys existed was made on MJX-JAX at the scene's iterations.
+    d.setdefault("impl", "jax")
     defaults = default_config()
-    for key in ("impl", "warp_contacts", "warp_constraints_per_world"):
+    for key in ("warp_contacts", "warp_constraints_per_world"):
         d.setdefault(key, defaults[key])
     return json.loads(json.dumps(d, default=list))
 

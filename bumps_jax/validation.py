@@ -138,7 +138,7 @@ def experts(e, task_range, n_steps: int) -> None:
 
 
 def meta(m, task_range) -> None:
-    positive_ints(m.train, "meta.train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every", "unroll"))
+    positive_ints(m.train, "meta.train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every"))
     if m.train.epochs % m.train.chunk:
         raise ValueError(f"meta.train.epochs {m.train.epochs} must be a multiple of meta.train.chunk {m.train.chunk}")
     positive_floats(m.train, "meta.train.", ("learning_rate",))

@@ -18,7 +18,7 @@ def test_tiny_baseline_writes_curve_for_two_seeds_and_two_arms(tmp_path, monkeyp
     monkeypatch.setattr(evaluate, "summarise_tasks", lambda m: scored.append(m) or original(m))
     payload = baseline.run(cfg, tmp_path, say=lambda *a, **k: None)
     saved = json.loads((tmp_path / "baseline" / "baseline.json").read_text())
-    assert saved["seeds"] == 2 and saved["env"]["physics_dt"] == 0.0025 and saved["env"]["impl"] == "jax"
+    assert saved["seeds"] == 2 and saved["env"]["physics_dt"] == 0.0025 and saved["env"]["impl"] == "warp"
     curve = saved["curve"]
     n = len(curve["env_steps"])
     assert n == 3 and all(len(curve[k]) == n for k in ("mean", "ci_low", "ci_high"))

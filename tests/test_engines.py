@@ -39,12 +39,18 @@ def test_missing_warp_is_refused_in_one_line(monkeypatch):
 
 
 def test_solver_iterations_reach_the_model_and_records():
-    assert kick_env.KickEnv().mj_model.opt.iterations == 2  # None: the scene's own
-    assert kick_env.KickEnv(config_overrides={"solver_iterations": 4}).mj_model.opt.iterations == 4
-    assert kick_env.resolved(kick_env.default_config())["solver_iterations"] == 2
-    # A record from before these keys reads as made under the defaults: the committed prior loads.
-    old = {k: v for k, v in kick_env.resolved(kick_env.default_config()).items() if not k.startswith(("warp", "sol"))}
-    assert kick_env.resolved(old) == kick_env.resolved(kick_env.default_config())
+    assert kick_env.KickEnv().mj_model.opt.iterations == 4  # the default: converged for our kicks
+    assert kick_env.KickEnv(config_overrides={"solver_iterations": None}).mj_model.opt.iterations == 2  # the scene's
+    assert kick_env.resolved(kick_env.default_config())["solver_iterations"] == 4
+    assert (
+        kick_env.resolved({**kick_env.default_config().to_dict(), "solver_iterations": None})["solver_iterations"] == 2
+    )
+    # A record from before these keys was made on MJX-JAX at the scene's iterations, and reads so.
+    old = {
+        k: v for k, v in kick_env.resolved(kick_env.default_config()).items() if k not in ("impl", "solver_iterations")
+    }
+    assert (kick_env.resolved(old)["impl"], kick_env.resolved(old)["solver_iterations"]) == ("jax", 2)
+    # The committed prior was made under the default env: every preset loads it.
     kick_model.load_record(kick_model.ASSET, kick_env.resolved(config.make_config("tiny").env))
 
 
@@ -85,7 +91,7 @@ def test_warp_env_steps_under_jit_and_vmap_with_the_jax_metrics(warp):
     assert np.isfinite(np.asarray(state.obs)).all() and np.isfinite(np.asarray(state.reward)).all()
     assert not np.asarray(state.metrics["overflow"]).any()
     assert (np.asarray(state.metrics["solver_limit_steps"]) > 0).all()  # counted, not printed
-    jax_env = kick_env.KickEnv(config.make_config("tiny").env)
+    jax_env = kick_env.KickEnv(config.make_config("tiny", {"env.impl": "jax"}).env)
     jax_state = jax.eval_shape(
         jax_env.step, jax.eval_shape(jax_env.reset, jax.random.key(0), 12.0), state.info["command"][0]
     )

@@ -59,6 +59,30 @@ def test_an_epoch_visits_every_row_once():
     assert float(weighted) == pytest.approx(per_row.mean(), rel=1e-4)
 
 
+def test_nets_trained_in_one_program_end_where_each_alone_does():
+    rng = np.random.default_rng(2)
+    obs = jnp.asarray(rng.uniform(size=(300, 2)), jnp.float32)
+    actions = jnp.asarray(rng.normal(size=(300, 22)), jnp.float32)
+    cfg = _train_cfg(learning_rate=1e-2, epochs=4, chunk=2, batch_size=128, n_seeds=2)
+    models = {"a": bc.MetaPolicy(depth=1, width=8), "b": bc.MetaPolicy(depth=3, width=4)}
+    keys = bc.seed_keys(cfg)
+    init, chunk = bc.make_joint_trainer(models, cfg, 300)
+    states = init(keys)
+    for _ in range(2):
+        states, joint_losses = chunk(states, obs, actions, keys)
+    for name, model in models.items():
+        init_one, chunk_one = bc.make_trainer(model, cfg, 300)
+        state = init_one(keys)
+        for _ in range(2):
+            state, losses = chunk_one(state, obs, actions, keys)
+        assert int(states[name].step) == int(state.step) == 12
+        np.testing.assert_allclose(joint_losses[name], losses, rtol=1e-5)
+        jax.tree.map(
+            lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6), states[name].params, state.params
+        )
+    assert not np.allclose(joint_losses["a"], joint_losses["b"])  # two nets, not one twice
+
+
 def test_behaviour_cloning_recovers_a_linear_map(tmp_path):
     rng = np.random.default_rng(0)
     w = rng.normal(size=(2, 22)).astype(np.float32) * 0.5

@@ -130,7 +130,7 @@ def test_pipeline_skips_finished_stages_and_counts_its_calls(tmp_path, stages, m
     assert log == ["experts", "meta", "meta"]  # the finished stage is not rerun
     record = json.loads((tmp_path / "pipeline.json").read_text())
     assert record["calls"] == 2 and set(record["stages_s"]) == {"experts", "meta"}
-    assert record["env"]["physics_dt"] == 0.0025 and record["env"]["impl"] == "jax"
+    assert record["env"]["physics_dt"] == 0.0025 and record["env"]["impl"] == "warp"
     assert record["wall_s"] == pytest.approx(sum(record["stages_s"].values()), abs=1e-3)
     assert record["overrides"] == {}
     assert "resumed across 2 calls" in report.pipeline_lines(record)[0]

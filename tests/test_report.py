@@ -129,13 +129,13 @@ def test_records_of_different_physics_are_flagged(tmp_path):
                       "error_mean_m": 0.4, "error_std_m": 0.1, "error_mean_all_m": 0.4, "wall_s": 5.0}  # fmt: skip
     (tmp_path / "experts" / "experts.json").write_text(json.dumps(experts_record))
     text = report.build(tmp_path)
-    assert "| experts | 5 | 2.5 ms, jax |" in text and "not comparable" not in text
+    assert "| experts | 5 | 2.5 ms, warp |" in text and "not comparable" not in text
     baseline = {**_common("paper", **{"env.physics_dt": 0.005}), "seeds": 1, "env_steps": 75, "eval_tasks": [7.1],
                 "error_mean_m": 2.0, "accuracy_mean": 1.0}  # fmt: skip
     (tmp_path / "baseline" / "baseline.json").write_text(json.dumps(baseline))
     text = report.build(tmp_path)
-    assert "different physics (experts 2.5 ms, jax, baseline 5 ms, jax): they are not comparable" in text
-    assert "physics step 5 ms, jax)." in text
+    assert "different physics (experts 2.5 ms, warp, baseline 5 ms, warp): they are not comparable" in text
+    assert "physics step 5 ms, warp)." in text
     assert report.physics_step({"physics_dt_s": 0.005}) == "5 ms, backend not recorded"
     assert report.physics_step({"device": "cpu"}) == "not recorded"
 
@@ -178,7 +178,7 @@ def test_records_of_different_env_configs_name_the_differing_keys(tmp_path):
     row = {"accuracy_mean": 0.9, "accuracy_std": 0.05, "error_mean_m": 0.5, "error_std_m": 0.1}
     experts = {**_common("paper"), "tasks_m": [7.0], "env_steps": 75, **row, "wall_s": 5.0}
     (tmp_path / "experts" / "experts.json").write_text(json.dumps(experts))
-    meta = {**_common("paper", **{"env.noise.friction": 0.2, "env.impl": "warp"}), "rows": {"meta_4x256": row}}
+    meta = {**_common("paper", **{"env.noise.friction": 0.2, "env.impl": "jax"}), "rows": {"meta_4x256": row}}
     (tmp_path / "meta" / "table1.json").write_text(json.dumps(meta))
     text = report.build(tmp_path)
     assert "experts, meta ran under different env configs (differing: env.impl, env.noise.friction)" in text
