@@ -14,7 +14,7 @@ device and on a mesh of all of them (`bumps_jax.sharding`) and writes the scalin
 each its own seed; K times the filtering repetitions), for a lab that outgrows one device.
 
 Every time is a program's second call (its first compiles); compile times are reported apart.
-Wall times of whole stages computed from a measured rate are named `*_projected_s`.
+Wall times of whole stages computed from a measured rate are listed under `projections`.
 Results are written after each section, so a run cut short keeps what it measured.
 
     python -m benchmarks.bench --preset paper                        # GPU: benchmarks/results/*.json
@@ -59,10 +59,13 @@ def timed(fn, *args):
 
 
 def bench_scene(cfg, batch: int) -> dict:
+    """Physics steps/s at `batch` (the experts' episodes) and at 8192, env steps/s at `batch`."""
     env = kick_env.KickEnv(cfg.env)
+    big = kick_env.KickEnv(derived(cfg, {"env.warp_contacts": kick_env.CONTACTS_PER_EPISODE * 8192}).env)
     return {
         "scene_batch": batch,
         "physics_steps_per_s": scene_bench.physics_rate(env.mj_model, batch, env_cfg=env.config),
+        "physics_steps_per_s_8192": scene_bench.physics_rate(big.mj_model, 8192, env_cfg=big.config),
         "env_steps_per_s": scene_bench.env_rate(env, batch),
     }
 
@@ -164,13 +167,13 @@ def bench_bc(cfg, chunk: int) -> dict:
     out["bc_steps_per_s"] = min(out[f"bc_steps_per_s_{name}"] for name in models)
     out["bc_last_loss"] = last
     # Both nets' full schedules (train.epochs passes each), one after the other, at the measured rates.
-    out["bc_wall_projected_s"] = total
+    out["bc_wall_s"] = total
     init, step_chunk = bc.make_joint_trainer(models, train_cfg, n_rows)
     (_, losses), first, wall = timed(lambda s: step_chunk(s, obs, actions, keys), init(keys))
     out["bc_joint_steps_per_s"] = steps / wall  # gradient steps of each net per second, both nets at once
     out["bc_joint_compile_s"] = first - wall
     out["bc_joint_last_loss"] = {name: float(np.asarray(v)[:, -1].mean()) for name, v in losses.items()}
-    out["bc_joint_wall_projected_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
+    out["bc_joint_wall_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
     return out
 
 
@@ -314,9 +317,8 @@ def main(argv=None) -> dict:
     n_dev = len(jax.devices())
     own = cfg.env.impl
     # Every program splits its batch with `jax.jit` over a mesh (`sharding.over_batch`).
-    training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": "jit", "backend": own,
-                      "backends": {}, "projections": ["experts_ppo_projected_s", "bc_wall_projected_s",
-                                                      "bc_joint_wall_projected_s"]}  # fmt: skip
+    training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": "jit", "backend": own, "backends": {}}
+    training["projections"] = ["experts_ppo_projected_s", "bc_wall_s", "bc_joint_wall_s"]
     scaling: dict = {"devices": n_dev, "sharding": "jit", "workload": args.scale_workload, "backend": own}
 
     def save(section: str) -> None:

@@ -28,7 +28,7 @@ STAGE_COMMANDS = {
 PIPELINES = {
     "demo": (("experts", "meta", "filter"), "tiny", "the pipeline at CPU size (the prior from assets/), with a report"),
     "reproduce": (
-        ("prior", "experts", "meta", "filter", "baseline"),
+        ("prior", "experts", "meta", "filter", "heldout", "baseline"),
         "paper",
         "every stage at the paper's size (a GPU), resumable, with a report",
     ),

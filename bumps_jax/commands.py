@@ -86,12 +86,13 @@ def showcase(cfg, run_dir: Path, args) -> None:
 
 
 def evaluate(cfg, run_dir: Path, args) -> None:
-    """The held-out evaluation of a finished run (`heldout.run`): run_dir/heldout/heldout.json."""
-    from bumps_jax import heldout  # noqa: PLC0415
+    """The held-out stage of a finished run: run_dir/heldout/heldout.json."""
+    from bumps_jax import pipeline  # noqa: PLC0415
+    from bumps_jax.stages import heldout  # noqa: PLC0415
 
     if not args.heldout:
         raise ValueError("evaluate runs the held-out evaluation only: add --heldout")
-    heldout.run(cfg, run_dir)
+    pipeline.run_stage("heldout", cfg, run_dir, force=args.force)
     print(f"wrote {run_dir / 'heldout' / heldout.OUTPUT}")
 
 

@@ -135,7 +135,9 @@ def validate_config(cfg: ml_collections.ConfigDict) -> None:
     if cfg.impl not in IMPLS:
         raise ValueError(f"env.impl must be one of {IMPLS}, got {cfg.impl!r}")
     if cfg.impl == "warp" and importlib.util.find_spec("warp") is None:
-        raise ValueError("env.impl 'warp' needs the warp-lang package: pip install -e '.[warp]'")
+        raise ValueError(
+            "env.impl 'warp' needs the warp-lang package (pip install 'mujoco-mjx[warp]==3.17.0'), or set env.impl=jax"
+        )
     for key in ("solver_iterations", "warp_contacts", "warp_constraints_per_world"):
         value = cfg[key]
         if (value is not None or key != "solver_iterations") and (

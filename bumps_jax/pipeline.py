@@ -25,9 +25,9 @@ from pathlib import Path
 from bumps_jax import config, runio
 
 # Stage name -> the stages that read its outputs (directly or through another).
-ORDER = ("prior", "experts", "meta", "filter", "baseline")
-DOWNSTREAM = {"prior": ("experts", "meta", "filter", "baseline"), "experts": ("meta", "filter"),
-              "meta": ("filter",), "filter": (), "baseline": ()}  # fmt: skip
+ORDER = ("prior", "experts", "meta", "filter", "heldout", "baseline")
+DOWNSTREAM = {"prior": ("experts", "meta", "filter", "heldout", "baseline"), "experts": ("meta", "filter", "heldout"),
+              "meta": ("filter", "heldout"), "filter": ("heldout",), "heldout": (), "baseline": ()}  # fmt: skip
 
 
 def stage_module(name: str):

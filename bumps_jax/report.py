@@ -262,29 +262,49 @@ def baseline_lines(baseline: dict | None, experts: dict | None, filtered: dict |
 
 
 def speed_lines(bench: dict | None, scaling: dict | None) -> list[str]:
+    """The speed section from `make bench`'s record: one column per physics backend measured
+    (a record from before the backends were measured side by side: one column)."""
     if not bench:
         return []
-    g = bench.get
+    per = bench.get("backends") or {bench.get("env", {}).get("impl", "backend not recorded"): bench}
+    names = sorted(per, key=lambda b: b == bench.get("backend"))  # the config's own backend last
+    projected = ", ".join(bench.get("projections", [])) or "-"
     lines = [
         "## Speed (`make bench`)",
         "",
-        f"On {bench['device']}, one device, {bench['date'][:10]}, physics step {physics_step(bench)}:",
+        f"On {bench['device']}, one device, {bench['date'][:10]}, physics step {physics_step(bench)}, side by side "
+        f"in one run. Wall times computed from a rate are projections: {projected}.",
         "",
-        "| measure | value |",
-        "|---|---|",
+        "| measure | " + " | ".join(names) + " |",
+        "|---|" + "---|" * len(names),
     ]
+    g = bench.get
+
+    def row(label, key, fmt, shared=False):
+        values = [g(key) if shared else per[b].get(key) for b in names]
+        if any(v is not None for v in values):
+            lines.append(f"| {label} | " + " | ".join("-" if v is None else fmt.format(v) for v in values) + " |")
+
+    first = per[names[-1]]
+    row(f"physics steps/s (batch {first.get('scene_batch')})", "physics_steps_per_s", "{:,.0f}")
+    row("physics steps/s (batch 8192)", "physics_steps_per_s_8192", "{:,.0f}")
+    row("env steps/s (experts' batch)", "env_steps_per_s", "{:,.0f}")
+    row("PPO env-steps/s, all experts in one program", "experts_env_steps_per_s", "{:,.0f}")
+    row("filtering rollouts/s", "filter_rollouts_per_s", "{:,.0f}")
+    row("high-sample-rate filtering (s)", "filter_high_sample_wall_s", "{:.1f}")
+    lines += ["", f"On {bench.get('backend', names[-1])} only:", "", "| measure | value |", "|---|---|"]
     rows = [
-        (f"physics steps/s (batch {g('scene_batch')})", g("physics_steps_per_s"), "{:,.0f}"),
-        ("env steps/s (same batch)", g("env_steps_per_s"), "{:,.0f}"),
-        ("PPO env-steps/s, all experts in one program", g("experts_env_steps_per_s"), "{:,.0f}"),
+        ("experts, Warp / JAX", g("experts_env_steps_warp_vs_jax"), "{:.2f}x"),
         ("PPO env-steps/s, Brax ppo.train, one task", g("brax_ppo_env_steps_per_s"), "{:,.0f}"),
-        ("ours / Brax", g("experts_vs_brax"), "{:.1f}x"),
-        ("ours / env-only rate", g("experts_vs_env_rate"), "{:.2f}"),
+        ("PPO env-steps/s, Brax ppo.train, the experts' total batch", g("brax_ppo_env_steps_per_s_total_batch"),
+         "{:,.0f}"),
+        ("ours / Brax, one task", g("experts_vs_brax"), "{:.1f}x"),
+        ("ours / Brax at the total batch", g("experts_vs_brax_total_batch"), "{:.2f}x"),
         ("BC gradient steps/s (slower net)", g("bc_steps_per_s"), "{:,.0f}"),
-        ("BC, both nets' full schedules (s)", g("bc_wall_s"), "{:.0f}"),
-        ("filtering rollouts/s", g("filter_rollouts_per_s"), "{:,.0f}"),
-        ("high-sample-rate filtering (s)", g("filter_high_sample_wall_s"), "{:.1f}"),
-    ]
+        ("BC, both nets' full schedules, separate loops (s, projected)", g("bc_wall_s", g("bc_wall_projected_s")),
+         "{:.0f}"),
+        ("BC, both nets in one loop (s, projected)", g("bc_joint_wall_s", g("bc_joint_wall_projected_s")), "{:.0f}"),
+    ]  # fmt: skip
     lines += [f"| {name} | {fmt.format(v)} |" for name, v, fmt in rows if v is not None]
     if scaling:
         n = str(scaling["devices"])

@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 import stand_ins
 
-from bumps_jax import bc, cli, config, evaluate, filtering, heldout, kick_env, pipeline, policies, report, runio, tables
+from bumps_jax import bc, cli, config, evaluate, filtering, kick_env, pipeline, policies, report, runio, tables
 from bumps_jax.stages import experts as experts_stage
 from bumps_jax.stages import filter as filter_stage
+from bumps_jax.stages import heldout
 from bumps_jax.stages import meta as meta_stage
 
 

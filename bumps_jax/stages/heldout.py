@@ -1,5 +1,5 @@
-"""The held-out evaluation (`python -m bumps_jax evaluate --heldout`): a finished run's policies on
-target distances off the 0.1 m grid, with noise that no stage draws.
+"""The held-out stage (`python -m bumps_jax evaluate --heldout`, and part of `reproduce`): a
+finished run's policies on target distances off the 0.1 m grid, with noise that no other stage draws.
 
 The meta-test tasks and their seed were also used to choose settings (the learning rate, the
 physics step, the starting kicks); the `heldout` config section is used for nothing else. On each
