@@ -38,17 +38,9 @@ def expert_programs(env):
     return experts_stage.compile_programs(tiny_experts.pipeline_config(), env)
 
 
-# `make test` runs two workers, one group each (`--dist loadgroup`): the files that share
-# conftest's compiled programs, plus files chosen so that both groups take about as long
-# (measured on a 2-core CPU: ~650 s each); every other file runs in the second group.
-FIRST_GROUP = "compiled_programs"
-WITH_THE_COMPILED_PROGRAMS = ("test_cmaes", "test_ppo", "test_c_replay")
-
-
 def pytest_collection_modifyitems(config, items):
-    """Every test file runs whole on one worker (its module-scoped compiled programs are built
-    once), in one of two groups of about equal time."""
+    """With `-n 2 --dist loadgroup`, every test file runs whole on one worker (its module-scoped
+    compiled programs are built once); files that share conftest's programs name one group."""
     for item in items:
         if not item.get_closest_marker("xdist_group"):
-            first = item.module.__name__.rsplit(".", 1)[-1] in WITH_THE_COMPILED_PROGRAMS
-            item.add_marker(pytest.mark.xdist_group(FIRST_GROUP if first else "rest"))
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
