@@ -134,7 +134,7 @@ def _filter() -> ml_collections.ConfigDict:
     # successive halving: every candidate gets halving_rungs[0] rollouts, each task's best
     # `halving_keep` fraction of its candidates goes on to the next rung's total, and so on; the
     # scores at a rung use all of a context's rollouts so far.
-    cfg.selection = "fixed"
+    cfg.selection = "halving"
     cfg.selection_repetitions = 10  # noisy rollouts per sampled context ("fixed")
     cfg.halving_rungs = (2, 8, 32, 100)  # rollouts per surviving context after each rung ("halving")
     cfg.halving_keep = 0.25  # fraction of a task's surviving candidates that goes on to the next rung
@@ -239,6 +239,8 @@ PRESETS: dict[str, dict] = {
         "filter.tasks": kick_env.meta_test_tasks()[9::10],
         "filter.context_step": 1.0,
         "filter.high_context_step": 0.5,
+        # The tests' and the demo's selection: 2 rollouts per context.
+        "filter.selection": "fixed",
         "filter.selection_repetitions": 2,
         "filter.halving_rungs": (1, 2),
         "filter.eval_repetitions": 2,

@@ -106,6 +106,8 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     )
 
     contexts = filtering.candidate_contexts(targets, filtering.context_grid(*f.context_range, f.context_step))
+    # The filter stage's selection rule; "fixed" spends heldout.selection_repetitions per context.
+    rungs = tuple(f.halving_rungs) if f.selection == "halving" else None
     for net in meta_stage.NETS:
         depth, width = cfg.meta.nets[net]
         _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train)
@@ -116,7 +118,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         name = filtered_name(net)
         sel = filtering.filter_policy(
             grid, params, contexts, targets, f.width, h.selection_repetitions, sel_key,
-            task_range=task_range, block=f.block, multiple=mesh.size,
+            task_range=task_range, block=f.block, multiple=mesh.size, rungs=rungs, keep=f.halving_keep,
         )  # fmt: skip
         chosen = sel.contexts[sel.chosen]
         metrics[name] = filtering.evaluate_chosen(grid, params, chosen, targets, reps, eval_key, f.block, mesh.size)
@@ -129,13 +131,14 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         rows[key] = row(metrics[key])
     for key, sel in selections.items():
         rows[key].update(selection_error_m=float(sel.best_score.mean()), n_contexts=len(contexts),
-                         rollouts=len(contexts) * int(h.selection_repetitions))  # fmt: skip
+                         rollouts=int(sel.rollouts))  # fmt: skip
     rows[name].update(selection_error_m=float(ens.best_score.mean()), n_contexts=2 * len(contexts),
                       rollouts=rows[a]["rollouts"] + rows[b]["rollouts"])  # fmt: skip
     payload = {
         "targets_m": targets.tolist(),
         "seed": int(h.seed),
         "repetitions": reps,
+        "selection": f.selection,
         "selection_repetitions": int(h.selection_repetitions),
         "rows": rows,
         "error_rule": "error_mean_m: the mean over every target of its mean final error (invalid kicks included)",
