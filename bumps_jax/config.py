@@ -150,6 +150,8 @@ def _filter() -> ml_collections.ConfigDict:
 def _baseline() -> ml_collections.ConfigDict:
     cfg = ml_collections.ConfigDict()
     cfg.seeds = 6  # independent runs, trained side by side
+    cfg.updates_per_chunk = 25  # PPO updates per compiled chunk; progress and a checkpoint between
+    cfg.keep_checkpoints = 3
     cfg.bc_steps = 20000  # cloning the main kick at every training context before PPO
     cfg.bc_learning_rate = 1e-3
     cfg.eval_tasks = kick_env.meta_test_tasks()
@@ -246,6 +248,8 @@ PRESETS: dict[str, dict] = {
         "filter.eval_repetitions": 2,
         "filter.block": 24,
         "baseline.seeds": 2,
+        "baseline.updates_per_chunk": 1,
+        "baseline.keep_checkpoints": 2,
         "baseline.bc_steps": 2000,
         "baseline.bc_learning_rate": 1e-2,
         "baseline.eval_tasks": kick_env.meta_test_tasks()[9::20],

@@ -19,8 +19,11 @@ import os
 import shutil
 import signal
 import sys
+import time
+from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
+from typing import Any, NamedTuple
 
 PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "optax", "orbax-checkpoint", "evosax", "warp-lang")
 MANIFEST = "stage.json"
@@ -282,6 +285,67 @@ def stop_on_interrupt(say=print):
         yield flag
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+class ChunkedTraining(NamedTuple):
+    """What `train_in_chunks` needs from a stage whose training runs as a loop of compiled chunks."""
+
+    init: Callable[[], Any]  # () -> a fresh state (saved as checkpoint 0)
+    chunk: Callable[[Any], tuple]  # state -> (state, metrics) after one chunk of updates
+    abstract: Any  # the state's shapes and dtypes, for restoring a checkpoint
+    updates: Callable[[Any], int]  # state -> updates it has done
+    rows: Callable[[int, Any], list]  # (updates before the chunk, metrics) -> progress.csv rows
+    line: Callable[[Any, int, str], str]  # (metrics, updates done, ETA text) -> the progress line
+    fields: tuple  # progress.csv's columns; the first counts updates
+
+
+def train_in_chunks(stage_dir: Path, loop: ChunkedTraining, total: int, keep: int, say=print, max_chunks=None) -> dict:
+    """Run `loop` to `total` updates under stage_dir, resuming from its newest readable checkpoint.
+
+    After every chunk: its rows appended to progress.csv, an orbax checkpoint, the training
+    seconds so far in wall_time.json (carried across resumes; work redone after a kill counts
+    once) and a progress line with an ETA; Ctrl-C stops after the chunk in flight. max_chunks:
+    stop after this many chunks in this call (tests of the resume path).
+    Returns {"state", "finished": bool, "wall_s": training seconds over every call, "call_s": this call's}.
+    """
+    import orbax.checkpoint as ocp  # noqa: PLC0415
+
+    stage_dir = Path(stage_dir)
+    start = time.perf_counter()
+    manager = checkpoint_manager(stage_dir / "checkpoints", keep)
+    progress, clock_path = stage_dir / "progress.csv", stage_dir / "wall_time.json"
+    clock = read_json(clock_path) if clock_path.exists() else {}
+    step, state = restore_latest(manager, ocp.args.StandardRestore(loop.abstract), say)
+    previous = 0.0
+    if step is not None:
+        previous = float(clock.get(str(step), 0.0))
+        trim_csv(progress, loop.fields, loop.fields[0], step)
+        say(f"resumed from update {step} in {stage_dir}")
+    else:
+        state = loop.init()
+        manager.save(0, args=ocp.args.StandardSave(state))
+        manager.wait_until_finished()
+        clock = {"0": time.perf_counter() - start}
+        write_json(clock_path, clock)
+        progress.unlink(missing_ok=True)
+    first, chunks = loop.updates(state), 0
+    with stop_on_interrupt(say) as stop:
+        while loop.updates(state) < total and (max_chunks is None or chunks < max_chunks):
+            before = loop.updates(state)
+            state, metrics = loop.chunk(state)
+            update = loop.updates(state)
+            # Rows first: if the run dies before the checkpoint lands, the resume trims and redoes them.
+            append_csv(progress, loop.fields, loop.rows(before, metrics))
+            manager.save(update, args=ocp.args.StandardSave(state))
+            manager.wait_until_finished()
+            clock[str(update)] = previous + time.perf_counter() - start
+            write_json(clock_path, clock)
+            chunks += 1
+            say(loop.line(metrics, update, eta(update - first, total - first, time.perf_counter() - start)), flush=True)
+            stop.check()
+    manager.close()
+    call_s = time.perf_counter() - start
+    return {"state": state, "finished": loop.updates(state) >= total, "wall_s": previous + call_s, "call_s": call_s}
 
 
 # -- the stage manifest ------------------------------------------------------------------------

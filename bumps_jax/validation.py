@@ -130,10 +130,15 @@ def experts(e, task_range, n_steps: int) -> None:
     positive_ints(e.eval, "experts.eval.", ("repetitions",))
     ppo_section(e.ppo, "experts.ppo.", n_steps, task_range)
     total = int(e.ppo.total_env_steps // (e.ppo.num_envs * n_steps))
-    if total % e.updates_per_chunk:
+    chunk_divides(e, "experts.", total)
+
+
+def chunk_divides(section, prefix: str, total: int) -> None:
+    """`updates_per_chunk` must divide the updates that `ppo.total_env_steps` buys: one compiled chunk size."""
+    if total % section.updates_per_chunk:
         raise ValueError(
-            f"experts.updates_per_chunk {e.updates_per_chunk} must divide the {total} updates that "
-            f"experts.ppo.total_env_steps {e.ppo.total_env_steps} buys (one compiled chunk size)"
+            f"{prefix}updates_per_chunk {section.updates_per_chunk} must divide the {total} updates that "
+            f"{prefix}ppo.total_env_steps {section.ppo.total_env_steps} buys (one compiled chunk size)"
         )
 
 
@@ -175,10 +180,11 @@ def filtering(f, task_range) -> None:
 
 
 def baseline(b, task_range, n_steps: int) -> None:
-    positive_ints(b, "baseline.", ("seeds", "bc_steps", "eval_repetitions"))
+    positive_ints(b, "baseline.", ("seeds", "bc_steps", "eval_repetitions", "updates_per_chunk", "keep_checkpoints"))
     positive_floats(b, "baseline.", ("bc_learning_rate",))
     targets(b.eval_tasks, task_range, "baseline.eval_tasks")
     ppo_section(b.ppo, "baseline.ppo.", n_steps, task_range)
+    chunk_divides(b, "baseline.", int(b.ppo.total_env_steps // (b.ppo.num_envs * n_steps)))
     if b.ppo.sample_task_range is None:
         raise ValueError("baseline.ppo.sample_task_range must be (low, high): the baseline is multi-task")
     if b.extra_learning_rate is not None:

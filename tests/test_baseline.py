@@ -16,8 +16,19 @@ def test_tiny_baseline_writes_curve_for_two_seeds_and_two_arms(tmp_path, monkeyp
     scored = []  # the per-episode metrics of every policy evaluated, in order
     original = evaluate.summarise_tasks
     monkeypatch.setattr(evaluate, "summarise_tasks", lambda m: scored.append(m) or original(m))
-    payload = baseline.run(cfg, tmp_path, say=lambda *a, **k: None)
-    saved = json.loads((tmp_path / "baseline" / "baseline.json").read_text())
+    # Stopped after one chunk (of 1 update) as a killed run would be, then resumed to the end.
+    assert baseline.run(cfg, tmp_path, say=lambda *a, **k: None, max_chunks=1) is None
+    stage_dir = tmp_path / "baseline"
+    assert not (stage_dir / "baseline.json").exists()
+    assert sorted(p.name for p in (stage_dir / "checkpoints").iterdir()) == ["0", "1"]
+    assert len((stage_dir / "progress.csv").read_text().strip().splitlines()) == 1 + 2 * 2  # 4 runs, 1 update
+    said = []
+    payload = baseline.run(cfg, tmp_path, say=lambda *a, **k: said.append(a[0]))
+    assert any("resumed from update 1" in line for line in said)
+    assert sum("baseline update" in line for line in said) == 2  # updates 2 and 3, not 1 again
+    rows = (stage_dir / "progress.csv").read_text().strip().splitlines()
+    assert len(rows) == 1 + 3 * 2 * 2 and len(set(rows)) == len(rows)  # each (update, run) once
+    saved = json.loads((stage_dir / "baseline.json").read_text())
     assert saved["seeds"] == 2 and saved["env"]["physics_dt"] == 0.0025 and saved["env"]["impl"] == "warp"
     curve = saved["curve"]
     n = len(curve["env_steps"])

@@ -8,7 +8,8 @@ Besides the paper's learning rate (`baseline.ppo.learning_rate`) an optional sec
 of each run's optimiser state). Writes run_dir/baseline/baseline.json (per arm: the return curve
 and the training error curve in m, each with a 95 % bootstrap band over seeds, and the meta-test
 error evaluated like the BUMPS variants; the paper arm's also at the top level) and
-baseline_curve.png.
+baseline_curve.png. Training runs in compiled chunks of `baseline.updates_per_chunk` updates, each
+followed by progress.csv rows, an orbax checkpoint and a progress line; a killed run resumes.
 """
 
 from __future__ import annotations
@@ -59,8 +60,78 @@ def learning_rates(b) -> tuple[float, ...]:
     return (float(b.ppo.learning_rate),) + (() if b.extra_learning_rate is None else (float(b.extra_learning_rate),))
 
 
-def run(cfg, run_dir: Path, say=print) -> dict:
-    """Train every arm's seeds, evaluate them on the meta-test tasks, write the record and the figure."""
+# One row per run and update; run i is arm i // seeds, seed i % seeds.
+CSV_FIELDS = ("update", "env_steps", "run", "learning_rate", "seed", *ppo.UpdateMetrics._fields)
+# The target passed to the trainer; unused, since every episode draws its own (ppo.sample_task_range).
+TRAIN_TARGET = 12.0
+
+
+def training_loop(cfg, trainer: ppo.Trainer, policy0) -> runio.ChunkedTraining:
+    """Every arm's seeds from the clone `policy0`, vmapped over runs, in chunks of updates."""
+    b = cfg.baseline
+    rates = learning_rates(b)
+    seeds = int(b.seeds)
+    # Every arm trains the same seeds (the same keys); the rate is a value of each run's optimiser state.
+    rngs = jnp.concatenate([jax.random.split(jax.random.PRNGKey(1), seeds)] * len(rates))  # raw keys: orbax saves them
+    lrs = jnp.repeat(jnp.asarray(rates, jnp.float32), seeds)
+    init = jax.jit(jax.vmap(lambda rng, lr: trainer.init(rng, policy0, lr)))
+    n = int(b.updates_per_chunk)
+    chunk = jax.jit(jax.vmap(lambda state: trainer.run_updates(state, TRAIN_TARGET, n)))
+    total = trainer.n_updates
+
+    def fresh():
+        # Strong dtypes throughout (Adam starts its count weakly typed): the chunk compiles once.
+        return jax.tree.map(lambda x: x.astype(x.dtype), init(rngs, lrs))
+
+    def rows(before: int, metrics: ppo.UpdateMetrics) -> list:
+        m = jax.tree.map(np.asarray, metrics)
+        out = []
+        for run in range(len(lrs)):
+            for j in range(m.episode_return.shape[1]):
+                update = before + j + 1
+                head = {"update": update, "env_steps": update * trainer.steps_per_update, "run": run,
+                        "learning_rate": rates[run // seeds], "seed": run % seeds}  # fmt: skip
+                out.append({**head, **{k: float(getattr(m, k)[run, j]) for k in ppo.UpdateMetrics._fields}})
+        return out
+
+    def line(metrics: ppo.UpdateMetrics, update: int, eta: str) -> str:
+        m = jax.tree.map(np.asarray, metrics)
+        arms = "  ".join(
+            f"lr {lr:g}: return {m.episode_return[i * seeds : (i + 1) * seeds, -1].mean():8.2f}"
+            f" error {m.final_error[i * seeds : (i + 1) * seeds, -1].mean():.2f} m"
+            for i, lr in enumerate(rates)
+        )
+        return f"baseline update {update}/{total}  {arms}  {eta}"
+
+    return runio.ChunkedTraining(
+        init=fresh,
+        chunk=chunk,
+        abstract=jax.eval_shape(fresh),
+        updates=lambda state: int(np.asarray(state.update)[0]),
+        rows=rows,
+        line=line,
+        fields=CSV_FIELDS,
+    )
+
+
+def read_progress(path: Path, n_runs: int, n_updates: int) -> dict[str, np.ndarray]:
+    """progress.csv as {metric: (runs, updates)}; ValueError naming the file if a row is missing."""
+    import csv  # noqa: PLC0415
+
+    out = {k: np.full((n_runs, n_updates), np.nan) for k in ppo.UpdateMetrics._fields}
+    with path.open(newline="") as f:
+        for row in csv.DictReader(f):
+            run, update = int(row["run"]), int(row["update"])
+            for k in out:
+                out[k][run, update - 1] = float(row[k])
+    if any(np.isnan(v).any() for v in out.values()):
+        raise ValueError(f"{path}: rows missing for some runs and updates; rerun the baseline stage to redo them")
+    return out
+
+
+def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | None:
+    """Train (or resume) every arm's seeds, evaluate them on the meta-test tasks, write the record
+    and the figure. max_chunks: stop after this many chunks (tests of the resume path; returns None)."""
     start = time.perf_counter()
     b = cfg.baseline
     stage_dir = Path(run_dir) / "baseline"
@@ -71,14 +142,14 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     policy0, bc_losses = clone_start(cfg, env, trainer, jnp.asarray(record["params"]))
     rates = learning_rates(b)
     n_runs = len(rates) * b.seeds
-    say(f"training {len(rates)} arm(s) x {b.seeds} seeds x {trainer.n_updates} updates in one program "
-        "(compiling first)", flush=True)  # fmt: skip
-    # Every arm trains the same seeds; run i is arm i // seeds, seed i % seeds.
-    rngs = jnp.concatenate([jax.random.split(jax.random.key(1), b.seeds)] * len(rates))
-    lrs = jnp.repeat(jnp.asarray(rates, jnp.float32), b.seeds)
-    train = jax.jit(jax.vmap(lambda rng, lr: trainer.train(rng, 12.0, policy0, lr)))
-    state, metrics = jax.block_until_ready(train(rngs, lrs))
-    train_s = time.perf_counter() - start
+    say(f"training {len(rates)} arm(s) x {b.seeds} seeds x {trainer.n_updates} updates, "
+        f"{b.updates_per_chunk} per compiled chunk (compiling first)", flush=True)  # fmt: skip
+    loop = training_loop(cfg, trainer, policy0)
+    out = runio.train_in_chunks(stage_dir, loop, trainer.n_updates, b.keep_checkpoints, say, max_chunks)
+    if not out["finished"]:
+        return None
+    state, train_s = out["state"], out["wall_s"]
+    curves = read_progress(stage_dir / "progress.csv", n_runs, trainer.n_updates)
 
     # Policy 0 is where every seed started (the clone, before PPO); then every arm's seeds.
     cloned = experts_stage.ExpertParams(ppo.init_normalizer(env.observation_size), policy0)
@@ -93,8 +164,8 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     m = grid(params, tasks, tasks, keys)  # (1 + runs, tasks, reps)
     rows = [evaluate.table_row(evaluate.summarise_tasks({k: v[s] for k, v in m.items()})) for s in range(1 + n_runs)]
     env_steps = trainer.n_updates * trainer.steps_per_update
-    returns = np.asarray(metrics.episode_return).reshape(len(rates), b.seeds, -1)
-    errors = np.asarray(metrics.final_error).reshape(len(rates), b.seeds, -1)
+    returns = curves["episode_return"].reshape(len(rates), b.seeds, -1)
+    errors = curves["final_error"].reshape(len(rates), b.seeds, -1)
     arms = []
     for i, lr in enumerate(rates):
         per_seed = rows[1 + i * b.seeds : 1 + (i + 1) * b.seeds]
@@ -108,7 +179,8 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         })  # fmt: skip
     paper = arms[0]
     payload = {
-        **runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env),
+        # Wall time: training over every call plus this call's clone and evaluation.
+        **runio.provenance(cfg.preset, train_s + time.perf_counter() - start - out["call_s"], cfg.env),
         "seeds": int(b.seeds),
         "env_steps_per_seed": int(env_steps),
         "learning_rates": list(rates),

@@ -279,51 +279,20 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
     tasks = tuple(float(t) for t in cfg.experts.tasks)
     targets = jnp.asarray(tasks, jnp.float32)
     total = programs.trainer.n_updates
-    start = time.perf_counter()
-    manager = runio.checkpoint_manager(stage_dir / "checkpoints", cfg.experts.keep_checkpoints)
-    progress = stage_dir / "progress.csv"
-    # Training seconds up to each checkpoint, carried across resumes (work redone after a kill counts once).
-    clock_path = stage_dir / "wall_time.json"
-    clock = runio.read_json(clock_path) if clock_path.exists() else {}
-    restore = ocp.args.StandardRestore(abstract_state(programs, len(tasks)))
-    step, state = runio.restore_latest(manager, restore, say)
-    previous = 0.0
-    if step is not None:
-        previous = float(clock.get(str(step), 0.0))
-        runio.trim_csv(progress, CSV_FIELDS, "update", step)
-        say(f"resumed from update {step} in {stage_dir}")
-    else:
-        state = initial_state(cfg, run_dir, programs, say)
-        manager.save(0, args=ocp.args.StandardSave(state))
-        manager.wait_until_finished()
-        clock = {"0": time.perf_counter() - start}
-        runio.write_json(clock_path, clock)
-        progress.unlink(missing_ok=True)
-    first, chunks = int(np.asarray(state.update)[0]), 0
-    with runio.stop_on_interrupt(say) as stop:
-        while int(np.asarray(state.update)[0]) < total:
-            if stop_after_chunks is not None and chunks >= stop_after_chunks:
-                break
-            before = int(np.asarray(state.update)[0])
-            state, metrics = run_chunk(programs, state, targets)
-            update = int(np.asarray(state.update)[0])
-            # Rows first: if the run dies before the checkpoint lands, the resume trims and redoes them.
-            rows = chunk_rows(before, metrics, tasks, programs.trainer.steps_per_update)
-            runio.append_csv(progress, CSV_FIELDS, rows)
-            manager.save(update, args=ocp.args.StandardSave(state))
-            manager.wait_until_finished()
-            clock[str(update)] = previous + time.perf_counter() - start
-            runio.write_json(clock_path, clock)
-            chunks += 1
-            eta = runio.eta(update - first, total - first, time.perf_counter() - start)
-            say(progress_line(tasks, metrics, update, total, eta), flush=True)
-            stop.check()
-    finished = int(np.asarray(state.update)[0]) >= total
-    if finished:
+    loop = runio.ChunkedTraining(
+        init=lambda: initial_state(cfg, run_dir, programs, say),
+        chunk=lambda state: run_chunk(programs, state, targets),
+        abstract=abstract_state(programs, len(tasks)),
+        updates=lambda state: int(np.asarray(state.update)[0]),
+        rows=lambda before, m: chunk_rows(before, m, tasks, programs.trainer.steps_per_update),
+        line=lambda m, update, eta: progress_line(tasks, m, update, total, eta),
+        fields=CSV_FIELDS,
+    )
+    out = runio.train_in_chunks(stage_dir, loop, total, cfg.experts.keep_checkpoints, say, stop_after_chunks)
+    if out["finished"]:
         with ocp.StandardCheckpointer() as checkpointer:  # leaving the context waits for the write
-            checkpointer.save((stage_dir / "final_params").resolve(), expert_params(state), force=True)
-    manager.close()
-    return {"state": state, "finished": finished, "wall_s": previous + time.perf_counter() - start}
+            checkpointer.save((stage_dir / "final_params").resolve(), expert_params(out["state"]), force=True)
+    return out
 
 
 def load_final_params(stage_dir: Path, programs: Compiled, n_tasks: int) -> ExpertParams:
