@@ -112,7 +112,9 @@ def kick(cfg, run_dir: Path, args) -> None:
     manifest = runio.read_json(Path(directory) / policies.MANIFEST, "a shipped-policies manifest")
     # The policies' own physics, with only the env keys the user set on the command line.
     env_overrides = {k.removeprefix("env."): v for k, v in config.overrides_of(cfg).items() if k.startswith("env.")}
-    env_cfg = policies.env_config(manifest, env_overrides)
+    from bumps_jax import sharding  # noqa: PLC0415
+
+    env_cfg = policies.kick_env_config(manifest, env_overrides, args.kicks, sharding.device_mesh().size)
     if args.net not in manifest.get("nets", {}):
         raise ValueError(f"--net {args.net!r}: the shipped nets are {sorted(manifest.get('nets', {}))}")
     from bumps_jax import kick_env  # noqa: PLC0415

@@ -122,6 +122,15 @@ def env_config(manifest: dict, overrides: dict | None = None) -> ml_collections.
     return kick_env.make_config(None, {**flat, **(overrides or {})})
 
 
+def kick_env_config(manifest: dict, overrides: dict | None, n_kicks: int, n_devices: int = 1):
+    """The env config `kick` runs: the policies' own (`env_config`), with Warp's contact pool sized
+    to the command's batch of `n_kicks` episodes per device unless `overrides` set it. The pool is
+    a capacity, not physics (records do not compare it); on a CPU every slot of a pool sized for
+    the training run's thousands of episodes costs time at every step (half of `kick`'s time)."""
+    pool = {"warp_contacts": kick_env.CONTACTS_PER_EPISODE * int(n_kicks) * int(n_devices)}
+    return env_config(manifest, {**pool, **(overrides or {})})
+
+
 def load(directory: str | Path = ASSET_DIR, env_cfg=None) -> Shipped:
     """The shipped policies in `directory`; with `env_cfg`, ValueError naming the differing env keys
     if they were made under another env config. A missing directory says how to make one."""

@@ -488,8 +488,14 @@ def test_publish_ships_the_runs_results_and_policies(stage_run, heldout_run):
 def test_kick_filters_a_context_and_reports_the_resting_distances(stage_run, heldout_run, capsys):
     directory = heldout_run["root"] / "assets" / "policies"
     shipped = policies.load(directory)
-    env_cfg = policies.env_config(shipped.manifest)
-    # 8 kicks: the filter stage's block, so the meta-policy's compiled program is reused.
+    # The command's env: the policies' own, with the contact pool sized to its 8 kicks (a user's
+    # setting wins); the same program serves this call and the command's below.
+    env_cfg = policies.kick_env_config(shipped.manifest, None, 8)
+    assert env_cfg.warp_contacts == kick_env.CONTACTS_PER_EPISODE * 8
+    assert policies.kick_env_config(shipped.manifest, {"warp_contacts": 4096}, 8).warp_contacts == 4096
+    assert kick_env.resolved(env_cfg) | {"warp_contacts": 0} == kick_env.resolved(
+        policies.env_config(shipped.manifest)
+    ) | {"warp_contacts": 0}
     out = policies.filtered_kicks(shipped, "meta_4x256", 12.3, 8, env_cfg, selection_repetitions=2)
     assert out.context in (11.5, 12.3) and list(out.candidates) == [11.5, 12.3]
     assert out.distance.shape == (8,) and np.all(np.isfinite(out.distance))
