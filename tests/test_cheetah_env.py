@@ -1,0 +1,194 @@
+"""The HalfCheetah-Vel env: shapes, the reward against a hand computation and C MuJoCo, the episode
+end, batches of targets, bad inputs."""
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from bumps_jax import cheetah_env
+
+TARGETS = (0.0, 1.5, 3.0)
+# Two commands beyond the motors' [-1, 1]: the env clips them, and the control cost is paid on the clipped ones.
+ACTION = np.array([1.5, -0.3, 0.2, -2.0, 0.7, 0.0], np.float32)
+
+
+def open_loop(i: int) -> jax.Array:
+    """A fixed gait-like command sequence: (6,) at step i."""
+    return jnp.asarray(np.sin(0.3 * i + np.arange(6)), jnp.float32)
+
+
+@pytest.fixture(scope="module")
+def cheetah():
+    """The env on MJX-JAX (the cheaper backend to compile on a CPU)."""
+    return cheetah_env.CheetahVelEnv(config_overrides={"impl": "jax"})
+
+
+@pytest.fixture(scope="module")
+def jit_cheetah(cheetah):
+    return jax.jit(cheetah.reset), jax.jit(cheetah.step)
+
+
+@pytest.fixture(scope="module")
+def batch_episode(cheetah):
+    """Whole episodes at TARGETS in one vmapped program: (states after each step (T, B, ...), first state).
+
+    Stepped from Python with one jitted step: a scan of its own would compile the physics again.
+    """
+    reset = jax.jit(jax.vmap(cheetah.reset))
+    step = jax.jit(jax.vmap(cheetah.step))
+    keys = jax.random.split(jax.random.PRNGKey(3), len(TARGETS))
+    state = first = reset(keys, jnp.asarray(TARGETS))
+    trace = []
+    for i in range(cheetah.n_steps):
+        state = step(state, jnp.broadcast_to(open_loop(i), (len(TARGETS), 6)))
+        trace.append(state)
+    return jax.tree.map(lambda *xs: np.stack(xs), *trace), first
+
+
+def c_mujoco_step(env, data, ctrl):
+    """One control step of C MuJoCo from MJX data (its solver warm start too): (qpos, torso xpos,
+    contacts) after n_substeps physics steps."""
+    d = mujoco.MjData(env.mj_model)
+    d.qpos[:], d.qvel[:], d.ctrl[:] = np.asarray(data.qpos), np.asarray(data.qvel), ctrl
+    d.qacc_warmstart[:] = np.asarray(data.qacc_warmstart)
+    for _ in range(env.n_substeps):
+        mujoco.mj_step(env.mj_model, d)
+    return d.qpos.copy(), d.xpos[env.torso_body].copy(), d.ncon
+
+
+def assert_steps_match_c_mujoco(env, reset, step, n_steps=12):
+    """Each of the first `n_steps` control steps of an episode (the feet touch the floor from
+    about step 6) is C MuJoCo's step from the same state."""
+    state = reset(jax.random.PRNGKey(1), 2.0)
+    contacts = 0
+    for i in range(n_steps):
+        qpos, torso, ncon = c_mujoco_step(env, state.pipeline_state, np.clip(np.asarray(open_loop(i)), -1.0, 1.0))
+        state = step(state, open_loop(i))
+        np.testing.assert_allclose(state.pipeline_state.qpos, qpos, atol=1e-4, err_msg=f"step {i}")
+        np.testing.assert_allclose(state.obs[-3:], torso, atol=1e-4, err_msg=f"step {i}")
+        contacts += ncon
+    assert contacts > 0, "no step touched the floor: the comparison says nothing about contacts"
+    assert float(state.metrics["overflow"]) == 0.0
+
+
+def test_reset_and_step_shapes(cheetah, jit_cheetah):
+    reset, step = jit_cheetah
+    assert (cheetah.observation_size, cheetah.action_size, cheetah.n_steps) == (20, 6, 200)
+    assert (cheetah.n_substeps, cheetah.physics_dt, cheetah.dt) == (5, 0.01, 0.05)
+    state = reset(jax.random.PRNGKey(0), 1.5)
+    data = state.pipeline_state
+    assert state.obs.shape == (20,)
+    # PEARL's observation: qpos without the root x, qvel, the torso's world position.
+    expected = np.concatenate([data.qpos[1:], data.qvel, data.xpos[cheetah.torso_body]])
+    np.testing.assert_allclose(state.obs, expected)
+    # Gym's reset noise: qpos within +-0.1 of the model's, qvel of std 0.1.
+    assert np.all(np.abs(np.asarray(data.qpos) - cheetah.mj_model.qpos0) <= 0.1 + 1e-6)
+    assert float(state.info["target"]) == 1.5 and float(state.done) == 0.0
+    nxt = step(state, jnp.asarray(ACTION))
+    assert nxt.obs.shape == (20,) and int(nxt.info["step"]) == 1 and float(nxt.done) == 0.0
+    for value in (nxt.obs, nxt.reward, *nxt.metrics.values()):
+        assert np.isfinite(np.asarray(value)).all()
+    # A fresh state has the stepped state's keys and types, so one compiled step serves both.
+    kinds = lambda s: [(x.dtype, x.weak_type) for x in jax.tree.leaves(s)]  # noqa: E731
+    assert kinds(state) == kinds(nxt) and sorted(state.metrics) == sorted(nxt.metrics)
+
+
+def test_step_reward_by_hand(cheetah, jit_cheetah):
+    """reward = -|dx / 0.05 - target| - 0.05 * |clip(a)|^2 from the states before and after; the
+    physics is five C MuJoCo steps at the clipped command."""
+    reset, step = jit_cheetah
+    before = reset(jax.random.PRNGKey(1), 1.5)
+    after = step(before, jnp.asarray(ACTION))
+    clipped = np.clip(ACTION, -1.0, 1.0)
+    x0, x1 = float(before.pipeline_state.qpos[0]), float(after.pipeline_state.qpos[0])
+    velocity = (x1 - x0) / 0.05
+    run, ctrl = -abs(velocity - 1.5), -0.05 * float(np.sum(clipped**2))
+    assert float(after.reward) == pytest.approx(run + ctrl, rel=1e-5, abs=1e-5)
+    m = after.metrics
+    assert float(m["forward_vel"]) == pytest.approx(velocity, rel=1e-5, abs=1e-5)
+    assert float(m["reward_velocity"]) == pytest.approx(run, rel=1e-5, abs=1e-5)
+    assert float(m["reward_ctrl"]) == pytest.approx(ctrl, rel=1e-6)
+    assert float(m["return"]) == pytest.approx(float(after.reward), rel=1e-6)
+    assert float(m["mean_vel_error"]) == pytest.approx(abs(velocity - 1.5), rel=1e-5, abs=1e-5)
+    qpos, torso, _ = c_mujoco_step(cheetah, before.pipeline_state, clipped)
+    np.testing.assert_allclose(after.pipeline_state.qpos, qpos, atol=1e-5)
+    np.testing.assert_allclose(after.obs[-3:], torso, atol=1e-5)
+
+
+def test_physics_is_c_mujoco_in_contact(cheetah, jit_cheetah):
+    assert_steps_match_c_mujoco(cheetah, *jit_cheetah)
+
+
+def test_episode_ends_at_200_steps_over_a_batch_of_targets(cheetah, batch_episode):
+    trace, first = batch_episode
+    dones = trace.done  # (T, B)
+    assert dones.shape == (200, len(TARGETS)) and trace.obs.shape == (200, len(TARGETS), 20)
+    assert np.all(dones[:-1] == 0.0) and np.all(dones[-1] == 1.0)
+    np.testing.assert_array_equal(trace.info["truncation"], dones)
+    np.testing.assert_allclose(first.info["target"], TARGETS)
+    # The episode's score: the return and the mean velocity error over its 200 steps.
+    final = jax.tree.map(lambda a: a[-1], trace.metrics)
+    np.testing.assert_allclose(final["return"], trace.reward.sum(axis=0), rtol=1e-4)
+    np.testing.assert_allclose(final["mean_vel_error"], trace.metrics["vel_error"].mean(axis=0), rtol=1e-4)
+    # Every step, every episode: its reward scores its own target.
+    targets = np.asarray(TARGETS)[None, :]
+    run = -np.abs(trace.metrics["forward_vel"] - targets)
+    np.testing.assert_allclose(trace.metrics["reward_velocity"], run, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(trace.reward, run + trace.metrics["reward_ctrl"], rtol=1e-5, atol=1e-5)
+    assert np.isfinite(trace.obs).all() and float(trace.metrics["overflow"].max()) == 0.0
+
+
+def test_batch_equals_single_episodes(cheetah, jit_cheetah, batch_episode):
+    """A vmapped episode's first step is the unbatched one's: the target is per-episode state."""
+    reset, step = jit_cheetah
+    trace, _ = batch_episode
+    keys = jax.random.split(jax.random.PRNGKey(3), len(TARGETS))
+    for b, target in enumerate(TARGETS):
+        one = step(reset(keys[b], target), open_loop(0))
+        np.testing.assert_allclose(one.obs, trace.obs[0, b], rtol=1e-4, atol=1e-5)
+        assert float(one.reward) == pytest.approx(float(trace.reward[0, b]), rel=1e-4, abs=1e-5)
+
+
+def test_warp_matches_c_mujoco():
+    """MuJoCo Warp (the default backend) steps as C MuJoCo does, in contact too."""
+    env = cheetah_env.CheetahVelEnv(config_overrides={"impl": "warp", "warp_contacts": 16})
+    assert env.max_episodes == 1
+    assert_steps_match_c_mujoco(env, jax.jit(env.reset), jax.jit(env.step))
+
+
+def test_model_options():
+    """Gym's contacts (every capsule on the floor) or Brax's (torso and shins pass through), and
+    the observation without the torso position (Gym's HalfCheetah, ProMP: 17)."""
+    assert cheetah_env.colliding_geoms(cheetah_env.load_model(all_contacts=True)) == 8
+    assert cheetah_env.colliding_geoms(cheetah_env.load_model(all_contacts=False)) == 5
+    model = cheetah_env.load_model()
+    assert model.body_mass.sum() == pytest.approx(cheetah_env.TOTAL_MASS)
+    # C MuJoCo's broad phase reads the per-body masks the compiler derives from the geoms'.
+    np.testing.assert_array_equal(model.body_contype[1:], 1)
+    env = cheetah_env.CheetahVelEnv(config_overrides={"impl": "jax", "torso_position": False, "all_contacts": False})
+    assert env.observation_size == 17 and env.context_observation_size == 18
+    obs = jnp.zeros((4, 17))
+    np.testing.assert_allclose(env.with_context(obs, 1.5)[:, -1], 0.5)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"impl": "torch"}, "env.impl must be one of"),
+        ({"episode_steps": 0}, "env.episode_steps must be a positive integer"),
+        ({"task_range": (3.0, 0.0)}, "env.task_range must be finite with low < high"),
+        ({"ctrl_dt": 0.055}, "not a multiple of the physics step"),
+        ({"reward.ctrl": -0.05}, "env.reward.ctrl must be a finite weight"),
+        ({"rewards.ctrl": 0.05}, "unknown config key 'rewards.ctrl'"),
+    ],
+)
+def test_bad_config_raises(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        cheetah_env.CheetahVelEnv(config_overrides={"impl": "jax", **overrides})
+
+
+def test_target_outside_range_raises(cheetah):
+    with pytest.raises(ValueError, match="target 3.5 m/s is outside the task range"):
+        cheetah.reset(jax.random.PRNGKey(0), 3.5)
