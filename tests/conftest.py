@@ -38,9 +38,26 @@ def expert_programs(env):
     return experts_stage.compile_programs(tiny_experts.pipeline_config(), env)
 
 
-def pytest_collection_modifyitems(config, items):
-    """With `-n 2 --dist loadgroup`, every test file runs whole on one worker (its module-scoped
-    compiled programs are built once); files that share conftest's programs name one group."""
-    for item in items:
-        if not item.get_closest_marker("xdist_group"):
-            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+# Test files that share the compiled programs above (expert_programs, contextual): one worker
+# runs them all, so that each program compiles once.
+SHARED_PROGRAMS = ("test_experts.py", "test_filtering.py", "test_sharding.py")
+
+
+@pytest.hookimpl(optionalhook=True, tryfirst=True)
+def pytest_xdist_make_scheduler(config, log):
+    """With `-n N --dist loadfile`, every test file runs whole on one worker (its module-scoped
+    compiled programs are built once), the files of SHARED_PROGRAMS together on one.
+
+    A scheduler rather than xdist_group marks: `--dist loadgroup` (xdist 3.8) groups by a suffix
+    it writes into the test ids, which pytest 9.2 no longer reads, so every marked test ran
+    wherever a worker was free and each worker compiled the programs again."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class FileScheduling(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = super()._split_scope(nodeid)
+            return "shared programs" if path.rsplit("/", 1)[-1] in SHARED_PROGRAMS else path
+
+    return FileScheduling(config, log)

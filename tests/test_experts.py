@@ -15,9 +15,6 @@ from bumps_jax import bc, config, kick_model, runio
 from bumps_jax.stages import experts
 from bumps_jax.stages import prior as prior_stage
 
-# Shares conftest's compiled expert and contextual programs: one test worker runs these files.
-pytestmark = pytest.mark.xdist_group("compiled_programs")
-
 
 @pytest.fixture(scope="module")
 def programs(expert_programs):

@@ -7,9 +7,6 @@ import pytest
 
 from bumps_jax import config, filtering
 
-# Shares conftest's compiled expert and contextual programs: one test worker runs these files.
-pytestmark = pytest.mark.xdist_group("compiled_programs")
-
 TASK_RANGE = (7.0, 18.0)
 
 

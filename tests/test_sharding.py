@@ -16,9 +16,6 @@ import tiny_experts
 from bumps_jax import sharding
 from bumps_jax.stages import experts
 
-# Shares conftest's compiled expert and contextual programs: one test worker runs these files.
-pytestmark = pytest.mark.xdist_group("compiled_programs")
-
 ROOT = Path(__file__).resolve().parents[1]
 
 
