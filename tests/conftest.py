@@ -24,7 +24,7 @@ def jit_env(env):
 def contextual(env):
     """(grid, params): every-pair rollouts of the stand-in contextual policy (a stack of one) on
     one device, jitted once for the filtering tests and the single-device side of the sharding
-    test (each MJX program costs ~50 s to compile on a CPU)."""
+    test (each batch shape compiles once)."""
     params = stand_ins.synthetic_contextual_params(tuple(env.config.task_range))
     return rollout.grid_fn(env, stand_ins.contextual_apply), jax.tree.map(lambda a: a[None], params)
 
@@ -38,26 +38,23 @@ def expert_programs(env):
     return experts_stage.compile_programs(tiny_experts.pipeline_config(), env)
 
 
-# Test files that share the compiled programs above (expert_programs, contextual): one worker
-# runs them all, so that each program compiles once.
-SHARED_PROGRAMS = ("test_experts.py", "test_filtering.py", "test_sharding.py")
+# The slowest test files (on a 2-core CPU), slowest first. `make test` runs each file whole on
+# one of two workers (`--dist loadfile`, its module-scoped programs built once) in collection
+# order (`--no-loadscope-reorder`): these start first, so that no long file is left running alone
+# at the end. The other files follow in their usual order.
+SLOWEST_FIRST = (
+    "test_experts.py",
+    "test_meta.py",
+    "test_cmaes.py",
+    "test_sharding.py",
+    "test_baseline.py",
+    "test_engines.py",
+    "test_ppo.py",
+    "test_filtering.py",
+)
 
 
-@pytest.hookimpl(optionalhook=True, tryfirst=True)
-def pytest_xdist_make_scheduler(config, log):
-    """With `-n N --dist loadfile`, every test file runs whole on one worker (its module-scoped
-    compiled programs are built once), the files of SHARED_PROGRAMS together on one.
-
-    A scheduler rather than xdist_group marks: `--dist loadgroup` (xdist 3.8) groups by a suffix
-    it writes into the test ids, which pytest 9.2 no longer reads, so every marked test ran
-    wherever a worker was free and each worker compiled the programs again."""
-    if config.getvalue("dist") != "loadfile":
-        return None
-    from xdist.scheduler import LoadFileScheduling
-
-    class FileScheduling(LoadFileScheduling):
-        def _split_scope(self, nodeid: str) -> str:
-            path = super()._split_scope(nodeid)
-            return "shared programs" if path.rsplit("/", 1)[-1] in SHARED_PROGRAMS else path
-
-    return FileScheduling(config, log)
+def pytest_collection_modifyitems(items):
+    """Collect the files of SLOWEST_FIRST first, in its order (each file's tests stay together)."""
+    rank = {name: i for i, name in enumerate(SLOWEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))

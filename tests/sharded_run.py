@@ -1,7 +1,7 @@
-"""Run by test_sharding.py in a fresh process with 4 host devices (XLA reads the device
-count once, at start-up): trains tiny experts and filters a synthetic family on a mesh of 4
-devices, and prints what they produced as JSON. The single-device side of both runs in the
-test's own process, on programs that test_experts.py and test_filtering.py compile anyway."""
+"""Run by test_sharding.py in a fresh process with N_DEVICES host devices (XLA reads the device
+count once, at start-up): trains tiny experts and filters a synthetic family on a mesh of
+N_DEVICES devices, and prints what they produced as JSON. The single-device side of both runs in
+the test's own process, on conftest's programs that test_experts.py and test_filtering.py use."""
 
 import json
 import sys
@@ -16,14 +16,19 @@ import tiny_experts
 from bumps_jax import config, filtering, kick_env, rollout, sharding
 from bumps_jax.stages import experts
 
+# Three devices: the 2 tiny experts fill them with one padded copy, so padding and unpadding run.
+# On a CPU each device's share of a Warp physics step is a callback into Python, one at a time,
+# so every device more adds its steps' cost (this process: 4 devices 124 s, 2 devices 72 s).
+N_DEVICES = 3
+
 
 def quiet(*args, **kwargs):
     pass
 
 
 def train(env, run_dir: Path) -> dict:
-    cfg = tiny_experts.pipeline_config()  # 2 tasks on 4 devices: two padded copies
-    programs = experts.compile_programs(cfg, env, mesh=sharding.device_mesh(4))
+    cfg = tiny_experts.pipeline_config()  # 2 tasks on 3 devices: one padded copy
+    programs = experts.compile_programs(cfg, env, mesh=sharding.device_mesh(N_DEVICES))
     # Stop after one chunk and resume: the sharded path must also restore checkpoints.
     experts.train(cfg, run_dir, programs, say=quiet, stop_after_chunks=1)
     out = experts.train(cfg, run_dir, programs, say=quiet)
@@ -31,11 +36,13 @@ def train(env, run_dir: Path) -> dict:
     return {"params": [np.asarray(x).tolist() for x in leaves], "finished": out["finished"]}
 
 
-EPISODES_PER_CALL = 8  # the filtering tests' block: the single-device side reuses their program
+# All 18 selection episodes in one call (6 on each of 3 devices): a call costs its 600 physics
+# steps on every device, nearly whatever its batch.
+EPISODES_PER_CALL = 18
 
 
 def filter_synthetic(env, grid, params, n_devices: int) -> dict:
-    """Selection of a synthetic family by `grid` split over `n_devices`, in calls of 8 episodes."""
+    """Selection of a synthetic family by `grid` split over `n_devices`, in calls of 18 episodes."""
     tasks = np.array([10.0, 13.0, 15.0])
     contexts = filtering.candidate_contexts(tasks, [9.0, 11.5, 14.0])  # 6 candidates x 3 reps = 18 episodes
     sel_key, _ = filtering.noise_keys(0)
@@ -48,13 +55,13 @@ def filter_synthetic(env, grid, params, n_devices: int) -> dict:
 
 
 def main() -> None:
-    assert len(jax.devices()) == 4, jax.devices()
+    assert len(jax.devices()) == N_DEVICES, jax.devices()
     env = kick_env.KickEnv(config.make_config("tiny").env)
     with tempfile.TemporaryDirectory() as tmp:
         out = {"experts": train(env, Path(tmp))}
     params = jax.tree.map(lambda a: a[None], stand_ins.synthetic_contextual_params())
-    grid = rollout.grid_fn(env, stand_ins.contextual_apply, sharding.device_mesh(4))
-    out["filter"] = filter_synthetic(env, grid, params, 4)
+    grid = rollout.grid_fn(env, stand_ins.contextual_apply, sharding.device_mesh(N_DEVICES))
+    out["filter"] = filter_synthetic(env, grid, params, N_DEVICES)
     json.dump(out, sys.stdout)
 
 

@@ -259,7 +259,9 @@ OVERRIDES = {
     "filter.context_range": (9.0, 14.0),
     "filter.context_step": 2.5,
     "filter.high_context_step": 1.25,
-    "filter.block": 8,
+    # Every selection and evaluation below in one call of one compiled program (at most 14
+    # episodes): on a CPU a call costs its physics steps (~5 s), nearly whatever its batch.
+    "filter.block": 16,
     # Two held-out targets, both nearest the 12 m stand-in expert; few kicks: one new program (the
     # experts'), the meta-policies' is the filter stage's.
     "heldout.targets": (10.023, 12.987),
@@ -375,7 +377,7 @@ def test_filter_stage_writes_table2(stage_run):
         if name != "filtered_ensemble_uses_11x128":
             assert np.all(np.abs(np.asarray(chosen) - saved["tasks"]) <= cfg.filter.width + 1e-6), name
     assert set(saved["per_task_error_m"]) == {*tables.PAPER_TABLE2}
-    assert saved["config"]["block"] == 8 and saved["paper"]["filtered_ensemble"]["error_mean_m"] == 0.40
+    assert saved["config"]["block"] == 16 and saved["paper"]["filtered_ensemble"]["error_mean_m"] == 0.40
     assert (stage_dir / "table2.md").read_text() == tables.table2_markdown(rows)
     for name in ("error_vs_target.png", "context_map.png"):
         assert (stage_dir / name).read_bytes()[:4] == b"\x89PNG"
@@ -488,20 +490,20 @@ def test_publish_ships_the_runs_results_and_policies(stage_run, heldout_run):
 def test_kick_filters_a_context_and_reports_the_resting_distances(stage_run, heldout_run, capsys):
     directory = heldout_run["root"] / "assets" / "policies"
     shipped = policies.load(directory)
-    # The command's env: the policies' own, with the contact pool sized to its 8 kicks (a user's
+    # The command's env: the policies' own, with the contact pool sized to its 16 kicks (a user's
     # setting wins); the same program serves this call and the command's below.
-    env_cfg = policies.kick_env_config(shipped.manifest, None, 8)
-    assert env_cfg.warp_contacts == kick_env.CONTACTS_PER_EPISODE * 8
-    assert policies.kick_env_config(shipped.manifest, {"warp_contacts": 4096}, 8).warp_contacts == 4096
+    env_cfg = policies.kick_env_config(shipped.manifest, None, 16)
+    assert env_cfg.warp_contacts == kick_env.CONTACTS_PER_EPISODE * 16
+    assert policies.kick_env_config(shipped.manifest, {"warp_contacts": 4096}, 16).warp_contacts == 4096
     assert kick_env.resolved(env_cfg) | {"warp_contacts": 0} == kick_env.resolved(
         policies.env_config(shipped.manifest)
     ) | {"warp_contacts": 0}
-    out = policies.filtered_kicks(shipped, "meta_4x256", 12.3, 8, env_cfg, selection_repetitions=2)
+    out = policies.filtered_kicks(shipped, "meta_4x256", 12.3, 16, env_cfg, selection_repetitions=2)
     assert out.context in (11.5, 12.3) and list(out.candidates) == [11.5, 12.3]
-    assert out.distance.shape == (8,) and np.all(np.isfinite(out.distance))
+    assert out.distance.shape == (16,) and np.all(np.isfinite(out.distance))
     # The error is the resting point's distance to the target: at least its miss along the line.
     assert np.all(out.final_error >= np.abs(out.distance - 12.3) - 1e-4)
-    cli.main(["kick", "--target", "12.3", "--kicks", "8", "--selection-reps", "2", "--policies", str(directory)])
+    cli.main(["kick", "--target", "12.3", "--kicks", "16", "--selection-reps", "2", "--policies", str(directory)])
     printed = capsys.readouterr().out
     assert "physics backend " + stage_run["cfg"].env.impl + ", step 2.5 ms" in printed
     each = next(line for line in printed.splitlines() if line.startswith("each kick (m): "))

@@ -1,5 +1,5 @@
 """The tiny expert-training config of test_experts.py and test_sharding.py (and of the process
-that test starts): conftest compiles its programs once for both files (~70 s on a CPU)."""
+that test starts): conftest builds its programs once per test worker."""
 
 from bumps_jax import config
 

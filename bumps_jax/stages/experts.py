@@ -15,6 +15,7 @@ final_params/, experts.json, experts.md.
 from __future__ import annotations
 
 import functools
+import json
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -172,6 +173,20 @@ def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray,
     return starts, info, int(candidates.shape[0] * candidates.shape[1] * e.tune.eval_repetitions)
 
 
+_TUNE_ENVS: dict = {}
+
+
+def tune_env(cfg) -> kick_env.KickEnv:
+    """The env the starting kicks are chosen and tuned in (cfg.env over the prior's task range),
+    built once per process and env config: cmaes keeps its programs per env, so a second tuning
+    in the same process (a resumed or repeated run) compiles nothing again."""
+    task_range = tuple(float(t) for t in cfg.prior.task_range)
+    key = (json.dumps(kick_env.resolved(cfg.env), sort_keys=True), task_range)
+    if key not in _TUNE_ENVS:
+        _TUNE_ENVS[key] = kick_env.KickEnv(cfg.env, {"task_range": task_range})
+    return _TUNE_ENVS[key]
+
+
 def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
     """The keyframe kick (T, 14) each expert clones, and a record of how it was made.
 
@@ -187,27 +202,27 @@ def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
 
     e = cfg.experts
     targets = np.asarray(e.tasks, np.float32)
-    tune_env = kick_env.KickEnv(cfg.env, {"task_range": tuple(cfg.prior.task_range)})
+    env = tune_env(cfg)
     info = {"tasks_m": targets.tolist(), "scheme": e.tune.scheme, "tuned": False}
     family = e.tune.scheme == "family"
     if family:
         knots = kick_model.knot_targets(float(targets.min()), float(targets.max()), e.tune.knots)
-        knot_params, start_info, episodes = prior_kicks(cfg, record, knots, tune_env, say)
+        knot_params, start_info, episodes = prior_kicks(cfg, record, knots, env, say)
         members = jax.vmap(kick_model.family_params, in_axes=(None, None, 0))
         starts = np.asarray(members(jnp.asarray(knot_params), jnp.asarray(knots), jnp.asarray(targets)))
         info.update(knots_m=knots.tolist(), knot_params=np.asarray(knot_params).tolist())
     else:
-        starts, start_info, episodes = prior_kicks(cfg, record, targets, tune_env, say)
+        starts, start_info, episodes = prior_kicks(cfg, record, targets, env, say)
     info.update(start_info)
     if e.tune.generations > 0:
         t0 = time.perf_counter()
         common = dict(fitness=cfg.prior.fitness, say=say)
         if family:
-            out = cmaes.tune_family(tune_env, targets, knots, knot_params, e.tune, e.tune.generations,
+            out = cmaes.tune_family(env, targets, knots, knot_params, e.tune, e.tune.generations,
                                     e.tune.sigma_init, **common)  # fmt: skip
             info["knot_params"] = out["knot_params"].tolist()
         else:
-            out = cmaes.tune_for_tasks(tune_env, targets, starts, e.tune, e.tune.generations, e.tune.sigma_init,
+            out = cmaes.tune_for_tasks(env, targets, starts, e.tune, e.tune.generations, e.tune.sigma_init,
                                        **common)  # fmt: skip
         starts = out["params"]
         episodes += out["episodes"]
