@@ -18,8 +18,9 @@ contacts, which `all_contacts` restores), stepped by the project's physics layer
 
 from __future__ import annotations
 
+import functools
 import importlib.resources
-import importlib.util
+import json
 import math
 import re
 
@@ -28,10 +29,10 @@ import jax.numpy as jnp
 import ml_collections
 import mujoco
 import numpy as np
-from brax.envs.base import Env, State
+from brax.envs.base import State
 from mujoco import mjx
 
-from bumps_jax import kick_env, physics
+from bumps_jax import kick_env, task_env
 from bumps_jax.physics import read_flags
 
 # The cheetah's total mass (kg): what the model's `settotalmass` sets (`load_model`).
@@ -44,7 +45,7 @@ ROOT_X_QPOS = 0
 CONTACTS_PER_GEOM = 2
 # Constraint rows of one contact: the pyramidal friction cone of condim 3.
 ROWS_PER_CONTACT = 4
-IMPLS = kick_env.IMPLS
+IMPLS = task_env.IMPLS
 
 
 def default_config() -> ml_collections.ConfigDict:
@@ -89,25 +90,13 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
 
 def validate_config(cfg: ml_collections.ConfigDict) -> None:
     """ValueError naming the first bad value of a cheetah env config."""
-    if cfg.impl not in IMPLS:
-        raise ValueError(f"env.impl must be one of {IMPLS}, got {cfg.impl!r}")
-    if cfg.impl == "warp" and importlib.util.find_spec("warp") is None:
-        raise ValueError(
-            "env.impl 'warp' needs the warp-lang package (pip install 'mujoco-mjx[warp]==3.17.0'), or set env.impl=jax"
-        )
-    for key in ("solver_iterations", "warp_contacts", "warp_constraints_per_world", "episode_steps"):
-        value = cfg[key]
-        if (value is not None or key != "solver_iterations") and (
-            isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1
-        ):
-            raise ValueError(f"env.{key} must be a positive integer, got {value!r}")
+    task_env.validate_physics(cfg, ("episode_steps",))
     lo, hi = cfg.task_range
     if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
         raise ValueError(f"env.task_range must be finite with low < high, got {tuple(cfg.task_range)}")
     if not cfg.ctrl_dt > 0:
         raise ValueError(f"env.ctrl_dt must be > 0, got {cfg.ctrl_dt!r}")
-    if cfg.physics_dt is not None and not 0 < cfg.physics_dt <= cfg.ctrl_dt:
-        raise ValueError(f"env.physics_dt must be in (0, ctrl_dt {cfg.ctrl_dt}], got {cfg.physics_dt!r}")
+    task_env.validate_physics_dt(cfg)
     if not cfg.reset_noise >= 0:
         raise ValueError(f"env.reset_noise must be >= 0, got {cfg.reset_noise!r}")
     for name, value in cfg.reward.items():
@@ -143,12 +132,37 @@ def colliding_geoms(model: mujoco.MjModel) -> int:
 
 def check_targets(targets, task_range) -> np.ndarray:
     """Targets as a float array, or ValueError naming the first one outside `task_range`."""
-    arr = np.asarray(targets, dtype=np.float64)
-    lo, hi = task_range
-    bad = ~np.isfinite(arr) | (arr < lo - 1e-9) | (arr > hi + 1e-9)
-    if bad.any():
-        raise ValueError(f"target {float(arr[bad].flat[0])!r} m/s is outside the task range [{lo}, {hi}] m/s")
-    return arr
+    return task_env.check_targets(targets, task_range, "m/s")
+
+
+def noise_free(cfg: ml_collections.ConfigDict) -> dict:
+    """Overrides of an env config that switch its reset noise off."""
+    return {"reset_noise": 0.0}
+
+
+@functools.lru_cache(maxsize=4)
+def contacts_per_episode(all_contacts: bool = True) -> int:
+    """The most floor contacts one episode makes: 2 per colliding capsule (16 with `all_contacts`)."""
+    return CONTACTS_PER_GEOM * colliding_geoms(load_model(all_contacts))
+
+
+@functools.lru_cache(maxsize=4)
+def _model_options(all_contacts: bool) -> tuple[float, int]:
+    """The model's own (physics step (s), solver iterations)."""
+    model = load_model(all_contacts)
+    return float(model.opt.timestep), int(model.opt.iterations)
+
+
+def resolved(env_cfg) -> dict:
+    """A cheetah env config as plain data with its physics step and solver iterations resolved
+    (None: the model's own), as records carry it."""
+    d = env_cfg.to_dict() if isinstance(env_cfg, ml_collections.ConfigDict) else dict(env_cfg)
+    timestep, iterations = _model_options(bool(d.get("all_contacts", True)))
+    if d.get("physics_dt") is None:
+        d["physics_dt"] = timestep
+    if d.get("solver_iterations") is None:
+        d["solver_iterations"] = iterations
+    return json.loads(json.dumps(d, default=list))
 
 
 def _reward_velocity(forward_vel: jax.Array, target: jax.Array) -> jax.Array:
@@ -161,7 +175,7 @@ def _reward_ctrl(action: jax.Array) -> jax.Array:
     return -jnp.sum(jnp.square(action))
 
 
-class CheetahVelEnv(Env):
+class CheetahVelEnv(task_env.ContextualEnv):
     """The half-cheetah runs at a target forward velocity (m/s).
 
     reset(rng, target) -> State; step(state, action) -> State. `action` (6,): motor commands in
@@ -169,28 +183,21 @@ class CheetahVelEnv(Env):
     (bthigh, bshin, bfoot, fthigh, fshin, ffoot).
     """
 
+    UNIT = "m/s"
+    ACHIEVED = "mean_forward_vel"
+
     def __init__(self, config=None, config_overrides: dict | None = None):
         self.config = make_config(config, config_overrides)
         validate_config(self.config)
         cfg = self.config
-        self.mj_model = load_model(cfg.all_contacts)
-        if cfg.physics_dt is not None:
-            self.mj_model.opt.timestep = cfg.physics_dt
-        if cfg.solver_iterations is not None:
-            self.mj_model.opt.iterations = cfg.solver_iterations
-        physics_dt = self.physics_dt = float(self.mj_model.opt.timestep)
-        self.n_substeps = int(round(cfg.ctrl_dt / physics_dt))
-        if not math.isclose(self.n_substeps * physics_dt, cfg.ctrl_dt, rel_tol=1e-6):
-            raise ValueError(f"ctrl_dt {cfg.ctrl_dt} is not a multiple of the physics step {physics_dt}")
+        mj_model = load_model(cfg.all_contacts)
+        self.contacts_per_episode = CONTACTS_PER_GEOM * colliding_geoms(mj_model)
+        self._init_physics(mj_model)
         self.n_steps = int(cfg.episode_steps)
         self.torso_body = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_BODY, TORSO)
         root_x = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_JOINT, ROOT_X)
         if self.mj_model.jnt_qposadr[root_x] != ROOT_X_QPOS:
             raise ValueError(f"the model's {ROOT_X!r} joint is not its first coordinate")
-        self.contacts_per_episode = CONTACTS_PER_GEOM * colliding_geoms(self.mj_model)
-        # Episodes one physics call holds: Warp's contact pool; None: no limit (MJX-JAX).
-        self.max_episodes = cfg.warp_contacts // self.contacts_per_episode if cfg.impl == "warp" else None
-        self.mjx_model, self._warp_data = physics.put_physics(self.mj_model, cfg)
         self._qpos0 = jnp.asarray(self.mj_model.qpos0, jnp.float32)
         self._ctrl_lo = jnp.asarray(self.mj_model.actuator_ctrlrange[:, 0], jnp.float32)
         self._ctrl_hi = jnp.asarray(self.mj_model.actuator_ctrlrange[:, 1], jnp.float32)
@@ -203,14 +210,6 @@ class CheetahVelEnv(Env):
     @property
     def action_size(self) -> int:
         return self.mj_model.nu
-
-    @property
-    def backend(self) -> str:
-        return "mjx"
-
-    @property
-    def dt(self) -> float:
-        return self.config.ctrl_dt
 
     # -- the task --------------------------------------------------------------------------
     def reset(self, rng: jax.Array, target=None) -> State:
@@ -242,6 +241,9 @@ class CheetahVelEnv(Env):
             "step": jnp.zeros((), jnp.int32),
             "return": zero,  # sum of the rewards so far
             "vel_error_sum": zero,  # sum of |forward velocity - target| so far (m/s)
+            # Each control step's forward velocity (m/s), 0 for steps not taken yet: scores the
+            # episode against any other target (`error_against`, policy filtering).
+            "forward_vels": jnp.zeros((self.n_steps,), jnp.float32),
             "overflow": overflow,
             "solver_limit_steps": jnp.zeros((), jnp.int32),
             # Brax's flag of an episode cut by its time limit: every episode ends so.
@@ -280,6 +282,7 @@ class CheetahVelEnv(Env):
             solver_limit_steps=limit_steps,
             truncation=done,
             vel_error_sum=info["vel_error_sum"] + jnp.abs(forward_vel - info["target"]),
+            forward_vels=info["forward_vels"].at[jnp.minimum(info["step"], self.n_steps - 1)].set(forward_vel),
         )
         info["return"] = info["return"] + reward
         metrics = self._metrics(data, info, forward_vel, reward_velocity, reward_ctrl)
@@ -290,10 +293,17 @@ class CheetahVelEnv(Env):
     def _metrics(self, data, info, forward_vel, reward_velocity, reward_ctrl) -> dict:
         """The step's velocity and reward terms, and the episode's score so far (final at `done`)."""
         steps = jnp.maximum(info["step"], 1).astype(jnp.float32)
+        mean_vel_error = info["vel_error_sum"] / steps
         return {
             # The episode's score: its return, and its mean |forward velocity - target| (m/s).
             "return": info["return"],
-            "mean_vel_error": info["vel_error_sum"] / steps,
+            "mean_vel_error": mean_vel_error,
+            # The pipeline's score of a contextual task (task_env): the error against the target
+            # (here the mean velocity error, m/s) and whether the episode counts (no overflow).
+            "final_error": mean_vel_error,
+            "valid": (~info["overflow"] & jnp.isfinite(mean_vel_error)).astype(jnp.float32),
+            "mean_forward_vel": jnp.sum(info["forward_vels"]) / steps,  # m/s over the steps so far
+            "forward_vels": info["forward_vels"],
             "forward_vel": forward_vel,  # this step's (m/s)
             "vel_error": jnp.abs(forward_vel - info["target"]) * (info["step"] > 0),
             # This step's reward terms, weighted: reward = reward_velocity + reward_ctrl.
@@ -315,15 +325,19 @@ class CheetahVelEnv(Env):
             parts.append(data.xpos[self.torso_body])
         return jnp.concatenate(parts)
 
-    def normalise_context(self, context):
-        """A target velocity or context (m/s) as a policy sees it: 0 at the task range's low end, 1 at its high."""
-        lo, hi = self.config.task_range
-        return (context - lo) / (hi - lo)
-
     @property
     def context_observation_size(self) -> int:
         """Size of what a contextual policy observes (`with_context`): the observation and its context."""
         return self.observation_size + 1
+
+    def error_against(self, metrics: dict, targets) -> np.ndarray:
+        """Mean velocity errors (m/s) of finished episodes against other targets (m/s), from their
+        per-step velocities (`forward_vels` (..., n_steps)): shape of the metrics' episodes
+        broadcast with `targets`, e.g. (C, R) episodes and targets (T, 1, 1) -> (T, C, R)."""
+        vels = np.asarray(metrics["forward_vels"], np.float64)
+        targets = np.asarray(targets, np.float64)[..., None]
+        err = np.abs(vels - targets).mean(axis=-1)
+        return np.where(np.asarray(metrics["valid"]) > 0, err, np.inf)
 
     def with_context(self, obs: jax.Array, context) -> jax.Array:
         """What a contextual (meta-)policy observes: obs (..., obs_size) with the normalised

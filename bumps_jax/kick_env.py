@@ -13,18 +13,16 @@ from __future__ import annotations
 
 import copy
 import functools
-import importlib.util
 import json
-import math
 
 import jax
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
-from brax.envs.base import Env, State
+from brax.envs.base import State
 from mujoco import mjx
 
-from bumps_jax import physics, scene
+from bumps_jax import physics, scene, task_env
 from bumps_jax.physics import read_flags, rest_point, rolling, servo_ramp
 
 
@@ -106,7 +104,7 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
     return cfg
 
 
-IMPLS = ("jax", "warp")
+IMPLS = task_env.IMPLS
 
 
 def resolved(env_cfg) -> dict:
@@ -132,23 +130,11 @@ def _scene_iterations() -> int:
 
 def validate_config(cfg: ml_collections.ConfigDict) -> None:
     """ValueError naming the first bad value of an env config."""
-    if cfg.impl not in IMPLS:
-        raise ValueError(f"env.impl must be one of {IMPLS}, got {cfg.impl!r}")
-    if cfg.impl == "warp" and importlib.util.find_spec("warp") is None:
-        raise ValueError(
-            "env.impl 'warp' needs the warp-lang package (pip install 'mujoco-mjx[warp]==3.17.0'), or set env.impl=jax"
-        )
-    for key in ("solver_iterations", "warp_contacts", "warp_constraints_per_world"):
-        value = cfg[key]
-        if (value is not None or key != "solver_iterations") and (
-            isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1
-        ):
-            raise ValueError(f"env.{key} must be a positive integer, got {value!r}")
+    task_env.validate_physics(cfg)
     lo, hi = cfg.task_range
     if not 0.0 < lo < hi:
         raise ValueError(f"task_range must be 0 < low < high, got {tuple(cfg.task_range)}")
-    if cfg.physics_dt is not None and not 0 < cfg.physics_dt <= cfg.ctrl_dt:
-        raise ValueError(f"env.physics_dt must be in (0, ctrl_dt {cfg.ctrl_dt}], got {cfg.physics_dt!r}")
+    task_env.validate_physics_dt(cfg)
     if cfg.ctrl_dt <= 0 or cfg.horizon_s < cfg.ctrl_dt:
         raise ValueError(f"need 0 < ctrl_dt <= horizon_s, got {cfg.ctrl_dt}, {cfg.horizon_s}")
     if len(cfg.tasks) == 0:
@@ -159,17 +145,17 @@ def validate_config(cfg: ml_collections.ConfigDict) -> None:
             raise ValueError(f"env.noise.{name} must be >= 0, got {value}")
 
 
+def noise_free(cfg: ml_collections.ConfigDict) -> dict:
+    """Overrides of an env config that switch its noise off (the experts' recording, the paper's)."""
+    return {f"noise.{name}": 0.0 for name in cfg.noise}
+
+
 def check_targets(targets, task_range) -> np.ndarray:
     """Targets as a float array, or ValueError naming the first one outside `task_range`."""
-    arr = np.asarray(targets, dtype=np.float64)
-    lo, hi = task_range
-    bad = ~np.isfinite(arr) | (arr < lo - 1e-9) | (arr > hi + 1e-9)
-    if bad.any():
-        raise ValueError(f"target {float(arr[bad].flat[0])!r} m is outside the task range [{lo}, {hi}] m")
-    return arr
+    return task_env.check_targets(targets, task_range, "m")
 
 
-class KickEnv(Env):
+class KickEnv(task_env.ContextualEnv):
     """The NAO kicks a ball to a target distance.
 
     reset(rng, target) -> State; step(state, action) -> State. `action` (22,) holds absolute
@@ -181,20 +167,10 @@ class KickEnv(Env):
         self.config = make_config(config, config_overrides)
         validate_config(self.config)
         cfg = self.config
-        self.mj_model = scene.load_model()
-        if cfg.physics_dt is not None:
-            self.mj_model.opt.timestep = cfg.physics_dt
-        if cfg.solver_iterations is not None:
-            self.mj_model.opt.iterations = cfg.solver_iterations
+        self.contacts_per_episode = CONTACTS_PER_EPISODE
+        self._init_physics(scene.load_model())
         self.ids = scene.scene_ids(self.mj_model)
-        physics_dt = self.physics_dt = float(self.mj_model.opt.timestep)
-        self.n_substeps = int(round(cfg.ctrl_dt / physics_dt))
-        if not math.isclose(self.n_substeps * physics_dt, cfg.ctrl_dt, rel_tol=1e-6):
-            raise ValueError(f"ctrl_dt {cfg.ctrl_dt} is not a multiple of the physics step {physics_dt}")
         self.n_steps = int(round(cfg.horizon_s / cfg.ctrl_dt))
-        # Episodes one physics call holds: Warp's contact pool; None: no limit (MJX-JAX).
-        self.max_episodes = cfg.warp_contacts // CONTACTS_PER_EPISODE if cfg.impl == "warp" else None
-        self.mjx_model, self._warp_data = physics.put_physics(self.mj_model, cfg)
         self.decel_rate = scene.rolling_decel_rate(timestep=cfg.physics_dt)
         self._qpos0 = jnp.asarray(scene.stance_qpos(self.mj_model))
         self._stance = jnp.asarray(scene.STANCE)
@@ -211,14 +187,6 @@ class KickEnv(Env):
     @property
     def action_size(self) -> int:
         return scene.N_JOINTS
-
-    @property
-    def backend(self) -> str:
-        return "mjx"
-
-    @property
-    def dt(self) -> float:
-        return self.config.ctrl_dt
 
     # -- the task --------------------------------------------------------------------------
     def reset(self, rng: jax.Array, target=None) -> State:
@@ -378,15 +346,15 @@ class KickEnv(Env):
             "rest_y": jnp.nan_to_num(rest[1]),
         }
 
-    def normalise_context(self, context):
-        """A target or context (m) as the policy sees it: 0 at the task range's low end, 1 at its high."""
-        lo, hi = self.config.task_range
-        return (context - lo) / (hi - lo)
-
     def with_context(self, obs: jax.Array, context) -> jax.Array:
         """The observation (obs_size,) with its context replaced by `context` (m): a policy asked
         for another distance than the task the env scores (policy filtering)."""
         return obs.at[1].set(self.normalise_context(context))
+
+    def error_against(self, metrics: dict, targets) -> np.ndarray:
+        """Final errors (m) of finished kicks against other targets (m): the module's
+        `error_against` of their resting points (`distance`, `lateral`, `blown_up`)."""
+        return error_against(metrics["distance"], metrics["lateral"], metrics["blown_up"], targets)
 
     def _reward(self, data, info, metrics, done) -> jax.Array:
         """Paper's per-step term: -scale * |ball - target|; at the end, -w * final error."""

@@ -132,6 +132,16 @@ def test_episode_ends_at_200_steps_over_a_batch_of_targets(cheetah, batch_episod
     final = jax.tree.map(lambda a: a[-1], trace.metrics)
     np.testing.assert_allclose(final["return"], trace.reward.sum(axis=0), rtol=1e-4)
     np.testing.assert_allclose(final["mean_vel_error"], trace.metrics["vel_error"].mean(axis=0), rtol=1e-4)
+    # The pipeline's score (task_env): final_error is that mean velocity error, every episode valid;
+    # the per-step velocities score the same episodes against any other target (policy filtering).
+    np.testing.assert_allclose(final["final_error"], final["mean_vel_error"])
+    np.testing.assert_array_equal(final["valid"], 1.0)
+    np.testing.assert_allclose(final["forward_vels"], trace.metrics["forward_vel"].T, rtol=1e-6)
+    np.testing.assert_allclose(final["mean_forward_vel"], trace.metrics["forward_vel"].mean(axis=0), rtol=1e-4)
+    against = cheetah.error_against(jax.tree.map(np.asarray, final), np.asarray(TARGETS)[:, None])  # (3, B)
+    np.testing.assert_allclose(np.diag(against), final["mean_vel_error"], rtol=1e-4)
+    expected = np.abs(trace.metrics["forward_vel"][:, None, :] - np.asarray(TARGETS)[None, :, None]).mean(axis=0)
+    np.testing.assert_allclose(against, expected, rtol=1e-4)
     # Every step, every episode: its reward scores its own target.
     targets = np.asarray(TARGETS)[None, :]
     run = -np.abs(trace.metrics["forward_vel"] - targets)
