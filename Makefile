@@ -35,8 +35,9 @@ demo: $(STAMP)
 
 # The paper preset end to end on a GPU: runs/paper/report.md; finished stages are skipped.
 # Overrides are dotted keys of the config tree: make reproduce SET="experts.ppo.total_env_steps=2880000"
+# TASK=cheetah_vel runs HalfCheetah-Vel instead of the kick (runs/cheetah_vel/paper).
 reproduce: $(STAMP)
-	$(PY) -m bumps_jax reproduce --preset paper $(if $(SET),--set $(SET),)
+	$(PY) -m bumps_jax reproduce --preset paper $(if $(TASK),--task $(TASK),) $(if $(SET),--set $(SET),)
 
 # Copy a finished paper run's results and figures into results/ and docs/ (docs/results.md), its prior into assets/.
 publish: $(STAMP)

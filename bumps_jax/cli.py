@@ -1,6 +1,11 @@
 """Every command of the pipeline from one command line.
 
-    python -m bumps_jax <command> [--preset tiny|paper] [--run-dir D] [--set KEY=VALUE ...] [--force]
+    python -m bumps_jax <command> [--preset tiny|paper] [--task kick|cheetah_vel] [--run-dir D]
+                                  [--set KEY=VALUE ...] [--force]
+
+`--task` picks the contextual task (the config's `task`: the kick by default); another task's runs
+go to runs/<task>/<preset> unless --run-dir says otherwise, and its `--set` keys name its own
+sections: `--task cheetah_vel --set experts.seed=3` sets `cheetah_vel.experts.seed`.
 
 `--set` takes dotted keys of the one config tree (`bumps_jax.config`): `env.physics_dt=0.005`,
 `experts.ppo.learning_rate=1e-5`; a stage's own keys may drop their section
@@ -65,6 +70,20 @@ def parse_overrides(groups, section: str | None = None) -> dict:
     return out
 
 
+def task_overrides(overrides: dict) -> dict:
+    """`overrides` with the keys of a section the selected task (its `task` key) has of its own
+    moved into that task's sections: {"task": "cheetah_vel", "experts.seed": 3} ->
+    {"task": "cheetah_vel", "cheetah_vel.experts.seed": 3}. The kick's are kept as they are."""
+    from bumps_jax import config  # noqa: PLC0415
+
+    task = overrides.get("task", "kick")
+    tree = config.default_config()
+    if task == "kick" or task not in tree:
+        return overrides
+    own = set(tree[task].keys())
+    return {(f"{task}.{k}" if k.split(".")[0] in own else k): v for k, v in overrides.items()}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m bumps_jax", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -73,7 +92,13 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
         presets = (PIPELINES[name][1],) if name in PIPELINES else ("tiny", "paper")
         p.add_argument("--preset", default=presets[0], help=f"one of {presets} (default {presets[0]})")
-        p.add_argument("--run-dir", default=None, type=Path, help="default: runs/<preset> (runs/demo for demo)")
+        p.add_argument(
+            "--run-dir",
+            default=None,
+            type=Path,
+            help="default: runs/<preset> (runs/demo for demo); another task's: runs/<task>/<preset>",
+        )
+        p.add_argument("--task", default=None, help="the contextual task: kick (default) or cheetah_vel (config: task)")
         p.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
                        help="config overrides (JSON values); may be repeated")  # fmt: skip
         p.add_argument("--force", action="store_true",
@@ -97,8 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def default_run_dir(command: str, preset: str) -> Path:
-    return Path("runs") / ("demo" if command == "demo" else preset)
+def default_run_dir(command: str, preset: str, task: str = "kick") -> Path:
+    name = "demo" if command == "demo" else preset
+    return Path("runs") / name if task == "kick" else Path("runs") / task / name
 
 
 def dispatch(args) -> None:
@@ -108,9 +134,12 @@ def dispatch(args) -> None:
     known = (PIPELINES[args.command][1],) if args.command in PIPELINES else ("tiny", "paper")
     if args.preset not in known:
         raise ValueError(f"{args.command} runs the {known[0]!r} preset only, got --preset {args.preset!r}")
-    run_dir = args.run_dir or default_run_dir(args.command, args.preset)
     section = STAGE_COMMANDS.get(args.command, (None,))[0]
-    cfg = config.make_config(args.preset, parse_overrides(args.set, section))
+    overrides = parse_overrides(args.set, section)
+    if args.task is not None:
+        overrides = {"task": args.task, **overrides}
+    cfg = config.make_config(args.preset, task_overrides(overrides))
+    run_dir = args.run_dir or default_run_dir(args.command, args.preset, cfg.task)
     if section:
         pipeline.run_stage(section, cfg, run_dir, force=args.force)
     elif args.command in PIPELINES:
@@ -130,7 +159,7 @@ def main(argv=None) -> None:
         os.environ.setdefault("MUJOCO_GL", "egl")
     from bumps_jax import runio  # noqa: PLC0415
 
-    run_dir = args.run_dir or default_run_dir(args.command, args.preset)
+    run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task or "kick")
     try:
         if args.distributed:
             from bumps_jax import sharding  # noqa: PLC0415

@@ -5,6 +5,7 @@
 The tree has one section per stage plus the env every stage builds its simulation from:
 
     preset                       "tiny" | "paper"
+    task                         "kick" (the paper's, the default) | "cheetah_vel"
     env       kick_env.default_config(): physics, task, noise, reward
     prior     the keyframe kick prior (CMA-ES)
     experts   one PPO expert per task: starting kicks, cloning, PPO, evaluation
@@ -12,6 +13,11 @@ The tree has one section per stage plus the env every stage builds its simulatio
     filter    policy filtering over sampled contexts (Table 2)
     baseline  the multi-task PPO baseline (the paper's Figure 1)
     heldout   the held-out evaluation (`evaluate --heldout`): targets and noise no other stage uses
+    cheetah_vel  HalfCheetah-Vel's own env, experts, meta and filter sections (`task: cheetah_vel`)
+
+The sections at the top are the kick's. Another task's sections live under its name and have the
+same layout where the stages share code; `task_view` puts the selected task's at the top, and a
+task's stages read only that view.
 
 Defaults are the `paper` preset (the paper's budgets, for a GPU); `tiny` overrides the
 sizes so that the whole pipeline runs on a CPU in minutes. Every value a user can set is a
@@ -20,13 +26,14 @@ leaf here; `docs/decisions.md` says how the numbers were chosen.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 
 import ml_collections
 from ml_collections import FieldReference
 
-from bumps_jax import kick_env, ppo
+from bumps_jax import cheetah_env, kick_env, ppo, tasks
 from bumps_jax.env_records import differing_keys, jsonable
 
 
@@ -191,10 +198,78 @@ def _heldout() -> ml_collections.ConfigDict:
     return cfg
 
 
+# HalfCheetah-Vel's meta-training velocities (m/s): a grid of 0.25 m/s over PEARL's U[0, 3] range.
+CHEETAH_TRAIN_TASKS = tuple(round(0.25 * i, 2) for i in range(13))
+# Its 30 held-out test velocities (m/s): numpy.random.default_rng(2026).uniform(0, 3), rounded to 3
+# decimals, the first 30 draws (none within 0.005 m/s of the training grid). Fixed here, so that
+# every run is scored on the same ones.
+CHEETAH_TEST_TASKS = (
+    0.537, 1.92, 1.402, 1.112, 1.065, 2.372, 2.715, 0.532, 1.958, 0.895, 2.901, 2.76, 1.908, 2.258, 1.545,
+    2.478, 1.345, 1.016, 0.834, 0.679, 1.577, 1.293, 1.99, 0.039, 1.343, 1.096, 0.586, 1.785, 1.306, 0.9,
+)  # fmt: skip
+
+
+def _cheetah_vel() -> ml_collections.ConfigDict:
+    """HalfCheetah-Vel's sections (env, experts, meta, filter): sized to run in 15 minutes on one
+    H100 (docs/decisions.md: the estimate). The experts are PPO from a fresh policy with Brax's
+    published halfcheetah hyperparameters, mapped onto whole 200-step episodes."""
+    cfg = ml_collections.ConfigDict()
+    cfg.env = cheetah_env.default_config()
+    experts = cfg.experts = ml_collections.ConfigDict()
+    experts.tasks = CHEETAH_TRAIN_TASKS  # m/s, one expert each
+    experts.seed = 0
+    experts.updates_per_chunk = 10  # PPO updates per compiled chunk; progress and a checkpoint between
+    experts.keep_checkpoints = 3
+    experts.ppo = ppo.default_config()
+    # Brax's halfcheetah PPO (its training notebook): 2048 envs x 20-step unrolls, 32 minibatches,
+    # 8 epochs per batch, discount 0.95, lr 3e-4, entropy 1e-3, reward scaling 1, observation
+    # normalisation; GAE lambda 0.95, clip 0.3 and value weight 0.5 are Brax's defaults.
+    experts.ppo.num_envs = 512  # whole 200-step episodes per update: 102,400 steps (Brax: 327,680)
+    experts.ppo.num_minibatches = 16  # 32 episodes = 6,400 steps each (Brax: 10,240)
+    experts.ppo.num_epochs = 8
+    experts.ppo.total_env_steps = 512 * 200 * 100  # 10.24 M per expert, 100 updates
+    experts.ppo.learning_rate = 3e-4
+    experts.ppo.value_learning_rate = 3e-4  # Brax: one Adam for both nets
+    experts.ppo.discount = 0.95
+    experts.ppo.gae_lambda = 0.95
+    experts.ppo.clip_epsilon = 0.3
+    experts.ppo.entropy_cost = 1e-3
+    experts.ppo.reward_scaling = 1.0
+    experts.ppo.normalize_observations = True
+    experts.ppo.policy_hidden = (32, 32, 32, 32)  # Brax's default PPO nets
+    experts.ppo.value_hidden = (256, 256, 256, 256, 256)
+    experts.ppo.init_log_std = -0.37  # std 0.69: Brax's tanh-normal starts at softplus(0)
+    experts.eval = ml_collections.ConfigDict()
+    experts.eval.repetitions = 20  # episodes per expert on its own velocity (reset noise on)
+    experts.eval.seed = 1
+    cfg.env.warp_contacts = cheetah_env.CONTACTS_PER_GEOM * 8 * len(experts.tasks) * experts.ppo.num_envs
+    cfg.meta = _meta()
+    cfg.meta.dataset.repetitions = 8  # episodes per expert, reset noise on: the states a closed loop meets
+    cfg.meta.train.learning_rate = 1e-3
+    cfg.meta.train.batch_size = 256
+    cfg.meta.train.epochs = 300  # 20,800 pairs: 82 steps per epoch
+    cfg.meta.train.decay_every = 50
+    cfg.meta.train.chunk = 25
+    cfg.meta.eval.tasks = CHEETAH_TEST_TASKS
+    cfg.meta.eval.repetitions = 20
+    cfg.filter = _filter()
+    cfg.filter.tasks = CHEETAH_TEST_TASKS
+    cfg.filter.context_range = (0.0, 3.0)  # m/s: sampled contexts form a grid over this range ...
+    cfg.filter.context_step = 0.1  # ... of this step (31 contexts)
+    cfg.filter.high_context_step = 0.02  # the "high sample rate" variant (151 contexts)
+    cfg.filter.width = 0.3  # m/s: a task's candidates are the contexts within +- width of it
+    cfg.filter.halving_rungs = (2, 8, 32)
+    cfg.filter.eval_repetitions = 20
+    return cfg
+
+
 def default_config() -> ml_collections.ConfigDict:
     """The whole tree at the `paper` preset's values (unlocked)."""
     cfg = ml_collections.ConfigDict()
     cfg.preset = "paper"
+    # The contextual task every stage runs: "kick" (the paper's) or "cheetah_vel" (its sections:
+    # `cheetah_vel`).
+    cfg.task = "kick"
     cfg.env = kick_env.default_config()
     cfg.prior = _prior()
     cfg.experts = _experts()
@@ -202,6 +277,7 @@ def default_config() -> ml_collections.ConfigDict:
     cfg.filter = _filter()
     cfg.baseline = _baseline()
     cfg.heldout = _heldout()
+    cfg.cheetah_vel = _cheetah_vel()
     return cfg
 
 
@@ -265,6 +341,35 @@ PRESETS: dict[str, dict] = {
         "heldout.targets": HELDOUT_TARGETS[::10],
         "heldout.repetitions": 2,
         "heldout.selection_repetitions": 2,
+        # HalfCheetah-Vel at CPU size: 10-step episodes, 2 experts, 2 PPO updates, a short BC.
+        "cheetah_vel.env.episode_steps": 10,
+        "cheetah_vel.env.warp_contacts": cheetah_env.CONTACTS_PER_GEOM * 8 * 16,
+        "cheetah_vel.experts.tasks": (0.5, 2.0),
+        "cheetah_vel.experts.updates_per_chunk": 1,
+        "cheetah_vel.experts.keep_checkpoints": 2,
+        "cheetah_vel.experts.ppo.num_envs": 4,
+        "cheetah_vel.experts.ppo.num_minibatches": 2,
+        "cheetah_vel.experts.ppo.num_epochs": 2,
+        "cheetah_vel.experts.ppo.total_env_steps": 4 * 10 * 2,
+        "cheetah_vel.experts.ppo.policy_hidden": (32, 32),
+        "cheetah_vel.experts.ppo.value_hidden": (32, 32),
+        "cheetah_vel.experts.eval.repetitions": 2,
+        "cheetah_vel.meta.dataset.repetitions": 2,
+        "cheetah_vel.meta.train.epochs": 20,
+        "cheetah_vel.meta.train.chunk": 10,
+        "cheetah_vel.meta.train.decay_every": 10,
+        "cheetah_vel.meta.train.batch_size": 64,
+        "cheetah_vel.meta.eval.tasks": (1.2,),
+        "cheetah_vel.meta.eval.repetitions": 2,
+        "cheetah_vel.filter.tasks": (1.2,),
+        "cheetah_vel.filter.context_step": 0.5,
+        "cheetah_vel.filter.high_context_step": 0.25,
+        "cheetah_vel.filter.width": 0.5,
+        "cheetah_vel.filter.selection": "fixed",
+        "cheetah_vel.filter.selection_repetitions": 2,
+        "cheetah_vel.filter.halving_rungs": (1, 2),
+        "cheetah_vel.filter.eval_repetitions": 2,
+        "cheetah_vel.filter.block": 16,
     },
 }
 
@@ -357,8 +462,32 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
 
 def section(cfg: ml_collections.ConfigDict, stage: str) -> dict:
     """What one stage's results depend on, as plain data: its section, the env (its physics step
-    resolved, as records carry it) and the preset."""
-    return {"preset": cfg.preset, "env": kick_env.resolved(cfg.env), stage: jsonable(cfg[stage].to_dict())}
+    resolved, as records carry it) and the preset; for a task other than the kick, the task too
+    (the kick's stays as it was, so that its runs resume)."""
+    if cfg.task == "kick":
+        return {"preset": cfg.preset, "env": kick_env.resolved(cfg.env), stage: jsonable(cfg[stage].to_dict())}
+    view = task_view(cfg)
+    env = tasks.resolved(cfg.task, view.env)
+    return {"preset": cfg.preset, "task": cfg.task, "env": env, stage: jsonable(view[stage].to_dict())}
+
+
+def task_view(cfg: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
+    """The config the selected task's stages read: the kick's is `cfg` itself; another task's is a
+    locked copy holding preset, task and that task's sections (env, experts, ...) at the top. A
+    view is its own view."""
+    if cfg.task == "kick" or cfg.task not in cfg:
+        return cfg
+    view = ml_collections.ConfigDict()
+    view.preset, view.task = cfg.preset, cfg.task
+    for key in cfg[cfg.task].keys():
+        view[key] = copy.deepcopy(cfg[cfg.task][key])
+    view.lock()
+    return view
+
+
+def resolved_env(cfg: ml_collections.ConfigDict) -> dict:
+    """The selected task's env config as records carry it (`tasks.resolved`)."""
+    return tasks.resolved(cfg.task, task_view(cfg).env)
 
 
 def overrides_of(cfg: ml_collections.ConfigDict) -> dict:

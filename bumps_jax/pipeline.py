@@ -22,7 +22,7 @@ import shutil
 import time
 from pathlib import Path
 
-from bumps_jax import config, runio
+from bumps_jax import config, runio, tasks
 
 # Stage name -> the stages that read its outputs (directly or through another).
 ORDER = ("prior", "experts", "meta", "filter", "heldout", "baseline")
@@ -37,12 +37,13 @@ def stage_module(name: str):
 
 
 def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]:
-    """(manifest wanted, status) of one stage, checked before any work: every input exists and
-    parses (ValueError naming it), and the stage directory holds nothing of another config
-    (runio.StaleRunError; with `force` such a directory is wiped). status: "new", "same" (resume),
-    "done" (its record exists) or "forced"."""
+    """(manifest wanted, status) of one stage, checked before any work: the config's task has the
+    stage, every input exists and parses (ValueError naming it), and the stage directory holds
+    nothing of another config (runio.StaleRunError; with `force` such a directory is wiped).
+    status: "new", "same" (resume), "done" (its record exists) or "forced"."""
+    tasks.check_stage(cfg.task, name)
     module = stage_module(name)
-    wanted = runio.manifest(config.section(cfg, name), module.inputs(cfg, run_dir))
+    wanted = runio.manifest(config.section(cfg, name), module.inputs(config.task_view(cfg), run_dir))
     status = runio.check_manifest(run_dir / name, wanted, force)
     if status == "same" and (run_dir / name / module.OUTPUT).exists():
         status = "done"
@@ -70,11 +71,12 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
                 shutil.rmtree(run_dir / later)
     runio.write_manifest(run_dir / name, wanted)
     say(f"== {name}" + (" (resuming)" if status == "same" else ""), flush=True)
-    return module.run(cfg, run_dir, say=say)
+    return module.run(config.task_view(cfg), run_dir, say=say)
 
 
 def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> dict:
-    """Run `stages` in order into `run_dir`, then write the report. Writes run_dir/pipeline.json:
+    """Run `stages` in order into `run_dir` (those the config's task has: `tasks.STAGES`), then write
+    the report. Writes run_dir/pipeline.json:
     each stage's wall time over every call (`stages_s`; their sum is `wall_s`), the number of
     calls, and this call's own time.
 
@@ -84,6 +86,7 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
     from bumps_jax import report  # noqa: PLC0415
 
     run_dir = runio.check_writable(run_dir)
+    stages = [name for name in stages if name in tasks.STAGES[cfg.task]]
     for name in stages:
         if (run_dir / name).exists() and not force:
             try:
@@ -114,7 +117,7 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
             timing.pop("open", None)
             timing["stages_s"][name] = timing["stages_s"].get(name, 0.0) + time.perf_counter() - t0
             timing["call_wall_s"] = time.perf_counter() - t_call
-            timing.update(runio.provenance(cfg.preset, sum(timing["stages_s"].values()), cfg.env))
+            timing.update(runio.provenance(cfg.preset, sum(timing["stages_s"].values()), config.resolved_env(cfg)))
             timing["overrides"] = config.overrides_of(cfg)
             runio.write_json(timing_path, timing)
     path = report.write(run_dir)

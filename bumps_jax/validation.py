@@ -17,7 +17,11 @@ SELECTIONS = ("fixed", "halving")  # filter.selection
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
-    """Every section of a pipeline config (`config.make_config`)."""
+    """Every section of a pipeline config (`config.make_config`): the kick's always, another
+    task's (`task`) when it is the one selected."""
+    from bumps_jax import tasks  # noqa: PLC0415
+
+    tasks.check_task(cfg.task)
     kick_env.validate_config(cfg.env)
     n_steps = int(round(cfg.env.horizon_s / cfg.env.ctrl_dt))
     task_range = tuple(cfg.env.task_range)
@@ -32,6 +36,38 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
         raise ValueError(
             f"filter.net_seed {cfg.filter.net_seed} names no network: meta.train.n_seeds is {cfg.meta.train.n_seeds}"
         )
+    if cfg.task == "cheetah_vel":
+        cheetah_vel(cfg.cheetah_vel, "cheetah_vel.")
+
+
+def cheetah_vel(c, prefix: str) -> None:
+    """HalfCheetah-Vel's sections (`config._cheetah_vel`); keys named with `prefix`."""
+    from bumps_jax import cheetah_env  # noqa: PLC0415
+
+    try:
+        cheetah_env.validate_config(c.env)
+    except ValueError as err:
+        raise ValueError(f"{prefix}{err}") from None
+    n_steps, task_range, unit = int(c.env.episode_steps), tuple(c.env.task_range), "m/s"
+    e = c.experts
+    targets(e.tasks, task_range, f"{prefix}experts.tasks", unit)
+    positive_ints(e, f"{prefix}experts.", ("updates_per_chunk", "keep_checkpoints"))
+    positive_ints(e.eval, f"{prefix}experts.eval.", ("repetitions",))
+    ppo_section(e.ppo, f"{prefix}experts.ppo.", n_steps, task_range)
+    chunk_divides(e, f"{prefix}experts.", int(e.ppo.total_env_steps // (e.ppo.num_envs * n_steps)))
+    meta(c.meta, task_range, prefix, unit)
+    filtering(c.filter, task_range, prefix, unit)
+    if c.filter.net_seed >= c.meta.train.n_seeds:
+        raise ValueError(f"{prefix}filter.net_seed {c.filter.net_seed} names no network: "
+                         f"{prefix}meta.train.n_seeds is {c.meta.train.n_seeds}")  # fmt: skip
+    if c.env.impl == "warp":
+        per_episode = cheetah_env.contacts_per_episode(bool(c.env.all_contacts))
+        n = len(e.tasks) * e.ppo.num_envs
+        if n > c.env.warp_contacts // per_episode:
+            raise ValueError(
+                f"{prefix}env.warp_contacts {c.env.warp_contacts} holds {c.env.warp_contacts // per_episode} episodes, "
+                f"but the experts program runs {n}: set it to at least {n * per_episode}"
+            )
 
 
 def physics_capacity(cfg) -> None:
@@ -68,11 +104,13 @@ def positive_floats(node, prefix: str, keys) -> None:
             raise ValueError(f"{prefix}{key} must be > 0, got {value!r}")
 
 
-def targets(values, task_range, key: str) -> None:
+def targets(values, task_range, key: str, unit: str = "m") -> None:
+    from bumps_jax import task_env  # noqa: PLC0415
+
     if len(values) == 0:
-        raise ValueError(f"{key} is empty: give at least one target distance (m)")
+        raise ValueError(f"{key} is empty: give at least one target ({unit})")
     try:
-        kick_env.check_targets(values, task_range)
+        task_env.check_targets(values, task_range, unit)
     except ValueError as err:
         raise ValueError(f"{key}: {err}") from None
 
@@ -142,41 +180,43 @@ def chunk_divides(section, prefix: str, total: int) -> None:
         )
 
 
-def meta(m, task_range) -> None:
-    positive_ints(m.train, "meta.train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every"))
+def meta(m, task_range, prefix: str = "", unit: str = "m") -> None:
+    p = f"{prefix}meta."
+    positive_ints(m.train, f"{p}train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every"))
     if m.train.epochs % m.train.chunk:
-        raise ValueError(f"meta.train.epochs {m.train.epochs} must be a multiple of meta.train.chunk {m.train.chunk}")
-    positive_floats(m.train, "meta.train.", ("learning_rate",))
+        raise ValueError(f"{p}train.epochs {m.train.epochs} must be a multiple of {p}train.chunk {m.train.chunk}")
+    positive_floats(m.train, f"{p}train.", ("learning_rate",))
     if not 0 < m.train.decay_rate <= 1:
-        raise ValueError(f"meta.train.decay_rate must be in (0, 1], got {m.train.decay_rate!r}")
-    positive_ints(m.dataset, "meta.dataset.", ("repetitions",))
-    positive_ints(m.eval, "meta.eval.", ("repetitions",))
-    targets(m.eval.tasks, task_range, "meta.eval.tasks")
+        raise ValueError(f"{p}train.decay_rate must be in (0, 1], got {m.train.decay_rate!r}")
+    positive_ints(m.dataset, f"{p}dataset.", ("repetitions",))
+    positive_ints(m.eval, f"{p}eval.", ("repetitions",))
+    targets(m.eval.tasks, task_range, f"{p}eval.tasks", unit)
     for name, arch in m.nets.items():
         if len(arch) != 2 or min(arch) < 1:
-            raise ValueError(f"meta.nets.{name} must be (hidden layers >= 1, width >= 1), got {tuple(arch)!r}")
+            raise ValueError(f"{p}nets.{name} must be (hidden layers >= 1, width >= 1), got {tuple(arch)!r}")
 
 
-def filtering(f, task_range) -> None:
-    targets(f.tasks, task_range, "filter.tasks")
-    targets(f.context_range, task_range, "filter.context_range")
-    positive_floats(f, "filter.", ("width", "context_step", "high_context_step"))
-    positive_ints(f, "filter.", ("selection_repetitions", "eval_repetitions"))
+def filtering(f, task_range, prefix: str = "", unit: str = "m") -> None:
+    p = f"{prefix}filter."
+    targets(f.tasks, task_range, f"{p}tasks", unit)
+    targets(f.context_range, task_range, f"{p}context_range", unit)
+    positive_floats(f, p, ("width", "context_step", "high_context_step"))
+    positive_ints(f, p, ("selection_repetitions", "eval_repetitions"))
     if f.selection not in SELECTIONS:
-        raise ValueError(f"filter.selection must be one of {SELECTIONS}, got {f.selection!r}")
+        raise ValueError(f"{p}selection must be one of {SELECTIONS}, got {f.selection!r}")
     rungs = tuple(f.halving_rungs)
     if (
         not rungs
         or any(isinstance(r, bool) or not isinstance(r, int) or r < 1 for r in rungs)
         or any(b <= a for a, b in zip(rungs, rungs[1:], strict=False))
     ):
-        raise ValueError(f"filter.halving_rungs must be increasing positive integers, got {rungs}")
+        raise ValueError(f"{p}halving_rungs must be increasing positive integers, got {rungs}")
     if not 0.0 < f.halving_keep < 1.0:
-        raise ValueError(f"filter.halving_keep must be in (0, 1), got {f.halving_keep!r}")
+        raise ValueError(f"{p}halving_keep must be in (0, 1), got {f.halving_keep!r}")
     if isinstance(f.net_seed, bool) or f.net_seed < 0:
-        raise ValueError(f"filter.net_seed must be an integer >= 0, got {f.net_seed!r}")
+        raise ValueError(f"{p}net_seed must be an integer >= 0, got {f.net_seed!r}")
     if f.block is not None:
-        positive_ints(f, "filter.", ("block",))
+        positive_ints(f, p, ("block",))
 
 
 def baseline(b, task_range, n_steps: int) -> None:
