@@ -1,11 +1,12 @@
 """Behaviour cloning: the contextual meta-policy fitted to the experts' pairs, and one kick
 cloned into an expert's Gaussian policy.
 
-The meta-policy (BUMPS step 2): an MLP (tanh hidden layers, linear output) maps the observation
-(phase, normalised context) to the 22 joint targets. Loss: mean absolute error; Adam with a
-staircase decay per epoch; an epoch is one pass over the shuffled pairs in batches, the last one
-partial (as the original's Keras `fit`): ceil(N / batch) gradient steps. The pairs stay on the
-device; each chunk of epochs is one jitted lax.scan that shuffles epoch e with key
+The meta-policy (BUMPS step 2): an MLP (tanh hidden layers, linear output) maps the contextual
+observation to the action: for the kick (phase, normalised context) to the 22 joint targets, for
+a closed-loop task (the cheetah) the state and the normalised context to the motor commands.
+Loss: mean absolute error; Adam with a staircase decay per epoch; an epoch is one pass over the
+shuffled pairs in batches, the last one partial (as the original's Keras `fit`): ceil(N / batch)
+gradient steps. The pairs stay on the device; each chunk of epochs is one jitted lax.scan that shuffles epoch e with key
 fold_in(seed key, e), so a resumed run draws the same batches as an uninterrupted one; seeds
 are vmapped. The host syncs once per chunk: progress line, CSV row, orbax checkpoint.
 
@@ -38,13 +39,14 @@ KEEP_CHECKPOINTS = 2
 class Dataset(NamedTuple):
     """Behaviour-cloning pairs over experts, repetitions and steps (N = E * K * T)."""
 
-    obs: np.ndarray  # (N, 2) phase, normalised context (the expert's task)
-    actions: np.ndarray  # (N, 22) the expert's joint targets (rad)
-    task: np.ndarray  # (N,) the expert's task (m)
+    obs: np.ndarray  # (N, O) the contextual observation (kick: phase, normalised context of the expert's task)
+    actions: np.ndarray  # (N, A) the expert's actions (kick: joint targets, rad)
+    task: np.ndarray  # (N,) the expert's task (m; the cheetah's: m/s)
 
 
 class MetaPolicy(nn.Module):
-    """MLP: obs (..., 2) -> joint targets (..., 22); `depth` tanh layers of `width`, linear output."""
+    """MLP: obs (..., O) -> actions (..., n_actions) (kick: (2,) -> 22 joint targets); `depth` tanh
+    layers of `width`, linear output."""
 
     depth: int
     width: int
@@ -130,11 +132,11 @@ def _epoch(apply_fns, optimizers, batch_size, epoch_steps, obs, actions, seed_ke
     return jax.lax.scan(step, carry, (order.reshape(epoch_steps, batch_size), slots))
 
 
-def make_joint_trainer(models: dict, train_cfg, n_rows: int):
-    """(init, chunk) training every net of `models` (name -> MetaPolicy) in one compiled loop, each
-    on the same batches as it would see alone (the shuffles depend on the seed only), so each
-    ends exactly where its own trainer would: init(seed_keys (S,)) -> {name: TrainState};
-    chunk(states, obs (N, 2), actions (N, 22), seed_keys (S,)) -> (states after train_cfg.chunk
+def make_joint_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):
+    """(init, chunk) training every net of `models` (name -> MetaPolicy, observations of `obs_size`)
+    in one compiled loop, each on the same batches as it would see alone (the shuffles depend on
+    the seed only), so each ends exactly where its own trainer would: init(seed_keys (S,)) ->
+    {name: TrainState}; chunk(states, obs (N, O), actions (N, A), seed_keys (S,)) -> (states after train_cfg.chunk
     more epochs, {name: losses (S, chunk epochs x steps per epoch)}). Both jitted.
 
     One loop for several nets: the loop is launch-bound (tiny nets, batches of 128), and the
@@ -148,7 +150,7 @@ def make_joint_trainer(models: dict, train_cfg, n_rows: int):
     def init_one(key):
         out = {}
         for name, model in models.items():
-            params = model.init(key, jnp.zeros((1, 2)))["params"]
+            params = model.init(key, jnp.zeros((1, obs_size)))["params"]
             out[name] = SeedCarry(params, optimizers[name].init(params))
         return out
 
@@ -178,11 +180,11 @@ def make_joint_trainer(models: dict, train_cfg, n_rows: int):
     return init, chunk
 
 
-def make_trainer(model: MetaPolicy, train_cfg, n_rows: int):
+def make_trainer(model: MetaPolicy, train_cfg, n_rows: int, obs_size: int = 2):
     """(init, chunk) for one net (`make_joint_trainer` of one): init(seed_keys (S,)) -> TrainState;
-    chunk(state, obs (N, 2), actions (N, 22), seed_keys (S,)) -> (state after train_cfg.chunk
+    chunk(state, obs (N, O), actions (N, A), seed_keys (S,)) -> (state after train_cfg.chunk
     more epochs, losses (S, chunk epochs x steps per epoch)). Both jitted."""
-    init_all, chunk_all = make_joint_trainer({"net": model}, train_cfg, n_rows)
+    init_all, chunk_all = make_joint_trainer({"net": model}, train_cfg, n_rows, obs_size)
 
     @jax.jit
     def init(seed_keys):
@@ -227,7 +229,7 @@ def train(model: MetaPolicy, data: Dataset, train_cfg, out_dir, say=print, max_c
 
     out_dir = Path(out_dir).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
-    init, chunk = trainer or make_trainer(model, train_cfg, len(data.obs))
+    init, chunk = trainer or make_trainer(model, train_cfg, len(data.obs), data.obs.shape[-1])
     epoch_steps = steps_per_epoch(train_cfg, len(data.obs))
     total_steps = train_cfg.epochs * epoch_steps
     keys = seed_keys(train_cfg)
@@ -261,8 +263,9 @@ def train(model: MetaPolicy, data: Dataset, train_cfg, out_dir, say=print, max_c
     return state
 
 
-def load_policy(net_dir, depth: int, width: int, train_cfg) -> tuple[Any, Any]:
-    """(apply_fn, params stacked over seeds (S, ...)) from the newest checkpoint in net_dir/checkpoints.
+def load_policy(net_dir, depth: int, width: int, train_cfg, obs_size: int = 2, n_actions: int = 22) -> tuple[Any, Any]:
+    """(apply_fn, params stacked over seeds (S, ...)) from the newest checkpoint in net_dir/checkpoints,
+    of a net from observations of `obs_size` to `n_actions` (the kick's by default).
 
     ValueError naming the folder if it holds no checkpoint, or if its newest one is unreadable
     (an older one would be a policy trained less than the run says).
@@ -272,8 +275,8 @@ def load_policy(net_dir, depth: int, width: int, train_cfg) -> tuple[Any, Any]:
     path = Path(net_dir).resolve() / "checkpoints"
     if not path.is_dir():
         raise ValueError(f"{path}: no checkpoint folder (run meta-train first)")
-    model = MetaPolicy(depth, width)
-    init, _ = make_trainer(model, train_cfg, n_rows=1)  # the state's shapes do not depend on the data
+    model = MetaPolicy(depth, width, n_actions)
+    init, _ = make_trainer(model, train_cfg, 1, obs_size)  # the state's shapes do not depend on the data
     # Only the params: a policy does not need the optimiser's state, whose layout may differ
     # between versions of the trainer. (Real arrays, not `jax.eval_shape`: orbax restores a leaf
     # without a sharding as a NumPy array, and initialising these small nets takes milliseconds.)

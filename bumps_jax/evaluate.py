@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import kick_env, rollout
+from bumps_jax import rollout, task_env
 
 # The paper counts a meta-policy's error only on tasks where it kicks validly this often.
 ACCURACY_THRESHOLD = 0.7
@@ -19,15 +19,18 @@ def summarise_tasks(metrics: dict) -> dict:
     """Per-task statistics from metrics of shape (n_tasks, n_reps): arrays of (n_tasks,).
 
     accuracy = fraction of valid kicks; error = final error over all repetitions (an invalid
-    kick still leaves the ball somewhere, and its distance to the target is its error).
+    kick still leaves the ball somewhere, and its distance to the target is its error). A task
+    whose env reports no relative error (`rel_error`: the cheetah's targets include 0) has none.
     """
     err = np.asarray(metrics["final_error"], np.float64)
-    return {
+    out = {
         "accuracy": np.asarray(metrics["valid"], np.float64).mean(axis=1),
         "error_mean_m": err.mean(axis=1),
         "error_std_m": err.std(axis=1),
-        "rel_error_mean": np.asarray(metrics["rel_error"], np.float64).mean(axis=1),
     }
+    if "rel_error" in metrics:
+        out["rel_error_mean"] = np.asarray(metrics["rel_error"], np.float64).mean(axis=1)
+    return out
 
 
 def table_row(per_task: dict, threshold: float = ACCURACY_THRESHOLD) -> dict:
@@ -53,7 +56,7 @@ def table_row(per_task: dict, threshold: float = ACCURACY_THRESHOLD) -> dict:
 # -- single-task experts (Table 1, first row) ------------------------------------------------
 
 
-def evaluate_experts(env: kick_env.KickEnv, apply_fn, params, tasks, n_reps: int = 100, seed: int = 0) -> dict:
+def evaluate_experts(env: task_env.ContextualEnv, apply_fn, params, tasks, n_reps: int = 100, seed: int = 0) -> dict:
     """Each expert on its own task, `n_reps` noisy kicks each, in one vmapped program.
 
     params: a pytree with a leading task axis (N, ...); tasks: (N,) m. Returns the final
@@ -64,7 +67,7 @@ def evaluate_experts(env: kick_env.KickEnv, apply_fn, params, tasks, n_reps: int
         raise ValueError(f"tasks must be a non-empty 1-d list of distances, got {tasks!r}")
     if n_reps < 1:
         raise ValueError(f"n_reps must be >= 1, got {n_reps!r}")
-    kick_env.check_targets(tasks, env.config.task_range)
+    env.check_targets(tasks)
     # Expert i on task i only (grid_fn would score every expert on every task).
     program = rollout.matched_fn(env, apply_fn)
     targets = jnp.asarray(tasks)
@@ -86,6 +89,7 @@ def tasks_record(tasks, metrics: dict) -> dict:
     metrics of shape (n_tasks, n_reps) (`evaluate_experts`)."""
     per_task = summarise_tasks(metrics)
     row = table_row(per_task)
+    rel = per_task.get("rel_error_mean")  # None: the task reports no relative error
     return {
         "tasks_m": [float(t) for t in tasks],
         "per_task": [
@@ -94,11 +98,11 @@ def tasks_record(tasks, metrics: dict) -> dict:
                 "accuracy": float(per_task["accuracy"][i]),
                 "error_mean_m": float(per_task["error_mean_m"][i]),
                 "error_std_m": float(per_task["error_std_m"][i]),
-                "rel_error_mean": float(per_task["rel_error_mean"][i]),
+                "rel_error_mean": None if rel is None else float(rel[i]),
             }
             for i, t in enumerate(tasks)
         ],
         **row,
-        "rel_error_mean": float(per_task["rel_error_mean"].mean()),
+        "rel_error_mean": None if rel is None else float(rel.mean()),
         "n_reps": int(np.asarray(metrics["valid"]).shape[1]),
     }

@@ -9,7 +9,8 @@ among candidates within +- `width` m of the task (the task's own context is alwa
 The dynamics do not depend on the target, only the scoring does: each candidate context is
 rolled out once (C x R episodes) and its resting points, as the env reports them (`distance`
 along the kick line, `lateral`), are scored against every task at once by the env's own rule
-(`kick_env.error_against`): a (tasks, contexts) matrix, no rollout per (task, context) pair.
+(`kick_env.error_against`; another task's env: its `error_against`, e.g. the cheetah's from its
+per-step velocities): a (tasks, contexts) matrix, no rollout per (task, context) pair.
 
 Selection and the final evaluation draw independent noise (`noise_keys`): each task's chosen
 context is evaluated afresh. The ensemble of two nets takes, per task, the net whose best
@@ -173,11 +174,28 @@ def successive_halving(errors_of, candidates, rungs, keep: float) -> Halving:
     return Halving(chosen, scores[np.arange(n_tasks), chosen], scores, reached, int(reached.sum()))
 
 
+def kick_errors(metrics: dict, tasks) -> np.ndarray:
+    """Final errors (T, C, R) of kicks (metrics of (C, R)) against tasks (T,) m: `kick_env.error_against`."""
+    tasks = np.asarray(tasks, np.float64)[:, None, None]
+    return kick_env.error_against(metrics["distance"], metrics["lateral"], metrics["blown_up"], tasks)
+
+
+def env_errors(env):
+    """errors(metrics of (C, R, ...), tasks (T,)) -> (T, C, R): `env.error_against`, for `filter_policy`."""
+
+    def errors(metrics: dict, tasks) -> np.ndarray:
+        return env.error_against(metrics, np.asarray(tasks, np.float64)[:, None, None])
+
+    return errors
+
+
 class Selection(NamedTuple):
     """One net's filtering: candidates, their rollouts, and each task's choice."""
 
     contexts: np.ndarray  # (C,) candidate contexts (m)
-    distance: np.ndarray  # (C, R) resting distance along the kick line (m)
+    # (C, R) what each rollout achieved: the resting distance along the kick line (m); another
+    # task's `env.ACHIEVED` metric (the cheetah's mean velocity, m/s)
+    distance: np.ndarray
     valid: np.ndarray  # (C, R)
     scores: np.ndarray  # (T, C) mean final error of context c against task t (m)
     chosen: np.ndarray  # (T,) index into contexts
@@ -200,7 +218,8 @@ def ensemble_choice(sel_a: Selection, sel_b: Selection, eval_a: dict, eval_b: di
     fresh evaluation is that net's evaluation of the same (net, context) for the task.
     """
     use_b = sel_b.best_score < sel_a.best_score
-    metrics = {k: np.where(use_b[:, None], eval_b[k], eval_a[k]) for k in eval_a}
+    # use_b (T,) against metrics of (T, R, ...): a metric may carry per-step values (the cheetah's).
+    metrics = {k: np.where(use_b.reshape(-1, *[1] * (np.ndim(eval_a[k]) - 1)), eval_b[k], eval_a[k]) for k in eval_a}
     return Ensemble(use_b, np.where(use_b, sel_b.best_score, sel_a.best_score), metrics)
 
 
@@ -211,11 +230,12 @@ def table2_row(metrics: dict, n_contexts: int, best_score, rollouts: int) -> dic
     rollouts."""
     per_task = evaluate.summarise_tasks(metrics)
     selection = float(np.mean(best_score))
+    rel = per_task.get("rel_error_mean")  # None: the task reports no relative error
     return {
         "error_mean_m": float(per_task["error_mean_m"].mean()),
         "error_std_m": float(per_task["error_mean_m"].std()),
-        "rel_error_mean": float(per_task["rel_error_mean"].mean()),
-        "rel_error_std": float(per_task["rel_error_mean"].std()),
+        "rel_error_mean": None if rel is None else float(rel.mean()),
+        "rel_error_std": None if rel is None else float(rel.std()),
         "accuracy_mean": float(per_task["accuracy"].mean()),
         "selection_error_m": selection,
         "selection_gap_m": float(per_task["error_mean_m"].mean()) - selection,
@@ -252,27 +272,30 @@ def run_blocked(grid, params, contexts, targets, keys, block: int | None, multip
 
 def filter_policy(
     grid, params, contexts, tasks, width, repetitions: int, key, *, task_range, block=None, multiple: int = 1,
-    rungs=None, keep: float = 0.25,
+    rungs=None, keep: float = 0.25, errors=kick_errors, achieved: str = "distance",
 ) -> Selection:  # fmt: skip
     """Roll every candidate context (C,) out `repetitions` times and choose one per task (T,);
     with `rungs`, successive halving instead (`successive_halving`, keeping `keep`).
 
-    The env needs a target to score against; the resting point does not depend on it, so each
-    rollout uses its own context as target.
+    The env needs a target to score against; the episode does not depend on it, so each rollout
+    uses its own context as target, and `errors(metrics of (C, R), tasks (T,)) -> (T, C, R)`
+    scores it against every task (`kick_errors`; another env: `env_errors`). `achieved`: the
+    metric a Selection keeps of each rollout.
     """
     contexts = check_contexts(contexts, task_range)
     check_width(width)
     if rungs is not None:
-        return _halving_policy(grid, params, contexts, tasks, width, key, task_range, block, multiple, rungs, keep)
+        return _halving_policy(grid, params, contexts, tasks, width, key, task_range, block, multiple, rungs, keep,
+                               errors, achieved)  # fmt: skip
     C, R = len(contexts), int(repetitions)
     flat_ctx = np.repeat(contexts, R)
     m = run_blocked(grid, params, flat_ctx, flat_ctx, stage_keys(key, C, R), block, multiple)
-    m = {k: v.reshape(C, R) for k, v in m.items()}
-    scores = score_matrix(m["distance"], m["lateral"], m["blown_up"], tasks)
+    m = {k: v.reshape(C, R, *v.shape[1:]) for k, v in m.items()}
+    scores = errors(m, tasks).mean(axis=-1)  # (T, C): for the kick, `score_matrix`
     chosen = select_contexts(scores, contexts, tasks, width, task_range)
     return Selection(
         contexts=contexts,
-        distance=m["distance"],
+        distance=m[achieved],
         valid=m["valid"],
         scores=scores,
         chosen=chosen,
@@ -281,7 +304,8 @@ def filter_policy(
     )
 
 
-def _halving_policy(grid, params, contexts, tasks, width, key, task_range, block, multiple, rungs, keep) -> Selection:
+def _halving_policy(grid, params, contexts, tasks, width, key, task_range, block, multiple, rungs, keep,
+                    errors=kick_errors, achieved: str = "distance") -> Selection:  # fmt: skip
     """`filter_policy` by successive halving. Rollout j of context c has key (c, j) of a
     (C, rungs[-1]) grid from `key` (`stage_keys`), whatever rung it is drawn in: one rung of R
     rollouts replays the fixed selection's episodes. distance and valid hold the first rung (NaN
@@ -289,20 +313,20 @@ def _halving_policy(grid, params, contexts, tasks, width, key, task_range, block
     rungs, keep = check_rungs(rungs, keep)
     tasks = np.asarray(tasks, np.float64)
     keys = stage_keys(key, len(contexts), rungs[-1]).reshape(len(contexts), rungs[-1])
-    first = {k: np.full((len(contexts), rungs[0]), np.nan) for k in ("distance", "valid")}
+    first = {k: np.full((len(contexts), rungs[0]), np.nan) for k in (achieved, "valid")}
 
     def errors_of(index, start, stop):
         r = stop - start
         flat_ctx = np.repeat(contexts[index], r)
         m = run_blocked(grid, params, flat_ctx, flat_ctx, keys[index, start:stop].reshape(-1), block, multiple)
-        m = {k: v.reshape(len(index), r) for k, v in m.items()}
+        m = {k: v.reshape(len(index), r, *v.shape[1:]) for k, v in m.items()}
         if start == 0:
             for k in first:
                 first[k][index] = m[k]
-        return kick_env.error_against(m["distance"], m["lateral"], m["blown_up"], tasks[:, None, None])
+        return errors(m, tasks)
 
     out = successive_halving(errors_of, candidate_mask(contexts, tasks, width, task_range), rungs, keep)
-    return Selection(contexts, first["distance"], first["valid"], out.scores, out.chosen, out.best_score, out.rollouts)
+    return Selection(contexts, first[achieved], first["valid"], out.scores, out.chosen, out.best_score, out.rollouts)
 
 
 def evaluate_chosen(grid, params, chosen_contexts, tasks, repetitions, key, block=None, multiple: int = 1) -> dict:
@@ -311,4 +335,4 @@ def evaluate_chosen(grid, params, chosen_contexts, tasks, repetitions, key, bloc
     T, R = len(tasks), int(repetitions)
     flat_ctx, flat_tasks = np.repeat(np.asarray(chosen_contexts), R), np.repeat(tasks, R)
     m = run_blocked(grid, params, flat_ctx, flat_tasks, stage_keys(key, T, R), block, multiple)
-    return {k: v.reshape(T, R) for k, v in m.items()}
+    return {k: v.reshape(T, R, *v.shape[1:]) for k, v in m.items()}

@@ -178,3 +178,61 @@ SELECTION_NOTE = (
     "At selection: the chosen contexts' mean score on the selection rollouts; the error columns are "
     "fresh rollouts of the same choices. The gap between the two is what the noisy selection overrated."
 )
+
+
+# -- another contextual task's tables (no paper columns: the paper ran the kick only) -----------
+
+
+def task_experts_markdown(record: dict) -> str:
+    """The experts of a task other than the kick: their row and per-task numbers, errors in the
+    record's `unit` (its keys keep the kick's `_m` names)."""
+    unit = record.get("unit", "m")
+    lines = [
+        f"| model | valid | error mean ({unit}) | error std ({unit}) |",
+        "|---|---|---|---|",
+        f"| single-task experts | {pm(record['accuracy_mean'], record['accuracy_std'])} "
+        f"| {num(record['error_mean_m'])} | {num(record['error_std_m'])} |",
+        "",
+        f"{record['n_reps']} episodes per task, {record['env_steps']} PPO env steps per expert.",
+        "",
+        f"| target ({unit}) | valid | error mean ({unit}) | error std ({unit}) |",
+        "|---|---|---|---|",
+    ]
+    for row in record["per_task"]:
+        lines.append(
+            f"| {row['target_m']:.3g} | {row['accuracy']:.2f} | {num(row['error_mean_m'], 3)} "
+            f"| {num(row['error_std_m'], 3)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def task_table1_markdown(rows: dict, unit: str) -> str:
+    """Table 1 of a task other than the kick: experts (on their training targets) and unfiltered
+    meta-policies (on the test targets), errors in `unit`."""
+    lines = [
+        f"| policy | valid | error, valid tasks ({unit}) | error, all tasks ({unit}) | tasks |",
+        "|---|---|---|---|---|",
+    ]
+    for name, r in rows.items():
+        lines.append(
+            f"| {ROW_LABELS.get(name, name)} | {pm(r['accuracy_mean'], r['accuracy_std'])} "
+            f"| {pm(r['error_mean_m'], r['error_std_m'], 3)} | {num(r.get('error_mean_all_m'), 3)} "
+            f"| {r.get('n_tasks', '-')} |"
+        )
+    return "# Table 1: experts and unfiltered meta-policies\n\n" + "\n".join(lines) + "\n"
+
+
+def task_table2_markdown(rows: dict, unit: str) -> str:
+    """Table 2 of a task other than the kick: the meta-policies after policy filtering, errors in `unit`."""
+    lines = [
+        "# Table 2: after policy filtering",
+        "",
+        f"| variant | contexts | error ({unit}) | at selection ({unit}) | valid | selection rollouts |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, r in rows.items():
+        lines.append(
+            f"| {name} | {r['n_contexts']} | {pm(r['error_mean_m'], r['error_std_m'], 3)} "
+            f"| {num(r.get('selection_error_m'), 3)} | {num(r.get('accuracy_mean'))} | {r.get('rollouts', '-')} |"
+        )
+    return "\n".join(lines) + "\n\n" + SELECTION_NOTE + "\n"

@@ -51,6 +51,7 @@ SLOWEST_FIRST = (
     "test_engines.py",
     "test_ppo.py",
     "test_filtering.py",
+    "test_cheetah_pipeline.py",
 )
 
 

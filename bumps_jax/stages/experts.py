@@ -8,8 +8,11 @@ chunks it prints progress with an ETA, appends progress.csv and saves an orbax c
 killed run resumes from the newest readable checkpoint and ends exactly where an uninterrupted
 one would: every random number comes from the carried `TrainState.rng`.
 
-Writes run_dir/experts/: starting_kicks.json, checkpoints/, progress.csv, wall_time.json,
-final_params/, experts.json, experts.md.
+A task other than the kick (`cfg.task`, e.g. cheetah_vel) has no keyframe prior: its experts
+start from a fresh policy, and PPO trains them on their own targets.
+
+Writes run_dir/experts/: starting_kicks.json (the kick), checkpoints/, progress.csv,
+wall_time.json, final_params/, experts.json, experts.md.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import bc, evaluate, kick_env, kick_model, ppo, rollout, runio, sharding, tables
+from bumps_jax import bc, config, evaluate, kick_env, kick_model, ppo, rollout, runio, sharding, tables, tasks
 from bumps_jax.stages import prior as prior_stage
 
 OUTPUT = "experts.json"
@@ -44,6 +47,8 @@ def prior_path(cfg, run_dir: Path) -> Path:
 
 
 def inputs(cfg, run_dir: Path) -> dict:
+    if cfg.task != "kick":  # experts from a fresh policy: nothing to read
+        return {}
     path = prior_path(cfg, run_dir)
     kick_model.load_record(path, env_cfg=cfg.env)  # exists, parses, and was made under this env config
     return {"prior": path}
@@ -62,31 +67,42 @@ class ExpertParams(NamedTuple):
 class Family(NamedTuple):
     """Deterministic policies stacked over experts: params leaves have a leading axis (E,)."""
 
-    apply_fn: Any  # (params of one expert, obs (2,)) -> action (22,)
+    apply_fn: Any  # (params of one expert, contextual obs) -> action: `expert_policy`
     params: Any
-    tasks: np.ndarray  # (E,) m
+    tasks: np.ndarray  # (E,) targets (the task's unit)
 
 
 def expert_params(state: ppo.TrainState) -> ExpertParams:
     return ExpertParams(state.normalizer, state.params.policy)
 
 
-def expert_policy(networks):
-    """apply_fn(ExpertParams, obs (2,)) -> action (22,): the Gaussian's mean."""
+def expert_policy(networks, env=None):
+    """apply_fn(ExpertParams, obs) -> action: the Gaussian's mean. With `env`, obs is the
+    contextual observation a rollout shows (`env.with_context`) and the expert sees its
+    `env.expert_observation`; without, obs is the expert's own (the kick's: (2,) both)."""
 
     def apply(params: ExpertParams, obs):
-        return ppo.policy_mean(networks, params.normalizer, params.policy, obs)
+        seen = obs if env is None else env.expert_observation(obs)
+        return ppo.policy_mean(networks, params.normalizer, params.policy, seen)
 
     return apply
+
+
+def task_expert_policy(cfg, programs):
+    """`expert_policy` of a config's task: the kick's experts see the rollout's observation as it
+    is, another task's their env's `expert_observation` of it (the state without the context)."""
+    return expert_policy(programs.trainer.networks, None if cfg.task == "kick" else programs.env)
 
 
 class Compiled(NamedTuple):
     """The jitted, task-vmapped programs of one config, split over `mesh` along the task axis."""
 
-    env: kick_env.KickEnv
+    env: Any  # the task's env (task_env.ContextualEnv)
     trainer: ppo.Trainer
     mesh: Any
-    init: Any  # (rngs (N, 2), targets (N,), kicks (N, 14)) -> (TrainState (N, ...), BC losses (N, steps))
+    # (rngs (N, 2), targets (N,), kicks (N, K)) -> (TrainState (N, ...), BC losses (N, steps)); K: the
+    # kick's 14 parameters, 0 for a task that starts from a fresh policy (no losses then)
+    init: Any
     chunk: Any  # (TrainState (N, ...), targets (N,)) -> (TrainState, UpdateMetrics (N, chunk))
 
 
@@ -103,19 +119,37 @@ def make_init(cfg, env: kick_env.KickEnv, trainer: ppo.Trainer):
     return init
 
 
-def compile_programs(cfg, env: kick_env.KickEnv | None = None, mesh=None) -> Compiled:
-    """The experts' programs for a pipeline config (its `experts` section, its env); compiled on first call."""
-    env = env or kick_env.KickEnv(cfg.env)
+def make_fresh_init(trainer: ppo.Trainer):
+    """A pure fn (rng, target, kick (0,)) -> (TrainState of a fresh policy, no BC losses (0,)):
+    the start of a task without a keyframe prior, in `make_init`'s signature."""
+
+    def init(rng, target, kick):
+        return trainer.init(rng), jnp.zeros((0,), jnp.float32)
+
+    return init
+
+
+def kick_size(cfg) -> int:
+    """Numbers of one starting kick the init program takes: the kick's 14, else 0."""
+    return kick_model.N_PARAMS if cfg.task == "kick" else 0
+
+
+def compile_programs(cfg, env=None, mesh=None) -> Compiled:
+    """The experts' programs for a pipeline config (its task's `experts` section and env,
+    `config.task_view`); compiled on first call."""
+    env = env or tasks.make_env(cfg.task, cfg.env)
     mesh = mesh or sharding.device_mesh()
     trainer = ppo.make_train(cfg.experts.ppo, env)
-    init = sharding.over_batch(jax.vmap(make_init(cfg.experts, env, trainer)), mesh, (True, True, True))
+    make = make_init(cfg.experts, env, trainer) if cfg.task == "kick" else make_fresh_init(trainer)
+    init = sharding.over_batch(jax.vmap(make), mesh, (True, True, True))
     n = int(cfg.experts.updates_per_chunk)
     chunk = jax.vmap(lambda state, target: trainer.run_updates(state, target, n))
     return Compiled(env, trainer, mesh, init, sharding.over_batch(chunk, mesh, (True, True)))
 
 
 def run_init(programs: Compiled, rngs, targets, kicks):
-    """Cloning of `kicks` (N, 14) for any number N of tasks: (TrainState (N, ...), BC losses (N, steps))."""
+    """Cloning of `kicks` (N, 14) for any number N of tasks, or fresh policies for kicks (N, 0):
+    (TrainState (N, ...), BC losses (N, steps))."""
     n = len(targets)
     args = (rngs, jnp.asarray(targets, jnp.float32), jnp.asarray(kicks, jnp.float32))
     out = programs.init(*sharding.place(sharding.pad(args, sharding.padded_size(n, programs.mesh)), programs.mesh))
@@ -135,9 +169,9 @@ def task_rngs(seed: int, n_tasks: int) -> jax.Array:
     return jax.random.split(jax.random.PRNGKey(seed), n_tasks)
 
 
-def abstract_state(programs: Compiled, n_tasks: int):
-    """The TrainState (N, ...) shapes and dtypes, for restoring checkpoints."""
-    args = (task_rngs(0, n_tasks), jnp.zeros(n_tasks), jnp.zeros((n_tasks, kick_model.N_PARAMS)))
+def abstract_state(programs: Compiled, n_tasks: int, n_kick: int = kick_model.N_PARAMS):
+    """The TrainState (N, ...) shapes and dtypes, for restoring checkpoints (n_kick: `kick_size`)."""
+    args = (task_rngs(0, n_tasks), jnp.zeros(n_tasks), jnp.zeros((n_tasks, n_kick)))
     return jax.eval_shape(functools.partial(run_init, programs), *args)[0]
 
 
@@ -243,33 +277,46 @@ def smoothness(kicks, targets) -> dict | None:
 # -- training -----------------------------------------------------------------------------------
 
 CSV_FIELDS = ("update", "env_steps", "target_m", *ppo.UpdateMetrics._fields)
+# Another task's progress.csv names its target's unit (ppo's final_error is in it too).
+TASK_CSV_FIELDS = {"cheetah_vel": ("update", "env_steps", "target_m_per_s", *ppo.UpdateMetrics._fields)}
 
 
-def chunk_rows(first_update, metrics: ppo.UpdateMetrics, tasks, steps_per_update: int) -> list:
-    """CSV rows of one chunk: metrics (N tasks, n updates) -> N x n dicts."""
+def csv_fields(task: str) -> tuple:
+    """progress.csv's columns for `task`."""
+    return TASK_CSV_FIELDS.get(task, CSV_FIELDS)
+
+
+def chunk_rows(first_update, metrics: ppo.UpdateMetrics, tasks, steps_per_update: int, fields=CSV_FIELDS) -> list:
+    """CSV rows of one chunk: metrics (N tasks, n updates) -> N x n dicts with the columns `fields`."""
     m = jax.tree.map(np.asarray, metrics)
     rows = []
     for i, target in enumerate(tasks):
         for j in range(m.episode_return.shape[1]):
             update = int(first_update) + j + 1
-            row = {"update": update, "env_steps": update * steps_per_update, "target_m": float(target)}
+            row = {"update": update, "env_steps": update * steps_per_update, fields[2]: float(target)}
             rows.append({**row, **{k: float(getattr(m, k)[i, j]) for k in ppo.UpdateMetrics._fields}})
     return rows
 
 
-def progress_line(tasks, metrics: ppo.UpdateMetrics, update: int, total: int, eta: str) -> str:
-    """One line per chunk: mean return, final error and valid fraction over the experts, and the worst task."""
+def progress_line(tasks, metrics: ppo.UpdateMetrics, update: int, total: int, eta: str, unit: str = "m") -> str:
+    """One line per chunk: mean return, final error and valid fraction over the experts, and the
+    worst task (errors and targets in `unit`)."""
     m = jax.tree.map(np.asarray, metrics)
     err = m.final_error[:, -1]
     worst = int(np.argmax(err))
     return (
-        f"update {update}/{total}  return {m.episode_return[:, -1].mean():8.2f}  final error {err.mean():.2f} m"
-        f" (worst {err[worst]:.2f} m at {tasks[worst]:.1f} m)  valid {m.valid[:, -1].mean():.2f}  {eta}"
+        f"update {update}/{total}  return {m.episode_return[:, -1].mean():8.2f}  final error {err.mean():.2f} {unit}"
+        f" (worst {err[worst]:.2f} {unit} at {tasks[worst]:.1f} {unit})  valid {m.valid[:, -1].mean():.2f}  {eta}"
     )
 
 
 def initial_state(cfg, run_dir: Path, programs: Compiled, say=print):
-    """The cloned starting kicks' TrainState (N, ...): written as checkpoint 0 with starting_kicks.json."""
+    """The cloned starting kicks' TrainState (N, ...): written as checkpoint 0 with starting_kicks.json.
+    A task without a keyframe prior: fresh policies."""
+    tasks_ = np.asarray(cfg.experts.tasks, np.float32)
+    if cfg.task != "kick":
+        state, _ = run_init(programs, task_rngs(cfg.experts.seed, len(tasks_)), tasks_, np.zeros((len(tasks_), 0)))
+        return state
     stage_dir = run_dir / "experts"
     path = prior_path(cfg, run_dir)
     record = kick_model.load_record(path, env_cfg=cfg.env)
@@ -294,14 +341,15 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
     tasks = tuple(float(t) for t in cfg.experts.tasks)
     targets = jnp.asarray(tasks, jnp.float32)
     total = programs.trainer.n_updates
+    fields, unit = csv_fields(cfg.task), programs.env.UNIT
     loop = runio.ChunkedTraining(
         init=lambda: initial_state(cfg, run_dir, programs, say),
         chunk=lambda state: run_chunk(programs, state, targets),
-        abstract=abstract_state(programs, len(tasks)),
+        abstract=abstract_state(programs, len(tasks), kick_size(cfg)),
         updates=lambda state: int(np.asarray(state.update)[0]),
-        rows=lambda before, m: chunk_rows(before, m, tasks, programs.trainer.steps_per_update),
-        line=lambda m, update, eta: progress_line(tasks, m, update, total, eta),
-        fields=CSV_FIELDS,
+        rows=lambda before, m: chunk_rows(before, m, tasks, programs.trainer.steps_per_update, fields),
+        line=lambda m, update, eta: progress_line(tasks, m, update, total, eta, unit),
+        fields=fields,
     )
     out = runio.train_in_chunks(stage_dir, loop, total, cfg.experts.keep_checkpoints, say, stop_after_chunks)
     if out["finished"]:
@@ -310,13 +358,16 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
     return out
 
 
-def load_final_params(stage_dir: Path, programs: Compiled, n_tasks: int) -> ExpertParams:
-    """The ExpertParams (N, ...) saved under stage_dir/final_params; ValueError naming it if unreadable."""
+def load_final_params(
+    stage_dir: Path, programs: Compiled, n_tasks: int, n_kick: int = kick_model.N_PARAMS
+) -> ExpertParams:
+    """The ExpertParams (N, ...) saved under stage_dir/final_params (n_kick: `kick_size`); ValueError
+    naming it if unreadable."""
     import orbax.checkpoint as ocp  # noqa: PLC0415
 
     final = (Path(stage_dir) / "final_params").resolve()
     try:
-        return ocp.StandardCheckpointer().restore(final, expert_params(abstract_state(programs, n_tasks)))
+        return ocp.StandardCheckpointer().restore(final, expert_params(abstract_state(programs, n_tasks, n_kick)))
     except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
         reason = type(err).__name__
         raise ValueError(f"{final}: cannot read the trained experts ({reason}); rerun train-experts") from None
@@ -325,18 +376,26 @@ def load_final_params(stage_dir: Path, programs: Compiled, n_tasks: int) -> Expe
 def load_family(cfg, run_dir: Path) -> Family:
     """The trained experts of a run, for behaviour cloning and replays."""
     programs = compile_programs(cfg)
-    params = load_final_params(Path(run_dir) / "experts", programs, len(cfg.experts.tasks))
-    return Family(expert_policy(programs.trainer.networks), params, np.asarray(cfg.experts.tasks, np.float64))
+    params = load_final_params(Path(run_dir) / "experts", programs, len(cfg.experts.tasks), kick_size(cfg))
+    return Family(task_expert_policy(cfg, programs), params, np.asarray(cfg.experts.tasks, np.float64))
 
 
 def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compiled, wall_s: float, say=print) -> dict:
     """Every expert on its own task (`eval.repetitions` noisy kicks each): experts.json and experts.md."""
     start = time.perf_counter()
     e = cfg.experts
-    say(f"evaluating {len(e.tasks)} experts x {e.eval.repetitions} noisy kicks (compiling first)", flush=True)
-    apply = expert_policy(programs.trainer.networks)
+    say(f"evaluating {len(e.tasks)} experts x {e.eval.repetitions} noisy episodes (compiling first)", flush=True)
+    apply = task_expert_policy(cfg, programs)
     metrics = evaluate.evaluate_experts(programs.env, apply, params, e.tasks, e.eval.repetitions, e.eval.seed)
     record = evaluate.experts_record(e.tasks, metrics, programs.trainer.n_updates * programs.trainer.steps_per_update)
+    if cfg.task != "kick":  # no prior, no starting kicks: every env step an expert cost is PPO's
+        record["env_steps_breakdown"] = {"ppo": record["env_steps"]}
+        record["env_steps_total"] = record["env_steps"]
+        record.update(runio.provenance(cfg.preset, wall_s + time.perf_counter() - start, config.resolved_env(cfg)))
+        record.update(task=cfg.task, unit=programs.env.UNIT, eval_repetitions=int(e.eval.repetitions))
+        runio.write_text(stage_dir / "experts.md", tables.task_experts_markdown(record))
+        runio.write_json(stage_dir / OUTPUT, record)
+        return record
     kicks = runio.read_json(stage_dir / "starting_kicks.json")
     record["starting_kicks"] = evaluate_starting_kicks(cfg, programs.env, kicks["params"])
     record["starting_kicks_smoothness"] = smoothness(kicks["params"], e.tasks)
@@ -382,14 +441,14 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     n = len(cfg.experts.tasks)
     if (stage_dir / "final_params").exists():  # trained; a previous call stopped before its evaluation
         say(f"experts already trained ({stage_dir / 'final_params'}): evaluating them")
-        params = load_final_params(stage_dir, programs, n)
+        params = load_final_params(stage_dir, programs, n, kick_size(cfg))
         clock = runio.read_json(stage_dir / "wall_time.json") if (stage_dir / "wall_time.json").exists() else {}
         wall = max([0.0, *map(float, clock.values())])
     else:
         out = train(cfg, run_dir, programs, say)
         params, wall = expert_params(out["state"]), out["wall_s"]
     record = evaluate_experts(cfg, stage_dir, params, programs, wall, say)
-    say(tables.experts_markdown(record))
+    say(tables.experts_markdown(record) if cfg.task == "kick" else tables.task_experts_markdown(record))
     return record
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from bumps_jax import bc, env_records, evaluate, filtering, kick_env, rollout, runio, sharding, tables
+from bumps_jax import bc, config, env_records, evaluate, filtering, rollout, runio, sharding, tables, tasks
 from bumps_jax.stages import meta as meta_stage
 
 OUTPUT = "table2.json"
@@ -36,7 +36,7 @@ def inputs(cfg, run_dir: Path) -> dict:
     meta_dir = Path(run_dir) / "meta"
     table1 = meta_dir / meta_stage.OUTPUT
     record = runio.read_json(table1, "the meta-policies' record: run meta-train first")
-    env_records.check_same_env(record.get("env"), kick_env.resolved(cfg.env), f"the meta record {table1}")
+    env_records.check_same_env(record.get("env"), config.resolved_env(cfg), f"the meta record {table1}")
     if "config" not in record:
         raise ValueError(f"{table1} does not record its meta config: rerun meta-train")
     wanted = {k: cfg.meta[k].to_dict() for k in ("nets", "train")}
@@ -55,21 +55,32 @@ def inputs(cfg, run_dir: Path) -> dict:
 
 
 _PROGRAMS: dict = {}
+_ENVS: dict = {}
 
 
-def meta_grid(env_cfg, depth: int, width: int, mesh):
-    """The `rollout.grid_fn` program of a (depth, width) meta-policy in the env of `env_cfg`, built
-    once per process and reused by the filter stage, the held-out evaluation and `kick` (each
-    MJX program costs tens of seconds to compile on a CPU). Its apply_fn is bc.policy_apply."""
+def stage_env(env_cfg, task: str = "kick"):
+    """The env of `task` built from `env_cfg`, once per process and env config."""
+    key = (task, json.dumps(tasks.resolved(task, env_cfg), sort_keys=True))
+    if key not in _ENVS:
+        _ENVS[key] = tasks.make_env(task, env_cfg)
+    return _ENVS[key]
+
+
+def meta_grid(env_cfg, depth: int, width: int, mesh, task: str = "kick"):
+    """The `rollout.grid_fn` program of a (depth, width) meta-policy in `task`'s env of `env_cfg`,
+    built once per process and reused by the filter stage, the held-out evaluation and `kick`
+    (each MJX program costs tens of seconds to compile on a CPU). Its apply_fn is bc.policy_apply."""
     key = (
-        json.dumps(kick_env.resolved(env_cfg), sort_keys=True),
+        task,
+        json.dumps(tasks.resolved(task, env_cfg), sort_keys=True),
         int(depth),
         int(width),
         tuple(d.id for d in mesh.devices.flat),
     )
     if key not in _PROGRAMS:
-        apply_fn = bc.policy_apply(bc.MetaPolicy(int(depth), int(width)))
-        _PROGRAMS[key] = rollout.grid_fn(kick_env.KickEnv(env_cfg), apply_fn, mesh)
+        env = stage_env(env_cfg, task)
+        apply_fn = bc.policy_apply(bc.MetaPolicy(int(depth), int(width), env.action_size))
+        _PROGRAMS[key] = rollout.grid_fn(env, apply_fn, mesh)
     return _PROGRAMS[key]
 
 
@@ -77,19 +88,24 @@ def filter_variant(cfg, grid, params, contexts, mesh_size: int):
     """Selection over `contexts` (C,) and the fresh evaluation of each task's choice:
     (filtering.Selection, metrics of (T, R), Table 2 row, timings)."""
     f = cfg.filter
-    tasks = np.asarray(f.tasks, np.float64)
+    targets = np.asarray(f.tasks, np.float64)
     sel_key, eval_key = filtering.noise_keys(f.seed)
     t0 = time.perf_counter()
     rungs = tuple(f.halving_rungs) if f.selection == "halving" else None
+    scoring = {}
+    if cfg.task != "kick":  # the kick's defaults: its resting points, `filtering.kick_errors`
+        env = stage_env(cfg.env, cfg.task)
+        scoring = {"errors": filtering.env_errors(env), "achieved": env.ACHIEVED}
     sel = filtering.filter_policy(
-        grid, params, contexts, tasks, f.width, f.selection_repetitions, sel_key,
+        grid, params, contexts, targets, f.width, f.selection_repetitions, sel_key,
         task_range=tuple(cfg.env.task_range), block=f.block, multiple=mesh_size, rungs=rungs, keep=f.halving_keep,
+        **scoring,
     )  # fmt: skip
     chosen = sel.contexts[sel.chosen]
     # Fresh episodes: the evaluation key is independent of every selection rollout's (`noise_keys`).
-    metrics = filtering.evaluate_chosen(grid, params, chosen, tasks, f.eval_repetitions, eval_key, f.block, mesh_size)
+    metrics = filtering.evaluate_chosen(grid, params, chosen, targets, f.eval_repetitions, eval_key, f.block, mesh_size)
     row = filtering.table2_row(metrics, len(contexts), sel.best_score, sel.rollouts)
-    rollouts = sel.rollouts + len(tasks) * f.eval_repetitions
+    rollouts = sel.rollouts + len(targets) * f.eval_repetitions
     wall = time.perf_counter() - t0  # selection and fresh evaluation, compiling included
     return sel, metrics, row, {"wall_s": wall, "rollouts": rollouts, "rollouts_per_s": rollouts / wall}
 
@@ -101,25 +117,29 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     run_dir = Path(run_dir)
     inputs(cfg, run_dir)
     f, stage_dir = cfg.filter, run_dir / "filter"
-    tasks = np.asarray(f.tasks, np.float64)
+    targets = np.asarray(f.tasks, np.float64)
     mesh = sharding.device_mesh()  # a mesh of one on a single device: the same program
     grids = {
-        "low": filtering.candidate_contexts(tasks, filtering.context_grid(*f.context_range, f.context_step)),
-        "high": filtering.candidate_contexts(tasks, filtering.context_grid(*f.context_range, f.high_context_step)),
+        "low": filtering.candidate_contexts(targets, filtering.context_grid(*f.context_range, f.context_step)),
+        "high": filtering.candidate_contexts(targets, filtering.context_grid(*f.context_range, f.high_context_step)),
     }
     selections, evals, rows, timings = {}, {}, {}, {}
+    env = stage_env(cfg.env, cfg.task)
+    unit, sizes = env.UNIT, (env.context_observation_size, env.action_size)
     for net in meta_stage.NETS:
         depth, width = cfg.meta.nets[net]
-        _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train)
+        _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train, *sizes)
         params = jax.tree.map(lambda a: a[f.net_seed : f.net_seed + 1], params)
-        grid = meta_grid(cfg.env, depth, width, mesh)  # one program per architecture
+        grid = meta_grid(cfg.env, depth, width, mesh, cfg.task)  # one program per architecture
         for name in (v for v, (n, _) in VARIANTS.items() if n == net):
             contexts = grids[VARIANTS[name][1]]
             out = filter_variant(cfg, grid, params, contexts, mesh.size)
             selections[name], evals[name], rows[name], timings[name] = out
+            rel = rows[name]["rel_error_mean"]
             say(
-                f"{name}: {len(contexts)} contexts, error {rows[name]['error_mean_m']:.2f} m"
-                f" ({100 * rows[name]['rel_error_mean']:.1f}%), at selection {rows[name]['selection_error_m']:.2f} m"
+                f"{name}: {len(contexts)} contexts, error {rows[name]['error_mean_m']:.2f} {unit}"
+                + ("" if rel is None else f" ({100 * rel:.1f}%)")
+                + f", at selection {rows[name]['selection_error_m']:.2f} {unit}"
                 f" ({rows[name]['rollouts']} selection rollouts), in {timings[name]['wall_s']:.1f} s"
             )
     name, a, b = ENSEMBLE
@@ -135,7 +155,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     payload = {
         "rows": rows,
         "paper": {k: dict(zip(tables.TABLE2_COLUMNS, v, strict=True)) for k, v in tables.PAPER_TABLE2.items()},
-        "tasks": tasks.tolist(),
+        "tasks": targets.tolist(),
         "chosen_contexts": chosen,
         "per_task_error_m": {k: evaluate.summarise_tasks(v)["error_mean_m"].tolist() for k, v in evals.items()},
         # Each task's chosen context's score on the selection rollouts, beside its fresh error above.
@@ -143,24 +163,38 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         "config": cfg.filter.to_dict(),
         "meta_run": str(run_dir / "meta"),
         "timings": timings,
-        **runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env),
+        **runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)),
     }
+    if cfg.task != "kick":  # no paper numbers: the paper ran the kick only
+        del payload["paper"]
+        payload.update(task=cfg.task, unit=unit)
     runio.write_json(stage_dir / OUTPUT, payload)
-    runio.write_text(stage_dir / "table2.md", tables.table2_markdown(rows))
-    write_plots(stage_dir, run_dir / "meta" / meta_stage.OUTPUT, payload, selections, tuple(cfg.env.task_range))
+    markdown = tables.table2_markdown(rows) if cfg.task == "kick" else tables.task_table2_markdown(rows, unit)
+    runio.write_text(stage_dir / "table2.md", markdown)
+    labels = AXIS_LABELS.get(cfg.task, AXIS_LABELS["kick"])
+    write_plots(stage_dir, run_dir / "meta" / meta_stage.OUTPUT, payload, selections, tuple(cfg.env.task_range), labels)
     return runio.json_safe(payload)
 
 
 # -- plots --------------------------------------------------------------------------------------
 
 
-def write_plots(stage_dir: Path, table1: Path, payload: dict, selections: dict, task_range) -> None:
+# Each task's plot labels: (target, error, achieved) axis names.
+AXIS_LABELS = {
+    "kick": ("target distance (m)", "mean final error (m)", "achieved distance (m)"),
+    "cheetah_vel": ("target velocity (m/s)", "mean velocity error (m/s)", "achieved mean velocity (m/s)"),
+}
+
+
+def write_plots(stage_dir: Path, table1: Path, payload: dict, selections: dict, task_range,
+                labels=AXIS_LABELS["kick"]) -> None:  # fmt: skip
     """error_vs_target.png (experts, unfiltered nets, the filtered ensemble) and context_map.png."""
     curves = unfiltered_curves(runio.read_json(table1))
     curves["BUMPS filtered ensemble"] = (payload["tasks"], payload["per_task_error_m"]["filtered_ensemble"])
-    plot_error_vs_target(stage_dir / "error_vs_target.png", curves)
+    plot_error_vs_target(stage_dir / "error_vs_target.png", curves, labels[:2])
     maps = {n: (s.contexts, s.distance) for n, s in selections.items() if n != "high_sample_rate_4x256"}
-    plot_context_map(stage_dir / "context_map.png", maps, task_range)
+    context_label = labels[0].replace("target", "context")
+    plot_context_map(stage_dir / "context_map.png", maps, task_range, (context_label, labels[2]))
 
 
 def unfiltered_curves(table1: dict) -> dict:
@@ -178,8 +212,8 @@ def unfiltered_curves(table1: dict) -> dict:
     return curves
 
 
-def plot_error_vs_target(path, curves: dict) -> Path:
-    """Final error vs target distance. curves: name -> (targets (n,), mean error (n,) m)."""
+def plot_error_vs_target(path, curves: dict, labels=AXIS_LABELS["kick"][:2]) -> Path:
+    """Final error vs target. curves: name -> (targets (n,), mean error (n,)); labels: (x, y) axis names."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
@@ -188,15 +222,16 @@ def plot_error_vs_target(path, curves: dict) -> Path:
     fig, ax = plt.subplots(figsize=(7, 4))
     for name, (targets, err) in curves.items():
         ax.plot(targets, np.asarray(err, dtype=float), marker=".", label=name)
-    ax.set_xlabel("target distance (m)")
-    ax.set_ylabel("mean final error (m)")
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
     ax.grid(alpha=0.3)
     ax.legend()
     return runio.save_figure(fig, path)
 
 
-def plot_context_map(path, maps: dict, task_range) -> Path:
-    """Achieved distance vs context. maps: name -> (contexts (C,), distance (C, R) m)."""
+def plot_context_map(path, maps: dict, task_range, labels=("context (m)", "achieved distance (m)")) -> Path:
+    """Achieved distance (or the task's achieved quantity) vs context. maps: name -> (contexts (C,),
+    achieved (C, R)); labels: (x, y) axis names."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
@@ -208,8 +243,8 @@ def plot_context_map(path, maps: dict, task_range) -> Path:
     for name, (contexts, distance) in maps.items():
         d = np.asarray(distance)
         ax.errorbar(contexts, d.mean(axis=1), yerr=d.std(axis=1), fmt=".", capsize=2, label=name)
-    ax.set_xlabel("context (m)")
-    ax.set_ylabel("achieved distance (m)")
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
     ax.grid(alpha=0.3)
     ax.legend()
     return runio.save_figure(fig, path)

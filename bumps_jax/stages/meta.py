@@ -17,9 +17,10 @@ import copy
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
-from bumps_jax import bc, env_records, evaluate, kick_env, rollout, runio, tables
+from bumps_jax import bc, config, env_records, evaluate, filtering, rollout, runio, sharding, tables, tasks
 from bumps_jax.stages import experts as experts_stage
 
 OUTPUT = "table1.json"
@@ -37,7 +38,7 @@ def inputs(cfg, run_dir: Path) -> dict:
     stage = Path(run_dir) / "experts"
     record_path = stage / experts_stage.OUTPUT
     record = runio.read_json(record_path, "the experts' record: run train-experts first")
-    env_records.check_same_env(record.get("env"), kick_env.resolved(cfg.env), f"the experts' record {record_path}")
+    env_records.check_same_env(record.get("env"), config.resolved_env(cfg), f"the experts' record {record_path}")
     experts_row(record, record_path)
     params = stage / "final_params"
     if not params.is_dir():
@@ -82,26 +83,26 @@ def net_names(nets) -> list[str]:
 # -- the dataset --------------------------------------------------------------------------------
 
 
-def dataset_env(cfg) -> kick_env.KickEnv:
-    """The env the experts are recorded in: cfg.env, noise-free when they kick once each (the paper)."""
+def dataset_env(cfg):
+    """The env the experts are recorded in: cfg.env, noise-free when they run once each (the paper)."""
     overrides = {}
     if cfg.meta.dataset.repetitions == 1:
-        overrides = {f"noise.{name}": 0.0 for name in cfg.env.noise}
+        overrides = tasks.env_module(cfg.task).noise_free(cfg.env)
     # A copy: `kick_env.make_config` shares the nested sections of the config it is given.
-    return kick_env.KickEnv(copy.deepcopy(cfg.env), overrides)
+    return tasks.make_env(cfg.task, copy.deepcopy(cfg.env), overrides)
 
 
-def collect_dataset(env: kick_env.KickEnv, family, repetitions: int, seed: int = 0) -> tuple[bc.Dataset, dict]:
+def collect_dataset(env, family, repetitions: int, seed: int = 0) -> tuple[bc.Dataset, dict]:
     """Roll each expert out `repetitions` (K) times on its own task: (bc.Dataset of E * K * T
     pairs, final metrics of (E, K)). family: (apply_fn, params stacked over E, tasks (E,) m)."""
-    tasks = kick_env.check_targets(family.tasks, env.config.task_range).astype(np.float32)
+    targets = env.check_targets(family.tasks).astype(np.float32)
     if repetitions < 1:
         raise ValueError(f"repetitions must be >= 1, got {repetitions!r}")
     program = rollout.matched_fn(env, family.apply_fn, record="trajectory")
-    keys = rollout.repetition_keys(seed, len(tasks), repetitions)
-    metrics, (obs, actions) = program(family.params, tasks, tasks, keys)  # (E, K, T, ...)
+    keys = rollout.repetition_keys(seed, len(targets), repetitions)
+    metrics, (obs, actions) = program(family.params, targets, targets, keys)  # (E, K, T, ...)
     n = obs.shape[0] * obs.shape[1] * obs.shape[2]
-    task = np.broadcast_to(tasks[:, None, None], obs.shape[:3]).reshape(n)
+    task = np.broadcast_to(targets[:, None, None], obs.shape[:3]).reshape(n)
     data = bc.Dataset(
         obs=np.asarray(obs, np.float32).reshape(n, obs.shape[-1]),
         actions=np.asarray(actions, np.float32).reshape(n, actions.shape[-1]),
@@ -141,9 +142,14 @@ def dataset(cfg, run_dir: Path, say=print) -> bc.Dataset:
     save_dataset(path, data)
     say(
         f"dataset: {len(data.obs)} pairs from {len(family.tasks)} experts x {reps} in {time.perf_counter() - t0:.1f} s;"
-        f" expert error in the recording env {metrics['final_error'].mean():.2f} m"
+        f" expert error in the recording env {metrics['final_error'].mean():.2f} {unit_of(cfg)}"
     )
     return data
+
+
+def unit_of(cfg) -> str:
+    """The unit of the task's targets and errors (m for the kick, m/s for the cheetah)."""
+    return "m" if cfg.task == "kick" else "m/s"
 
 
 # -- training and Table 1 -----------------------------------------------------------------------
@@ -156,6 +162,25 @@ def evaluate_unfiltered(grid, params, tasks, repetitions: int, seed: int) -> dic
     return {k: np.asarray(v) for k, v in out.items()}
 
 
+def evaluate_blocked(cfg, depth: int, width: int, params, say=print) -> dict:
+    """`evaluate_unfiltered`'s metrics (P, n_tasks, R) from the filter stage's program of this
+    architecture (`filter.meta_grid`, called in blocks of `filter.block` episodes per device), which
+    the filter stage then reuses instead of compiling its own: another task's evaluation. (The
+    kick's keeps its own program, whose numbers its tests pin.)"""
+    from bumps_jax.stages import filter as filter_stage  # noqa: PLC0415 (it imports this module)
+
+    e, mesh = cfg.meta.eval, sharding.device_mesh()
+    grid = filter_stage.meta_grid(cfg.env, depth, width, mesh, cfg.task)
+    tasks_, reps = np.asarray(e.tasks, np.float64), int(e.repetitions)
+    flat, keys = np.repeat(tasks_, reps), rollout.repetition_keys(e.seed, len(tasks_), reps).reshape(-1)
+    out = []
+    for s in range(cfg.meta.train.n_seeds):
+        seed_params = jax.tree.map(lambda a, s=s: a[s : s + 1], params)
+        m = filtering.run_blocked(grid, seed_params, flat, flat, keys, cfg.filter.block, mesh.size)
+        out.append({k: v.reshape(len(tasks_), reps, *v.shape[1:]) for k, v in m.items()})
+    return {k: np.stack([o[k] for o in out]) for k in out[0]}
+
+
 def train_and_evaluate(cfg, stage_dir: Path, name: str, data: bc.Dataset, env, grids: dict, say=print) -> dict:
     """Train (or resume) one net of cfg.meta.nets and evaluate its seeds unfiltered: its row,
     rows_per_seed, per_task and timings entries. grids: (depth, width) -> program, filled here."""
@@ -163,22 +188,26 @@ def train_and_evaluate(cfg, stage_dir: Path, name: str, data: bc.Dataset, env, g
     depth, width = m.nets[name]
     say(f"{name}: {depth} x {width}, {m.train.epochs} epochs, {m.train.n_seeds} seed(s)")
     t0 = time.perf_counter()
-    model = bc.MetaPolicy(depth, width)
+    model = bc.MetaPolicy(depth, width, env.action_size)
     state = bc.train(model, data, m.train, stage_dir / name, say)
     timing = {"train_wall_s": time.perf_counter() - t0}  # compiling and checkpoints included
     t0 = time.perf_counter()
-    if (depth, width) not in grids:  # one program per architecture: the policy depends on nothing else
-        grids[depth, width] = rollout.grid_fn(env, bc.policy_apply(model))
-    grid = grids[depth, width]
-    metrics = evaluate_unfiltered(grid, state.params, m.eval.tasks, m.eval.repetitions, m.eval.seed)
+    if cfg.task != "kick":
+        metrics = evaluate_blocked(cfg, depth, width, state.params, say)
+    else:
+        if (depth, width) not in grids:  # one program per architecture: the policy depends on nothing else
+            grids[depth, width] = rollout.grid_fn(env, bc.policy_apply(model))
+        grid = grids[depth, width]
+        metrics = evaluate_unfiltered(grid, state.params, m.eval.tasks, m.eval.repetitions, m.eval.seed)
     summaries = [evaluate.summarise_tasks({k: v[s] for k, v in metrics.items()}) for s in range(m.train.n_seeds)]
     timing["eval_wall_s"] = time.perf_counter() - t0
     row = {**evaluate.table_row(summaries[0]), "per_task": per_task_list(m.eval.tasks, summaries[0])}
-    kept = "no task" if row["error_mean_m"] is None else f"{row['error_mean_m']:.2f} m"
+    unit = env.UNIT
+    kept = "no task" if row["error_mean_m"] is None else f"{row['error_mean_m']:.2f} {unit}"
     say(
         f"{name}: evaluated in {timing['eval_wall_s']:.1f} s: accuracy {row['accuracy_mean']:.2f},"
         f" error {kept} over tasks with accuracy > {evaluate.ACCURACY_THRESHOLD},"
-        f" {row['error_mean_all_m']:.2f} m over all"
+        f" {row['error_mean_all_m']:.2f} {unit} over all"
     )
     return {
         "row": row,
@@ -199,7 +228,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     stage_dir = run_dir / "meta"
     record_path = inputs(cfg, run_dir)["experts"]
     data = dataset(cfg, run_dir, say)
-    env, e = kick_env.KickEnv(cfg.env), cfg.meta.eval
+    env, e = tasks.make_env(cfg.task, cfg.env), cfg.meta.eval
     rows, per_task = {}, {"tasks": [float(t) for t in e.tasks]}
     experts_record = runio.read_json(record_path)
     rows["experts"], experts_per_task = experts_row(experts_record, record_path)
@@ -220,8 +249,11 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         "dataset_pairs": len(data.obs),
         "timings": timings,
         "config": cfg.meta.to_dict(),  # what the filter stage checks its nets against
-        **runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env),
+        **runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)),
     }
+    if cfg.task != "kick":
+        payload.update(task=cfg.task, unit=env.UNIT, obs_size=int(data.obs.shape[-1]), n_actions=env.action_size)
     runio.write_json(stage_dir / OUTPUT, payload)
-    runio.write_text(stage_dir / "table1.md", tables.table1_markdown(rows))
+    markdown = tables.table1_markdown(rows) if cfg.task == "kick" else tables.task_table1_markdown(rows, env.UNIT)
+    runio.write_text(stage_dir / "table1.md", markdown)
     return runio.json_safe(payload)

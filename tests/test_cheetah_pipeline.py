@@ -1,0 +1,72 @@
+"""HalfCheetah-Vel through the pipeline at CPU size: experts from a fresh policy (PPO), their
+clone into the meta-policies over (state, context), policy filtering scored from per-step
+velocities, the report and the published records."""
+
+import json
+
+import numpy as np
+import pytest
+
+from bumps_jax import cheetah_env, config, filtering, pipeline, report
+
+
+@pytest.fixture(scope="module")
+def cheetah_run(tmp_path_factory):
+    """The tiny preset's cheetah pipeline (experts, meta, filter) in one call: its config, directory and timing."""
+    run_dir = tmp_path_factory.mktemp("cheetah")
+    cfg = config.make_config("tiny", {"task": "cheetah_vel"})
+    timing = pipeline.run_pipeline(pipeline.ORDER, cfg, run_dir, say=lambda *a, **k: None)
+    return {"cfg": cfg, "dir": run_dir, "timing": timing}
+
+
+def test_the_tiny_pipeline_runs_the_cheetahs_stages(cheetah_run):
+    run_dir, view = cheetah_run["dir"], config.task_view(cheetah_run["cfg"])
+    assert sorted(cheetah_run["timing"]["stages_s"]) == ["experts", "filter", "meta"]
+    experts = json.loads((run_dir / "experts" / "experts.json").read_text())
+    assert experts["task"] == "cheetah_vel" and experts["unit"] == "m/s"
+    assert experts["tasks_m"] == list(view.experts.tasks)
+    assert experts["env_steps"] == view.experts.ppo.total_env_steps
+    # Two updates of PPO leave the experts near where a random policy runs: errors of the order of
+    # the targets, every episode valid (no physics overflow).
+    assert experts["accuracy_mean"] == 1.0
+    for row in experts["per_task"]:
+        assert 0.0 < row["error_mean_m"] < row["target_m"] + 2.0
+    table1 = json.loads((run_dir / "meta" / "table1.json").read_text())
+    assert table1["obs_size"] == 21 and table1["n_actions"] == 6  # the state (20) and the context
+    assert table1["dataset_pairs"] == 2 * view.meta.dataset.repetitions * view.env.episode_steps
+    for name in ("meta_4x256", "meta_11x128"):
+        assert np.isfinite(table1["rows"][name]["error_mean_all_m"])
+    table2 = json.loads((run_dir / "filter" / "table2.json").read_text())
+    assert "paper" not in table2 and table2["unit"] == "m/s"
+    for name, row in table2["rows"].items():
+        assert np.isfinite(row["error_mean_m"]) and row["rel_error_mean"] is None, name
+        # The chosen context is one of the task's candidates within +- width.
+        if name in table2["chosen_contexts"]:
+            assert abs(table2["chosen_contexts"][name][0] - table2["tasks"][0]) <= view.filter.width + 1e-6
+    text = (run_dir / "report.md").read_text()
+    assert "BUMPS on cheetah_vel" in text and "error (m/s)" in text
+
+
+def test_a_rerun_is_up_to_date_and_publishes_into_results(cheetah_run, tmp_path):
+    log = []
+    pipeline.run_pipeline(pipeline.ORDER, cheetah_run["cfg"], cheetah_run["dir"], say=log.append)
+    assert sum("up to date" in line for line in log) == 3
+    written = report.publish_task(cheetah_run["dir"], "cheetah_vel", root=tmp_path)
+    names = sorted(p.name for p in written)
+    assert {"experts.json", "table1.json", "table2.json", "pipeline.json"} <= set(names)
+    assert all(p.parent == tmp_path / "results" / "cheetah_vel" for p in written)
+    with pytest.raises(ValueError, match="holds no kick run"):
+        report.publish_task(cheetah_run["dir"], "kick", root=tmp_path)
+
+
+def test_filtering_scores_contexts_from_per_step_velocities():
+    """The cheetah's error against another target is the mean of |v_k - target| over its steps."""
+    vels = np.array([[[0.5, 1.5, 1.0, 1.0]], [[2.0, 2.0, 2.0, 3.0]]])  # (C=2, R=1, steps=4)
+    metrics = {"forward_vels": vels, "valid": np.ones((2, 1))}
+    env = object.__new__(cheetah_env.CheetahVelEnv)  # error_against reads no model
+    errors = filtering.env_errors(env)(metrics, [1.0, 2.0])
+    assert errors.shape == (2, 2, 1)
+    np.testing.assert_allclose(errors[:, :, 0], [[0.25, 1.25], [1.0, 0.25]])
+    scores = errors.mean(axis=-1)
+    chosen = filtering.select_contexts(scores, [1.0, 2.0], [1.0, 2.0], 1.0, (0.0, 3.0))
+    assert chosen.tolist() == [0, 1]
