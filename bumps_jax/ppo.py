@@ -8,10 +8,16 @@ expert in one compiled program. From Brax we take the networks (`ppo.networks`),
 use `ppo.train` (it replicates over devices with `jax.device_put_replicated` and cannot be
 vmapped).
 
-Rollouts are whole episodes: every update resets `num_envs` episodes and runs the env's 75
-steps, so the batch is (num_envs, 75) and minibatches are whole episodes. The only randomness
-comes from `TrainState.rng`, split once per update: a run cut into chunks of any size, or
-killed and resumed from a checkpoint, takes exactly the same path as one uninterrupted scan.
+Rollouts are whole episodes: every update resets `num_envs` episodes and runs the env's
+`n_steps` (the kick's 75), so the batch is (num_envs, n_steps) and minibatches are whole
+episodes. An episode's end is a termination unless the env flags it a truncation (a time-limit
+cut) in `state.info["truncation"]`, Brax's convention; GAE then bootstraps through it as Brax
+does (`truncation_of`, `advantages`). The behaviour follows from the env, not from a
+hyperparameter: the kick env keeps no such flag.
+
+The only randomness comes from `TrainState.rng`, split once per update: a run cut into chunks of
+any size, or killed and resumed from a checkpoint, takes exactly the same path as one
+uninterrupted scan.
 """
 
 from __future__ import annotations
@@ -200,17 +206,20 @@ def init_normalizer(obs_size: int) -> running_statistics.RunningStatisticsState:
 # -- GAE as the loss sees it ------------------------------------------------------------------
 
 
-def advantages(rewards, values, dones, bootstrap_value, discount: float, gae_lambda: float):
+def advantages(rewards, values, dones, bootstrap_value, discount: float, gae_lambda: float, truncation=None):
     """Brax's GAE with our episode ends: returns (value targets, advantages), both (T, B).
 
-    rewards, values, dones: (T, B); bootstrap_value: (B,). A done step is a termination (the
-    kick phase is over), never a truncation. This is the mapping `compute_ppo_loss` applies
-    to our transitions (`discount = 1 - done`, truncation 0), exposed for testing.
+    rewards, values, dones: (T, B); bootstrap_value: (B,); truncation: (T, B) or None (zeros).
+    A done step is a termination unless it is also a truncation (a time-limit cut, flagged by
+    the env's `info["truncation"]`); a truncated step bootstraps as in Brax: its own TD error
+    and advantage are zeroed and the step before it bootstraps on its value. This is the
+    mapping `compute_ppo_loss` applies to our transitions (`discount = 1 - done`,
+    `termination = done * (1 - truncation)`), exposed for testing.
     """
-    zeros = jnp.zeros_like(rewards)
+    truncation = jnp.zeros_like(rewards) if truncation is None else truncation
     return ppo_losses.compute_gae(
-        truncation=zeros,
-        termination=dones,
+        truncation=truncation,
+        termination=dones * (1 - truncation),
         rewards=rewards,
         values=values,
         bootstrap_value=bootstrap_value,
@@ -225,6 +234,15 @@ def advantages(rewards, values, dones, bootstrap_value, discount: float, gae_lam
 class _RolloutCarry(NamedTuple):
     env_state: Any  # brax State batched over (num_envs,)
     rng: jax.Array
+
+
+def truncation_of(state) -> jax.Array:
+    """Which episodes of `state` (B,) a time limit cut rather than ended: the env's
+    `info["truncation"]` (Brax's convention, as its EpisodeWrapper and MuJoCo Playground set it),
+    or zeros for an env that keeps none (the kick env: its episode end is a termination)."""
+    if "truncation" in state.info:
+        return jnp.asarray(state.info["truncation"], state.done.dtype)
+    return jnp.zeros_like(state.done)
 
 
 def _env_step(ctx: _Context, normalizer, policy_params, carry: _RolloutCarry, _unused):
@@ -244,7 +262,7 @@ def _env_step(ctx: _Context, normalizer, policy_params, carry: _RolloutCarry, _u
         next_observation=nxt.obs,
         extras={
             "policy_extras": {"log_prob": log_prob, "raw_action": raw, "distribution_params": logits},
-            "state_extras": {"truncation": jnp.zeros_like(nxt.done)},
+            "state_extras": {"truncation": truncation_of(nxt)},
         },
     )
     return _RolloutCarry(nxt, rng), transition

@@ -1,5 +1,6 @@
-"""The PPO trainer: GAE by hand, config errors, a tiny run that learns (vmapped = alone and
-resuming are in test_experts.py, which shares their compiled programs)."""
+"""The PPO trainer: GAE by hand (with and without truncated episode ends), truncation carried
+from the env, config errors, a tiny run that learns (vmapped = alone and resuming are in
+test_experts.py, which shares their compiled programs)."""
 
 from pathlib import Path
 
@@ -8,6 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from brax.envs.base import State
+from brax.training.agents.ppo import losses as ppo_losses
 
 from bumps_jax import config, kick_model, ppo
 from bumps_jax.stages import experts
@@ -54,6 +57,85 @@ def test_gae_matches_hand_computation():
     for b in range(2):
         _, want = _hand_gae(rewards[:, b], values[:, b], dones[:, b], bootstrap[b], gamma, 1.0)
         np.testing.assert_allclose(np.asarray(adv1)[:, b], want, rtol=1e-5, atol=1e-6)
+
+
+def test_gae_bootstraps_through_truncation_as_brax():
+    """Three steps, gamma 0.9, lambda 1, by hand. Column 0: a time limit cuts the episode at step 1
+    and a new one starts at step 2 (Brax's auto-reset layout). Column 1: the cut is the last step
+    (ours: whole episodes). A truncated step's own TD error and advantage are zeroed (its true
+    successor is unknown to Brax's GAE), and the step before it bootstraps on its value instead of
+    treating the end as a termination."""
+    rewards = np.array([[1.0, 1.0], [2.0, 2.0], [3.0, 3.0]])
+    values = np.array([[0.5, 0.5], [1.0, 1.0], [1.5, 1.5]])
+    dones = np.array([[0, 0], [1, 0], [0, 1]], dtype=float)
+    truncation = dones.copy()  # every end here is a time-limit cut
+    bootstrap = np.array([2.0, 2.0])
+    args = [jnp.asarray(a) for a in (rewards, values, dones, bootstrap)]
+    vs, adv = ppo.advantages(*args, 0.9, 1.0, truncation=jnp.asarray(truncation))
+    # Column 0: step 0 -> 1 + 0.9 V(s1) = 1.9; step 1 -> its own value 1.0 (advantage 0);
+    # step 2 (next episode) -> 3 + 0.9 * bootstrap 2.0 = 4.8.
+    # Column 1: step 0 -> 1 + 0.9 * 2 + 0.81 V(s2) = 4.015; step 1 -> 2 + 0.9 V(s2) = 3.35;
+    # step 2 -> its own value 1.5 (advantage 0).
+    want_vs = np.array([[1.9, 4.015], [1.0, 3.35], [4.8, 1.5]])
+    want_adv = np.array([[1.9 - 0.5, 1 + 0.9 * 3.35 - 0.5], [0.0, 3.35 - 1.0], [4.8 - 1.5, 0.0]])
+    np.testing.assert_allclose(np.asarray(vs), want_vs, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(adv), want_adv, rtol=1e-6, atol=1e-6)
+    # The same ends as terminations (an env without the flag) stop the return at the end instead.
+    vs_term, _ = ppo.advantages(*args, 0.9, 1.0)
+    np.testing.assert_allclose(np.asarray(vs_term)[:, 0], [1 + 0.9 * 2, 2.0, 4.8], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(vs_term)[:, 1], [1 + 0.9 * 2 + 0.81 * 3, 2 + 0.9 * 3, 3.0], rtol=1e-6)
+    # And equal to Brax's own GAE fed as Brax's loss feeds it, at another lambda too.
+    for lam in (1.0, 0.7):
+        ours = ppo.advantages(*args, 0.9, lam, truncation=jnp.asarray(truncation))
+        brax = ppo_losses.compute_gae(
+            truncation=jnp.asarray(truncation),
+            # Brax's loss: termination = (1 - discount) * (1 - truncation), with discount = 1 - done.
+            termination=jnp.asarray(dones * (1 - truncation)),
+            rewards=args[0],
+            values=args[1],
+            bootstrap_value=args[3],
+            lambda_=lam,
+            discount=0.9,
+        )
+        for a, b in zip(ours, brax, strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+class _CountingEnv:
+    """A stand-in env of 3 steps: obs = step / 3, reward 1; `flag` keeps Brax's `info["truncation"]`."""
+
+    n_steps = 3
+    observation_size = 1
+    action_size = 1
+
+    def __init__(self, flag: bool):
+        self.flag = flag
+
+    def reset(self, rng, target=None):
+        del rng, target
+        info = {"step": jnp.zeros(())} | ({"truncation": jnp.zeros(())} if self.flag else {})
+        return State(None, jnp.zeros(1), jnp.zeros(()), jnp.zeros(()), {}, info)
+
+    def step(self, state, action):
+        del action
+        step = state.info["step"] + 1
+        done = (step >= self.n_steps).astype(jnp.float32)
+        info = {"step": step} | ({"truncation": done} if self.flag else {})
+        return State(None, step[None] / 3, jnp.ones(()), done, {}, info)
+
+
+@pytest.mark.parametrize("flag", [True, False])
+def test_rollout_carries_the_envs_truncation(flag):
+    """Transitions carry the env's `info["truncation"]`; an env without it gives zeros."""
+    env = _CountingEnv(flag)
+    cfg = ppo.make_config(overrides={"num_envs": 2, "num_minibatches": 1, "total_env_steps": 6})
+    networks = ppo.make_networks(cfg, env.observation_size, env.action_size)
+    ctx = ppo._Context(env, networks, ppo.make_optimizer(cfg, env.n_steps), cfg)
+    params = networks.policy_network.init(jax.random.PRNGKey(0))
+    _, data = ppo.rollout(ctx, ppo.init_normalizer(1), params, 0.0, jax.random.PRNGKey(1))
+    truncation = np.asarray(data.extras["state_extras"]["truncation"])  # (B, T)
+    np.testing.assert_array_equal(truncation, [[0, 0, float(flag)]] * 2)
+    np.testing.assert_array_equal(np.asarray(data.discount), [[1, 1, 0]] * 2)
 
 
 @pytest.mark.parametrize(
