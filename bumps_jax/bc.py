@@ -46,18 +46,31 @@ class Dataset(NamedTuple):
 
 class MetaPolicy(nn.Module):
     """MLP: obs (..., O) -> actions (..., n_actions) (kick: (2,) -> 22 joint targets); `depth` tanh
-    layers of `width`, linear output."""
+    layers of `width`, linear output. With `obs_norm` ((O,) shift, (O,) scale, fixed numbers
+    from the dataset: `obs_norm_of`), the net sees (obs - shift) / scale: a closed-loop task's
+    states are not in [0, 1] as the kick's (phase, context) are. None: obs as it is (the kick)."""
 
     depth: int
     width: int
     n_actions: int = 22
+    obs_norm: tuple | None = None
 
     @nn.compact
     def __call__(self, obs):
         x = obs
+        if self.obs_norm is not None:
+            shift, scale = (jnp.asarray(v, obs.dtype) for v in self.obs_norm)
+            x = (x - shift) / scale
         for _ in range(self.depth):
             x = nn.tanh(nn.Dense(self.width)(x))
         return nn.Dense(self.n_actions)(x)
+
+
+def obs_norm_of(obs: np.ndarray, floor: float = 1e-2) -> tuple:
+    """(shift, scale) of a dataset's observations (N, O) as `MetaPolicy.obs_norm` takes them:
+    per-number mean and standard deviation (at least `floor`), as tuples of floats."""
+    obs = np.asarray(obs, np.float64)
+    return tuple(map(float, obs.mean(axis=0))), tuple(map(float, np.maximum(obs.std(axis=0), floor)))
 
 
 def policy_apply(model: MetaPolicy):
@@ -263,9 +276,12 @@ def train(model: MetaPolicy, data: Dataset, train_cfg, out_dir, say=print, max_c
     return state
 
 
-def load_policy(net_dir, depth: int, width: int, train_cfg, obs_size: int = 2, n_actions: int = 22) -> tuple[Any, Any]:
+def load_policy(
+    net_dir, depth: int, width: int, train_cfg, obs_size: int = 2, n_actions: int = 22, obs_norm=None
+) -> tuple[Any, Any]:
     """(apply_fn, params stacked over seeds (S, ...)) from the newest checkpoint in net_dir/checkpoints,
-    of a net from observations of `obs_size` to `n_actions` (the kick's by default).
+    of a net from observations of `obs_size` (normalised by `obs_norm`) to `n_actions` (the kick's
+    by default).
 
     ValueError naming the folder if it holds no checkpoint, or if its newest one is unreadable
     (an older one would be a policy trained less than the run says).
@@ -275,7 +291,7 @@ def load_policy(net_dir, depth: int, width: int, train_cfg, obs_size: int = 2, n
     path = Path(net_dir).resolve() / "checkpoints"
     if not path.is_dir():
         raise ValueError(f"{path}: no checkpoint folder (run meta-train first)")
-    model = MetaPolicy(depth, width, n_actions)
+    model = MetaPolicy(depth, width, n_actions, obs_norm)
     init, _ = make_trainer(model, train_cfg, 1, obs_size)  # the state's shapes do not depend on the data
     # Only the params: a policy does not need the optimiser's state, whose layout may differ
     # between versions of the trainer. (Real arrays, not `jax.eval_shape`: orbax restores a leaf

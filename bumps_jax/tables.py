@@ -219,7 +219,8 @@ def task_table1_markdown(rows: dict, unit: str) -> str:
             f"| {pm(r['error_mean_m'], r['error_std_m'], 3)} | {num(r.get('error_mean_all_m'), 3)} "
             f"| {r.get('n_tasks', '-')} |"
         )
-    return "# Table 1: experts and unfiltered meta-policies\n\n" + "\n".join(lines) + "\n"
+    note = "The experts run on their own training targets; the meta-policies on the test targets, context = target."
+    return "# Table 1: experts and unfiltered meta-policies\n\n" + "\n".join(lines) + "\n\n" + note + "\n"
 
 
 def task_table2_markdown(rows: dict, unit: str) -> str:

@@ -33,6 +33,8 @@ def test_the_tiny_pipeline_runs_the_cheetahs_stages(cheetah_run):
         assert 0.0 < row["error_mean_m"] < row["target_m"] + 2.0
     table1 = json.loads((run_dir / "meta" / "table1.json").read_text())
     assert table1["obs_size"] == 21 and table1["n_actions"] == 6  # the state (20) and the context
+    # The meta-policies see the state normalised by the dataset's statistics, kept with the nets.
+    assert len(table1["obs_shift"]) == len(table1["obs_scale"]) == 21 and min(table1["obs_scale"]) > 0
     assert table1["dataset_pairs"] == 2 * view.meta.dataset.repetitions * view.env.episode_steps
     for name in ("meta_4x256", "meta_11x128"):
         assert np.isfinite(table1["rows"][name]["error_mean_all_m"])

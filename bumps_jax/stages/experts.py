@@ -104,6 +104,7 @@ class Compiled(NamedTuple):
     # kick's 14 parameters, 0 for a task that starts from a fresh policy (no losses then)
     init: Any
     chunk: Any  # (TrainState (N, ...), targets (N,)) -> (TrainState, UpdateMetrics (N, chunk))
+    n_kick: int = kick_model.N_PARAMS  # K above (`kick_size`)
 
 
 def make_init(cfg, env: kick_env.KickEnv, trainer: ppo.Trainer):
@@ -144,7 +145,7 @@ def compile_programs(cfg, env=None, mesh=None) -> Compiled:
     init = sharding.over_batch(jax.vmap(make), mesh, (True, True, True))
     n = int(cfg.experts.updates_per_chunk)
     chunk = jax.vmap(lambda state, target: trainer.run_updates(state, target, n))
-    return Compiled(env, trainer, mesh, init, sharding.over_batch(chunk, mesh, (True, True)))
+    return Compiled(env, trainer, mesh, init, sharding.over_batch(chunk, mesh, (True, True)), kick_size(cfg))
 
 
 def run_init(programs: Compiled, rngs, targets, kicks):
@@ -169,9 +170,9 @@ def task_rngs(seed: int, n_tasks: int) -> jax.Array:
     return jax.random.split(jax.random.PRNGKey(seed), n_tasks)
 
 
-def abstract_state(programs: Compiled, n_tasks: int, n_kick: int = kick_model.N_PARAMS):
-    """The TrainState (N, ...) shapes and dtypes, for restoring checkpoints (n_kick: `kick_size`)."""
-    args = (task_rngs(0, n_tasks), jnp.zeros(n_tasks), jnp.zeros((n_tasks, n_kick)))
+def abstract_state(programs: Compiled, n_tasks: int):
+    """The TrainState (N, ...) shapes and dtypes, for restoring checkpoints."""
+    args = (task_rngs(0, n_tasks), jnp.zeros(n_tasks), jnp.zeros((n_tasks, programs.n_kick)))
     return jax.eval_shape(functools.partial(run_init, programs), *args)[0]
 
 
@@ -315,7 +316,8 @@ def initial_state(cfg, run_dir: Path, programs: Compiled, say=print):
     A task without a keyframe prior: fresh policies."""
     tasks_ = np.asarray(cfg.experts.tasks, np.float32)
     if cfg.task != "kick":
-        state, _ = run_init(programs, task_rngs(cfg.experts.seed, len(tasks_)), tasks_, np.zeros((len(tasks_), 0)))
+        kicks = np.zeros((len(tasks_), programs.n_kick))
+        state, _ = run_init(programs, task_rngs(cfg.experts.seed, len(tasks_)), tasks_, kicks)
         return state
     stage_dir = run_dir / "experts"
     path = prior_path(cfg, run_dir)
@@ -345,7 +347,7 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
     loop = runio.ChunkedTraining(
         init=lambda: initial_state(cfg, run_dir, programs, say),
         chunk=lambda state: run_chunk(programs, state, targets),
-        abstract=abstract_state(programs, len(tasks), kick_size(cfg)),
+        abstract=abstract_state(programs, len(tasks)),
         updates=lambda state: int(np.asarray(state.update)[0]),
         rows=lambda before, m: chunk_rows(before, m, tasks, programs.trainer.steps_per_update, fields),
         line=lambda m, update, eta: progress_line(tasks, m, update, total, eta, unit),
@@ -358,16 +360,13 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
     return out
 
 
-def load_final_params(
-    stage_dir: Path, programs: Compiled, n_tasks: int, n_kick: int = kick_model.N_PARAMS
-) -> ExpertParams:
-    """The ExpertParams (N, ...) saved under stage_dir/final_params (n_kick: `kick_size`); ValueError
-    naming it if unreadable."""
+def load_final_params(stage_dir: Path, programs: Compiled, n_tasks: int) -> ExpertParams:
+    """The ExpertParams (N, ...) saved under stage_dir/final_params; ValueError naming it if unreadable."""
     import orbax.checkpoint as ocp  # noqa: PLC0415
 
     final = (Path(stage_dir) / "final_params").resolve()
     try:
-        return ocp.StandardCheckpointer().restore(final, expert_params(abstract_state(programs, n_tasks, n_kick)))
+        return ocp.StandardCheckpointer().restore(final, expert_params(abstract_state(programs, n_tasks)))
     except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
         reason = type(err).__name__
         raise ValueError(f"{final}: cannot read the trained experts ({reason}); rerun train-experts") from None
@@ -376,7 +375,7 @@ def load_final_params(
 def load_family(cfg, run_dir: Path) -> Family:
     """The trained experts of a run, for behaviour cloning and replays."""
     programs = compile_programs(cfg)
-    params = load_final_params(Path(run_dir) / "experts", programs, len(cfg.experts.tasks), kick_size(cfg))
+    params = load_final_params(Path(run_dir) / "experts", programs, len(cfg.experts.tasks))
     return Family(task_expert_policy(cfg, programs), params, np.asarray(cfg.experts.tasks, np.float64))
 
 
@@ -441,7 +440,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     n = len(cfg.experts.tasks)
     if (stage_dir / "final_params").exists():  # trained; a previous call stopped before its evaluation
         say(f"experts already trained ({stage_dir / 'final_params'}): evaluating them")
-        params = load_final_params(stage_dir, programs, n, kick_size(cfg))
+        params = load_final_params(stage_dir, programs, n)
         clock = runio.read_json(stage_dir / "wall_time.json") if (stage_dir / "wall_time.json").exists() else {}
         wall = max([0.0, *map(float, clock.values())])
     else:

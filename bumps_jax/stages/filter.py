@@ -66,20 +66,22 @@ def stage_env(env_cfg, task: str = "kick"):
     return _ENVS[key]
 
 
-def meta_grid(env_cfg, depth: int, width: int, mesh, task: str = "kick"):
-    """The `rollout.grid_fn` program of a (depth, width) meta-policy in `task`'s env of `env_cfg`,
-    built once per process and reused by the filter stage, the held-out evaluation and `kick`
-    (each MJX program costs tens of seconds to compile on a CPU). Its apply_fn is bc.policy_apply."""
+def meta_grid(env_cfg, depth: int, width: int, mesh, task: str = "kick", obs_norm=None):
+    """The `rollout.grid_fn` program of a (depth, width) meta-policy (observations normalised by
+    `obs_norm`, `bc.MetaPolicy`) in `task`'s env of `env_cfg`, built once per process and reused by
+    the meta and filter stages, the held-out evaluation and `kick` (each MJX program costs tens of
+    seconds to compile on a CPU). Its apply_fn is bc.policy_apply."""
     key = (
         task,
         json.dumps(tasks.resolved(task, env_cfg), sort_keys=True),
         int(depth),
         int(width),
         tuple(d.id for d in mesh.devices.flat),
+        obs_norm,
     )
     if key not in _PROGRAMS:
         env = stage_env(env_cfg, task)
-        apply_fn = bc.policy_apply(bc.MetaPolicy(int(depth), int(width), env.action_size))
+        apply_fn = bc.policy_apply(bc.MetaPolicy(int(depth), int(width), env.action_size, obs_norm))
         _PROGRAMS[key] = rollout.grid_fn(env, apply_fn, mesh)
     return _PROGRAMS[key]
 
@@ -126,11 +128,12 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     selections, evals, rows, timings = {}, {}, {}, {}
     env = stage_env(cfg.env, cfg.task)
     unit, sizes = env.UNIT, (env.context_observation_size, env.action_size)
+    obs_norm = meta_stage.obs_norm_of_record(runio.read_json(run_dir / "meta" / meta_stage.OUTPUT))
     for net in meta_stage.NETS:
         depth, width = cfg.meta.nets[net]
-        _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train, *sizes)
+        _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train, *sizes, obs_norm)
         params = jax.tree.map(lambda a: a[f.net_seed : f.net_seed + 1], params)
-        grid = meta_grid(cfg.env, depth, width, mesh, cfg.task)  # one program per architecture
+        grid = meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)  # one program per architecture
         for name in (v for v, (n, _) in VARIANTS.items() if n == net):
             contexts = grids[VARIANTS[name][1]]
             out = filter_variant(cfg, grid, params, contexts, mesh.size)

@@ -152,6 +152,13 @@ def unit_of(cfg) -> str:
     return "m" if cfg.task == "kick" else "m/s"
 
 
+def obs_norm_of_record(table1: dict) -> tuple | None:
+    """The meta-policies' `bc.MetaPolicy.obs_norm` from the stage's record (None: the kick's)."""
+    if "obs_shift" not in table1:
+        return None
+    return tuple(map(float, table1["obs_shift"])), tuple(map(float, table1["obs_scale"]))
+
+
 # -- training and Table 1 -----------------------------------------------------------------------
 
 
@@ -162,7 +169,7 @@ def evaluate_unfiltered(grid, params, tasks, repetitions: int, seed: int) -> dic
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def evaluate_blocked(cfg, depth: int, width: int, params, say=print) -> dict:
+def evaluate_blocked(cfg, depth: int, width: int, params, obs_norm=None) -> dict:
     """`evaluate_unfiltered`'s metrics (P, n_tasks, R) from the filter stage's program of this
     architecture (`filter.meta_grid`, called in blocks of `filter.block` episodes per device), which
     the filter stage then reuses instead of compiling its own: another task's evaluation. (The
@@ -170,7 +177,7 @@ def evaluate_blocked(cfg, depth: int, width: int, params, say=print) -> dict:
     from bumps_jax.stages import filter as filter_stage  # noqa: PLC0415 (it imports this module)
 
     e, mesh = cfg.meta.eval, sharding.device_mesh()
-    grid = filter_stage.meta_grid(cfg.env, depth, width, mesh, cfg.task)
+    grid = filter_stage.meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)
     tasks_, reps = np.asarray(e.tasks, np.float64), int(e.repetitions)
     flat, keys = np.repeat(tasks_, reps), rollout.repetition_keys(e.seed, len(tasks_), reps).reshape(-1)
     out = []
@@ -188,12 +195,14 @@ def train_and_evaluate(cfg, stage_dir: Path, name: str, data: bc.Dataset, env, g
     depth, width = m.nets[name]
     say(f"{name}: {depth} x {width}, {m.train.epochs} epochs, {m.train.n_seeds} seed(s)")
     t0 = time.perf_counter()
-    model = bc.MetaPolicy(depth, width, env.action_size)
+    # Another task's states are normalised by the dataset's statistics (the kick's obs: as they are).
+    obs_norm = None if cfg.task == "kick" else bc.obs_norm_of(data.obs)
+    model = bc.MetaPolicy(depth, width, env.action_size, obs_norm)
     state = bc.train(model, data, m.train, stage_dir / name, say)
     timing = {"train_wall_s": time.perf_counter() - t0}  # compiling and checkpoints included
     t0 = time.perf_counter()
     if cfg.task != "kick":
-        metrics = evaluate_blocked(cfg, depth, width, state.params, say)
+        metrics = evaluate_blocked(cfg, depth, width, state.params, obs_norm)
     else:
         if (depth, width) not in grids:  # one program per architecture: the policy depends on nothing else
             grids[depth, width] = rollout.grid_fn(env, bc.policy_apply(model))
@@ -252,7 +261,9 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         **runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)),
     }
     if cfg.task != "kick":
-        payload.update(task=cfg.task, unit=env.UNIT, obs_size=int(data.obs.shape[-1]), n_actions=env.action_size)
+        shift, scale = bc.obs_norm_of(data.obs)
+        payload.update(task=cfg.task, unit=env.UNIT, obs_size=int(data.obs.shape[-1]), n_actions=env.action_size,
+                       obs_shift=list(shift), obs_scale=list(scale))  # fmt: skip
     runio.write_json(stage_dir / OUTPUT, payload)
     markdown = tables.table1_markdown(rows) if cfg.task == "kick" else tables.task_table1_markdown(rows, env.UNIT)
     runio.write_text(stage_dir / "table1.md", markdown)
