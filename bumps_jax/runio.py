@@ -110,6 +110,16 @@ def json_safe(obj):
     return obj
 
 
+def shown(path: str | os.PathLike) -> str:
+    """`path` as a message or a record names it: relative to the working directory when it lies
+    inside it (so that a record never carries where the checkout happened to be)."""
+    path = Path(path)
+    try:
+        return path.resolve().relative_to(Path.cwd().resolve()).as_posix()
+    except ValueError:
+        return str(path)
+
+
 def write_json(path: str | os.PathLike, payload: dict) -> Path:
     """Strict JSON (no NaN), written atomically (temp file + rename): a killed run never leaves half a file."""
     return write_text(path, json.dumps(json_safe(payload), indent=2, allow_nan=False) + "\n")
@@ -320,7 +330,7 @@ def train_in_chunks(stage_dir: Path, loop: ChunkedTraining, total: int, keep: in
     if step is not None:
         previous = float(clock.get(str(step), 0.0))
         trim_csv(progress, loop.fields, loop.fields[0], step)
-        say(f"resumed from update {step} in {stage_dir}")
+        say(f"resumed from update {step} in {shown(stage_dir)}")
     else:
         state = loop.init()
         manager.save(0, args=ocp.args.StandardSave(state))
@@ -356,7 +366,7 @@ def manifest(config: dict, inputs: dict[str, str | os.PathLike]) -> dict:
     fingerprints (name -> path)."""
     return {
         "config": config,
-        "inputs": {name: {"path": str(path), "sha256": file_hash(path)} for name, path in sorted(inputs.items())},
+        "inputs": {name: {"path": shown(path), "sha256": file_hash(path)} for name, path in sorted(inputs.items())},
     }
 
 

@@ -54,3 +54,13 @@ def test_ctrl_c_stops_a_training_run_within_a_chunk_and_it_resumes(tmp_path):  #
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "resumed from epoch" in done.stdout and "finished" in done.stdout
+
+
+def test_a_manifest_and_messages_name_paths_relative_to_the_working_directory(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "run" / "prior").mkdir(parents=True)
+    start = tmp_path / "run" / "prior" / "start.json"
+    start.write_text("{}")
+    wanted = runio.manifest({"a": 1}, {"start": start.resolve()})
+    assert wanted["inputs"]["start"]["path"] == "run/prior/start.json"
+    assert runio.shown(tmp_path.parent / "elsewhere") == str(tmp_path.parent / "elsewhere")

@@ -8,14 +8,15 @@ chunks it prints progress with an ETA, appends progress.csv and saves an orbax c
 killed run resumes from the newest readable checkpoint and ends exactly where an uninterrupted
 one would: every random number comes from the carried `TrainState.rng`.
 
-Writes run_dir/experts/: starting_kicks.json, checkpoints/, progress.csv, wall_time.json,
-final_params/, experts.json, experts.md.
+Writes run_dir/experts/: starting_kicks.json, checkpoints/ (while training; removed once the
+record is written), progress.csv, wall_time.json, final_params/, experts.json, experts.md.
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import shutil
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -389,6 +390,9 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         out = train(cfg, run_dir, programs, say)
         params, wall = expert_params(out["state"]), out["wall_s"]
     record = evaluate_experts(cfg, stage_dir, params, programs, wall, say)
+    # The record and final_params hold everything later stages read: the training checkpoints
+    # (most of a paper run directory's size) go.
+    shutil.rmtree(stage_dir / "checkpoints", ignore_errors=True)
     say(tables.experts_markdown(record))
     return record
 
