@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import bc, evaluate, kick_env, kick_model, ppo, rollout, runio, sharding, tables
+from bumps_jax import bc, evaluate, kick_env, kick_model, kick_scoring, ppo, rollout, runio, sharding, tables
 from bumps_jax.stages import prior as prior_stage
 
 OUTPUT = "experts.json"
@@ -153,8 +153,6 @@ def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray,
     with `tune.anchor_starts` the best of that and the prior's anchors on `tune.eval_repetitions`
     noisy kicks at the target.
     """
-    from bumps_jax import cmaes  # noqa: PLC0415
-
     e = cfg.experts
     targets = np.asarray(targets, np.float32)
     info = {"start_targets_m": targets.tolist()}
@@ -166,8 +164,9 @@ def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray,
     if not e.tune.anchor_starts:
         return starts, info, 0
     candidates = np.concatenate([starts[:, None], np.broadcast_to(anchors, (len(targets), *anchors.shape))], 1)
-    starts, chosen, costs = cmaes.best_starts(env, targets, candidates, cfg.prior.fitness, e.tune.eval_repetitions,
-                                              seed=3)  # fmt: skip
+    starts, chosen, costs = kick_scoring.best_starts(
+        env, targets, candidates, cfg.prior.fitness, e.tune.eval_repetitions, seed=3
+    )
     names = ("blend", *kick_model.ANCHORS)
     info.update(candidates=list(names), candidate_costs=costs.tolist(), chosen=[names[i] for i in chosen])
     say(f"starting kicks chosen from blend and anchors: {dict(zip(targets.tolist(), info['chosen'], strict=True))}")
