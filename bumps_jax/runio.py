@@ -110,6 +110,17 @@ def json_safe(obj):
     return obj
 
 
+def write_experiment(out_dir: str | os.PathLike, name: str, payload: dict, cfg=None, wall_s: float = 0.0) -> Path:
+    """An experiment's record: out_dir/<name>_<cpu|gpu>.json (a CPU run never overwrites the GPU's);
+    with `cfg` (the pipeline config it ran under) the payload gains its provenance."""
+    import jax  # noqa: PLC0415
+
+    kind = "cpu" if jax.default_backend() == "cpu" else "gpu"
+    if cfg is not None:
+        payload = payload | provenance(cfg.preset, wall_s, cfg.env)
+    return write_json(Path(out_dir) / f"{name}_{kind}.json", payload)
+
+
 def shown(path: str | os.PathLike) -> str:
     """`path` as a message or a record names it: relative to the working directory when it lies
     inside it (so that a record never carries where the checkout happened to be)."""

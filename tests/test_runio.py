@@ -64,3 +64,15 @@ def test_a_manifest_and_messages_name_paths_relative_to_the_working_directory(tm
     wanted = runio.manifest({"a": 1}, {"start": start.resolve()})
     assert wanted["inputs"]["start"]["path"] == "run/prior/start.json"
     assert runio.shown(tmp_path.parent / "elsewhere") == str(tmp_path.parent / "elsewhere")
+
+
+def test_an_experiment_record_is_named_by_the_backend_and_carries_its_provenance(tmp_path):
+    from bumps_jax import config, kick_env
+
+    cfg = config.make_config("tiny")
+    path = runio.write_experiment(tmp_path, "probe", {"value": 1.5}, cfg, 2.0)
+    assert path == tmp_path / "probe_cpu.json"  # the tests run on the CPU
+    record = runio.read_json(path)
+    assert record["value"] == 1.5 and record["wall_s"] == 2.0 and record["preset"] == "tiny"
+    assert record["env"]["physics_dt"] == kick_env.resolved(cfg.env)["physics_dt"] > 0
+    assert runio.read_json(runio.write_experiment(tmp_path, "bare", {"value": 2})) == {"value": 2}
