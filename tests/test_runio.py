@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from bumps_jax import runio
+from bumps_jax import pipeline, runio
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -61,7 +61,7 @@ def test_a_manifest_and_messages_name_paths_relative_to_the_working_directory(tm
     (tmp_path / "run" / "prior").mkdir(parents=True)
     start = tmp_path / "run" / "prior" / "start.json"
     start.write_text("{}")
-    wanted = runio.manifest({"a": 1}, {"start": start.resolve()})
+    wanted = pipeline.manifest({"a": 1}, {"start": start.resolve()})
     assert wanted["inputs"]["start"]["path"] == "run/prior/start.json"
     assert runio.shown(tmp_path.parent / "elsewhere") == str(tmp_path.parent / "elsewhere")
 

@@ -10,6 +10,7 @@ and the training error curve in m, each with a 95 % bootstrap band over seeds, a
 error evaluated like the BUMPS variants; the paper arm's also at the top level) and
 baseline_curve.png. Training runs in compiled chunks of `baseline.updates_per_chunk` updates, each
 followed by progress.csv rows, an orbax checkpoint and a progress line; a killed run resumes.
+Once the record is written only the newest checkpoint (the trained runs) is kept.
 """
 
 from __future__ import annotations
@@ -173,6 +174,7 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
         "eval_repetitions": int(b.eval_repetitions),
     }
     runio.write_json(stage_dir / OUTPUT, payload)
+    runio.keep_newest_checkpoint(stage_dir / "checkpoints")  # the trained policies; the rest is history
     plot_curve(payload, stage_dir / "baseline_curve.png")
     for arm in arms:
         say(f"baseline, lr {arm['learning_rate']:g}: error {arm['error_mean_m']:.2f} m, "
