@@ -26,18 +26,20 @@ def cheetah():
 
 
 @pytest.fixture(scope="module")
-def jit_cheetah(cheetah):
-    return jax.jit(cheetah.reset), jax.jit(cheetah.step)
+def batch_step(cheetah):
+    """The vmapped reset and step over len(TARGETS) episodes: the one physics program of this
+    file's MJX-JAX tests (each costs about 20 s to compile on a CPU), so every check reads episodes
+    of a batch."""
+    return jax.jit(jax.vmap(cheetah.reset)), jax.jit(jax.vmap(cheetah.step))
 
 
 @pytest.fixture(scope="module")
-def batch_episode(cheetah):
-    """Whole episodes at TARGETS in one vmapped program: (states after each step (T, B, ...), first state).
+def batch_episode(cheetah, batch_step):
+    """Whole episodes at TARGETS: (states after each step (T, B, ...), first state).
 
-    Stepped from Python with one jitted step: a scan of its own would compile the physics again.
+    Stepped from Python with the one jitted step: a scan of its own would compile the physics again.
     """
-    reset = jax.jit(jax.vmap(cheetah.reset))
-    step = jax.jit(jax.vmap(cheetah.step))
+    reset, step = batch_step
     keys = jax.random.split(jax.random.PRNGKey(3), len(TARGETS))
     state = first = reset(keys, jnp.asarray(TARGETS))
     trace = []
@@ -45,6 +47,19 @@ def batch_episode(cheetah):
         state = step(state, jnp.broadcast_to(open_loop(i), (len(TARGETS), 6)))
         trace.append(state)
     return jax.tree.map(lambda *xs: np.stack(xs), *trace), first
+
+
+@pytest.fixture(scope="module")
+def action_step(batch_step):
+    """One step at ACTION from fresh states at TARGETS: (before, after), batched."""
+    reset, step = batch_step
+    before = reset(jax.random.split(jax.random.PRNGKey(1), len(TARGETS)), jnp.asarray(TARGETS))
+    return before, step(before, jnp.broadcast_to(jnp.asarray(ACTION), (len(TARGETS), 6)))
+
+
+def episode(tree, b: int):
+    """Episode b of a batched state (or of a batch's trace at one step)."""
+    return jax.tree.map(lambda a: np.asarray(a)[b], tree)
 
 
 def c_mujoco_step(env, data, ctrl):
@@ -58,67 +73,83 @@ def c_mujoco_step(env, data, ctrl):
     return d.qpos.copy(), d.xpos[env.torso_body].copy(), d.ncon
 
 
+def assert_step_matches_c_mujoco(env, before, after, action, label) -> int:
+    """`after` is C MuJoCo's control step from `before` at the clipped `action`; returns its contacts."""
+    qpos, torso, ncon = c_mujoco_step(env, before.pipeline_state, np.clip(np.asarray(action), -1.0, 1.0))
+    np.testing.assert_allclose(after.pipeline_state.qpos, qpos, atol=1e-4, err_msg=label)
+    np.testing.assert_allclose(after.obs[-3:], torso, atol=1e-4, err_msg=label)
+    return ncon
+
+
 def assert_steps_match_c_mujoco(env, reset, step, n_steps=12):
     """Each of the first `n_steps` control steps of an episode (the feet touch the floor from
     about step 6) is C MuJoCo's step from the same state."""
     state = reset(jax.random.PRNGKey(1), 2.0)
     contacts = 0
     for i in range(n_steps):
-        qpos, torso, ncon = c_mujoco_step(env, state.pipeline_state, np.clip(np.asarray(open_loop(i)), -1.0, 1.0))
-        state = step(state, open_loop(i))
-        np.testing.assert_allclose(state.pipeline_state.qpos, qpos, atol=1e-4, err_msg=f"step {i}")
-        np.testing.assert_allclose(state.obs[-3:], torso, atol=1e-4, err_msg=f"step {i}")
-        contacts += ncon
+        after = step(state, open_loop(i))
+        contacts += assert_step_matches_c_mujoco(env, state, after, open_loop(i), f"step {i}")
+        state = after
     assert contacts > 0, "no step touched the floor: the comparison says nothing about contacts"
     assert float(state.metrics["overflow"]) == 0.0
 
 
-def test_reset_and_step_shapes(cheetah, jit_cheetah):
-    reset, step = jit_cheetah
+def test_reset_and_step_shapes(cheetah, action_step):
     assert (cheetah.observation_size, cheetah.action_size, cheetah.n_steps) == (20, 6, 200)
     assert (cheetah.n_substeps, cheetah.physics_dt, cheetah.dt) == (5, 0.01, 0.05)
-    state = reset(jax.random.PRNGKey(0), 1.5)
-    data = state.pipeline_state
-    assert state.obs.shape == (20,)
-    # PEARL's observation: qpos without the root x, qvel, the torso's world position.
-    expected = np.concatenate([data.qpos[1:], data.qvel, data.xpos[cheetah.torso_body]])
-    np.testing.assert_allclose(state.obs, expected)
-    # Gym's reset noise: qpos within +-0.1 of the model's, qvel of std 0.1.
-    assert np.all(np.abs(np.asarray(data.qpos) - cheetah.mj_model.qpos0) <= 0.1 + 1e-6)
-    assert float(state.info["target"]) == 1.5 and float(state.done) == 0.0
-    nxt = step(state, jnp.asarray(ACTION))
-    assert nxt.obs.shape == (20,) and int(nxt.info["step"]) == 1 and float(nxt.done) == 0.0
-    for value in (nxt.obs, nxt.reward, *nxt.metrics.values()):
-        assert np.isfinite(np.asarray(value)).all()
+    states, nexts = action_step
+    assert states.obs.shape == (len(TARGETS), 20) and nexts.obs.shape == (len(TARGETS), 20)
+    for b, target in enumerate(TARGETS):
+        state, nxt = episode(states, b), episode(nexts, b)
+        data = state.pipeline_state
+        # PEARL's observation: qpos without the root x, qvel, the torso's world position.
+        expected = np.concatenate([data.qpos[1:], data.qvel, data.xpos[cheetah.torso_body]])
+        np.testing.assert_allclose(state.obs, expected)
+        # Gym's reset noise: qpos within +-0.1 of the model's, qvel of std 0.1.
+        assert np.all(np.abs(data.qpos - cheetah.mj_model.qpos0) <= 0.1 + 1e-6)
+        assert float(state.info["target"]) == target and float(state.done) == 0.0
+        assert int(nxt.info["step"]) == 1 and float(nxt.done) == 0.0
+        for value in (nxt.obs, nxt.reward, *nxt.metrics.values()):
+            assert np.isfinite(np.asarray(value)).all()
+    # The episodes start apart: each has its own reset noise.
+    assert not np.allclose(states.obs[0], states.obs[1])
     # A fresh state has the stepped state's keys and types, so one compiled step serves both.
     kinds = lambda s: [(x.dtype, x.weak_type) for x in jax.tree.leaves(s)]  # noqa: E731
-    assert kinds(state) == kinds(nxt) and sorted(state.metrics) == sorted(nxt.metrics)
+    assert kinds(states) == kinds(nexts) and sorted(states.metrics) == sorted(nexts.metrics)
 
 
-def test_step_reward_by_hand(cheetah, jit_cheetah):
-    """reward = -|dx / 0.05 - target| - 0.05 * |clip(a)|^2 from the states before and after; the
-    physics is five C MuJoCo steps at the clipped command."""
-    reset, step = jit_cheetah
-    before = reset(jax.random.PRNGKey(1), 1.5)
-    after = step(before, jnp.asarray(ACTION))
+def test_step_reward_by_hand(cheetah, action_step):
+    """reward = -|dx / 0.05 - target| - 0.05 * |clip(a)|^2 from the states before and after, each
+    episode against its own target; the physics is five C MuJoCo steps at the clipped command."""
     clipped = np.clip(ACTION, -1.0, 1.0)
-    x0, x1 = float(before.pipeline_state.qpos[0]), float(after.pipeline_state.qpos[0])
-    velocity = (x1 - x0) / 0.05
-    run, ctrl = -abs(velocity - 1.5), -0.05 * float(np.sum(clipped**2))
-    assert float(after.reward) == pytest.approx(run + ctrl, rel=1e-5, abs=1e-5)
-    m = after.metrics
-    assert float(m["forward_vel"]) == pytest.approx(velocity, rel=1e-5, abs=1e-5)
-    assert float(m["reward_velocity"]) == pytest.approx(run, rel=1e-5, abs=1e-5)
-    assert float(m["reward_ctrl"]) == pytest.approx(ctrl, rel=1e-6)
-    assert float(m["return"]) == pytest.approx(float(after.reward), rel=1e-6)
-    assert float(m["mean_vel_error"]) == pytest.approx(abs(velocity - 1.5), rel=1e-5, abs=1e-5)
-    qpos, torso, _ = c_mujoco_step(cheetah, before.pipeline_state, clipped)
-    np.testing.assert_allclose(after.pipeline_state.qpos, qpos, atol=1e-5)
-    np.testing.assert_allclose(after.obs[-3:], torso, atol=1e-5)
+    for b, target in enumerate(TARGETS):
+        before, after = episode(action_step[0], b), episode(action_step[1], b)
+        x0, x1 = float(before.pipeline_state.qpos[0]), float(after.pipeline_state.qpos[0])
+        velocity = (x1 - x0) / 0.05
+        run, ctrl = -abs(velocity - target), -0.05 * float(np.sum(clipped**2))
+        assert float(after.reward) == pytest.approx(run + ctrl, rel=1e-5, abs=1e-5)
+        m = after.metrics
+        assert float(m["forward_vel"]) == pytest.approx(velocity, rel=1e-5, abs=1e-5)
+        assert float(m["reward_velocity"]) == pytest.approx(run, rel=1e-5, abs=1e-5)
+        assert float(m["reward_ctrl"]) == pytest.approx(ctrl, rel=1e-6)
+        assert float(m["return"]) == pytest.approx(float(after.reward), rel=1e-6)
+        assert float(m["mean_vel_error"]) == pytest.approx(abs(velocity - target), rel=1e-5, abs=1e-5)
+        qpos, torso, _ = c_mujoco_step(cheetah, before.pipeline_state, clipped)
+        np.testing.assert_allclose(after.pipeline_state.qpos, qpos, atol=1e-5)
+        np.testing.assert_allclose(after.obs[-3:], torso, atol=1e-5)
 
 
-def test_physics_is_c_mujoco_in_contact(cheetah, jit_cheetah):
-    assert_steps_match_c_mujoco(cheetah, *jit_cheetah)
+def test_physics_is_c_mujoco_in_contact(cheetah, batch_episode):
+    """Each of the first 12 control steps of every episode of the batch (the feet touch the floor
+    from about step 6) is C MuJoCo's step from the same state: a vmapped episode is a single one."""
+    trace, first = batch_episode
+    for b in range(len(TARGETS)):
+        contacts, state = 0, episode(first, b)
+        for i in range(12):
+            after = episode(jax.tree.map(lambda a, i=i: a[i], trace), b)
+            contacts += assert_step_matches_c_mujoco(cheetah, state, after, open_loop(i), f"episode {b}, step {i}")
+            state = after
+        assert contacts > 0, "no step touched the floor: the comparison says nothing about contacts"
 
 
 def test_episode_ends_at_200_steps_over_a_batch_of_targets(cheetah, batch_episode):
@@ -148,17 +179,6 @@ def test_episode_ends_at_200_steps_over_a_batch_of_targets(cheetah, batch_episod
     np.testing.assert_allclose(trace.metrics["reward_velocity"], run, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(trace.reward, run + trace.metrics["reward_ctrl"], rtol=1e-5, atol=1e-5)
     assert np.isfinite(trace.obs).all() and float(trace.metrics["overflow"].max()) == 0.0
-
-
-def test_batch_equals_single_episodes(cheetah, jit_cheetah, batch_episode):
-    """A vmapped episode's first step is the unbatched one's: the target is per-episode state."""
-    reset, step = jit_cheetah
-    trace, _ = batch_episode
-    keys = jax.random.split(jax.random.PRNGKey(3), len(TARGETS))
-    for b, target in enumerate(TARGETS):
-        one = step(reset(keys[b], target), open_loop(0))
-        np.testing.assert_allclose(one.obs, trace.obs[0, b], rtol=1e-4, atol=1e-5)
-        assert float(one.reward) == pytest.approx(float(trace.reward[0, b]), rel=1e-4, abs=1e-5)
 
 
 def test_warp_matches_c_mujoco():
