@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax import c_replay, config, kick_env, kick_model, ppo, rollout, scene
+from bumps_jax import c_replay, config, kick_env, kick_model, ppo, rollout, scene, task_env
 
 NO_NOISE = {f"noise.{k}": 0.0 for k in ("ball_xy", "joint_angle", "friction", "actuator_gain")}
 MAIN = kick_model.ANCHORS.index("main")
@@ -32,7 +32,7 @@ def test_backend_settings_are_refused_in_one_line(overrides, named):
 
 
 def test_missing_warp_is_refused_in_one_line(monkeypatch):
-    monkeypatch.setattr(kick_env.importlib.util, "find_spec", lambda name: None)
+    monkeypatch.setattr(task_env.importlib.util, "find_spec", lambda name: None)  # the check every env shares
     with pytest.raises(ValueError, match="warp-lang") as err:
         config.make_config("tiny", {"env.impl": "warp"})
     assert "\n" not in str(err.value)
