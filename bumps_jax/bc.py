@@ -239,7 +239,7 @@ def train(model: MetaPolicy, data: Dataset, train_cfg, out_dir, say=print, max_c
         if step is None:
             state = fresh
         else:
-            say(f"  resumed from epoch {int(state.step) // epoch_steps} in {out_dir}")
+            say(f"  resumed from epoch {int(state.step) // epoch_steps} in {runio.shown(out_dir)}")
         runio.trim_csv(csv_path, CSV_FIELDS, "step", int(state.step))
         obs, actions = jnp.asarray(data.obs), jnp.asarray(data.actions)  # resident on the device
         first, done_chunks, start = int(state.step), 0, time.perf_counter()

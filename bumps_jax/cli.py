@@ -80,6 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="recompute a stage whose outputs were made under another config or inputs, "
                             "and every stage after it")  # fmt: skip
         p.add_argument("--distributed", action="store_true", help="one process per host of a multi-host job")
+        if name in PIPELINES:
+            every = ", ".join(PIPELINES[name][0])
+            p.add_argument("--stages", nargs="+", default=None, metavar="STAGE",
+                           help=f"only these of its stages, in its order (default: all of {every}); the run "
+                                "directory's timings and report count them as one more call")  # fmt: skip
         if name in ("render", "video"):
             p.add_argument("--out", default=None, help="the picture's path")
         if name == "showcase":
@@ -101,6 +106,18 @@ def default_run_dir(command: str, preset: str) -> Path:
     return Path("runs") / ("demo" if command == "demo" else preset)
 
 
+def pipeline_stages(command: str, chosen) -> tuple[str, ...]:
+    """The stages a pipeline command runs: all of them, or those `chosen` (--stages) in its order;
+    ValueError naming a stage it does not have."""
+    stages = PIPELINES[command][0]
+    if chosen is None:
+        return stages
+    unknown = [s for s in chosen if s not in stages]
+    if unknown:
+        raise ValueError(f"--stages: {command} has no stage {unknown[0]!r}; choose from {', '.join(stages)}")
+    return tuple(s for s in stages if s in chosen)
+
+
 def dispatch(args) -> None:
     """Run one parsed command; ValueError for every user mistake."""
     from bumps_jax import config, pipeline  # noqa: PLC0415
@@ -114,7 +131,7 @@ def dispatch(args) -> None:
     if section:
         pipeline.run_stage(section, cfg, run_dir, force=args.force)
     elif args.command in PIPELINES:
-        pipeline.run_pipeline(PIPELINES[args.command][0], cfg, run_dir, force=args.force)
+        pipeline.run_pipeline(pipeline_stages(args.command, args.stages), cfg, run_dir, force=args.force)
     else:
         from bumps_jax import commands  # noqa: PLC0415
 

@@ -1,5 +1,6 @@
 """CMA-ES on keyframe kicks: one driver for the prior's anchors, the experts' per-task tuning and
-the strike search, and the replays that score kicks (evaluation, sweep, choice of starts).
+the strike search. What a candidate costs, and the replays that score finished kicks, are in
+`kick_scoring`.
 
 A search moves a kick's 14 parameters as params = clip(x0 + scale * z), z drawn by evosax's
 CMA-ES in units of `kick_model.PARAM_SCALE`; a parameter left out of the search's free mask has
@@ -12,23 +13,20 @@ searches and split over a device mesh (`sharding.over_batch`):
 All candidates of one search's generation meet the same R episodes (common random numbers), so
 the ranking compares kicks, not luck. The driver keeps each search's best candidate so far
 beside CMA-ES's own state; the host loop between generations prints progress with an ETA.
-Every episode is `rollout.episode_fn` playing the kick's action table (`rollout.table_policy`).
 """
 
 from __future__ import annotations
 
 import functools
-import json
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 
-from bumps_jax import kick_env, kick_model, rollout, runio, sharding
+from bumps_jax import kick_env, kick_model, kick_scoring, runio, sharding
 
 PROGRESS_FIELDS = ("generation", "best_fitness", "mean_fitness", "best_so_far", "valid_fraction", "seconds")
 
@@ -68,72 +66,6 @@ class Result(NamedTuple):
     best_cost: np.ndarray  # (T,) its mean cost in the generation that drew it
     history: dict  # Stats field -> (generations, T)
     key: jax.Array  # the driver's PRNG key after the last generation
-
-
-# -- costs -------------------------------------------------------------------------------------
-
-
-def kick_cost(env: kick_env.KickEnv, fitness):
-    """The kick prior's cost: fn(params (P, 14), keys (P, R), target, extra) -> (mean cost (P,),
-    metrics of (P, R)), cost = `kick_model.fitness` with weights `fitness`; `extra` is unused."""
-    episodes = jax.vmap(rollout.over_reps(rollout.episode_fn(env, rollout.table_policy)), in_axes=(0, None, None, 0))
-
-    def cost_fn(params, keys, target, extra):
-        metrics = episodes(kick_model.action_tables(params, env.n_steps, env.dt), target, target, keys)
-        return jnp.mean(kick_model.fitness(metrics, target, fitness), axis=1), metrics
-
-    return cost_fn
-
-
-def family_cost(env: kick_env.KickEnv, fitness, knots, targets):
-    """The cost of a contextual kick over many tasks: fn(knot params (P, K, 14), keys (P, R),
-    target, extra) -> (mean cost (P,), metrics of (P, T, R)).
-
-    Each candidate's kick for task t is `kick_model.family_params` at targets[t] (T,) m between
-    `knots` (K,) m; its cost is the mean over tasks of `kick_cost`'s per-task cost, every task on
-    R noisy episodes of its own (the candidate's keys folded with the task's index: the same for
-    every candidate, independent across tasks). `target` and `extra` are unused.
-    """
-    knots, targets = jnp.asarray(knots, jnp.float32), jnp.asarray(targets, jnp.float32)
-    per_task = jax.vmap(kick_cost(env, fitness), in_axes=(1, 0, 0, None), out_axes=(1, 1))
-    fold = jax.vmap(lambda i, keys: jax.vmap(jax.vmap(lambda k: jax.random.fold_in(k, i)))(keys), in_axes=(0, None))
-    kicks_of = jax.vmap(lambda knot_params: jax.vmap(kick_model.family_params, in_axes=(None, None, 0))(
-        knot_params, knots, targets))  # fmt: skip
-
-    def cost_fn(knot_params, keys, target, extra):
-        task_keys = fold(jnp.arange(targets.shape[0]), keys)  # (T, P, R)
-        costs, metrics = per_task(kicks_of(knot_params), task_keys, targets, extra)  # (P, T), (P, T, R)
-        return jnp.mean(costs, axis=1), metrics
-
-    return cost_fn
-
-
-def _weights(fitness_json: str) -> ml_collections.ConfigDict:
-    return ml_collections.ConfigDict(json.loads(fitness_json))
-
-
-def _fitness_json(fitness) -> str:
-    data = fitness.to_dict() if isinstance(fitness, ml_collections.ConfigDict) else dict(fitness)
-    return json.dumps({k: float(v) for k, v in sorted(data.items())})
-
-
-@functools.lru_cache(maxsize=8)
-def _cost_program(env, mesh, fitness_json: str):
-    """Jitted (params (T, C, 14), keys (C, R), targets (T,)) -> mean costs (T, C), tasks split over
-    `mesh`; kept per settings so that one process compiles it once."""
-    cost_fn = kick_cost(env, _weights(fitness_json))
-
-    def costs(params, keys, target):
-        return cost_fn(params, keys, target, 0.0)[0]
-
-    return sharding.over_batch(jax.vmap(costs, in_axes=(0, None, 0)), mesh, (True, False, True))
-
-
-@functools.lru_cache(maxsize=8)
-def _metrics_program(env, mesh):
-    """`rollout.matched_fn` of action tables: (tables (N, n_steps, 22), contexts (N,), targets (N,),
-    keys (N, R)) -> metrics of (N, R); kept per env and mesh."""
-    return rollout.matched_fn(env, rollout.table_policy, mesh=mesh)
 
 
 # -- the driver --------------------------------------------------------------------------------
@@ -180,7 +112,9 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
 def kick_search(env, mesh, population: int, repetitions: int, sigma_init: float, fitness_json: str) -> Search:
     """`make_search` of `kick_cost`, kept per settings: the prior's three anchors, or a resumed
     tuning in the same process, compile it once (about a minute on a CPU)."""
-    return make_search(kick_cost(env, _weights(fitness_json)), population, repetitions, sigma_init, mesh)
+    return make_search(
+        kick_scoring.kick_cost(env, kick_scoring.weights(fitness_json)), population, repetitions, sigma_init, mesh
+    )
 
 
 @functools.lru_cache(maxsize=4)
@@ -188,7 +122,7 @@ def family_search(env, mesh, population: int, repetitions: int, sigma_init: floa
                   knots: tuple, targets: tuple) -> Search:  # fmt: skip
     """`make_search` of `family_cost` (one search's solution: the (K, 14) knot params), kept per
     settings."""
-    cost = family_cost(env, _weights(fitness_json), knots, targets)
+    cost = kick_scoring.family_cost(env, kick_scoring.weights(fitness_json), knots, targets)
     return make_search(cost, population, repetitions, sigma_init, mesh, shape=(len(knots), kick_model.N_PARAMS))
 
 
@@ -270,7 +204,7 @@ def optimise(env, start, target: float, free_params, cfg, csv_path=None, mesh=No
     _check_search(env, [target], cfg.population_size, cfg.repetitions, cfg.sigma_init, cfg.generations)
     mesh = mesh or sharding.device_mesh()
     search = kick_search(env, mesh, int(cfg.population_size), int(cfg.repetitions), float(cfg.sigma_init),
-                         _fitness_json(cfg.fitness))  # fmt: skip
+                         kick_scoring.fitness_json_of(cfg.fitness))  # fmt: skip
     free = np.array([n in free_params for n in kick_model.PARAM_NAMES])
     on_generation = None
     if csv_path is not None:
@@ -323,17 +257,17 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     if isinstance(generations, bool) or not isinstance(generations, int | np.integer) or generations < 0:
         raise ValueError(f"generations must be an integer >= 0, got {generations!r}")
     _check_search(env, targets, tune_cfg.population_size, tune_cfg.repetitions, sigma_init, 1)
-    _check_count("eval_repetitions", tune_cfg.eval_repetitions)
+    kick_scoring.check_count("eval_repetitions", tune_cfg.eval_repetitions)
     mesh = mesh or sharding.device_mesh()
     P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
-    fitness_json = _fitness_json(fitness)
+    fitness_json = kick_scoring.fitness_json_of(fitness)
     search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json)
     result = run_search(search, starts, targets, np.ones_like(starts, bool), int(generations), int(tune_cfg.seed),
                         say=say, label="tuning")  # fmt: skip
     key = result.key
     keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
     pair = sharding.pad((jnp.stack([starts, result.mean], 1), jnp.asarray(targets)), sharding.padded_size(T, mesh))
-    costs = np.asarray(sharding.unpad(_cost_program(env, mesh, fitness_json)(pair[0], keys, pair[1]), T))
+    costs = np.asarray(sharding.unpad(kick_scoring.cost_program(env, mesh, fitness_json)(pair[0], keys, pair[1]), T))
     improved = costs[:, 1] < costs[:, 0]
     return {
         "params": np.where(improved[:, None], result.mean, starts),
@@ -372,10 +306,10 @@ def tune_family(env, targets, knots, start_knots, tune_cfg, generations: int, si
         raise ValueError(f"generations must be an integer >= 0, got {generations!r}")
     _check_search(env, targets, tune_cfg.population_size, tune_cfg.repetitions, sigma_init, 1)
     kick_env.check_targets(knots.tolist(), env.config.task_range)
-    _check_count("eval_repetitions", tune_cfg.eval_repetitions)
+    kick_scoring.check_count("eval_repetitions", tune_cfg.eval_repetitions)
     mesh = mesh or sharding.device_mesh()
     P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
-    fitness_json = _fitness_json(fitness)
+    fitness_json = kick_scoring.fitness_json_of(fitness)
     search = family_search(env, mesh, P, R, float(sigma_init), fitness_json, tuple(knots.tolist()),
                            tuple(targets.tolist()))  # fmt: skip
     result = run_search(search, start_knots[None], targets[:1], np.ones((1, *start_knots.shape), bool),
@@ -385,7 +319,9 @@ def tune_family(env, targets, knots, start_knots, tune_cfg, generations: int, si
     key = result.key
     keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
     padded = sharding.pad((jnp.asarray(pair.transpose(1, 0, 2)), jnp.asarray(targets)), sharding.padded_size(T, mesh))
-    costs = np.asarray(sharding.unpad(_cost_program(env, mesh, fitness_json)(padded[0], keys, padded[1]), T))
+    costs = np.asarray(
+        sharding.unpad(kick_scoring.cost_program(env, mesh, fitness_json)(padded[0], keys, padded[1]), T)
+    )
     improved = bool(costs[:, 1].mean() < costs[:, 0].mean())
     return {
         "params": pair[int(improved)],
@@ -398,97 +334,13 @@ def tune_family(env, targets, knots, start_knots, tune_cfg, generations: int, si
     }
 
 
-def best_starts(env, targets, candidates, fitness, repetitions: int = 16, seed: int = 3, mesh=None):
-    """Each target's best candidate kick: the lowest mean cost over `repetitions` noisy kicks, the
-    same episodes for every candidate (common random numbers); tasks split over `mesh`.
-
-    targets: (T,) m; candidates: (T, C, 14). Returns (params (T, 14), index (T,), costs (T, C)).
-    """
-    targets = np.asarray(targets, np.float32)
-    candidates = np.asarray(kick_model.clip_params(jnp.asarray(candidates, jnp.float32)))
-    if targets.ndim != 1 or candidates.ndim != 3 or candidates.shape[::2] != (targets.shape[0], kick_model.N_PARAMS):
-        raise ValueError(f"need targets (T,) and candidates (T, C, {kick_model.N_PARAMS}), got "
-                         f"{targets.shape} and {candidates.shape}")  # fmt: skip
-    _check_count("repetitions", repetitions)
-    kick_env.check_targets(targets.tolist(), env.config.task_range)
-    mesh = mesh or sharding.device_mesh()
-    n_tasks, n_candidates = candidates.shape[:2]
-    keys = jnp.broadcast_to(jax.random.split(jax.random.key(seed), repetitions), (n_candidates, repetitions))
-    padded = sharding.pad((jnp.asarray(candidates), jnp.asarray(targets)), sharding.padded_size(n_tasks, mesh))
-    costs = np.asarray(
-        sharding.unpad(_cost_program(env, mesh, _fitness_json(fitness))(padded[0], keys, padded[1]), n_tasks)
-    )
-    index = np.argmin(costs, axis=1)
-    return candidates[np.arange(n_tasks), index], index, costs
-
-
-def replay(env, params, targets, keys, mesh=None) -> dict:
-    """Kicks params (N, 14) at targets (N,) m over keys (N, R): the env's final metrics, (N, R) numpy."""
-    mesh = mesh or sharding.device_mesh()
-    n = len(targets)
-    tables = kick_model.action_tables(kick_model.clip_params(jnp.asarray(params, jnp.float32)), env.n_steps, env.dt)
-    targets = jnp.asarray(targets, jnp.float32)
-    args = sharding.pad((tables, targets, targets, keys), sharding.padded_size(n, mesh))
-    return {k: np.asarray(v) for k, v in sharding.unpad(_metrics_program(env, mesh)(*args), n).items()}
-
-
-def evaluate_kick(env, params, target: float, fitness, repetitions: int, seed: int = 1, mesh=None) -> dict:
-    """One kick (14,) replayed over `repetitions` noisy episodes: plain floats of its resting error
-    (mean, std), distance, sideways offset, mean cost and valid / struck / fallen fractions."""
-    _check_count("repetitions", repetitions)
-    kick_env.check_targets(target, env.config.task_range)
-    keys = jax.random.split(jax.random.key(seed), repetitions)[None]
-    out = replay(env, np.asarray(params, np.float32)[None], [target], keys, mesh)
-    cost = kick_model.fitness(out, target, _weights(_fitness_json(fitness)))
-    summary = {
-        "repetitions": int(repetitions),
-        "target": float(target),
-        "mean_error": float(np.mean(out["final_error"])),
-        "std_error": float(np.std(out["final_error"])),
-        "mean_distance": float(np.mean(out["distance"])),
-        "mean_lateral": float(np.mean(out["lateral"])),
-        "mean_fitness": float(np.mean(cost)),
-    }
-    return summary | {f"{k}_fraction": float(np.mean(out[k])) for k in ("valid", "struck", "fallen")}
-
-
-def sweep(env, anchors, strengths, target: float, repetitions: int = 8, seed: int = 2, mesh=None) -> list[dict]:
-    """The blended kick (`kick_model.blend_params` of anchors (3, 14)) at each strength in [0, 1]:
-    rows of its mean and std resting distance, sideways offset, valid and fallen fractions over
-    `repetitions` noisy episodes, the same for every strength."""
-    strengths = np.asarray(strengths, np.float32)
-    if strengths.ndim != 1 or not len(strengths) or not np.all((strengths >= 0) & (strengths <= 1)):
-        raise ValueError(f"strengths must be a 1-d list in [0, 1], got {strengths.tolist()!r}")
-    _check_count("repetitions", repetitions)
-    kick_env.check_targets(target, env.config.task_range)
-    batch = jax.vmap(kick_model.blend_params, in_axes=(None, 0))(jnp.asarray(anchors), jnp.asarray(strengths))
-    keys = jnp.broadcast_to(jax.random.split(jax.random.key(seed), repetitions), (len(strengths), repetitions))
-    out = replay(env, batch, np.full(len(strengths), target, np.float32), keys, mesh)
-    return [
-        {
-            "strength": float(s),
-            "distance_m": float(np.mean(out["distance"][i])),
-            "distance_std_m": float(np.std(out["distance"][i])),
-            "lateral_m": float(np.mean(out["lateral"][i])),
-            "valid_fraction": float(np.mean(out["valid"][i])),
-            "fallen_fraction": float(np.mean(out["fallen"][i])),
-        }
-        for i, s in enumerate(strengths)
-    ]
-
-
-def _check_count(name: str, value) -> None:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-
-
 def _check_search(env, targets, population, repetitions, sigma_init, generations) -> None:
     """ValueError naming the first bad setting of a search, before anything compiles."""
-    _check_count("population_size", population)
+    kick_scoring.check_count("population_size", population)
     if population < 2:
         raise ValueError(f"population_size must be >= 2 for CMA-ES, got {population}")
-    _check_count("repetitions", repetitions)
-    _check_count("generations", generations)
+    kick_scoring.check_count("repetitions", repetitions)
+    kick_scoring.check_count("generations", generations)
     if not np.isfinite(sigma_init) or sigma_init <= 0:
         raise ValueError(f"sigma_init must be > 0, got {sigma_init!r}")
     kick_env.check_targets(np.asarray(targets).tolist(), env.config.task_range)

@@ -18,11 +18,14 @@ and then reuses, resumes, recomputes (`force`) or refuses.
 from __future__ import annotations
 
 import importlib
+import json
 import shutil
 import time
 from pathlib import Path
 
 from bumps_jax import config, runio
+
+MANIFEST = "stage.json"  # each stage directory's manifest
 
 # Stage name -> the stages that read its outputs (directly or through another).
 ORDER = ("prior", "experts", "meta", "filter", "heldout", "baseline")
@@ -39,11 +42,11 @@ def stage_module(name: str):
 def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]:
     """(manifest wanted, status) of one stage, checked before any work: every input exists and
     parses (ValueError naming it), and the stage directory holds nothing of another config
-    (runio.StaleRunError; with `force` such a directory is wiped). status: "new", "same" (resume),
+    (StaleRunError; with `force` such a directory is wiped). status: "new", "same" (resume),
     "done" (its record exists) or "forced"."""
     module = stage_module(name)
-    wanted = runio.manifest(config.section(cfg, name), module.inputs(cfg, run_dir))
-    status = runio.check_manifest(run_dir / name, wanted, force)
+    wanted = manifest(config.section(cfg, name), module.inputs(cfg, run_dir))
+    status = check_manifest(run_dir / name, wanted, force)
     if status == "same" and (run_dir / name / module.OUTPUT).exists():
         status = "done"
     return wanted, status
@@ -68,7 +71,7 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
             if (run_dir / later).exists():
                 say(f"== {later}: removed (made from the {name} outputs that --force replaces)")
                 shutil.rmtree(run_dir / later)
-    runio.write_manifest(run_dir / name, wanted)
+    write_manifest(run_dir / name, wanted)
     say(f"== {name}" + (" (resuming)" if status == "same" else ""), flush=True)
     return module.run(cfg, run_dir, say=say)
 
@@ -88,7 +91,7 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
         if (run_dir / name).exists() and not force:
             try:
                 plan(name, cfg, run_dir)
-            except runio.StaleRunError:
+            except StaleRunError:
                 raise
             except ValueError:
                 pass  # an input that an earlier stage of this call writes
@@ -137,3 +140,65 @@ def count_killed_call(run_dir: Path, timing: dict, say=print) -> None:
     timing["stages_s"][opened["stage"]] = timing["stages_s"].get(opened["stage"], 0.0) + lost
     timing["killed_calls"] = timing.get("killed_calls", 0) + 1
     say(f"== a previous call was killed during {opened['stage']}: counting its {lost:.0f} s up to its last write")
+
+
+# -- the stage manifest ------------------------------------------------------------------------
+
+
+class StaleRunError(ValueError):
+    """A run directory holds outputs of another config or other inputs than this call's."""
+
+
+def manifest(section: dict, inputs: dict[str, str | Path]) -> dict:
+    """What a stage's outputs depend on: its config (`config.section`) and its input files'
+    fingerprints (name -> path)."""
+    return {
+        "config": section,
+        "inputs": {
+            name: {"path": runio.shown(path), "sha256": runio.file_hash(path)} for name, path in sorted(inputs.items())
+        },
+    }
+
+
+def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
+    """Compare a stage directory's manifest with `wanted` before the stage runs.
+
+    Returns "new" (nothing there yet), "same" (its outputs belong to this config and inputs: reuse
+    or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
+    StaleRunError naming the differing keys and the two ways on.
+    """
+    from bumps_jax import env_records  # noqa: PLC0415
+
+    path = stage_dir / MANIFEST
+    if not path.exists():
+        if stage_dir.exists() and any(p.name != MANIFEST for p in stage_dir.iterdir()):
+            diff = ["(outputs without a manifest: made by an older version or another program)"]
+        else:
+            return "new"
+    else:
+        try:
+            have = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            have = {}
+        diff = env_records.differing_keys(
+            {"config": have.get("config", {}), "inputs": _hashes(have.get("inputs", {}))},
+            {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
+        )
+        if not diff:
+            return "same"
+    if force:
+        shutil.rmtree(stage_dir)
+        return "forced"
+    shown = ", ".join(d.removeprefix("config.") for d in diff[:6]) + (" ..." if len(diff) > 6 else "")
+    raise StaleRunError(
+        f"{stage_dir} holds outputs of another config or other inputs ({shown}): "
+        "use a new --run-dir, or --force to recompute this stage and every stage after it"
+    )
+
+
+def write_manifest(stage_dir: Path, wanted: dict) -> Path:
+    return runio.write_json(stage_dir / MANIFEST, wanted)
+
+
+def _hashes(inputs: dict) -> dict:
+    return {name: entry.get("sha256") for name, entry in inputs.items()}

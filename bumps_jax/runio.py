@@ -1,10 +1,6 @@
-"""What a run writes and reads: provenance, strict JSON, resumable CSV, orbax checkpoints, and the
-stage manifest that keeps a run directory from mixing configs.
-
-Every stage writes `<run>/<stage>/stage.json` before it starts: the config it depends on and a
-fingerprint of every input file it reads. A later call compares its own with it
-(`check_manifest`) and refuses to reuse, resume or skip over outputs made otherwise.
-"""
+"""What a run writes and reads: provenance, strict JSON, file fingerprints, resumable CSV, orbax
+checkpoints, and the chunked training loop with its progress lines and Ctrl-C handling. The stage
+manifest built from these lives in `pipeline`."""
 
 from __future__ import annotations
 
@@ -26,11 +22,6 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "optax", "orbax-checkpoint", "evosax", "warp-lang")
-MANIFEST = "stage.json"
-
-
-class StaleRunError(ValueError):
-    """A run directory holds outputs of another config or other inputs than this call's."""
 
 
 class Interrupted(Exception):
@@ -108,6 +99,27 @@ def json_safe(obj):
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
+
+
+def write_experiment(out_dir: str | os.PathLike, name: str, payload: dict, cfg=None, wall_s: float = 0.0) -> Path:
+    """An experiment's record: out_dir/<name>_<cpu|gpu>.json (a CPU run never overwrites the GPU's);
+    with `cfg` (the pipeline config it ran under) the payload gains its provenance."""
+    import jax  # noqa: PLC0415
+
+    kind = "cpu" if jax.default_backend() == "cpu" else "gpu"
+    if cfg is not None:
+        payload = payload | provenance(cfg.preset, wall_s, cfg.env)
+    return write_json(Path(out_dir) / f"{name}_{kind}.json", payload)
+
+
+def shown(path: str | os.PathLike) -> str:
+    """`path` as a message or a record names it: relative to the working directory when it lies
+    inside it (so that a record never carries where the checkout happened to be)."""
+    path = Path(path)
+    try:
+        return path.resolve().relative_to(Path.cwd().resolve()).as_posix()
+    except ValueError:
+        return str(path)
 
 
 def write_json(path: str | os.PathLike, payload: dict) -> Path:
@@ -224,6 +236,13 @@ def checkpoint_manager(directory: Path, keep: int, read_only: bool = False):
         absl_logger.setLevel(level)
 
 
+def keep_newest_checkpoint(directory: Path) -> None:
+    """Remove every numbered checkpoint under `directory` but the newest (a finished stage's)."""
+    steps = sorted(int(p.name) for p in Path(directory).iterdir() if p.name.isdigit()) if directory.exists() else []
+    for step in steps[:-1]:
+        shutil.rmtree(Path(directory) / str(step))
+
+
 def restore_latest(manager, restore_args, say=print):
     """(step, restored) from the newest checkpoint that reads, or (None, None) if there is none.
 
@@ -320,7 +339,7 @@ def train_in_chunks(stage_dir: Path, loop: ChunkedTraining, total: int, keep: in
     if step is not None:
         previous = float(clock.get(str(step), 0.0))
         trim_csv(progress, loop.fields, loop.fields[0], step)
-        say(f"resumed from update {step} in {stage_dir}")
+        say(f"resumed from update {step} in {shown(stage_dir)}")
     else:
         state = loop.init()
         manager.save(0, args=ocp.args.StandardSave(state))
@@ -346,59 +365,3 @@ def train_in_chunks(stage_dir: Path, loop: ChunkedTraining, total: int, keep: in
     manager.close()
     call_s = time.perf_counter() - start
     return {"state": state, "finished": loop.updates(state) >= total, "wall_s": previous + call_s, "call_s": call_s}
-
-
-# -- the stage manifest ------------------------------------------------------------------------
-
-
-def manifest(config: dict, inputs: dict[str, str | os.PathLike]) -> dict:
-    """What a stage's outputs depend on: its config (`config.section`) and its input files'
-    fingerprints (name -> path)."""
-    return {
-        "config": config,
-        "inputs": {name: {"path": str(path), "sha256": file_hash(path)} for name, path in sorted(inputs.items())},
-    }
-
-
-def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
-    """Compare a stage directory's manifest with `wanted` before the stage runs.
-
-    Returns "new" (nothing there yet), "same" (its outputs belong to this config and inputs: reuse
-    or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
-    StaleRunError naming the differing keys and the two ways on.
-    """
-    from bumps_jax import env_records  # noqa: PLC0415
-
-    path = stage_dir / MANIFEST
-    if not path.exists():
-        if stage_dir.exists() and any(p.name != MANIFEST for p in stage_dir.iterdir()):
-            diff = ["(outputs without a manifest: made by an older version or another program)"]
-        else:
-            return "new"
-    else:
-        try:
-            have = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError):
-            have = {}
-        diff = env_records.differing_keys(
-            {"config": have.get("config", {}), "inputs": _hashes(have.get("inputs", {}))},
-            {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
-        )
-        if not diff:
-            return "same"
-    if force:
-        shutil.rmtree(stage_dir)
-        return "forced"
-    shown = ", ".join(d.removeprefix("config.") for d in diff[:6]) + (" ..." if len(diff) > 6 else "")
-    raise StaleRunError(
-        f"{stage_dir} holds outputs of another config or other inputs ({shown}): "
-        "use a new --run-dir, or --force to recompute this stage and every stage after it"
-    )
-
-
-def write_manifest(stage_dir: Path, wanted: dict) -> Path:
-    return write_json(stage_dir / MANIFEST, wanted)
-
-
-def _hashes(inputs: dict) -> dict:
-    return {name: entry.get("sha256") for name, entry in inputs.items()}

@@ -20,7 +20,6 @@ import argparse
 import time
 from pathlib import Path
 
-import jax
 import numpy as np
 
 from bumps_jax import cli, config, evaluate, kick_env, pipeline, runio
@@ -95,15 +94,8 @@ def main(argv=None) -> None:
         }
         print(f"noise x{scale:<5}  error {row['error_mean_m']:.3f} m  accuracy {row['accuracy_mean']:.3f}"
               f"  ({time.perf_counter() - start:.0f} s)", flush=True)  # fmt: skip
-    payload = {
-        "run_dir": args.run_dir,
-        "repetitions": args.repetitions,
-        "noise": dict(cfg.env.noise),
-        "scales": rows,
-        **runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env),
-    }
-    device = "cpu" if jax.default_backend() == "cpu" else "gpu"
-    print(runio.write_json(Path(args.out_dir) / f"noise_scale_{device}.json", payload))
+    payload = {"run_dir": args.run_dir, "repetitions": args.repetitions, "noise": dict(cfg.env.noise), "scales": rows}
+    print(runio.write_experiment(args.out_dir, "noise_scale", payload, cfg, time.perf_counter() - start))
 
 
 if __name__ == "__main__":

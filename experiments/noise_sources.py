@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -85,15 +84,8 @@ def main(argv=None) -> None:
                 f"  error {row['error_mean_m']:.2f} m  valid {row['valid_fraction']:.2f}",
                 flush=True,
             )
-    payload = {
-        "kicks": args.kicks,
-        "repetitions": args.repetitions,
-        "noise": dict(cfg.env.noise),
-        "targets": rows,
-        **runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env),
-    }
-    device = "cpu" if jax.default_backend() == "cpu" else "gpu"
-    print(runio.write_json(Path(args.out_dir) / f"noise_sources_{device}.json", payload))
+    payload = {"kicks": args.kicks, "repetitions": args.repetitions, "noise": dict(cfg.env.noise), "targets": rows}
+    print(runio.write_experiment(args.out_dir, "noise_sources", payload, cfg, time.perf_counter() - start))
 
 
 if __name__ == "__main__":

@@ -238,9 +238,10 @@ def report(best: dict, references: list) -> None:
 
 
 def write(args, kinds, best: dict, payload: dict) -> None:
-    device = "cpu" if jax.default_backend() == "cpu" else "gpu"
     out_dir = Path(args.out_dir)
-    print(runio.write_json(out_dir / f"{args.name}_{device}.json", payload))
+    path = runio.write_experiment(out_dir, args.name, payload)
+    print(path)
+    device = path.stem.rsplit("_", 1)[1]
     kicks = sorted(best.items(), key=lambda kv: kv[1]["target_m"])
     # One file per kind, so that each reads as a starting-kicks record (unique targets).
     for k in kinds:

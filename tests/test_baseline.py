@@ -29,6 +29,7 @@ def test_tiny_baseline_writes_curve_for_two_seeds_and_two_arms(tmp_path, monkeyp
     rows = (stage_dir / "progress.csv").read_text().strip().splitlines()
     assert len(rows) == 1 + 3 * 2 * 2 and len(set(rows)) == len(rows)  # each (update, run) once
     saved = json.loads((stage_dir / "baseline.json").read_text())
+    assert sorted(p.name for p in (stage_dir / "checkpoints").iterdir()) == ["3"]  # the trained runs only
     assert saved["seeds"] == 2 and saved["env"]["physics_dt"] == 0.0025 and saved["env"]["impl"] == "warp"
     curve = saved["curve"]
     n = len(curve["env_steps"])

@@ -68,6 +68,18 @@ def test_presets_cannot_mismatch(tmp_path, monkeypatch):  # defect 5
     assert seen == {"preset": "tiny", "run_dir": cli.default_run_dir("demo", "tiny")}
 
 
+def test_a_pipeline_runs_the_chosen_stages_in_its_order(tmp_path, monkeypatch):
+    seen = {}
+    monkeypatch.setattr(pipeline, "run_pipeline", lambda stages, cfg, run_dir, force: seen.update(stages=stages))
+    cli.main(["reproduce", "--stages", "heldout", "baseline", "meta"])
+    assert seen["stages"] == ("meta", "heldout", "baseline")
+    cli.main(["reproduce"])
+    assert seen["stages"] == cli.PIPELINES["reproduce"][0]
+    with pytest.raises(SystemExit, match=r"^error: --stages: demo has no stage 'baseline'; choose from experts, "):
+        cli.main(["demo", "--stages", "baseline", "--run-dir", str(tmp_path / "run")])
+    assert not (tmp_path / "run").exists()
+
+
 def test_stages_on_an_empty_directory_say_what_to_do(tmp_path):  # defect 6
     with pytest.raises(SystemExit, match=r"^error: .*meta/table1.json: no such file \(.*run meta-train first\)"):
         cli.main(["filter", "--run-dir", str(tmp_path)])

@@ -7,7 +7,7 @@ import ml_collections
 import numpy as np
 import pytest
 
-from bumps_jax import cmaes, config, kick_model, sharding
+from bumps_jax import cmaes, config, kick_model, kick_scoring, sharding
 
 FITNESS = config.make_config("tiny").prior.fitness
 
@@ -85,11 +85,11 @@ def test_tuning_for_tasks_rejects_bad_inputs_before_compiling(env):
 def test_best_starts_rejects_bad_inputs_before_compiling(env):
     candidates = np.tile(kick_model.DEFAULT_PARAMS, (2, 3, 1))
     with pytest.raises(ValueError, match="candidates"):
-        cmaes.best_starts(env, [8.0, 12.0], candidates[0], FITNESS)
+        kick_scoring.best_starts(env, [8.0, 12.0], candidates[0], FITNESS)
     with pytest.raises(ValueError, match="repetitions"):
-        cmaes.best_starts(env, [8.0, 12.0], candidates, FITNESS, repetitions=0)
+        kick_scoring.best_starts(env, [8.0, 12.0], candidates, FITNESS, repetitions=0)
     with pytest.raises(ValueError, match="40.0"):
-        cmaes.best_starts(env, [8.0, 40.0], candidates, FITNESS)
+        kick_scoring.best_starts(env, [8.0, 40.0], candidates, FITNESS)
 
 
 def test_optimise_rejects_bad_inputs_before_compiling(env):
@@ -99,7 +99,7 @@ def test_optimise_rejects_bad_inputs_before_compiling(env):
     with pytest.raises(ValueError, match="30.0"):
         cmaes.optimise(env, kick_model.DEFAULT_PARAMS, 30.0, ("lean",), cfg)
     with pytest.raises(ValueError, match="strengths"):
-        cmaes.sweep(env, np.tile(kick_model.DEFAULT_PARAMS, (3, 1)), [0.5, 1.5], 12.0)
+        kick_scoring.sweep(env, np.tile(kick_model.DEFAULT_PARAMS, (3, 1)), [0.5, 1.5], 12.0)
 
 
 def test_tiny_optimisation_improves(tmp_path, env):
@@ -119,14 +119,14 @@ def test_tiny_optimisation_improves(tmp_path, env):
     fixed = np.setdiff1d(np.arange(kick_model.N_PARAMS), moved)
     np.testing.assert_array_equal(out["params"][fixed], np.asarray(kick_model.clip_params(start))[fixed])
     # The same replay program as the committed prior's test below (one kick, 4 episodes).
-    evaluation = cmaes.evaluate_kick(env, out["params"], 12.0, FITNESS, 4)
+    evaluation = kick_scoring.evaluate_kick(env, out["params"], 12.0, FITNESS, 4)
     assert evaluation["repetitions"] == 4 and np.isfinite(evaluation["mean_error"])
 
 
 def test_committed_prior_kicks_the_ball(env):
     record = kick_model.load_record()
     assert record["params"].shape == (kick_model.N_PARAMS,)
-    result = cmaes.evaluate_kick(env, record["params"], 12.0, FITNESS, 4)
+    result = kick_scoring.evaluate_kick(env, record["params"], 12.0, FITNESS, 4)
     assert result["struck_fraction"] == 1.0
     assert result["fallen_fraction"] == 0.0
     assert result["mean_distance"] > 3.0
@@ -140,7 +140,7 @@ def test_best_starts_picks_the_candidate_that_kicks_nearest(env):
     slow[kick_model.PARAM_NAMES.index("strength")] = 0.1
     slow[kick_model.PARAM_NAMES.index("t_swing")] = kick_model.PARAM_HIGH[kick_model.PARAM_NAMES.index("t_swing")]
     candidates = np.stack([[slow, main], [main, slow]])
-    params, index, costs = cmaes.best_starts(env, [12.0, 12.0], candidates, FITNESS, repetitions=2)
+    params, index, costs = kick_scoring.best_starts(env, [12.0, 12.0], candidates, FITNESS, repetitions=2)
     assert index.tolist() == [1, 0] and costs.shape == (2, 2)
     np.testing.assert_allclose(params, np.stack([main, main]), atol=1e-6)
     assert costs[0, 1] < costs[0, 0] and costs[1, 0] < costs[1, 1]

@@ -253,6 +253,7 @@ def test_trained_experts_without_a_record_are_evaluated_not_retrained(tmp_path, 
     stage_dir = tmp_path / "experts"
     final = stage_dir / "final_params"
     final.mkdir(parents=True)
+    (stage_dir / "checkpoints" / "2").mkdir(parents=True)
     runio.write_json(stage_dir / "wall_time.json", {"0": 1.0, "2": 7.5})
     monkeypatch.setattr(experts, "compile_programs", lambda cfg: programs)
     monkeypatch.setattr(experts, "train", lambda *a, **k: pytest.fail("trained again"))
@@ -267,3 +268,5 @@ def test_trained_experts_without_a_record_are_evaluated_not_retrained(tmp_path, 
     monkeypatch.setattr(experts.tables, "experts_markdown", lambda record: "table")
     experts.run(pipeline_config(), tmp_path, say=lambda *a, **k: None)
     assert seen == {"params": ("params of", stage_dir), "wall_s": 7.5}
+    # With the record written, the training checkpoints are gone; final_params stays.
+    assert final.exists() and not (stage_dir / "checkpoints").exists()

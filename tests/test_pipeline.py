@@ -51,7 +51,7 @@ def test_a_rerun_with_other_overrides_is_refused_naming_the_keys(tmp_path, stage
     pipeline.run_stage("experts", cfg(), tmp_path)  # same config: up to date, not rerun
     assert log == ["experts"]
     other = cfg(**{"experts.ppo.learning_rate": 1e-3, "experts.seed": 7})
-    with pytest.raises(runio.StaleRunError) as err:
+    with pytest.raises(pipeline.StaleRunError) as err:
         pipeline.run_stage("experts", other, tmp_path)
     assert "experts.ppo.learning_rate" in str(err.value) and "experts.seed" in str(err.value)
     assert "--force" in str(err.value) and "--run-dir" in str(err.value)
@@ -67,7 +67,7 @@ def test_a_stage_whose_inputs_changed_is_refused(tmp_path, stages):  # defect 3
     pipeline.run_stage("meta", cfg(), tmp_path)
     # The experts are replaced by another run's: the meta outputs were made from the old ones.
     runio.write_json(tmp_path / "experts" / "out.json", {"stage": "experts", "another": "run"})
-    with pytest.raises(runio.StaleRunError, match="inputs.experts"):
+    with pytest.raises(pipeline.StaleRunError, match="inputs.experts"):
         pipeline.run_stage("meta", cfg(), tmp_path)
     assert log == ["experts", "meta"]
 
@@ -76,7 +76,7 @@ def test_force_recomputes_every_later_stage(tmp_path, stages):
     log, _ = stages
     pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)
     changed = cfg(**{"experts.seed": 3})
-    with pytest.raises(runio.StaleRunError):  # refused before any stage runs
+    with pytest.raises(pipeline.StaleRunError):  # refused before any stage runs
         pipeline.run_pipeline(("experts", "meta"), changed, tmp_path)
     assert log == ["experts", "meta"]
     pipeline.run_pipeline(("experts", "meta"), changed, tmp_path, force=True)
@@ -87,14 +87,14 @@ def test_force_recomputes_every_later_stage(tmp_path, stages):
 def test_the_pipeline_never_reports_up_to_date_over_stale_outputs(tmp_path, stages):  # defect 4
     log, _ = stages
     pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)
-    with pytest.raises(runio.StaleRunError, match=r"experts\.tasks"):
+    with pytest.raises(pipeline.StaleRunError, match=r"experts\.tasks"):
         pipeline.run_pipeline(("experts", "meta"), cfg(**{"experts.tasks": (9.0,)}), tmp_path)
     assert log == ["experts", "meta"]
 
 
 def test_outputs_without_a_manifest_are_not_reused(tmp_path, stages):
     runio.write_json(tmp_path / "experts" / "out.json", {"made": "by an older version"})
-    with pytest.raises(runio.StaleRunError, match="without a manifest"):
+    with pytest.raises(pipeline.StaleRunError, match="without a manifest"):
         pipeline.run_stage("experts", cfg(), tmp_path)
 
 

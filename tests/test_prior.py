@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from bumps_jax import cmaes, config, kick_env, kick_model, scene
+from bumps_jax import cmaes, config, kick_env, kick_model, kick_scoring, scene
 from bumps_jax.stages import prior
 
 
@@ -78,8 +78,8 @@ class StandIns:
     def __init__(self, monkeypatch):
         self.calls = []
         monkeypatch.setattr(cmaes, "optimise", self.optimise)
-        monkeypatch.setattr(cmaes, "evaluate_kick", self.evaluate_kick)
-        monkeypatch.setattr(cmaes, "sweep", self.sweep)
+        monkeypatch.setattr(kick_scoring, "evaluate_kick", self.evaluate_kick)
+        monkeypatch.setattr(kick_scoring, "sweep", self.sweep)
 
     def optimise(self, env, start, target, free_params, cfg, csv_path=None, mesh=None, say=print, label=""):
         self.calls.append({"target": target, "start": np.asarray(start).copy(), "free": tuple(free_params)})

@@ -4,7 +4,7 @@ import json
 import re
 from pathlib import Path
 
-from bumps_jax import config, report, runio, tables
+from bumps_jax import config, readme_table, report, runio, tables
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -144,8 +144,11 @@ def test_readme_results_table_is_the_committed_records():
     """Every number of README's results table is its record's, rounded as shown; the table is
     exactly what `publish` generates from results/*.json."""
     readme = (ROOT / "README.md").read_text()
-    start, end = readme.index(report.README_BEGIN), readme.index(report.README_END) + len(report.README_END)
-    assert readme[start:end] == report.readme_table(ROOT)
+    start, end = (
+        readme.index(readme_table.README_BEGIN),
+        readme.index(readme_table.README_END) + len(readme_table.README_END),
+    )
+    assert readme[start:end] == readme_table.readme_table(ROOT)
     rows = {}
     for line in readme[start:end].splitlines():
         cells = [c.strip() for c in line.strip("|").split("|")]

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from bumps_jax import runio
+from bumps_jax import pipeline, runio
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,3 +54,25 @@ def test_ctrl_c_stops_a_training_run_within_a_chunk_and_it_resumes(tmp_path):  #
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "resumed from epoch" in done.stdout and "finished" in done.stdout
+
+
+def test_a_manifest_and_messages_name_paths_relative_to_the_working_directory(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "run" / "prior").mkdir(parents=True)
+    start = tmp_path / "run" / "prior" / "start.json"
+    start.write_text("{}")
+    wanted = pipeline.manifest({"a": 1}, {"start": start.resolve()})
+    assert wanted["inputs"]["start"]["path"] == "run/prior/start.json"
+    assert runio.shown(tmp_path.parent / "elsewhere") == str(tmp_path.parent / "elsewhere")
+
+
+def test_an_experiment_record_is_named_by_the_backend_and_carries_its_provenance(tmp_path):
+    from bumps_jax import config, kick_env
+
+    cfg = config.make_config("tiny")
+    path = runio.write_experiment(tmp_path, "probe", {"value": 1.5}, cfg, 2.0)
+    assert path == tmp_path / "probe_cpu.json"  # the tests run on the CPU
+    record = runio.read_json(path)
+    assert record["value"] == 1.5 and record["wall_s"] == 2.0 and record["preset"] == "tiny"
+    assert record["env"]["physics_dt"] == kick_env.resolved(cfg.env)["physics_dt"] > 0
+    assert runio.read_json(runio.write_experiment(tmp_path, "bare", {"value": 2})) == {"value": 2}

@@ -10,6 +10,7 @@ and the training error curve in m, each with a 95 % bootstrap band over seeds, a
 error evaluated like the BUMPS variants; the paper arm's also at the top level) and
 baseline_curve.png. Training runs in compiled chunks of `baseline.updates_per_chunk` updates, each
 followed by progress.csv rows, an orbax checkpoint and a progress line; a killed run resumes.
+Once the record is written only the newest checkpoint (the trained runs) is kept.
 """
 
 from __future__ import annotations
@@ -151,32 +152,10 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
     state, train_s = out["state"], out["wall_s"]
     curves = read_progress(stage_dir / "progress.csv", n_runs, trainer.n_updates)
 
-    # Policy 0 is where every seed started (the clone, before PPO); then every arm's seeds.
-    cloned = experts_stage.ExpertParams(ppo.init_normalizer(env.observation_size), policy0)
-    params = jax.tree.map(
-        lambda a, s: jnp.concatenate([jnp.asarray(a, s.dtype)[None], s]),
-        cloned,
-        jax.vmap(experts_stage.expert_params)(state),
-    )
-    tasks = np.asarray(b.eval_tasks, np.float32)
-    keys = rollout.repetition_keys(b.eval_seed, len(tasks), b.eval_repetitions)
-    grid = rollout.grid_fn(env, experts_stage.expert_policy(trainer.networks))
-    m = grid(params, tasks, tasks, keys)  # (1 + runs, tasks, reps)
-    rows = [evaluate.table_row(evaluate.summarise_tasks({k: v[s] for k, v in m.items()})) for s in range(1 + n_runs)]
+    rows = evaluate_runs(cfg, env, trainer, policy0, state)
     env_steps = trainer.n_updates * trainer.steps_per_update
-    returns = curves["episode_return"].reshape(len(rates), b.seeds, -1)
-    errors = curves["final_error"].reshape(len(rates), b.seeds, -1)
-    arms = []
-    for i, lr in enumerate(rates):
-        per_seed = rows[1 + i * b.seeds : 1 + (i + 1) * b.seeds]
-        arms.append({
-            "learning_rate": lr,
-            "curve": bootstrap_curve(returns[i], trainer.steps_per_update),
-            "error_curve": bootstrap_curve(errors[i], trainer.steps_per_update),
-            "error_mean_m": float(np.mean([r["error_mean_all_m"] for r in per_seed])),
-            "accuracy_mean": float(np.mean([r["accuracy_mean"] for r in per_seed])),
-            "per_seed": per_seed,
-        })  # fmt: skip
+    arms = arms_of(rates, b.seeds, rows[1:], curves, trainer.steps_per_update)
+    tasks = np.asarray(b.eval_tasks, np.float32)
     paper = arms[0]
     payload = {
         # Wall time: training over every call plus this call's clone and evaluation.
@@ -195,6 +174,7 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
         "eval_repetitions": int(b.eval_repetitions),
     }
     runio.write_json(stage_dir / OUTPUT, payload)
+    runio.keep_newest_checkpoint(stage_dir / "checkpoints")  # the trained policies; the rest is history
     plot_curve(payload, stage_dir / "baseline_curve.png")
     for arm in arms:
         say(f"baseline, lr {arm['learning_rate']:g}: error {arm['error_mean_m']:.2f} m, "
@@ -202,6 +182,44 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
     say(f"at the start (the cloned main kick): error {rows[0]['error_mean_all_m']:.2f} m, "
         f"accuracy {rows[0]['accuracy_mean']:.2f}")  # fmt: skip
     return payload
+
+
+def evaluate_runs(cfg, env, trainer, policy0, state) -> list[dict]:
+    """Table 1 rows (`evaluate.table_row`) on the baseline's eval tasks and noise: row 0 the cloned
+    main kick every seed started from (before PPO), then every run (arm-major, seeds within)."""
+    b = cfg.baseline
+    cloned = experts_stage.ExpertParams(ppo.init_normalizer(env.observation_size), policy0)
+    params = jax.tree.map(
+        lambda a, s: jnp.concatenate([jnp.asarray(a, s.dtype)[None], s]),
+        cloned,
+        jax.vmap(experts_stage.expert_params)(state),
+    )
+    tasks = np.asarray(b.eval_tasks, np.float32)
+    keys = rollout.repetition_keys(b.eval_seed, len(tasks), b.eval_repetitions)
+    grid = rollout.grid_fn(env, experts_stage.expert_policy(trainer.networks))
+    m = grid(params, tasks, tasks, keys)  # (1 + runs, tasks, reps)
+    return [
+        evaluate.table_row(evaluate.summarise_tasks({k: v[s] for k, v in m.items()})) for s in range(len(m["valid"]))
+    ]
+
+
+def arms_of(rates, seeds: int, run_rows: list[dict], curves: dict, steps_per_update: int) -> list[dict]:
+    """Per learning rate: its seeds' rows, mean error and accuracy over seeds, and the training
+    curves (return and final error) with 95 % bootstrap bands over seeds."""
+    returns = curves["episode_return"].reshape(len(rates), seeds, -1)
+    errors = curves["final_error"].reshape(len(rates), seeds, -1)
+    arms = []
+    for i, lr in enumerate(rates):
+        per_seed = run_rows[i * seeds : (i + 1) * seeds]
+        arms.append({
+            "learning_rate": lr,
+            "curve": bootstrap_curve(returns[i], steps_per_update),
+            "error_curve": bootstrap_curve(errors[i], steps_per_update),
+            "error_mean_m": float(np.mean([r["error_mean_all_m"] for r in per_seed])),
+            "accuracy_mean": float(np.mean([r["accuracy_mean"] for r in per_seed])),
+            "per_seed": per_seed,
+        })  # fmt: skip
+    return arms
 
 
 def plot_curve(payload: dict, path: Path) -> Path:

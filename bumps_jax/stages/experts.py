@@ -8,14 +8,15 @@ chunks it prints progress with an ETA, appends progress.csv and saves an orbax c
 killed run resumes from the newest readable checkpoint and ends exactly where an uninterrupted
 one would: every random number comes from the carried `TrainState.rng`.
 
-Writes run_dir/experts/: starting_kicks.json, checkpoints/, progress.csv, wall_time.json,
-final_params/, experts.json, experts.md.
+Writes run_dir/experts/: starting_kicks.json, checkpoints/ (while training; removed once the
+record is written), progress.csv, wall_time.json, final_params/, experts.json, experts.md.
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import shutil
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -24,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import bc, evaluate, kick_env, kick_model, ppo, rollout, runio, sharding, tables
+from bumps_jax import bc, evaluate, kick_env, kick_model, kick_scoring, ppo, rollout, runio, sharding, tables
 from bumps_jax.stages import prior as prior_stage
 
 OUTPUT = "experts.json"
@@ -152,8 +153,6 @@ def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray,
     with `tune.anchor_starts` the best of that and the prior's anchors on `tune.eval_repetitions`
     noisy kicks at the target.
     """
-    from bumps_jax import cmaes  # noqa: PLC0415
-
     e = cfg.experts
     targets = np.asarray(targets, np.float32)
     info = {"start_targets_m": targets.tolist()}
@@ -165,8 +164,9 @@ def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray,
     if not e.tune.anchor_starts:
         return starts, info, 0
     candidates = np.concatenate([starts[:, None], np.broadcast_to(anchors, (len(targets), *anchors.shape))], 1)
-    starts, chosen, costs = cmaes.best_starts(env, targets, candidates, cfg.prior.fitness, e.tune.eval_repetitions,
-                                              seed=3)  # fmt: skip
+    starts, chosen, costs = kick_scoring.best_starts(
+        env, targets, candidates, cfg.prior.fitness, e.tune.eval_repetitions, seed=3
+    )
     names = ("blend", *kick_model.ANCHORS)
     info.update(candidates=list(names), candidate_costs=costs.tolist(), chosen=[names[i] for i in chosen])
     say(f"starting kicks chosen from blend and anchors: {dict(zip(targets.tolist(), info['chosen'], strict=True))}")
@@ -389,6 +389,9 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         out = train(cfg, run_dir, programs, say)
         params, wall = expert_params(out["state"]), out["wall_s"]
     record = evaluate_experts(cfg, stage_dir, params, programs, wall, say)
+    # The record and final_params hold everything later stages read: the training checkpoints
+    # (most of a paper run directory's size) go.
+    shutil.rmtree(stage_dir / "checkpoints", ignore_errors=True)
     say(tables.experts_markdown(record))
     return record
 

@@ -88,59 +88,36 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     runio.check_writable(run_dir / "heldout")
     h, f = cfg.heldout, cfg.filter
     targets = np.asarray(h.targets, np.float64)
-    n, reps = len(targets), int(h.repetitions)
-    task_range = tuple(cfg.env.task_range)
     sel_key, eval_key = filtering.noise_keys(h.seed)
     mesh = sharding.device_mesh()
-    metrics, selections, rows = {}, {}, {}
-
     family = experts_stage.load_family(cfg, run_dir)
     nearest = nearest_tasks(family.tasks, targets)
-    say(f"held-out: {n} targets x {reps} kicks; experts of the nearest task (compiling first)", flush=True)
+    say(f"held-out: {len(targets)} targets x {h.repetitions} kicks; experts of the nearest task (compiling first)",
+        flush=True)  # fmt: skip
     env = kick_env.KickEnv(cfg.env)
     params = jax.tree.map(lambda a: jnp.asarray(a)[nearest], family.params)
-    keys = filtering.stage_keys(eval_key, n, reps).reshape(n, reps)  # the same noise as evaluate_chosen's
-    tj = jnp.asarray(targets, jnp.float32)
-    metrics["experts_nearest"] = jax.tree.map(
-        np.asarray, rollout.matched_fn(env, family.apply_fn)(params, tj, tj, keys)
-    )
-
+    keys = filtering.stage_keys(eval_key, len(targets), h.repetitions).reshape(len(targets), h.repetitions)
+    tj = jnp.asarray(targets, jnp.float32)  # the same noise as evaluate_chosen's, below
+    metrics = {
+        "experts_nearest": jax.tree.map(np.asarray, rollout.matched_fn(env, family.apply_fn)(params, tj, tj, keys))
+    }
     contexts = filtering.candidate_contexts(targets, filtering.context_grid(*f.context_range, f.context_step))
-    # The filter stage's selection rule; "fixed" spends heldout.selection_repetitions per context.
-    rungs = tuple(f.halving_rungs) if f.selection == "halving" else None
+    selections = {}
     for net in meta_stage.NETS:
-        depth, width = cfg.meta.nets[net]
-        _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train)
-        params = jax.tree.map(lambda a: a[f.net_seed : f.net_seed + 1], params)
-        grid = filter_stage.meta_grid(cfg.env, depth, width, mesh)
         say(f"{net}: unfiltered, then filtered over {len(contexts)} contexts", flush=True)
-        metrics[net] = filtering.evaluate_chosen(grid, params, targets, targets, reps, eval_key, f.block, mesh.size)
-        name = filtered_name(net)
-        sel = filtering.filter_policy(
-            grid, params, contexts, targets, f.width, h.selection_repetitions, sel_key,
-            task_range=task_range, block=f.block, multiple=mesh.size, rungs=rungs, keep=f.halving_keep,
-        )  # fmt: skip
-        chosen = sel.contexts[sel.chosen]
-        metrics[name] = filtering.evaluate_chosen(grid, params, chosen, targets, reps, eval_key, f.block, mesh.size)
-        selections[name] = sel
+        metrics[net], metrics[filtered_name(net)], selections[filtered_name(net)] = meta_variants(
+            cfg, run_dir, net, targets, contexts, (sel_key, eval_key), mesh
+        )
     name, a, b = ENSEMBLE
     ens = filtering.ensemble_choice(selections[a], selections[b], metrics[a], metrics[b])
     metrics[name] = ens.metrics
-
-    for key in ("experts_nearest", *meta_stage.NETS, a, b, name):
-        rows[key] = row(metrics[key])
-    for key, sel in selections.items():
-        rows[key].update(selection_error_m=float(sel.best_score.mean()), n_contexts=len(contexts),
-                         rollouts=int(sel.rollouts))  # fmt: skip
-    rows[name].update(selection_error_m=float(ens.best_score.mean()), n_contexts=2 * len(contexts),
-                      rollouts=rows[a]["rollouts"] + rows[b]["rollouts"])  # fmt: skip
     payload = {
         "targets_m": targets.tolist(),
         "seed": int(h.seed),
-        "repetitions": reps,
+        "repetitions": int(h.repetitions),
         "selection": f.selection,
         "selection_repetitions": int(h.selection_repetitions),
-        "rows": rows,
+        "rows": rows_of(metrics, selections, ens, len(contexts)),
         "error_rule": "error_mean_m: the mean over every target of its mean final error (invalid kicks included)",
         "nearest_expert_task_m": family.tasks[nearest].tolist(),
         "chosen_contexts": {k: s.contexts[s.chosen].tolist() for k, s in selections.items()},
@@ -159,3 +136,38 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     for line in tables.heldout_lines(payload):
         say(line)
     return runio.json_safe(payload)
+
+
+def meta_variants(cfg, run_dir: Path, net: str, targets, contexts, noise_keys, mesh):
+    """One meta-policy on the held-out targets: (its unfiltered metrics, its filtered metrics, the
+    selection), each metric of (T, heldout.repetitions) on the held-out evaluation noise. The
+    filter stage's selection rule; "fixed" spends heldout.selection_repetitions per context."""
+    h, f = cfg.heldout, cfg.filter
+    sel_key, eval_key = noise_keys
+    depth, width = cfg.meta.nets[net]
+    _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train)
+    params = jax.tree.map(lambda a: a[f.net_seed : f.net_seed + 1], params)
+    grid = filter_stage.meta_grid(cfg.env, depth, width, mesh)
+    reps = int(h.repetitions)
+    unfiltered = filtering.evaluate_chosen(grid, params, targets, targets, reps, eval_key, f.block, mesh.size)
+    sel = filtering.filter_policy(
+        grid, params, contexts, targets, f.width, h.selection_repetitions, sel_key,
+        task_range=tuple(cfg.env.task_range), block=f.block, multiple=mesh.size,
+        rungs=tuple(f.halving_rungs) if f.selection == "halving" else None, keep=f.halving_keep,
+    )  # fmt: skip
+    chosen = sel.contexts[sel.chosen]
+    filtered = filtering.evaluate_chosen(grid, params, chosen, targets, reps, eval_key, f.block, mesh.size)
+    return unfiltered, filtered, sel
+
+
+def rows_of(metrics: dict, selections: dict, ens, n_contexts: int) -> dict:
+    """The record's rows: `row` of every variant, the filtered ones with their selection error,
+    contexts and rollouts (the ensemble: both nets' contexts and rollouts)."""
+    name, a, b = ENSEMBLE
+    rows = {key: row(metrics[key]) for key in ("experts_nearest", *meta_stage.NETS, a, b, name)}
+    for key, sel in selections.items():
+        rows[key].update(selection_error_m=float(sel.best_score.mean()), n_contexts=n_contexts,
+                         rollouts=int(sel.rollouts))  # fmt: skip
+    rows[name].update(selection_error_m=float(ens.best_score.mean()), n_contexts=2 * n_contexts,
+                      rollouts=rows[a]["rollouts"] + rows[b]["rollouts"])  # fmt: skip
+    return rows

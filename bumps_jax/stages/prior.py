@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bumps_jax import cmaes, kick_env, kick_model, runio, sharding
+from bumps_jax import cmaes, kick_env, kick_model, kick_scoring, runio, sharding
 
 OUTPUT = "kick_prior.json"
 START = "start_prior.json"
@@ -64,7 +64,7 @@ def run(cfg, run_dir, say=print) -> dict:
     anchors = {n: [float(x) for x in found[n]["params"]] for n in kick_model.ANCHORS}
     stacked = np.asarray([anchors[n] for n in kick_model.ANCHORS], np.float32)
     say(f"prior: sweeping the family over {len(p.sweep_strengths)} strengths")
-    rows = cmaes.sweep(env, stacked, p.sweep_strengths, p.target, repetitions=sweep_repetitions(p), mesh=mesh)
+    rows = kick_scoring.sweep(env, stacked, p.sweep_strengths, p.target, repetitions=sweep_repetitions(p), mesh=mesh)
     reused = sum(found[n]["wall_s"] for n in found if found[n]["reused"])  # time spent in earlier calls
     payload = _payload(cfg, time.perf_counter() - t0 + reused, found, anchors, rows)
     evaluation = found["main"]["evaluation"]
@@ -125,7 +125,7 @@ def _anchor(stage_dir: Path, name: str, target: float, start, free, p, env, mesh
     out = cmaes.optimise(env, start, target, tuple(free), p, csv_path=csv_path, mesh=mesh, say=say,
                          label=f"prior {name} {target:g} m")  # fmt: skip
     search_s = time.perf_counter() - t0
-    evaluation = cmaes.evaluate_kick(env, out["params"], target, p.fitness, p.eval_repetitions, mesh=mesh)
+    evaluation = kick_scoring.evaluate_kick(env, out["params"], target, p.fitness, p.eval_repetitions, mesh=mesh)
     found = {
         "name": name,
         "target_m": float(target),
