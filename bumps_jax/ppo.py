@@ -134,8 +134,8 @@ class UpdateMetrics(NamedTuple):
     """What one update reports (each a scalar; a scan stacks them to (n_updates,))."""
 
     episode_return: jax.Array  # mean over the batch's episodes
-    final_error: jax.Array  # mean final resting error (m)
-    valid: jax.Array  # fraction of valid kicks
+    final_error: jax.Array  # mean final resting error (m); NaN for an env that reports none
+    valid: jax.Array  # fraction of valid kicks; NaN for an env that reports none
     total_loss: jax.Array  # mean over the update's minibatch steps
     policy_loss: jax.Array
     v_loss: jax.Array
@@ -338,6 +338,14 @@ def _epoch(ctx: _Context, normalizer, data, carry: _SGDCarry, _unused):
     return carry, metrics
 
 
+def _final_mean(final, name: str) -> jax.Array:
+    """The batch mean of the episodes' final `metrics[name]`, or NaN for an env that keeps no such
+    metric (the kick's `final_error` and `valid` mean nothing to Brax's halfcheetah)."""
+    if name in final.metrics:
+        return final.metrics[name].mean()
+    return jnp.full((), jnp.nan, jnp.float32)
+
+
 def _update_step(ctx: _Context, target, state: TrainState, _unused):
     """Collect one batch at `target` and run the PPO epochs on it: (state, None) -> (state, metrics)."""
     cfg = ctx.config
@@ -351,8 +359,8 @@ def _update_step(ctx: _Context, target, state: TrainState, _unused):
     _, std = ctx.networks.policy_network.apply(normalizer, sgd.params.policy, data.observation[0, :1])
     metrics = UpdateMetrics(
         episode_return=data.reward.sum(axis=1).mean(),
-        final_error=final.metrics["final_error"].mean(),
-        valid=final.metrics["valid"].mean(),
+        final_error=_final_mean(final, "final_error"),
+        valid=_final_mean(final, "valid"),
         total_loss=losses["total_loss"].mean(),
         policy_loss=losses["policy_loss"].mean(),
         v_loss=losses["v_loss"].mean(),

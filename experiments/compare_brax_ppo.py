@@ -1,23 +1,50 @@
-"""Our vmappable PPO against Brax's `ppo.train` on one kick task, matched hyperparameters.
+"""Our vmappable PPO against Brax's `ppo.train`, matched hyperparameters, on two grounds.
 
-Both start from the same behaviour-cloned policy (Brax via `restore_params`), see the same
-number of env steps in batches of whole 75-step episodes, and are scored on the same fixed
-noisy episodes with the deterministic (mean) policy. Brax runs through
-`bumps_jax.brax_compat`. Writes <out-dir>/compare_brax_ppo_<device>.json.
+kick (the default): one kick task, one seed. Both start from the same behaviour-cloned policy
+(Brax via `restore_params`), see the same number of env steps in batches of whole 75-step
+episodes, and are scored on the same fixed noisy episodes with the deterministic (mean) policy.
+Writes <out-dir>/compare_brax_ppo_<cpu|gpu>.json.
 
     python experiments/compare_brax_ppo.py --out-dir experiments/results
+
+halfcheetah: ground our trainer was not tuned on. Brax's own `halfcheetah` env (plain forward
+running, Brax's reward: forward velocity - 0.1 |a|^2; MJX backend, MJX's JAX implementation),
+1000-step episodes cut by Brax's `EpisodeWrapper`, whose `info["truncation"]` our trainer reads
+(`ppo.truncation_of`): both bootstrap through the time limit the same way. Brax's published
+halfcheetah PPO settings (`BRAX_HALFCHEETAH`, source cited there), matched where ours can express
+them and the rest listed in the record (`MATCHED_DIFFERENCES`). Both train from scratch, 3 seeds
+each, for the same env steps (`PRESETS`); every `--eval-every` updates each saves its (normalizer,
+policy), and after training every checkpoint of both is scored in one compiled program on the same
+fixed episodes with the deterministic (mean) policy. Writes one record,
+<out-dir>/compare_brax_ppo_halfcheetah_<cpu|gpu>.json (both trainers' per-seed curves, final
+returns, their spread and the verdict), and a .png beside it with both learning curves.
+
+    # one H100: 4-6.5 minutes, estimated (`GPU_ESTIMATE`)
+    python experiments/compare_brax_ppo.py --mode halfcheetah --preset gpu
+
+`--preset smoke` runs the same comparison at CPU size (4 episodes of 100 steps per update, 2
+updates, 3 seeds each) on Brax's `fast` env, a stand-in without physics: under a minute on 2 CPU
+cores, a record and a plot (runs/compare_brax_ppo/compare_brax_ppo_fast_smoke_cpu.json), not a
+result. Each MJX program takes ~30 s per reset or step in it to compile on a CPU, so
+`--preset smoke --env halfcheetah` (the same sizes on the real env) takes minutes.
+
+    python experiments/compare_brax_ppo.py --mode halfcheetah --preset smoke
+
+Brax runs through `bumps_jax.brax_compat` in both modes.
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import tempfile
 import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from brax import envs as brax_envs
 
 from bumps_jax import brax_compat, cli, config, kick_env, kick_model, ppo, rollout, runio
 from bumps_jax.stages import experts
@@ -119,24 +146,484 @@ def compare(target: float = 16.0, n_updates: int = 8, num_envs: int = 16, eval_e
     return out
 
 
+# -- halfcheetah ------------------------------------------------------------------------------
+
+# Brax's published PPO settings for `halfcheetah` (BRAX_HALFCHEETAH_SOURCE): the `train_fn` table
+# of Brax's training notebook. What it leaves out takes `ppo.train`'s defaults
+# at that tag: gae_lambda 0.95, clipping_epsilon 0.3, vf_loss_coefficient 0.5, normalize_advantage
+# True, max_grad_norm None; networks `make_ppo_networks`' (policy 4 x 32, value 5 x 256, swish,
+# tanh-squashed Gaussian, initial std 1).
+BRAX_HALFCHEETAH = {
+    "num_timesteps": 50_000_000,
+    "num_evals": 20,
+    "reward_scaling": 1,
+    "episode_length": 1000,
+    "normalize_observations": True,
+    "action_repeat": 1,
+    "unroll_length": 20,
+    "num_minibatches": 32,
+    "num_updates_per_batch": 8,
+    "discounting": 0.95,
+    "learning_rate": 3e-4,
+    "entropy_cost": 0.001,
+    "num_envs": 2048,
+    "batch_size": 512,
+    "seed": 3,
+}
+BRAX_HALFCHEETAH_SOURCE = "google/brax notebooks/training.ipynb, tag v0.14.2 (f489566), train_fn['halfcheetah']"
+EPISODE_LENGTH = BRAX_HALFCHEETAH["episode_length"]
+# Ours must clip the gradient's norm (ppo.max_grad_norm > 0); Brax's settings clip nothing. Both
+# clip here at a norm no gradient reaches, which leaves every step as it is.
+NO_CLIP = 1e9
+MATCHED_DIFFERENCES = (
+    "rollouts: ours collects whole episodes from fresh resets every update; Brax is run the same "
+    "way (unroll_length = episode_length = 1000, num_envs episodes per update, one unroll per env), "
+    "not with its published 2048 envs x 20-step unrolls x 8",
+    "budget: env_steps_per_seed, not the published 50M; num_envs whole episodes per update in "
+    "num_minibatches minibatches (published: 327,680 steps per update in 32 minibatches of 10,240)",
+    "networks: both ours (ppo.make_networks, given to Brax as its network factory): tanh MLPs, not "
+    "swish; an unsquashed Gaussian with a learned state-independent log-std, not a tanh-squashed one; "
+    "the env clips actions to [-1, 1], its control cost is paid on the unclipped action",
+    "resets: Brax's AutoResetWrapper restarts each env from its own first state; ours draws a fresh reset every update",
+    f"gradient clipping at a norm of {NO_CLIP:g} in both (none in effect; Brax's settings: none)",
+)
+
+
+def cheetah_ppo_config(num_envs: int, num_minibatches: int, env_steps: int):
+    """Our PPO section set to Brax's halfcheetah settings (`BRAX_HALFCHEETAH`): a locked ConfigDict."""
+    b = BRAX_HALFCHEETAH
+    return ppo.make_config(
+        overrides={
+            "num_envs": num_envs,
+            "num_minibatches": num_minibatches,
+            "num_epochs": b["num_updates_per_batch"],
+            "total_env_steps": env_steps,
+            "learning_rate": b["learning_rate"],
+            "value_learning_rate": b["learning_rate"],  # Brax: one Adam for both networks
+            "anneal_learning_rate": False,
+            "max_grad_norm": NO_CLIP,
+            "discount": b["discounting"],
+            "gae_lambda": 0.95,
+            "clip_epsilon": 0.3,
+            "entropy_cost": b["entropy_cost"],
+            "vf_coefficient": 0.5,
+            "reward_scaling": float(b["reward_scaling"]),
+            "normalize_advantage": True,
+            "normalize_observations": b["normalize_observations"],
+            "policy_hidden": (32,) * 4,
+            "value_hidden": (256,) * 5,
+            "init_log_std": 0.0,  # Brax's init_noise_std 1
+        }
+    )
+
+
+class TimeLimited:
+    """Brax's env as our trainer takes it: `reset(rng, target)` (one task: the target is ignored)
+    and episodes of `n_steps`, whose last step Brax's `EpisodeWrapper` flags in `info["truncation"]`."""
+
+    def __init__(self, env, episode_length: int):
+        self.env = brax_envs.training.EpisodeWrapper(env, episode_length, action_repeat=1)
+        self.n_steps = episode_length
+        self.observation_size = env.observation_size
+        self.action_size = env.action_size
+
+    def reset(self, rng: jax.Array, target=None):
+        del target
+        return self.env.reset(rng)
+
+    def step(self, state, action: jax.Array):
+        return self.env.step(state, action)
+
+
+ENVS = ("halfcheetah", "fast")
+
+
+def make_brax_env(name: str):
+    """Brax's `halfcheetah` on MJX (MJX's JAX implementation), or Brax's `fast`: a unit-test stand-in
+    with no physics (a point pushed along a line) whose programs compile in seconds on a CPU."""
+    if name not in ENVS:
+        raise ValueError(f"env must be one of {ENVS}, got {name!r}")
+    return brax_envs.get_environment(name, backend="mjx") if name == "halfcheetah" else brax_envs.get_environment(name)
+
+
+def env_record(name: str, env, episode_length: int) -> dict:
+    """The env config a record carries: physics step (s), backend and what else fixes the task."""
+    if name == "fast":
+        # No physics: one explicit Euler step of `env._dt` per control step.
+        return {"name": "fast", "impl": "none", "physics_dt": float(env._dt), "episode_length": episode_length}
+    return {
+        "name": name,
+        "backend": "mjx",
+        "impl": "jax",  # MJX's JAX implementation
+        "physics_dt": float(env.sys.opt.timestep),
+        "n_frames": int(env._n_frames),
+        "ctrl_dt": float(env.dt),
+        "solver_iterations": int(env.sys.opt.iterations),
+        "episode_length": episode_length,
+        "reward": "forward velocity - 0.1 * sum(action ** 2)",
+    }
+
+
+def _episode_return(env: TimeLimited, networks, normalizer, policy_params, key) -> jax.Array:
+    """One whole episode of the mean policy: the sum of its rewards (a scalar)."""
+
+    def step(state, _):
+        nxt = env.step(state, ppo.policy_mean(networks, normalizer, policy_params, state.obs))
+        return nxt, nxt.reward
+
+    _, rewards = jax.lax.scan(step, env.reset(key), None, env.n_steps)
+    return rewards.sum()
+
+
+def make_evaluator(env: TimeLimited, networks, n_episodes: int, seed: int):
+    """(normalizers, policy params), each with a leading axis of P policies -> returns (P, n_episodes)
+    of the deterministic policy on the same fixed episodes. Every checkpoint of both trainers is
+    scored in one call after training: an episode is 1000 sequential steps, so one call of many
+    policies costs about what one call of one policy costs."""
+    keys = jax.random.split(jax.random.PRNGKey(seed), n_episodes)
+    per_policy = jax.vmap(functools.partial(_episode_return, env, networks), in_axes=(None, None, 0))
+    returns = jax.jit(jax.vmap(per_policy, in_axes=(0, 0, None)))
+
+    def evaluate(normalizers, policies):
+        return np.asarray(returns(normalizers, policies, keys))
+
+    return evaluate
+
+
+def _host(tree):
+    """A copy on the host with plain dtypes: Brax's params come back from pmap typed otherwise than
+    ours from vmap (weak types), and the device's copy is freed for the training that goes on."""
+    return jax.tree_util.tree_map(lambda x: np.asarray(x), tree)
+
+
+def _stack(trees):
+    return jax.tree_util.tree_map(lambda *xs: np.stack(xs), *trees)
+
+
+class Progress:
+    """Progress lines with an ETA, counting updates: ours' (every seed in one program) count once,
+    Brax's once per seed, so `total` is n_updates x (1 + seeds). Compiling makes the first ETA long."""
+
+    def __init__(self, total_updates: int, say=print):
+        self.total, self.done, self.say, self.start = total_updates, 0, say, time.perf_counter()
+
+    def __call__(self, updates: int, text: str) -> None:
+        self.done += updates
+        elapsed = time.perf_counter() - self.start
+        self.say(
+            f"  {text}  [{self.done}/{self.total} updates, {runio.eta(self.done, self.total, elapsed)}]", flush=True
+        )
+
+
+def run_ours_cheetah(cfg, env: TimeLimited, seeds, eval_every: int, progress: Progress) -> dict:
+    """Our trainer, every seed in one vmapped program; a host copy of each seed's (normalizer,
+    policy) every `eval_every` updates, scored later (`make_evaluator`)."""
+    trainer = ppo.make_train(cfg, env)
+    init = jax.jit(jax.vmap(trainer.init))
+    chunk = jax.jit(jax.vmap(functools.partial(trainer.run_updates, n=eval_every), in_axes=(0, None)))
+    start = time.perf_counter()
+    state = init(jnp.stack([jax.random.PRNGKey(s) for s in seeds]))
+    steps, checkpoints, collected = [0], [_host((state.normalizer, state.params.policy))], []
+    for _ in range(trainer.n_updates // eval_every):
+        state, metrics = chunk(state, jnp.float32(0.0))
+        collected.append(np.asarray(metrics.episode_return))  # (seeds, eval_every)
+        checkpoints.append(_host((state.normalizer, state.params.policy)))
+        steps.append(int(state.env_steps[0]))
+        train_return = np.round(collected[-1][:, -1].astype(float), 1).tolist()  # the last update's, per seed
+        progress(eval_every, f"ours  {steps[-1]:>10,d} steps  training return {train_return}")
+    return {
+        "env_steps": steps,
+        "checkpoints": checkpoints,  # (evals,) of trees with a leading seed axis
+        "training_return": np.concatenate(collected, axis=1).tolist(),  # (seeds, updates), stochastic policy
+        "wall_s": round(time.perf_counter() - start, 2),
+    }
+
+
+def run_brax_cheetah(cfg, env: TimeLimited, raw_env, seed: int, eval_every: int, progress: Progress) -> dict:
+    """Brax's `ppo.train` on the raw env (Brax wraps it with its own EpisodeWrapper and
+    AutoResetWrapper), one whole episode per env per update like ours; a host copy of its
+    (normalizer, policy) from `policy_params_fn` at the same env steps as ours. Brax's own
+    evaluator is off."""
+    steps_per_update = int(cfg.num_envs) * env.n_steps
+    n_evals = int(cfg.total_env_steps) // (steps_per_update * eval_every)
+    steps, checkpoints = [], []
+
+    def on_params(step, make_policy, params):
+        del make_policy
+        normalizer, policy, _value = params
+        checkpoints.append(_host((normalizer, policy)))
+        steps.append(int(step))
+        if step:
+            progress(eval_every, f"brax  {int(step):>10,d} steps  (seed {seed})")
+
+    start = time.perf_counter()
+    brax_compat.train(
+        cfg,
+        env,
+        environment=raw_env,
+        num_timesteps=n_evals * eval_every * steps_per_update,
+        num_evals=n_evals + 1,
+        run_evals=False,
+        num_eval_envs=1,  # Brax builds its evaluator even when it does not run it
+        policy_params_fn=on_params,
+        seed=seed,
+    )
+    return {"env_steps": steps, "checkpoints": checkpoints, "wall_s": round(time.perf_counter() - start, 2)}
+
+
+def score_checkpoints(evaluate, ours_checkpoints, brax_checkpoints) -> tuple[np.ndarray, np.ndarray]:
+    """Mean return of every checkpoint, in one call: ((seeds, evals) ours, (seeds, evals) Brax).
+    ours_checkpoints: (evals,) of trees with a leading seed axis; brax_checkpoints: (seeds,) of
+    (evals,) of trees."""
+    ours = [_seed(tree, i) for i in range(len(brax_checkpoints)) for tree in ours_checkpoints]
+    brax = [tree for run in brax_checkpoints for tree in run]
+    returns = evaluate(*_stack(ours + brax)).mean(axis=1)
+    n_seeds, n_evals = len(brax_checkpoints), len(ours_checkpoints)
+    return returns[: len(ours)].reshape(n_seeds, n_evals), returns[len(ours) :].reshape(n_seeds, n_evals)
+
+
+def _seed(tree, i: int):
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
+
+
+def spread_check(ours_final, brax_final) -> dict:
+    """Is each trainer's mean final return inside the range (min to max) of the other's seeds?"""
+    ours_final, brax_final = np.asarray(ours_final), np.asarray(brax_final)
+    ours_in = bool(brax_final.min() <= ours_final.mean() <= brax_final.max())
+    brax_in = bool(ours_final.min() <= brax_final.mean() <= ours_final.max())
+    return {
+        "ours_mean_in_brax_range": ours_in,
+        "brax_mean_in_ours_range": brax_in,
+        "within_each_others_spread": ours_in and brax_in,
+    }
+
+
+def arm_record(env_steps, eval_return) -> dict:
+    """One trainer's curves (seeds x evals, at `env_steps`) and its final returns' spread."""
+    curves = np.asarray(eval_return, dtype=float)
+    final = curves[:, -1]
+    return {
+        "env_steps": [int(s) for s in env_steps],
+        "eval_return": curves.tolist(),  # (seeds, evals)
+        "final_return": final.tolist(),
+        "final_return_mean": float(final.mean()),
+        "final_return_std": float(final.std()),
+        "final_return_range": [float(final.min()), float(final.max())],
+    }
+
+
+def comparison_record(env_steps, ours_curves, brax_curves) -> dict:
+    """Both trainers' curves, final returns and the verdict: the record's result keys."""
+    ours, brax = arm_record(env_steps, ours_curves), arm_record(env_steps, brax_curves)
+    return {
+        "ours": ours,
+        "brax": brax,
+        "final_return_gap": ours["final_return_mean"] - brax["final_return_mean"],
+        **spread_check(ours["final_return"], brax["final_return"]),
+    }
+
+
+def check_cheetah_run(num_envs: int, num_minibatches: int, env_steps: int, eval_every: int, episode_length: int):
+    """Our PPO config of the run (`cheetah_ppo_config`), or ValueError naming the bad setting."""
+    cfg = cheetah_ppo_config(num_envs, num_minibatches, env_steps)
+    ppo.validate_config(cfg, episode_length, prefix="")
+    per_eval = num_envs * episode_length * eval_every
+    if eval_every < 1 or env_steps % per_eval:
+        raise ValueError(
+            f"env_steps {env_steps} must be a multiple of num_envs x episode length x eval_every = {per_eval}"
+        )
+    return cfg
+
+
+def compare_cheetah(
+    env_steps: int,
+    num_envs: int,
+    num_minibatches: int,
+    eval_every: int,
+    seeds=(0, 1, 2),
+    eval_episodes: int = 64,
+    episode_length: int = EPISODE_LENGTH,
+    env_name: str = "halfcheetah",
+    preset: str = "gpu",
+    say=print,
+) -> dict:
+    """Both trainers from scratch on Brax's `env_name` (`ENVS`), every seed, scored the same way: the record."""
+    start = time.perf_counter()
+    cfg = check_cheetah_run(num_envs, num_minibatches, env_steps, eval_every, episode_length)
+    raw_env = make_brax_env(env_name)
+    env = TimeLimited(raw_env, episode_length)
+    n_updates = env_steps // (num_envs * episode_length)
+    progress = Progress(n_updates * (1 + len(seeds)), say)
+    say(f"ours: {len(seeds)} seeds in one program, {env_steps:,d} env steps each ({n_updates} updates)", flush=True)
+    ours = run_ours_cheetah(cfg, env, seeds, eval_every, progress)
+    brax_runs = []
+    for seed in seeds:
+        say(f"brax: seed {seed}", flush=True)
+        brax_runs.append(run_brax_cheetah(cfg, env, raw_env, seed, eval_every, progress))
+    if any(run["env_steps"] != ours["env_steps"] for run in brax_runs):
+        raise RuntimeError(f"Brax saved params at {brax_runs[0]['env_steps']}, ours at {ours['env_steps']}")
+    n_policies = 2 * len(seeds) * len(ours["env_steps"])
+    say(f"scoring {n_policies} checkpoints x {eval_episodes} episodes, deterministic policy", flush=True)
+    t = time.perf_counter()
+    networks = ppo.make_networks(cfg, env.observation_size, env.action_size)
+    evaluate = make_evaluator(env, networks, eval_episodes, seed=1000)
+    ours_curves, brax_curves = score_checkpoints(
+        evaluate, ours.pop("checkpoints"), [r["checkpoints"] for r in brax_runs]
+    )
+    eval_wall = time.perf_counter() - t
+    result = comparison_record(ours["env_steps"], ours_curves, brax_curves)
+    result["ours"].update(training_return=ours["training_return"], wall_s=ours["wall_s"])
+    result["brax"]["wall_s"] = [run["wall_s"] for run in brax_runs]
+    out = {
+        "mode": "halfcheetah",
+        "env_name": env_name,
+        "seeds": list(seeds),
+        "env_steps_per_seed": int(env_steps),
+        "steps_per_update": num_envs * episode_length,
+        "eval_every_updates": eval_every,
+        "eval_episodes": eval_episodes,
+        "eval": "deterministic (mean) policy, the same fixed episodes for every checkpoint of both trainers",
+        "eval_wall_s": round(eval_wall, 2),
+        "brax_published": BRAX_HALFCHEETAH,
+        "brax_published_source": BRAX_HALFCHEETAH_SOURCE,
+        "ppo": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.items()},
+        "brax_train_kwargs": {
+            k: v for k, v in brax_compat.train_kwargs(cfg, env).items() if k not in ("environment", "network_factory")
+        },
+        "differences": list(MATCHED_DIFFERENCES),
+        **result,
+    }
+    record_env = env_record(env_name, raw_env, episode_length)
+    out.update(runio.provenance(preset, time.perf_counter() - start, record_env))
+    out["env"] = record_env  # as it is: provenance's reading of it adds the kick env's keys
+    return out
+
+
+def plot_cheetah(out: dict, path: Path) -> Path:
+    """Return against env steps, one thin line per seed and the mean, for both trainers."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, color in (("ours", "tab:blue"), ("brax", "tab:orange")):
+        steps = np.asarray(out[name]["env_steps"]) / 1e6
+        curves = np.asarray(out[name]["eval_return"])
+        for curve in curves:
+            ax.plot(steps, curve, color=color, alpha=0.3, lw=1)
+        ax.plot(steps, curves.mean(axis=0), color=color, lw=2, label=f"{name} (mean of {len(curves)} seeds)")
+    ax.set_xlabel("env steps (millions)")
+    ax.set_ylabel("return, deterministic policy")
+    ax.set_title(f"{out['env_name']}: our PPO and Brax's, {out['device']}")
+    ax.legend()
+    return runio.save_figure(fig, path)
+
+
+# The halfcheetah presets (`--preset`): num_envs (whole episodes per update), num_minibatches,
+# eval_every (updates between saved checkpoints), env_steps (per seed), eval_episodes (per checkpoint).
+# gpu: 8 updates of 320 whole episodes, 2,560,000 env steps per seed (Brax's published budget is
+# 50M). An update is 320,000 steps in 32 minibatches of 10 episodes (10,000 steps), 8 epochs: about
+# Brax's published update (2048 envs x 20 steps x 8 unrolls = 327,680 steps in 32 minibatches of 10,240).
+# smoke: Brax's `fast` stand-in env, 100-step episodes, 2 updates of 4 episodes: a record and a plot, not a result.
+PRESETS = {
+    "gpu": {"num_envs": 320, "num_minibatches": 32, "eval_every": 2, "env_steps": 320 * 1000 * 8, "eval_episodes": 64},
+    "smoke": {"num_envs": 4, "num_minibatches": 2, "eval_every": 1, "env_steps": 4 * 100 * 2, "eval_episodes": 2},
+}
+PRESET_ENV = {"gpu": ("halfcheetah", EPISODE_LENGTH), "smoke": ("fast", 100)}
+# The gpu preset's wall time on one H100, estimated, not measured. Anchor: Brax's ppo.train on
+# this project's kick env with whole episodes at 256 envs ran 16,900 env steps/s on an H100
+# (benchmarks/results/training.json), ~15 ms per batched env step of 8 physics steps including
+# its share of training: ~1.9 ms per physics step. Brax's halfcheetah (5 MJX physics steps per
+# env step, a lighter model: 7 bodies, a plane) is latency-bound at 320-960 envs, taken at
+# 0.5-1 ms per physics step: an update's 1000 sequential env steps take 2.5-5 s, its 256 minibatch
+# steps (each with a 1000-step GAE scan) 1.3-2.6 s; ~4-7 s per update. Updates: Brax's 3 seeds
+# one after another (24) and ours vmapped in one program (8, ~1.3x each): ~35 x 4-7 s = 2.3-4.1
+# min. Compiles (ours' init and chunk, Brax's first seed, whose programs the later seeds load from
+# the compilation cache, the evaluator) 1.3-2 min; the evaluation, one call of 30 checkpoints x 64
+# episodes, < 0.5 min. Total 4-6.5 min; each progress line prints an ETA.
+GPU_ESTIMATE = "4-6.5 minutes on one H100 (estimated, not measured)"
+
+
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out-dir", default="runs/compare_brax_ppo")
-    parser.add_argument("--target", type=float, default=16.0)
-    parser.add_argument("--updates", type=int, default=8)
-    parser.add_argument("--num-envs", type=int, default=16)
-    parser.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
-                        help="config overrides on top of the comparison's, e.g. env.physics_dt=0.005")  # fmt: skip
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--mode", choices=("kick", "halfcheetah"), default="kick", help="the ground (see above)")
+    parser.add_argument("--out-dir", help="kick: runs/compare_brax_ppo; halfcheetah: experiments/results (gpu), "
+                        "runs/compare_brax_ppo (smoke)")  # fmt: skip
+    parser.add_argument("--num-envs", type=int, help="episodes per update (kick: 16; halfcheetah: the preset's)")
+    kick = parser.add_argument_group("kick")
+    kick.add_argument("--target", type=float, default=16.0)
+    kick.add_argument("--updates", type=int, default=8)
+    kick.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                      help="config overrides on top of the comparison's, e.g. env.physics_dt=0.005")  # fmt: skip
+    cheetah = parser.add_argument_group("halfcheetah (defaults: the preset's, PRESETS)")
+    cheetah.add_argument("--preset", choices=tuple(PRESETS), default="gpu",
+                         help="gpu: the comparison (1000-step episodes); smoke: CPU-sized, not a result")  # fmt: skip
+    cheetah.add_argument("--env", choices=ENVS, help="Brax's env (default: halfcheetah; smoke: fast)")
+    cheetah.add_argument("--env-steps", type=int, help="per seed, a multiple of num_envs x episode length x eval-every")
+    cheetah.add_argument("--num-minibatches", type=int)
+    cheetah.add_argument("--eval-every", type=int, help="updates between scored checkpoints")
+    cheetah.add_argument("--eval-episodes", type=int)
+    cheetah.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     args = parser.parse_args(argv)
+    if args.mode == "halfcheetah":
+        return main_cheetah(parser, args)
     try:
         overrides = cli.parse_overrides(args.set)
-        comparison_config(args.target, args.updates, args.num_envs, overrides)  # every value checked up front
+        num_envs = args.num_envs or 16
+        comparison_config(args.target, args.updates, num_envs, overrides)  # every value checked up front
     except ValueError as err:
         parser.error(str(err))
-    out = compare(args.target, args.updates, args.num_envs, overrides=overrides)
-    device = "cpu" if out["device"] == "cpu" else "gpu"
-    path = runio.write_json(Path(args.out_dir) / f"compare_brax_ppo_{device}.json", out)
+    out = compare(args.target, args.updates, num_envs, overrides=overrides)
+    path = runio.write_experiment(args.out_dir or "runs/compare_brax_ppo", "compare_brax_ppo", out)
     print(functools.reduce(lambda s, k: s + f"{k}: {out[k]}\n", ("bc_start", "ours", "brax"), ""), path)
+    return out
+
+
+def main_cheetah(parser, args) -> dict:
+    """The halfcheetah mode of `main`: settings checked before anything compiles."""
+    if args.set:
+        parser.error("--set applies to the kick mode only")
+    run = {**PRESETS[args.preset]}
+    run.update({key: getattr(args, key) for key in run if getattr(args, key) is not None})
+    default_env, episode_length = PRESET_ENV[args.preset]
+    env_name = args.env or default_env
+    try:
+        check_cheetah_run(run["num_envs"], run["num_minibatches"], run["env_steps"], run["eval_every"], episode_length)
+        if run["eval_episodes"] < 1 or not args.seeds:
+            raise ValueError("--eval-episodes and --seeds must be at least one")
+        default_dir = "experiments/results" if args.preset == "gpu" else "runs/compare_brax_ppo"
+        out_dir = runio.check_writable(args.out_dir or default_dir)
+    except ValueError as err:
+        parser.error(str(err))
+    if args.preset == "gpu":
+        print(f"gpu preset: {GPU_ESTIMATE}", flush=True)
+    with tempfile.TemporaryDirectory() as cache:
+        # Brax's `ppo.train` compiles its programs afresh on every call; with a compilation cache
+        # (this process's own, deleted at the end) its second and third seeds load the first's.
+        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        out = compare_cheetah(
+            run["env_steps"],
+            run["num_envs"],
+            run["num_minibatches"],
+            run["eval_every"],
+            seeds=tuple(args.seeds),
+            eval_episodes=run["eval_episodes"],
+            episode_length=episode_length,
+            env_name=env_name,
+            preset=args.preset,
+        )
+    name = f"compare_brax_ppo_{env_name}" + ("" if args.preset == "gpu" else f"_{args.preset}")
+    path = runio.write_experiment(out_dir, name, out)
+    figure = plot_cheetah(out, path.with_suffix(".png"))
+    for arm in ("ours", "brax"):
+        rec = out[arm]
+        final = f"{rec['final_return_mean']:.1f} +- {rec['final_return_std']:.1f}"
+        curve = np.round(np.mean(rec["eval_return"], axis=0), 1).tolist()
+        print(f"{arm}: final return {final} {np.round(rec['final_return'], 1).tolist()}  mean curve {curve}")
+    print(f"within each other's seed spread: {out['within_each_others_spread']}  wall {out['wall_s']:.0f} s")
+    print(f"{runio.shown(path)}\n{runio.shown(figure)}")
     return out
 
 
