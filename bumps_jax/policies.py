@@ -173,8 +173,7 @@ def filtered_kicks(
 ) -> Kicks:
     """Filter a context for `target` (m) as the run did (its grid and width; `selection_repetitions`
     noisy kicks per candidate), then `n_kicks` fresh noisy kicks at the chosen context."""
-    from bumps_jax import sharding  # noqa: PLC0415
-    from bumps_jax.stages import filter as filter_stage  # noqa: PLC0415
+    from bumps_jax import meta_programs, sharding  # noqa: PLC0415
 
     f = shipped.manifest["filter"]
     task_range = tuple(env_cfg.task_range)
@@ -184,7 +183,7 @@ def filtered_kicks(
     contexts = contexts[np.abs(contexts - targets[0]) <= f["width"] + 1e-6]
     entry = shipped.manifest["nets"][net]
     mesh = sharding.device_mesh()
-    program = filter_stage.meta_grid(env_cfg, entry["depth"], entry["width"], mesh)
+    program = meta_programs.meta_grid(env_cfg, entry["depth"], entry["width"], mesh)
     params = jax.tree.map(lambda a: np.asarray(a)[None], shipped.nets[net])
     sel_key, eval_key = filtering.noise_keys(seed)
     block = int(n_kicks)  # one compiled program serves the selection and the kicks

@@ -10,14 +10,13 @@ Writes run_dir/filter/: table2.json, table2.md, error_vs_target.png, context_map
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
-from bumps_jax import bc, config, env_records, evaluate, filtering, rollout, runio, sharding, tables, tasks
+from bumps_jax import bc, config, env_records, evaluate, filtering, meta_programs, runio, sharding, tables
 from bumps_jax.stages import meta as meta_stage
 
 OUTPUT = "table2.json"
@@ -54,38 +53,6 @@ def inputs(cfg, run_dir: Path) -> dict:
     return out
 
 
-_PROGRAMS: dict = {}
-_ENVS: dict = {}
-
-
-def stage_env(env_cfg, task: str = "kick"):
-    """The env of `task` built from `env_cfg`, once per process and env config."""
-    key = (task, json.dumps(tasks.resolved(task, env_cfg), sort_keys=True))
-    if key not in _ENVS:
-        _ENVS[key] = tasks.make_env(task, env_cfg)
-    return _ENVS[key]
-
-
-def meta_grid(env_cfg, depth: int, width: int, mesh, task: str = "kick", obs_norm=None):
-    """The `rollout.grid_fn` program of a (depth, width) meta-policy (observations normalised by
-    `obs_norm`, `bc.MetaPolicy`) in `task`'s env of `env_cfg`, built once per process and reused by
-    the meta and filter stages, the held-out evaluation and `kick` (each MJX program costs tens of
-    seconds to compile on a CPU). Its apply_fn is bc.policy_apply."""
-    key = (
-        task,
-        json.dumps(tasks.resolved(task, env_cfg), sort_keys=True),
-        int(depth),
-        int(width),
-        tuple(d.id for d in mesh.devices.flat),
-        obs_norm,
-    )
-    if key not in _PROGRAMS:
-        env = stage_env(env_cfg, task)
-        apply_fn = bc.policy_apply(bc.MetaPolicy(int(depth), int(width), env.action_size, obs_norm))
-        _PROGRAMS[key] = rollout.grid_fn(env, apply_fn, mesh)
-    return _PROGRAMS[key]
-
-
 def filter_variant(cfg, grid, params, contexts, mesh_size: int):
     """Selection over `contexts` (C,) and the fresh evaluation of each task's choice:
     (filtering.Selection, metrics of (T, R), Table 2 row, timings)."""
@@ -96,7 +63,7 @@ def filter_variant(cfg, grid, params, contexts, mesh_size: int):
     rungs = tuple(f.halving_rungs) if f.selection == "halving" else None
     scoring = {}
     if cfg.task != "kick":  # the kick's defaults: its resting points, `filtering.kick_errors`
-        env = stage_env(cfg.env, cfg.task)
+        env = meta_programs.stage_env(cfg.env, cfg.task)
         scoring = {"errors": filtering.env_errors(env), "achieved": env.ACHIEVED}
     sel = filtering.filter_policy(
         grid, params, contexts, targets, f.width, f.selection_repetitions, sel_key,
@@ -126,14 +93,14 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         "high": filtering.candidate_contexts(targets, filtering.context_grid(*f.context_range, f.high_context_step)),
     }
     selections, evals, rows, timings = {}, {}, {}, {}
-    env = stage_env(cfg.env, cfg.task)
+    env = meta_programs.stage_env(cfg.env, cfg.task)
     unit, sizes = env.UNIT, (env.context_observation_size, env.action_size)
     obs_norm = meta_stage.obs_norm_of_record(runio.read_json(run_dir / "meta" / meta_stage.OUTPUT))
     for net in meta_stage.NETS:
         depth, width = cfg.meta.nets[net]
         _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train, *sizes, obs_norm)
         params = jax.tree.map(lambda a: a[f.net_seed : f.net_seed + 1], params)
-        grid = meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)  # one program per architecture
+        grid = meta_programs.meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)  # one program per architecture
         for name in (v for v, (n, _) in VARIANTS.items() if n == net):
             contexts = grids[VARIANTS[name][1]]
             out = filter_variant(cfg, grid, params, contexts, mesh.size)

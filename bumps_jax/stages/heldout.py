@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import bc, env_records, evaluate, filtering, kick_env, rollout, runio, sharding, tables
+from bumps_jax import bc, env_records, evaluate, filtering, kick_env, meta_programs, rollout, runio, sharding, tables
 from bumps_jax.stages import experts as experts_stage
 from bumps_jax.stages import filter as filter_stage
 from bumps_jax.stages import meta as meta_stage
@@ -149,7 +149,7 @@ def meta_variants(cfg, run_dir: Path, net: str, targets, contexts, noise_keys, m
     obs_norm = meta_stage.obs_norm_of_record(runio.read_json(run_dir / "meta" / meta_stage.OUTPUT))
     _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train, obs_norm=obs_norm)
     params = jax.tree.map(lambda a: a[f.net_seed : f.net_seed + 1], params)
-    grid = filter_stage.meta_grid(cfg.env, depth, width, mesh, obs_norm=obs_norm)
+    grid = meta_programs.meta_grid(cfg.env, depth, width, mesh, obs_norm=obs_norm)
     reps = int(h.repetitions)
     unfiltered = filtering.evaluate_chosen(grid, params, targets, targets, reps, eval_key, f.block, mesh.size)
     sel = filtering.filter_policy(

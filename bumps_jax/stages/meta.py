@@ -20,7 +20,19 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from bumps_jax import bc, config, env_records, evaluate, filtering, rollout, runio, sharding, tables, tasks
+from bumps_jax import (
+    bc,
+    config,
+    env_records,
+    evaluate,
+    filtering,
+    meta_programs,
+    rollout,
+    runio,
+    sharding,
+    tables,
+    tasks,
+)
 from bumps_jax.stages import experts as experts_stage
 
 OUTPUT = "table1.json"
@@ -171,13 +183,12 @@ def evaluate_unfiltered(grid, params, tasks, repetitions: int, seed: int) -> dic
 
 def evaluate_blocked(cfg, depth: int, width: int, params, obs_norm=None) -> dict:
     """`evaluate_unfiltered`'s metrics (P, n_tasks, R) from the filter stage's program of this
-    architecture (`filter.meta_grid`, called in blocks of `filter.block` episodes per device), which
-    the filter stage then reuses instead of compiling its own: another task's evaluation. (The
-    kick's keeps its own program, whose numbers its tests pin.)"""
-    from bumps_jax.stages import filter as filter_stage  # noqa: PLC0415 (it imports this module)
+    architecture (`meta_programs.meta_grid`, called in blocks of `filter.block` episodes per device),
+    which the filter stage then reuses instead of compiling its own: another task's evaluation.
+    (The kick's keeps its own program, whose numbers its tests pin.)"""
 
     e, mesh = cfg.meta.eval, sharding.device_mesh()
-    grid = filter_stage.meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)
+    grid = meta_programs.meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)
     tasks_, reps = np.asarray(e.tasks, np.float64), int(e.repetitions)
     flat, keys = np.repeat(tasks_, reps), rollout.repetition_keys(e.seed, len(tasks_), reps).reshape(-1)
     out = []
