@@ -34,9 +34,10 @@ def report(cfg, run_dir: Path, args) -> None:
 def publish(cfg, run_dir: Path, args) -> None:
     """A finished paper run into the repository; another task's run into results/<task>/."""
     from bumps_jax import report as report_mod  # noqa: PLC0415
+    from bumps_jax import report_task  # noqa: PLC0415
 
     if cfg.task != "kick":
-        for path in report_mod.publish_task(run_dir, cfg.task):
+        for path in report_task.publish_task(run_dir, cfg.task):
             print(f"wrote {path}")
         return
     for path in report_mod.publish(run_dir, cfg=cfg):

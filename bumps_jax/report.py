@@ -80,26 +80,9 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
     if first is None:
         return "\n".join([*lines, "No stage has written results in this directory yet.", ""])
     presets = sorted({v["preset"] for v in found.values() if v})
-    lines += [
-        f"Preset: {', '.join(presets)}" + (" (CPU-sized numbers: they show the machinery, not the method)"
-                                           if "tiny" in presets else ""),
-        f"Device: {first['device']}; versions: "
-        + ", ".join(f"{k} {v}" for k, v in first["versions"].items() if v),
-        "",
-        "## Stages",
-        "",
-        "| stage | wall time (s) | physics (step, backend) | command |",
-        "|---|---|---|---|",
-    ]  # fmt: skip
-    total = 0.0
-    for name, payload in found.items():
-        if payload is None:
-            used = " (the committed `assets/kick_prior.json` was used)" if name == "prior" else ""
-            lines.append(f"| {name} | not run{used} | | |")
-            continue
-        total += payload["wall_s"]
-        lines.append(f"| {name} | {payload['wall_s']:.0f} | {physics_step(payload)} | `{payload['command']}` |")
-    lines += [f"| **sum of the stages' own wall times** | **{total:.0f}** | | |", ""]
+    lines += [*preamble_lines(presets, first), "## Stages", ""]
+    stage_lines, total = stages_table(found)
+    lines += stage_lines
     lines += mixed_steps_lines({**found, "baseline": extras["baseline"], "heldout": extras["heldout"]})
     lines += pipeline_lines(extras["pipeline"], total)
 
@@ -133,6 +116,27 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
+
+
+def preamble_lines(presets: list[str], first: dict) -> list[str]:
+    """The report's preset and device lines (`first`: a stage's record, for device and versions)."""
+    tiny = " (CPU-sized numbers: they show the machinery, not the method)" if "tiny" in presets else ""
+    versions = ", ".join(f"{k} {v}" for k, v in first["versions"].items() if v)
+    return [f"Preset: {', '.join(presets)}{tiny}", f"Device: {first['device']}; versions: {versions}", ""]
+
+
+def stages_table(found: dict) -> tuple[list[str], float]:
+    """The stages' table (wall time, physics, command; None: not run) and the sum of their wall times."""
+    lines = ["| stage | wall time (s) | physics (step, backend) | command |", "|---|---|---|---|"]
+    total = 0.0
+    for name, payload in found.items():
+        if payload is None:
+            used = " (the committed `assets/kick_prior.json` was used)" if name == "prior" else ""
+            lines.append(f"| {name} | not run{used} | | |")
+            continue
+        total += payload["wall_s"]
+        lines.append(f"| {name} | {payload['wall_s']:.0f} | {physics_step(payload)} | `{payload['command']}` |")
+    return [*lines, f"| **sum of the stages' own wall times** | **{total:.0f}** | | |", ""], total
 
 
 def env_steps_lines(experts: dict) -> list[str]:
@@ -347,91 +351,14 @@ def publish(run_dir: str | Path, root: str | Path = ".", cfg=None) -> list[Path]
 
 
 def write(run_dir: str | Path) -> Path:
-    """run_dir/report.md: the kick's report (`build`), or another task's (`build_task`) where the
+    """run_dir/report.md: the kick's report (`build`), or another task's (`report_task.build_task`) where the
     run's records name one."""
+    from bumps_jax import report_task  # noqa: PLC0415 (it builds on this module)
+
     path = Path(run_dir) / "report.md"
-    task = run_task(run_dir)
-    path.write_text(build(run_dir) if task == "kick" else build_task(run_dir, task))
+    task = report_task.run_task(run_dir)
+    path.write_text(build(run_dir) if task == "kick" else report_task.build_task(run_dir, task))
     return path
-
-
-# -- another contextual task's runs (no paper columns, no prior, no held-out stage) ---------------
-
-# What `publish --task <task>` copies from a finished run: run file -> path under results/<task>/.
-TASK_PUBLISHED = {
-    "experts/experts.json": "experts.json",
-    "meta/table1.json": "table1.json",
-    "filter/table2.json": "table2.json",
-    "pipeline.json": "pipeline.json",
-    "report.md": "report.md",
-    "filter/error_vs_target.png": "error_vs_target.png",
-    "filter/context_map.png": "context_map.png",
-}
-
-
-def run_task(run_dir: str | Path) -> str:
-    """The task a run's records name (`task`; the kick's records name none)."""
-    for rel in (STAGES["experts"], STAGES["meta"], STAGES["filter"]):
-        record = load(Path(run_dir), rel)
-        if record:
-            return record.get("task", "kick")
-    return "kick"
-
-
-def build_task(run_dir: str | Path, task: str) -> str:
-    """The report's markdown of a run of `task` (not the kick): its stages' wall times, the
-    experts, Table 1 and Table 2 in the task's unit."""
-    run_dir = Path(run_dir)
-    found = {name: load(run_dir, STAGES[name]) for name in ("experts", "meta", "filter")}
-    lines = [f"# BUMPS on {task}: run `{run_dir.name}`", ""]
-    first = next((v for v in found.values() if v), None)
-    if first is None:
-        return "\n".join([*lines, "No stage has written results in this directory yet.", ""])
-    unit = first.get("unit", "m")
-    lines += [
-        f"Preset: {first['preset']}" + (" (CPU-sized numbers: they show the machinery, not the method)"
-                                        if first["preset"] == "tiny" else ""),
-        f"Device: {first['device']}; versions: " + ", ".join(f"{k} {v}" for k, v in first["versions"].items() if v),
-        "",
-        "| stage | wall time (s) | physics (step, backend) | command |",
-        "|---|---|---|---|",
-    ]  # fmt: skip
-    total = 0.0
-    for name, payload in found.items():
-        if payload is None:
-            lines.append(f"| {name} | not run | | |")
-            continue
-        total += payload["wall_s"]
-        lines.append(f"| {name} | {payload['wall_s']:.0f} | {physics_step(payload)} | `{payload['command']}` |")
-    lines += [f"| **sum of the stages' own wall times** | **{total:.0f}** | | |", ""]
-    lines += pipeline_lines(load(run_dir, EXTRAS["pipeline"]), total)
-    if found["experts"]:
-        lines += ["## Experts (each on its own training target)", "", tables.task_experts_markdown(found["experts"])]
-    if found["meta"]:
-        lines += [tables.task_table1_markdown(found["meta"]["rows"], unit)]
-    if found["filter"]:
-        lines += [tables.task_table2_markdown(found["filter"]["rows"], unit)]
-    figures = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.glob("*/*.png"))
-    if figures:
-        lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
-    return "\n".join(lines)
-
-
-def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list[Path]:
-    """Copy a finished run of `task` (not the kick) into results/<task>/ (`TASK_PUBLISHED`)."""
-    run_dir, root = Path(run_dir), Path(root)
-    if run_task(run_dir) != task:
-        raise ValueError(f"{run_dir} holds no {task} run (its records name {run_task(run_dir)!r})")
-    written = []
-    for rel, name in TASK_PUBLISHED.items():
-        if (run_dir / rel).exists():
-            dest = root / "results" / task / name
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(run_dir / rel, dest)
-            written.append(dest)
-    if not any(p.suffix == ".json" for p in written):
-        raise ValueError(f"{run_dir} holds no stage results to publish")
-    return written
 
 
 def write_committed(root: str | Path = ".") -> Path:

@@ -51,13 +51,18 @@ def experts_markdown(record: dict) -> str:
         *starting_kicks_lines(record),
         "| target (m) | accuracy | error mean (m) | error std (m) |",
         "|---|---|---|---|",
+        *per_task_rows(record["per_task"]),
     ]
-    for row in record["per_task"]:
-        lines.append(
-            f"| {row['target_m']:.1f} | {row['accuracy']:.2f} | {num(row['error_mean_m'])} "
-            f"| {num(row['error_std_m'])} |"
-        )
     return "\n".join(lines) + "\n"
+
+
+def per_task_rows(per_task: list[dict], target_format: str = ".1f", digits: int = 2) -> list[str]:
+    """An experts record's per-task rows: target, accuracy, error mean and std (`digits` each)."""
+    return [
+        f"| {row['target_m']:{target_format}} | {row['accuracy']:.2f} | {num(row['error_mean_m'], digits)} "
+        f"| {num(row['error_std_m'], digits)} |"
+        for row in per_task
+    ]
 
 
 def starting_kicks_lines(record: dict) -> list[str]:
@@ -197,12 +202,8 @@ def task_experts_markdown(record: dict) -> str:
         "",
         f"| target ({unit}) | valid | error mean ({unit}) | error std ({unit}) |",
         "|---|---|---|---|",
+        *per_task_rows(record["per_task"], ".3g", 3),
     ]
-    for row in record["per_task"]:
-        lines.append(
-            f"| {row['target_m']:.3g} | {row['accuracy']:.2f} | {num(row['error_mean_m'], 3)} "
-            f"| {num(row['error_std_m'], 3)} |"
-        )
     return "\n".join(lines) + "\n"
 
 

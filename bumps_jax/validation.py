@@ -41,7 +41,7 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
 
 
 def cheetah_vel(c, prefix: str) -> None:
-    """HalfCheetah-Vel's sections (`config._cheetah_vel`); keys named with `prefix`."""
+    """HalfCheetah-Vel's sections (`cheetah_config.sections`); keys named with `prefix`."""
     from bumps_jax import cheetah_env  # noqa: PLC0415
 
     try:
