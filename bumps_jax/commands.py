@@ -20,27 +20,27 @@ def run(command: str, cfg, run_dir: Path, args) -> None:
 
 
 def report(cfg, run_dir: Path, args) -> None:
+    from bumps_jax import publish as publish_mod  # noqa: PLC0415
     from bumps_jax import report as report_mod  # noqa: PLC0415
 
     if not run_dir.is_dir():
         raise ValueError(f"no run directory {str(run_dir)!r}: run a stage first (e.g. python -m bumps_jax demo)")
     if not report_mod.has_results(run_dir):
         raise ValueError(f"{run_dir} holds no stage results yet: run a stage first")
-    path = report_mod.write(run_dir)
+    path = publish_mod.write_report(run_dir)
     print(path.read_text())
     print(f"wrote {path}")
 
 
 def publish(cfg, run_dir: Path, args) -> None:
     """A finished paper run into the repository; another task's run into results/<task>/."""
-    from bumps_jax import report as report_mod  # noqa: PLC0415
-    from bumps_jax import report_task  # noqa: PLC0415
+    from bumps_jax import publish as publish_mod  # noqa: PLC0415
 
     if cfg.task != "kick":
-        for path in report_task.publish_task(run_dir, cfg.task):
+        for path in publish_mod.publish_task(run_dir, cfg.task):
             print(f"wrote {path}")
         return
-    for path in report_mod.publish(run_dir, cfg=cfg):
+    for path in publish_mod.publish(run_dir, cfg=cfg):
         print(f"wrote {path}")
 
 

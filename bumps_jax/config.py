@@ -184,8 +184,6 @@ HELDOUT_TARGETS = (
     10.649, 14.37, 17.263, 13.754, 16.452, 10.338, 14.592, 13.407, 15.578, 15.439, 8.121, 16.521,
     11.153, 7.159, 8.236, 8.574, 9.47, 9.56, 7.261, 16.828, 15.066, 17.259, 9.526, 10.958,
 )  # fmt: skip
-# The paper preset's held-out set must hold at least this many targets.
-HELDOUT_MIN_TARGETS = 50
 
 
 def _heldout() -> ml_collections.ConfigDict:

@@ -86,7 +86,7 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
     Every stage's inputs and manifest are checked up front where they already exist, so a stale
     later stage stops the call before the first stage does any work.
     """
-    from bumps_jax import report  # noqa: PLC0415
+    from bumps_jax import publish  # noqa: PLC0415
 
     run_dir = runio.check_writable(run_dir)
     stages = [name for name in stages if name in tasks.STAGES[cfg.task]]
@@ -123,7 +123,7 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
             timing.update(runio.provenance(cfg.preset, sum(timing["stages_s"].values()), config.resolved_env(cfg)))
             timing["overrides"] = config.overrides_of(cfg)
             runio.write_json(timing_path, timing)
-    path = report.write(run_dir)
+    path = publish.write_report(run_dir)
     say(path.read_text())
     say(f"wrote {path}")
     return timing

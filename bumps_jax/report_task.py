@@ -4,22 +4,10 @@ held-out stage; and `publish --task <task>`, which copies such a run into result
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 from bumps_jax import tables
 from bumps_jax.report import EXTRAS, STAGES, load, pipeline_lines, preamble_lines, stages_table
-
-# What `publish --task <task>` copies from a finished run: run file -> path under results/<task>/.
-TASK_PUBLISHED = {
-    "experts/experts.json": "experts.json",
-    "meta/table1.json": "table1.json",
-    "filter/table2.json": "table2.json",
-    "pipeline.json": "pipeline.json",
-    "report.md": "report.md",
-    "filter/error_vs_target.png": "error_vs_target.png",
-    "filter/context_map.png": "context_map.png",
-}
 
 
 def run_task(run_dir: str | Path) -> str:
@@ -55,20 +43,3 @@ def build_task(run_dir: str | Path, task: str) -> str:
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
-
-
-def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list[Path]:
-    """Copy a finished run of `task` (not the kick) into results/<task>/ (`TASK_PUBLISHED`)."""
-    run_dir, root = Path(run_dir), Path(root)
-    if run_task(run_dir) != task:
-        raise ValueError(f"{run_dir} holds no {task} run (its records name {run_task(run_dir)!r})")
-    written = []
-    for rel, name in TASK_PUBLISHED.items():
-        if (run_dir / rel).exists():
-            dest = root / "results" / task / name
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(run_dir / rel, dest)
-            written.append(dest)
-    if not any(p.suffix == ".json" for p in written):
-        raise ValueError(f"{run_dir} holds no stage results to publish")
-    return written

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from bumps_jax import cheetah_env, config, filtering, pipeline, report_task
+from bumps_jax import cheetah_env, config, filtering, pipeline, publish
 
 
 @pytest.fixture(scope="module")
@@ -53,12 +53,12 @@ def test_a_rerun_is_up_to_date_and_publishes_into_results(cheetah_run, tmp_path)
     log = []
     pipeline.run_pipeline(pipeline.ORDER, cheetah_run["cfg"], cheetah_run["dir"], say=log.append)
     assert sum("up to date" in line for line in log) == 3
-    written = report_task.publish_task(cheetah_run["dir"], "cheetah_vel", root=tmp_path)
+    written = publish.publish_task(cheetah_run["dir"], "cheetah_vel", root=tmp_path)
     names = sorted(p.name for p in written)
     assert {"experts.json", "table1.json", "table2.json", "pipeline.json"} <= set(names)
     assert all(p.parent == tmp_path / "results" / "cheetah_vel" for p in written)
     with pytest.raises(ValueError, match="holds no kick run"):
-        report_task.publish_task(cheetah_run["dir"], "kick", root=tmp_path)
+        publish.publish_task(cheetah_run["dir"], "kick", root=tmp_path)
 
 
 def test_filtering_scores_contexts_from_per_step_velocities():

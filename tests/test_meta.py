@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import stand_ins
 
-from bumps_jax import bc, cli, config, evaluate, filtering, kick_env, pipeline, policies, report, runio, tables
+from bumps_jax import bc, cli, config, evaluate, filtering, kick_env, pipeline, policies, publish, report, runio, tables
 from bumps_jax.stages import experts as experts_stage
 from bumps_jax.stages import filter as filter_stage
 from bumps_jax.stages import heldout
@@ -439,7 +439,7 @@ def heldout_run(stage_run, tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(experts_stage, "load_family", lambda c, d: stage_run["family"])
         record = heldout.run(cfg, run_dir, say=quiet)
-        written = report.publish(run_dir, root, cfg=cfg)
+        written = publish.publish(run_dir, root, cfg=cfg)
     return {"record": record, "root": root, "written": written}
 
 

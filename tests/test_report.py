@@ -4,7 +4,7 @@ import json
 import re
 from pathlib import Path
 
-from bumps_jax import config, readme_table, report, runio, tables
+from bumps_jax import config, publish, readme_table, report, runio, tables
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -100,7 +100,7 @@ def test_publish_copies_a_run_and_rebuilds_results_md(tmp_path):
     (run / "prior" / "kick_prior_asset.json").write_text('{"params": "the run\'s own prior"}')
     (run / "prior" / "kick_prior_timing.json").write_text('{"wall_s": 1.0}')
     root = tmp_path / "repo"
-    written = {p.relative_to(root).as_posix() for p in report.publish(run, root)}
+    written = {p.relative_to(root).as_posix() for p in publish.publish(run, root)}
     assert {"results/kick_prior.json", "results/experts.json", "results/table1.json", "results/table2.json",
             "results/baseline.json", "results/pipeline.json", "docs/context_map.png",
             "docs/results.md", "assets/kick_prior.json", "benchmarks/results/kick_prior.json"} <= written  # fmt: skip
@@ -119,7 +119,7 @@ def test_publish_refuses_an_empty_run(tmp_path):
 
     (tmp_path / "run").mkdir()
     with pytest.raises(ValueError, match="no stage results"):
-        report.publish(tmp_path / "run", tmp_path / "repo")
+        publish.publish(tmp_path / "run", tmp_path / "repo")
 
 
 def test_records_of_different_physics_are_flagged(tmp_path):
