@@ -33,7 +33,7 @@ import math
 import ml_collections
 from ml_collections import FieldReference
 
-from bumps_jax import cheetah_env, kick_env, ppo, tasks
+from bumps_jax import cheetah_env, kick_env, ppo_config, tasks
 from bumps_jax.env_records import differing_keys, jsonable
 
 
@@ -93,7 +93,7 @@ def _experts() -> ml_collections.ConfigDict:
     # task at once. Which one the paper run uses is open (docs/decisions.md).
     cfg.tune.scheme = "per_task"
     cfg.tune.knots = 5  # knots of the "family" scheme's contextual kick (>= 2)
-    cfg.ppo = ppo.default_config()
+    cfg.ppo = ppo_config.default_config()
     cfg.ppo.num_envs = 256  # episodes per update (19,200 steps; the paper: 4,096)
     cfg.ppo.num_minibatches = 16  # 16 episodes = 1,200 steps each (the paper: 1,024)
     cfg.ppo.num_epochs = 30
@@ -220,7 +220,7 @@ def _cheetah_vel() -> ml_collections.ConfigDict:
     experts.seed = 0
     experts.updates_per_chunk = 10  # PPO updates per compiled chunk; progress and a checkpoint between
     experts.keep_checkpoints = 3
-    experts.ppo = ppo.default_config()
+    experts.ppo = ppo_config.default_config()
     # Brax's halfcheetah PPO (its training notebook): 2048 envs x 20-step unrolls, 32 minibatches,
     # 8 epochs per batch, discount 0.95, lr 3e-4, entropy 1e-3, reward scaling 1, observation
     # normalisation; GAE lambda 0.95, clip 0.3 and value weight 0.5 are Brax's defaults.
