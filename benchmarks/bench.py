@@ -35,7 +35,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks import scene_bench
-from bumps_jax import bc, brax_compat, cli, config, filtering, kick_env, kick_model, rollout, runio, sharding
+from bumps_jax import (
+    bc,
+    brax_compat,
+    cli,
+    config,
+    filtering,
+    kick_env,
+    kick_model,
+    rollout,
+    runio,
+    sharding,
+    starting_kicks,
+)
 from bumps_jax.stages import experts
 
 # What each preset measures: the paper's sizes on a GPU; CPU-sized for a smoke test.
@@ -99,7 +111,7 @@ def bench_experts(cfg, updates: int, mesh, workload: int = 1) -> dict:
     tasks = np.asarray(cut.experts.tasks, np.float32)
     n = len(tasks)
     record = kick_model.load_record(kick_model.ASSET)  # the starting kicks are a workload here, whatever the env
-    kicks, _ = experts.starting_kicks(cut, record)
+    kicks, _ = starting_kicks.starting_kicks(cut, record)
     state, _ = experts.run_init(programs, experts.task_rngs(cut.experts.seed, n), tasks, kicks)
     _, first, wall = timed(lambda s: experts.run_chunk(programs, s, tasks), state)
     steps = n * updates * programs.trainer.steps_per_update

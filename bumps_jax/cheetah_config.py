@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import ml_collections
 
-from bumps_jax import cheetah_env, ppo
+from bumps_jax import cheetah_env, ppo_config
 
 # Meta-training velocities (m/s): a grid of 0.25 m/s over PEARL's U[0, 3] range.
 TRAIN_TASKS = tuple(round(0.25 * i, 2) for i in range(13))
@@ -30,7 +30,7 @@ def _experts() -> ml_collections.ConfigDict:
     experts.seed = 0
     experts.updates_per_chunk = 10  # PPO updates per compiled chunk; progress and a checkpoint between
     experts.keep_checkpoints = 3
-    experts.ppo = ppo.default_config()
+    experts.ppo = ppo_config.default_config()
     # Brax's halfcheetah PPO (its training notebook): 2048 envs x 20-step unrolls, 32 minibatches,
     # 8 epochs per batch, discount 0.95, lr 3e-4, entropy 1e-3, reward scaling 1, observation
     # normalisation; GAE lambda 0.95, clip 0.3 and value weight 0.5 are Brax's defaults.

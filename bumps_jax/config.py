@@ -34,7 +34,7 @@ import math
 import ml_collections
 from ml_collections import FieldReference
 
-from bumps_jax import cheetah_config, kick_env, ppo, tasks
+from bumps_jax import cheetah_config, kick_env, ppo_config, tasks
 from bumps_jax.env_records import differing_keys, jsonable
 
 
@@ -94,7 +94,7 @@ def _experts() -> ml_collections.ConfigDict:
     # task at once. Which one the paper run uses is open (docs/decisions.md).
     cfg.tune.scheme = "per_task"
     cfg.tune.knots = 5  # knots of the "family" scheme's contextual kick (>= 2)
-    cfg.ppo = ppo.default_config()
+    cfg.ppo = ppo_config.default_config()
     cfg.ppo.num_envs = 256  # episodes per update (19,200 steps; the paper: 4,096)
     cfg.ppo.num_minibatches = 16  # 16 episodes = 1,200 steps each (the paper: 1,024)
     cfg.ppo.num_epochs = 30

@@ -10,7 +10,7 @@ import math
 import ml_collections
 import numpy as np
 
-from bumps_jax import kick_env
+from bumps_jax import kick_env, ppo_config
 
 # The paper preset's held-out set must hold at least this many targets.
 HELDOUT_MIN_TARGETS = 50
@@ -142,9 +142,7 @@ def prior(p) -> None:
 
 
 def ppo_section(c, prefix: str, n_steps: int, task_range) -> None:
-    from bumps_jax import ppo  # noqa: PLC0415
-
-    ppo.validate_config(c, n_steps, prefix)
+    ppo_config.validate_config(c, n_steps, prefix)
     if c.sample_task_range is not None:
         targets(c.sample_task_range, task_range, f"{prefix}sample_task_range")
 

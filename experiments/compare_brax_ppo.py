@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from brax import envs as brax_envs
 
-from bumps_jax import brax_compat, cli, config, kick_env, kick_model, ppo, rollout, runio
+from bumps_jax import brax_compat, cli, config, kick_env, kick_model, ppo, ppo_config, rollout, runio, starting_kicks
 from bumps_jax.stages import experts
 
 
@@ -115,7 +115,7 @@ def compare(target: float = 16.0, n_updates: int = 8, num_envs: int = 16, eval_e
     programs = experts.compile_programs(cfg, env)
     targets = jnp.asarray([target], jnp.float32)
     record = kick_model.load_record(kick_model.ASSET, env_cfg=cfg.env)
-    kicks, _ = experts.starting_kicks(cfg, record)
+    kicks, _ = starting_kicks.starting_kicks(cfg, record)
     state0, _ = experts.run_init(programs, experts.task_rngs(seed, 1), targets, kicks)
     t0 = time.perf_counter()
     ours, metrics = experts.run_chunk(programs, state0, targets)
@@ -192,7 +192,7 @@ MATCHED_DIFFERENCES = (
 def cheetah_ppo_config(num_envs: int, num_minibatches: int, env_steps: int):
     """Our PPO section set to Brax's halfcheetah settings (`BRAX_HALFCHEETAH`): a locked ConfigDict."""
     b = BRAX_HALFCHEETAH
-    return ppo.make_config(
+    return ppo_config.make_config(
         overrides={
             "num_envs": num_envs,
             "num_minibatches": num_minibatches,
@@ -426,7 +426,7 @@ def comparison_record(env_steps, ours_curves, brax_curves) -> dict:
 def check_cheetah_run(num_envs: int, num_minibatches: int, env_steps: int, eval_every: int, episode_length: int):
     """Our PPO config of the run (`cheetah_ppo_config`), or ValueError naming the bad setting."""
     cfg = cheetah_ppo_config(num_envs, num_minibatches, env_steps)
-    ppo.validate_config(cfg, episode_length, prefix="")
+    ppo_config.validate_config(cfg, episode_length, prefix="")
     per_eval = num_envs * episode_length * eval_every
     if eval_every < 1 or env_steps % per_eval:
         raise ValueError(

@@ -20,8 +20,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from bumps_jax import c_replay, cli, config, kick_env, runio, scene
-from bumps_jax.stages import experts as experts_stage
+from bumps_jax import c_replay, cli, config, kick_env, runio, scene, starting_kicks
 
 OFFSETS_MM = (-10.0, -5.0, 0.0, 5.0, 10.0)
 
@@ -73,7 +72,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     try:
         cfg = config.make_config(args.preset, cli.parse_overrides(args.set))
-        kicks = experts_stage.read_starting_kicks(args.kicks, args.targets)
+        kicks = starting_kicks.read_starting_kicks(args.kicks, args.targets)
     except ValueError as err:
         parser.error(str(err))
 

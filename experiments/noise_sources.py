@@ -18,8 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import cli, config, kick_env, kick_model, rollout, runio
-from bumps_jax.stages import experts as experts_stage
+from bumps_jax import cli, config, kick_env, kick_model, rollout, runio, starting_kicks
 
 
 def noise_settings(env_cfg) -> dict[str, dict]:
@@ -69,7 +68,7 @@ def main(argv=None) -> None:
         overrides = cli.parse_overrides(args.set)
         cfg = config.make_config(args.preset, overrides)
         kick_env.check_targets(args.targets, cfg.env.task_range)
-        kicks = experts_stage.read_starting_kicks(args.kicks, args.targets)
+        kicks = starting_kicks.read_starting_kicks(args.kicks, args.targets)
     except ValueError as err:
         parser.error(str(err))
 

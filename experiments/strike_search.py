@@ -33,8 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from bumps_jax import cmaes, config, kick_env, kick_model, rollout, runio, sharding
-from bumps_jax.stages import experts as experts_stage
+from bumps_jax import cmaes, config, kick_env, kick_model, rollout, runio, sharding, starting_kicks
 
 # Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
 # back less (the foot stays lower through the swing), varied in the knee and hip of the swing.
@@ -160,7 +159,7 @@ def setup(argv=None):
         parser.error(f"--physics-dt: {err}")
     try:
         kick_env.check_targets(args.targets, env.config.task_range)
-        reference = experts_stage.read_starting_kicks(
+        reference = starting_kicks.read_starting_kicks(
             args.kicks, [t for t in args.targets if t in kick_env.meta_train_tasks()]
         )
     except ValueError as err:

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax import c_replay, config, kick_env, kick_model, ppo, rollout, scene, task_env
+from bumps_jax import c_replay, config, kick_env, kick_model, ppo, ppo_config, rollout, scene, task_env
 
 NO_NOISE = {f"noise.{k}": 0.0 for k in ("ball_xy", "joint_angle", "friction", "actuator_gain")}
 MAIN = kick_model.ANCHORS.index("main")
@@ -137,7 +137,8 @@ def test_a_contact_overflow_invalidates_the_episode(warp, anchors):
 
 def test_one_ppo_update_over_two_tasks_runs_on_warp(warp):
     env = warp_env(contacts=12 * 8)
-    cfg = ppo.make_config(overrides={"num_envs": 4, "num_minibatches": 2, "num_epochs": 1, "total_env_steps": 4 * 75})
+    overrides = {"num_envs": 4, "num_minibatches": 2, "num_epochs": 1, "total_env_steps": 4 * 75}
+    cfg = ppo_config.make_config(overrides=overrides)
     trainer = ppo.make_train(cfg, env)
     state, metrics = jax.jit(jax.vmap(trainer.train))(jax.random.split(jax.random.key(0), 2), jnp.array([9.0, 15.0]))
     assert np.asarray(state.update).tolist() == [1, 1]

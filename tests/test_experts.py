@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from tiny_experts import N_STEPS, pipeline_config
 
-from bumps_jax import bc, config, kick_model, runio
+from bumps_jax import bc, config, kick_model, runio, starting_kicks
 from bumps_jax.stages import experts
 from bumps_jax.stages import prior as prior_stage
 
@@ -71,12 +71,12 @@ def test_starting_kicks_read_the_runs_prior(tmp_path):
     assert experts.prior_path(pipeline_config(), tmp_path / "elsewhere") == kick_model.ASSET
     cfg = pipeline_config()  # tune.generations 0: no CMA-ES, nothing compiled
     expected = np.tile(kick_model.DEFAULT_PARAMS, (len(cfg.experts.tasks), 1))
-    committed, _ = experts.starting_kicks(cfg, kick_model.load_record(), say=lambda *a, **k: None)
+    committed, _ = starting_kicks.starting_kicks(cfg, kick_model.load_record(), say=lambda *a, **k: None)
     assert not np.allclose(committed, expected)  # else the test could not tell the two apart
     for per_task in (True, False):
         cfg = pipeline_config(**{"experts.bc.per_task_strength": per_task})
         own = kick_model.load_record(experts.prior_path(cfg, tmp_path), env_cfg=cfg.env)
-        kicks, _ = experts.starting_kicks(cfg, own, say=lambda *a, **k: None)
+        kicks, _ = starting_kicks.starting_kicks(cfg, own, say=lambda *a, **k: None)
         np.testing.assert_allclose(kicks, expected, rtol=1e-6)
 
 
@@ -86,7 +86,7 @@ def test_family_starting_kicks_are_the_prior_family_between_knots():
     tasks = (8.0, 9.0, 12.0, 13.5)
     cfg = pipeline_config(**{"experts.tune.scheme": "family", "experts.tune.knots": 3, "experts.tasks": tasks})
     record = kick_model.load_record()
-    kicks, info = experts.starting_kicks(cfg, record, say=lambda *a, **k: None)
+    kicks, info = starting_kicks.starting_kicks(cfg, record, say=lambda *a, **k: None)
     assert info["scheme"] == "family" and info["knots_m"] == [8.0, 10.75, 13.5] and info["episodes"] == 0
     table = kick_model.calibration(record)
     at_knots = np.stack([np.asarray(kick_model.kick_for(record["anchors"], table, k)) for k in info["knots_m"]])
@@ -95,7 +95,7 @@ def test_family_starting_kicks_are_the_prior_family_between_knots():
     np.testing.assert_allclose(kicks, expected, rtol=1e-6)
     assert info["smoothness"] == kick_model.largest_jump(kicks, tasks)
     # The per-task scheme's kicks at the same tasks: the blend at each task's own strength.
-    per_task, per_task_info = experts.starting_kicks(pipeline_config(**{"experts.tasks": tasks}), record,
+    per_task, per_task_info = starting_kicks.starting_kicks(pipeline_config(**{"experts.tasks": tasks}), record,
                                                      say=lambda *a, **k: None)  # fmt: skip
     np.testing.assert_allclose(per_task[[0, 3]], kicks[[0, 3]], rtol=1e-6)  # the end knots are tasks
     assert per_task_info["scheme"] == "per_task" and "knot_params" not in per_task_info
@@ -121,14 +121,14 @@ def test_vmapped_training_equals_each_task_alone(programs):
     cfg = pipeline_config()
     quiet = dict(say=lambda *a, **k: None)
     targets = jnp.asarray(cfg.experts.tasks)
-    kicks, _ = experts.starting_kicks(cfg, kick_model.load_record(), **quiet)
+    kicks, _ = starting_kicks.starting_kicks(cfg, kick_model.load_record(), **quiet)
     state, bc_losses = experts.run_init(programs, experts.task_rngs(cfg.experts.seed, 2), targets, kicks)
     assert np.all(np.asarray(bc_losses[:, -1]) < 0.2 * np.asarray(bc_losses[:, 0]))
     together, metrics = experts.run_chunk(programs, state, targets)
 
     other_targets = jnp.asarray([8.0, 16.0])
     other_cfg = pipeline_config(**{"experts.tasks": (8.0, 16.0)})
-    other_kicks, _ = experts.starting_kicks(other_cfg, kick_model.load_record(), **quiet)
+    other_kicks, _ = starting_kicks.starting_kicks(other_cfg, kick_model.load_record(), **quiet)
     other_state, _ = experts.run_init(programs, experts.task_rngs(cfg.experts.seed, 2), other_targets, other_kicks)
     other, _ = experts.run_chunk(programs, other_state, other_targets)
     for a, b in zip(jax.tree_util.tree_leaves(together), jax.tree_util.tree_leaves(other), strict=True):
@@ -240,11 +240,11 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
 def test_read_starting_kicks_finds_each_target_and_names_missing_ones():
     path = Path(__file__).resolve().parent.parent / "docs" / "experts_starting_kicks.json"
     record = json.loads(path.read_text())
-    kicks = experts.read_starting_kicks(path, [12.0, 7.0])
+    kicks = starting_kicks.read_starting_kicks(path, [12.0, 7.0])
     assert list(kicks) == [12.0, 7.0]
     np.testing.assert_array_equal(kicks[12.0], np.float32(record["params"][record["tasks_m"].index(12.0)]))
     with pytest.raises(ValueError, match=r"\[12.3\]"):
-        experts.read_starting_kicks(path, [12.0, 12.3])
+        starting_kicks.read_starting_kicks(path, [12.0, 12.3])
 
 
 def test_trained_experts_without_a_record_are_evaluated_not_retrained(tmp_path, monkeypatch, programs):  # defect 7

@@ -12,7 +12,7 @@ import pytest
 from brax.envs.base import State
 from brax.training.agents.ppo import losses as ppo_losses
 
-from bumps_jax import config, kick_model, ppo
+from bumps_jax import config, kick_model, ppo, ppo_config, starting_kicks
 from bumps_jax.stages import experts
 
 N_STEPS = 75
@@ -128,7 +128,7 @@ class _CountingEnv:
 def test_rollout_carries_the_envs_truncation(flag):
     """Transitions carry the env's `info["truncation"]`; an env without it gives zeros."""
     env = _CountingEnv(flag)
-    cfg = ppo.make_config(overrides={"num_envs": 2, "num_minibatches": 1, "total_env_steps": 6})
+    cfg = ppo_config.make_config(overrides={"num_envs": 2, "num_minibatches": 1, "total_env_steps": 6})
     networks = ppo.make_networks(cfg, env.observation_size, env.action_size)
     ctx = ppo._Context(env, networks, ppo.make_optimizer(cfg, env.n_steps), cfg)
     params = networks.policy_network.init(jax.random.PRNGKey(0))
@@ -152,16 +152,17 @@ def test_rollout_carries_the_envs_truncation(flag):
     ],
 )
 def test_bad_ppo_config_names_the_value(overrides, named):
-    cfg = ppo.make_config(overrides=overrides)
+    cfg = ppo_config.make_config(overrides=overrides)
     with pytest.raises(ValueError, match=named):
-        ppo.validate_config(cfg, N_STEPS)
+        ppo_config.validate_config(cfg, N_STEPS)
 
 
 def test_annealed_policy_rate_reaches_zero_and_spares_the_critic():
     """The policy's steps shrink linearly to nothing over the run's Adam steps; the value net's
     do not. Adam's first step has size lr per weight, so the step sizes read off the rate."""
-    cfg = ppo.make_config(overrides={"anneal_learning_rate": True, "learning_rate": 1e-3, "value_learning_rate": 1e-3})
-    total = ppo.sgd_steps(cfg, N_STEPS)
+    overrides = {"anneal_learning_rate": True, "learning_rate": 1e-3, "value_learning_rate": 1e-3}
+    cfg = ppo_config.make_config(overrides=overrides)
+    total = ppo_config.sgd_steps(cfg, N_STEPS)
     params = ppo.PPONetworkParams(policy={"w": jnp.ones(3)}, value={"w": jnp.ones(3)})
     grads = jax.tree_util.tree_map(jnp.ones_like, params)
     optimizer = ppo.make_optimizer(cfg, N_STEPS)
@@ -187,7 +188,7 @@ def test_annealed_policy_rate_reaches_zero_and_spares_the_critic():
 
 def test_unknown_key_is_refused():
     with pytest.raises(ValueError, match="num_env"):
-        ppo.make_config(overrides={"num_env": 4})
+        ppo_config.make_config(overrides={"num_env": 4})
 
 
 NO_NOISE = {f"noise.{k}": 0.0 for k in ("ball_xy", "joint_angle", "friction", "actuator_gain")}
@@ -230,7 +231,7 @@ def test_tiny_ppo_improves_return():
     )
     programs = experts.compile_programs(cfg)
     frozen = kick_model.load_record(Path(__file__).parent / "data" / "kick_prior_h200.json")
-    kicks, _ = experts.starting_kicks(cfg, frozen, say=lambda *a, **k: None)
+    kicks, _ = starting_kicks.starting_kicks(cfg, frozen, say=lambda *a, **k: None)
     tasks = jnp.asarray(cfg.experts.tasks)
     state, _ = experts.run_init(programs, experts.task_rngs(cfg.experts.seed, 1), tasks, kicks)
     _, metrics = experts.run_chunk(programs, state, tasks)

@@ -1,8 +1,8 @@
 """Stage 2: one PPO expert per task, all tasks in one compiled program.
 
-Each expert starts from its own keyframe kick (`starting_kicks`: the prior's family at the
-task's calibrated strength, or the best of that and the prior's anchors, then tuned by CMA-ES
-for every task at once), clones it into its Gaussian policy (`bc.clone_kick`), and PPO refines
+Each expert starts from its own keyframe kick (`bumps_jax.starting_kicks`: the prior's family
+at the task's calibrated strength, or the best of that and the prior's anchors, then tuned by
+CMA-ES for every task at once), clones it into its Gaussian policy (`bc.clone_kick`), and PPO refines
 it on its own target. The host loop runs jitted chunks of `updates_per_chunk` updates; between
 chunks it prints progress with an ETA, appends progress.csv and saves an orbax checkpoint. A
 killed run resumes from the newest readable checkpoint and ends exactly where an uninterrupted
@@ -18,7 +18,6 @@ once the record is written), progress.csv, wall_time.json, final_params/, expert
 from __future__ import annotations
 
 import functools
-import json
 import shutil
 import time
 from pathlib import Path
@@ -34,11 +33,10 @@ from bumps_jax import (
     evaluate,
     kick_env,
     kick_model,
-    kick_scoring,
     ppo,
-    rollout,
     runio,
     sharding,
+    starting_kicks,
     tables,
     tasks,
 )
@@ -190,104 +188,6 @@ def abstract_state(programs: Compiled, n_tasks: int):
     return jax.eval_shape(functools.partial(run_init, programs), *args)[0]
 
 
-# -- starting kicks -----------------------------------------------------------------------------
-
-
-def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray, dict, int]:
-    """The prior family's kick (N, 14) for each of `targets` (N,) m, what was chosen, and the
-    episodes the choice cost.
-
-    The family at each target's calibrated strength (or the main kick for every target), or
-    with `tune.anchor_starts` the best of that and the prior's anchors on `tune.eval_repetitions`
-    noisy kicks at the target.
-    """
-    e = cfg.experts
-    targets = np.asarray(targets, np.float32)
-    info = {"start_targets_m": targets.tolist()}
-    if not e.bc.per_task_strength:
-        return np.tile(np.asarray(record["params"], np.float32), (len(targets), 1)), info, 0
-    anchors = jnp.asarray(record["anchors"], jnp.float32)
-    table = jnp.asarray(kick_model.calibration(record))
-    starts = np.asarray(jax.vmap(lambda t: kick_model.kick_for(anchors, table, t))(jnp.asarray(targets)))
-    if not e.tune.anchor_starts:
-        return starts, info, 0
-    candidates = np.concatenate([starts[:, None], np.broadcast_to(anchors, (len(targets), *anchors.shape))], 1)
-    starts, chosen, costs = kick_scoring.best_starts(
-        env, targets, candidates, cfg.prior.fitness, e.tune.eval_repetitions, seed=3
-    )
-    names = ("blend", *kick_model.ANCHORS)
-    info.update(candidates=list(names), candidate_costs=costs.tolist(), chosen=[names[i] for i in chosen])
-    say(f"starting kicks chosen from blend and anchors: {dict(zip(targets.tolist(), info['chosen'], strict=True))}")
-    return starts, info, int(candidates.shape[0] * candidates.shape[1] * e.tune.eval_repetitions)
-
-
-_TUNE_ENVS: dict = {}
-
-
-def tune_env(cfg) -> kick_env.KickEnv:
-    """The env the starting kicks are chosen and tuned in (cfg.env over the prior's task range),
-    built once per process and env config: cmaes keeps its programs per env, so a second tuning
-    in the same process (a resumed or repeated run) compiles nothing again."""
-    task_range = tuple(float(t) for t in cfg.prior.task_range)
-    key = (json.dumps(kick_env.resolved(cfg.env), sort_keys=True), task_range)
-    if key not in _TUNE_ENVS:
-        _TUNE_ENVS[key] = kick_env.KickEnv(cfg.env, {"task_range": task_range})
-    return _TUNE_ENVS[key]
-
-
-def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
-    """The keyframe kick (T, 14) each expert clones, and a record of how it was made.
-
-    Scheme "per_task": each task's `prior_kicks` start, then with `tune.generations` > 0 one
-    CMA-ES per task (`cmaes.tune_for_tasks`). Scheme "family": the `prior_kicks` at
-    `tune.knots` knots over the tasks' range make a contextual kick (`kick_model.family_params`),
-    then with `tune.generations` > 0 one CMA-ES over it scored on every task
-    (`cmaes.tune_family`); each task's kick is the family's at its target. The record counts
-    every episode the kicks cost (`episodes`) and the largest jump between neighbouring tasks'
-    kicks (`smoothness`, `kick_model.largest_jump`).
-    """
-    from bumps_jax import cmaes  # noqa: PLC0415
-
-    e = cfg.experts
-    targets = np.asarray(e.tasks, np.float32)
-    env = tune_env(cfg)
-    info = {"tasks_m": targets.tolist(), "scheme": e.tune.scheme, "tuned": False}
-    family = e.tune.scheme == "family"
-    if family:
-        knots = kick_model.knot_targets(float(targets.min()), float(targets.max()), e.tune.knots)
-        knot_params, start_info, episodes = prior_kicks(cfg, record, knots, env, say)
-        members = jax.vmap(kick_model.family_params, in_axes=(None, None, 0))
-        starts = np.asarray(members(jnp.asarray(knot_params), jnp.asarray(knots), jnp.asarray(targets)))
-        info.update(knots_m=knots.tolist(), knot_params=np.asarray(knot_params).tolist())
-    else:
-        starts, start_info, episodes = prior_kicks(cfg, record, targets, env, say)
-    info.update(start_info)
-    if e.tune.generations > 0:
-        t0 = time.perf_counter()
-        common = dict(fitness=cfg.prior.fitness, say=say)
-        if family:
-            out = cmaes.tune_family(env, targets, knots, knot_params, e.tune, e.tune.generations,
-                                    e.tune.sigma_init, **common)  # fmt: skip
-            info["knot_params"] = out["knot_params"].tolist()
-        else:
-            out = cmaes.tune_for_tasks(env, targets, starts, e.tune, e.tune.generations, e.tune.sigma_init,
-                                       **common)  # fmt: skip
-        starts = out["params"]
-        episodes += out["episodes"]
-        improved = out["improved"].tolist() if isinstance(out["improved"], np.ndarray) else out["improved"]
-        info.update(tuned=True, wall_s=time.perf_counter() - t0, start_cost=out["start_cost"],
-                    tuned_cost=out["tuned_cost"], improved=improved, history_best_cost=out["history"])  # fmt: skip
-    info["episodes"] = int(episodes)  # every episode the starting kicks cost: choice of starts and tuning
-    info["smoothness"] = smoothness(starts, targets)
-    info["params"] = np.asarray(starts).tolist()
-    return np.asarray(starts, np.float32), info
-
-
-def smoothness(kicks, targets) -> dict | None:
-    """`kick_model.largest_jump` of the tasks' kicks (T, 14), or None for fewer than two tasks."""
-    return kick_model.largest_jump(kicks, targets) if len(set(np.asarray(targets).tolist())) > 1 else None
-
-
 # -- training -----------------------------------------------------------------------------------
 
 CSV_FIELDS = ("update", "env_steps", "target_m", *ppo.UpdateMetrics._fields)
@@ -337,7 +237,7 @@ def initial_state(cfg, run_dir: Path, programs: Compiled, say=print):
     record = kick_model.load_record(path, env_cfg=cfg.env)
     if path == kick_model.ASSET:  # keep the prior this run started from: a rerun must not read a newer asset
         runio.write_text(stage_dir / PRIOR, path.read_text())
-    kicks, info = starting_kicks(cfg, record, say)
+    kicks, info = starting_kicks.starting_kicks(cfg, record, say)
     runio.write_json(stage_dir / "starting_kicks.json", {**info, "prior": str(path)})
     tasks = np.asarray(cfg.experts.tasks, np.float32)
     state, bc_losses = run_init(programs, task_rngs(cfg.experts.seed, len(tasks)), tasks, kicks)
@@ -409,8 +309,8 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
         runio.write_json(stage_dir / OUTPUT, record)
         return record
     kicks = runio.read_json(stage_dir / "starting_kicks.json")
-    record["starting_kicks"] = evaluate_starting_kicks(cfg, programs.env, kicks["params"])
-    record["starting_kicks_smoothness"] = smoothness(kicks["params"], e.tasks)
+    record["starting_kicks"] = starting_kicks.evaluate_starting_kicks(cfg, programs.env, kicks["params"])
+    record["starting_kicks_smoothness"] = starting_kicks.smoothness(kicks["params"], e.tasks)
     record["env_steps_breakdown"] = env_steps_breakdown(cfg, stage_dir.parent, kicks, programs.env.n_steps,
                                                         record["env_steps"])  # fmt: skip
     known = [v for v in record["env_steps_breakdown"].values() if v is not None]
@@ -420,16 +320,6 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
     runio.write_text(stage_dir / "experts.md", tables.experts_markdown(record))
     runio.write_json(stage_dir / OUTPUT, record)
     return record
-
-
-def evaluate_starting_kicks(cfg, env: kick_env.KickEnv, kicks) -> dict:
-    """The tasks' starting kicks (T, 14) scored exactly as their experts are (the same tasks,
-    `experts.eval` noisy kicks and seed, `evaluate`'s statistics): Table 1's "starting kicks
-    (before PPO)" row, with its per-task list."""
-    e = cfg.experts
-    tables_ = kick_model.action_tables(jnp.asarray(kicks, jnp.float32), env.n_steps, env.dt)
-    metrics = evaluate.evaluate_experts(env, rollout.table_policy, tables_, e.tasks, e.eval.repetitions, e.eval.seed)
-    return evaluate.tasks_record(e.tasks, metrics)
 
 
 def env_steps_breakdown(cfg, run_dir: Path, kicks: dict, n_steps: int, ppo_steps: int) -> dict:
@@ -465,16 +355,3 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     shutil.rmtree(stage_dir / "checkpoints", ignore_errors=True)
     say(tables.experts_markdown(record) if cfg.task == "kick" else tables.task_experts_markdown(record))
     return record
-
-
-def read_starting_kicks(path, targets) -> dict[float, np.ndarray]:
-    """Each of `targets`' (m) kick params (14,) from a run's starting_kicks.json; ValueError naming
-    the path and the targets the record lacks."""
-    if not targets:
-        return {}
-    record = runio.read_json(path, "starting kicks of an experts run")
-    tasks = [float(t) for t in record["tasks_m"]]
-    missing = [t for t in targets if t not in tasks]
-    if missing:
-        raise ValueError(f"{path}: targets {missing} not among the kicks' tasks {tasks}")
-    return {t: np.asarray(record["params"][tasks.index(t)], np.float32) for t in targets}
