@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from bumps_jax import config, pipeline, report, runio
+from bumps_jax import config, pipeline, publish, report, runio
 
 
 def fake_stage(name, log, upstream=None, fail=False):
@@ -37,7 +37,9 @@ def stages(monkeypatch):
     log = []
     modules = {"experts": fake_stage("experts", log), "meta": fake_stage("meta", log, upstream="experts")}
     monkeypatch.setattr(pipeline, "stage_module", lambda name: modules[name])
-    monkeypatch.setattr(report, "write", lambda run_dir: runio.write_text(Path(run_dir) / "report.md", "report\n"))
+    monkeypatch.setattr(
+        publish, "write_report", lambda run_dir: runio.write_text(Path(run_dir) / "report.md", "report\n")
+    )
     return log, modules
 
 
