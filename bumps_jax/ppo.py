@@ -1,4 +1,4 @@
-"""A pure, vmappable PPO trainer for one kick task, built from Brax's PPO pieces.
+"""A pure, vmappable PPO trainer for one contextual task (one target per call), built from Brax's PPO pieces.
 
 PureJaxRL pattern: `make_train(config, env)` returns pure functions; the whole training loop is
 a `lax.scan` over updates with no host round-trip inside, so `jax.vmap` over tasks trains every
@@ -39,7 +39,7 @@ from brax.training.agents.ppo import losses as ppo_losses
 from brax.training.agents.ppo import networks as ppo_networks
 from flax import linen
 
-from bumps_jax import kick_env, ppo_config
+from bumps_jax import ppo_config, task_env
 
 PPONetworkParams = ppo_losses.PPONetworkParams
 
@@ -90,7 +90,7 @@ class Trainer(NamedTuple):
 class _Context(NamedTuple):
     """The static pieces the scan bodies need, bound with functools.partial."""
 
-    env: kick_env.KickEnv
+    env: task_env.ContextualEnv
     networks: ppo_networks.PPONetworks
     optimizer: optax.GradientTransformation
     config: ml_collections.ConfigDict
@@ -338,7 +338,7 @@ def make_optimizer(
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), adam)
 
 
-def make_train(config, env: kick_env.KickEnv, traced_learning_rate: bool = False) -> Trainer:
+def make_train(config, env: task_env.ContextualEnv, traced_learning_rate: bool = False) -> Trainer:
     """Validate `config` (a PPO ConfigDict) and build the pure trainer for `env`.
 
     All returned functions are pure and unjitted: jit / vmap them as needed. The target is a
