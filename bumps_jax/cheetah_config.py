@@ -7,6 +7,8 @@ when `task: cheetah_vel` is selected.
 
 from __future__ import annotations
 
+import copy
+
 import ml_collections
 
 from bumps_jax import cheetah_env, ppo_config
@@ -55,9 +57,32 @@ def _experts() -> ml_collections.ConfigDict:
     return experts
 
 
+def _baseline(experts: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
+    """Multi-task PPO: one policy that sees the target velocity, trained from a fresh init by the
+    experts' PPO on velocities drawn per episode from their range."""
+    b = ml_collections.ConfigDict()
+    b.seeds = 3  # independent runs, trained side by side
+    b.updates_per_chunk = 10  # PPO updates per compiled chunk; progress and a checkpoint between
+    b.keep_checkpoints = 3
+    b.eval_tasks = TEST_TASKS  # m/s: scored on the held-out test velocities, as BUMPS is
+    b.eval_repetitions = 20  # episodes per test velocity and seed (reset noise on)
+    b.eval_seed = 7
+    b.ppo = copy.deepcopy(experts.ppo)  # the experts' PPO hyperparameters and nets ...
+    # ... with each episode's target drawn from U[lo, hi] of the experts' velocities (m/s) ...
+    b.ppo.sample_task_range = (min(experts.tasks), max(experts.tasks))
+    # ... and per seed the env steps that all of one BUMPS run's experts used together
+    # (13 experts x 10.24 M = 133.12 M, 1,300 updates).
+    b.ppo.total_env_steps = len(experts.tasks) * experts.ppo.total_env_steps
+    # A second arm: the same seeds at this policy learning rate, trained beside the first
+    # (ppo.learning_rate) in one program; None: the first arm only.
+    b.extra_learning_rate = ml_collections.FieldReference(None, field_type=float)
+    return b
+
+
 def sections(meta: ml_collections.ConfigDict, filter_: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
-    """HalfCheetah-Vel's sections (env, experts, meta, filter), sized to run in 15 minutes on one
-    H100 (docs/decisions.md: the estimate). `meta` and `filter_` are fresh copies of the kick's
+    """HalfCheetah-Vel's sections (env, experts, meta, filter, baseline), sized to run in 15 minutes on one
+    H100 (docs/decisions.md: the estimate, which leaves out the baseline's seeds x 133 M env
+    steps). `meta` and `filter_` are fresh copies of the kick's
     sections (the same keys); this task's velocities and sizes replace theirs."""
     cfg = ml_collections.ConfigDict()
     cfg.env = cheetah_env.default_config()
@@ -80,11 +105,12 @@ def sections(meta: ml_collections.ConfigDict, filter_: ml_collections.ConfigDict
     cfg.filter.width = 0.3  # m/s: a task's candidates are the contexts within +- width of it
     cfg.filter.halving_rungs = (2, 8, 32)
     cfg.filter.eval_repetitions = 20
+    cfg.baseline = _baseline(experts)
     return cfg
 
 
 # The `tiny` preset's overrides of these sections (dotted keys under `cheetah_vel`): HalfCheetah-Vel
-# at CPU size: 10-step episodes, 2 experts, 2 PPO updates, a short BC.
+# at CPU size: 10-step episodes, 2 experts, 2 PPO updates, a short BC; a baseline of 2 seeds x 4 updates.
 TINY = {
     "cheetah_vel.env.episode_steps": 10,
     "cheetah_vel.env.warp_contacts": cheetah_env.CONTACTS_PER_GEOM * 8 * 16,
@@ -114,4 +140,16 @@ TINY = {
     "cheetah_vel.filter.halving_rungs": (1, 2),
     "cheetah_vel.filter.eval_repetitions": 2,
     "cheetah_vel.filter.block": 16,
+    "cheetah_vel.baseline.seeds": 2,
+    "cheetah_vel.baseline.updates_per_chunk": 2,
+    "cheetah_vel.baseline.keep_checkpoints": 2,
+    "cheetah_vel.baseline.eval_tasks": TEST_TASKS[:2],
+    "cheetah_vel.baseline.eval_repetitions": 2,
+    "cheetah_vel.baseline.ppo.sample_task_range": (0.5, 2.0),  # the tiny experts' velocities
+    "cheetah_vel.baseline.ppo.num_envs": 4,
+    "cheetah_vel.baseline.ppo.num_minibatches": 2,
+    "cheetah_vel.baseline.ppo.num_epochs": 2,
+    "cheetah_vel.baseline.ppo.total_env_steps": 2 * 4 * 10 * 2,  # the 2 tiny experts' steps: 4 updates
+    "cheetah_vel.baseline.ppo.policy_hidden": (32, 32),
+    "cheetah_vel.baseline.ppo.value_hidden": (32, 32),
 }

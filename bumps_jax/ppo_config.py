@@ -77,8 +77,8 @@ def validate_config(cfg: ml_collections.ConfigDict, n_steps: int, prefix: str = 
         if not cfg[key] or any(int(h) < 1 for h in cfg[key]):
             raise ValueError(f"{prefix}{key} must be positive layer sizes, got {tuple(cfg[key])!r}")
     low_high = cfg.sample_task_range
-    if low_high is not None and (len(low_high) != 2 or not 0.0 < low_high[0] < low_high[1]):
-        raise ValueError(f"{prefix}sample_task_range must be (low, high) with 0 < low < high, got {tuple(low_high)}")
+    if low_high is not None and (len(low_high) != 2 or not np.isfinite(low_high).all() or low_high[0] >= low_high[1]):
+        raise ValueError(f"{prefix}sample_task_range must be (low, high) with low < high, got {tuple(low_high)}")
 
 
 def n_updates(cfg: ml_collections.ConfigDict, n_steps: int) -> int:

@@ -43,6 +43,8 @@ TASK_PUBLISHED = {
     "report.md": "report.md",
     "filter/error_vs_target.png": "error_vs_target.png",
     "filter/context_map.png": "context_map.png",
+    "baseline/baseline.json": "baseline.json",
+    "baseline/baseline_curve.png": "baseline_curve.png",
 }
 
 

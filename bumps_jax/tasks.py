@@ -14,11 +14,11 @@ import importlib
 TASKS = ("kick", "cheetah_vel")
 _MODULES = {"kick": "bumps_jax.kick_env", "cheetah_vel": "bumps_jax.cheetah_env"}
 _CLASSES = {"kick": "KickEnv", "cheetah_vel": "CheetahVelEnv"}
-# The stages each task runs, in the pipeline's order: the keyframe prior, the held-out targets and
-# the multi-task baseline are the kick's (a closed-loop task's experts start from a fresh policy).
+# The stages each task runs, in the pipeline's order: the keyframe prior and the held-out targets
+# are the kick's (a closed-loop task's experts and baseline start from a fresh policy).
 STAGES = {
     "kick": ("prior", "experts", "meta", "filter", "heldout", "baseline"),
-    "cheetah_vel": ("experts", "meta", "filter"),
+    "cheetah_vel": ("experts", "meta", "filter", "baseline"),
 }
 
 

@@ -63,14 +63,15 @@ def cheetah_vel(c, prefix: str) -> None:
     if c.filter.net_seed >= c.meta.train.n_seeds:
         raise ValueError(f"{prefix}filter.net_seed {c.filter.net_seed} names no network: "
                          f"{prefix}meta.train.n_seeds is {c.meta.train.n_seeds}")  # fmt: skip
+    baseline(c.baseline, task_range, n_steps, prefix, unit)
     if c.env.impl == "warp":
         per_episode = cheetah_env.contacts_per_episode(bool(c.env.all_contacts))
-        n = len(e.tasks) * e.ppo.num_envs
-        if n > c.env.warp_contacts // per_episode:
-            raise ValueError(
-                f"{prefix}env.warp_contacts {c.env.warp_contacts} holds {c.env.warp_contacts // per_episode} episodes, "
-                f"but the experts program runs {n}: set it to at least {n * per_episode}"
-            )
+        for name, n in (("experts", len(e.tasks) * e.ppo.num_envs), ("baseline", baseline_runs(c.baseline))):
+            if n > c.env.warp_contacts // per_episode:
+                raise ValueError(
+                    f"{prefix}env.warp_contacts {c.env.warp_contacts} holds {c.env.warp_contacts // per_episode} "
+                    f"episodes, but the {name} program runs {n}: set it to at least {n * per_episode}"
+                )
 
 
 def physics_capacity(cfg) -> None:
@@ -81,9 +82,7 @@ def physics_capacity(cfg) -> None:
     most = cfg.env.warp_contacts // kick_env.CONTACTS_PER_EPISODE
     programs = {
         "experts (len(experts.tasks) x experts.ppo.num_envs)": len(cfg.experts.tasks) * cfg.experts.ppo.num_envs,
-        "baseline (baseline.seeds x learning rates x baseline.ppo.num_envs)": cfg.baseline.seeds
-        * (1 if cfg.baseline.extra_learning_rate is None else 2)
-        * cfg.baseline.ppo.num_envs,
+        "baseline (baseline.seeds x learning rates x baseline.ppo.num_envs)": baseline_runs(cfg.baseline),
     }
     for name, n in programs.items():
         if n > most:
@@ -220,20 +219,29 @@ def filtering(f, task_range, prefix: str = "", unit: str = "m") -> None:
         positive_ints(f, p, ("block",))
 
 
-def baseline(b, task_range, n_steps: int) -> None:
-    positive_ints(b, "baseline.", ("seeds", "bc_steps", "eval_repetitions", "updates_per_chunk", "keep_checkpoints"))
-    positive_floats(b, "baseline.", ("bc_learning_rate",))
-    targets(b.eval_tasks, task_range, "baseline.eval_tasks")
-    ppo_section(b.ppo, "baseline.ppo.", n_steps, task_range)
-    chunk_divides(b, "baseline.", int(b.ppo.total_env_steps // (b.ppo.num_envs * n_steps)))
+def baseline(b, task_range, n_steps: int, prefix: str = "", unit: str = "m") -> None:
+    """The multi-task baseline's section (the kick's, or another task's under `prefix`, which has no clone)."""
+    p = f"{prefix}baseline."
+    cloned = ("bc_steps",) if "bc_steps" in b else ()
+    positive_ints(b, p, ("seeds", *cloned, "eval_repetitions", "updates_per_chunk", "keep_checkpoints"))
+    if cloned:
+        positive_floats(b, p, ("bc_learning_rate",))
+    targets(b.eval_tasks, task_range, f"{p}eval_tasks", unit)
+    ppo_section(b.ppo, f"{p}ppo.", n_steps, task_range)
+    chunk_divides(b, p, int(b.ppo.total_env_steps // (b.ppo.num_envs * n_steps)))
     if b.ppo.sample_task_range is None:
-        raise ValueError("baseline.ppo.sample_task_range must be (low, high): the baseline is multi-task")
+        raise ValueError(f"{p}ppo.sample_task_range must be (low, high): the baseline is multi-task")
     if b.extra_learning_rate is not None:
-        positive_floats(b, "baseline.", ("extra_learning_rate",))
+        positive_floats(b, p, ("extra_learning_rate",))
         if b.extra_learning_rate == b.ppo.learning_rate:
-            raise ValueError(f"baseline.extra_learning_rate {b.extra_learning_rate!r} is the paper arm's own rate")
+            raise ValueError(f"{p}extra_learning_rate {b.extra_learning_rate!r} is the paper arm's own rate")
     if b.ppo.anneal_learning_rate:
-        raise ValueError("baseline.ppo.anneal_learning_rate must be false: the baseline's arms keep a constant rate")
+        raise ValueError(f"{p}ppo.anneal_learning_rate must be false: the baseline's arms keep a constant rate")
+
+
+def baseline_runs(b) -> int:
+    """Episodes of one baseline update: seeds x learning rates x ppo.num_envs."""
+    return b.seeds * (1 if b.extra_learning_rate is None else 2) * b.ppo.num_envs
 
 
 def heldout(h, task_range, preset: str) -> None:

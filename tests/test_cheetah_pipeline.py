@@ -1,6 +1,6 @@
 """HalfCheetah-Vel through the pipeline at CPU size: experts from a fresh policy (PPO), their
 clone into the meta-policies over (state, context), policy filtering scored from per-step
-velocities, the report and the published records."""
+velocities, the multi-task PPO baseline, the report and the published records."""
 
 import json
 
@@ -12,7 +12,8 @@ from bumps_jax import cheetah_env, config, filtering, pipeline, publish
 
 @pytest.fixture(scope="module")
 def cheetah_run(tmp_path_factory):
-    """The tiny preset's cheetah pipeline (experts, meta, filter) in one call: its config, directory and timing."""
+    """The tiny preset's cheetah pipeline (experts, meta, filter, baseline) in one call: its config, directory and
+    timing."""
     run_dir = tmp_path_factory.mktemp("cheetah")
     cfg = config.make_config("tiny", {"task": "cheetah_vel"})
     timing = pipeline.run_pipeline(pipeline.ORDER, cfg, run_dir, say=lambda *a, **k: None)
@@ -21,7 +22,7 @@ def cheetah_run(tmp_path_factory):
 
 def test_the_tiny_pipeline_runs_the_cheetahs_stages(cheetah_run):
     run_dir, view = cheetah_run["dir"], config.task_view(cheetah_run["cfg"])
-    assert sorted(cheetah_run["timing"]["stages_s"]) == ["experts", "filter", "meta"]
+    assert sorted(cheetah_run["timing"]["stages_s"]) == ["baseline", "experts", "filter", "meta"]
     experts = json.loads((run_dir / "experts" / "experts.json").read_text())
     assert experts["task"] == "cheetah_vel" and experts["unit"] == "m/s"
     assert experts["tasks_m"] == list(view.experts.tasks)
@@ -52,13 +53,43 @@ def test_the_tiny_pipeline_runs_the_cheetahs_stages(cheetah_run):
 def test_a_rerun_is_up_to_date_and_publishes_into_results(cheetah_run, tmp_path):
     log = []
     pipeline.run_pipeline(pipeline.ORDER, cheetah_run["cfg"], cheetah_run["dir"], say=log.append)
-    assert sum("up to date" in line for line in log) == 3
+    assert sum("up to date" in line for line in log) == 4
     written = publish.publish_task(cheetah_run["dir"], "cheetah_vel", root=tmp_path)
     names = sorted(p.name for p in written)
-    assert {"experts.json", "table1.json", "table2.json", "pipeline.json"} <= set(names)
+    assert {"experts.json", "table1.json", "table2.json", "pipeline.json", "baseline.json"} <= set(names)
     assert all(p.parent == tmp_path / "results" / "cheetah_vel" for p in written)
     with pytest.raises(ValueError, match="holds no kick run"):
         publish.publish_task(cheetah_run["dir"], "kick", root=tmp_path)
+
+
+def test_the_baseline_trains_one_policy_on_the_experts_velocities_and_scores_the_test_ones(cheetah_run):
+    """Multi-task PPO from a fresh policy that sees the target, on velocities drawn from the
+    experts' range, scored on the test velocities with the cheetah's mean velocity error."""
+    run_dir, view = cheetah_run["dir"], config.task_view(cheetah_run["cfg"])
+    b = view.baseline
+    saved = json.loads((run_dir / "baseline" / "baseline.json").read_text())
+    assert saved["task"] == "cheetah_vel" and saved["unit"] == "m/s" and "bc_final_loss" not in saved
+    assert saved["sample_task_range"] == [min(view.experts.tasks), max(view.experts.tasks)]
+    # Per seed, the env steps all of BUMPS's experts used together (2 experts x 80 steps).
+    experts = json.loads((run_dir / "experts" / "experts.json").read_text())
+    assert saved["env_steps_per_seed"] == b.ppo.total_env_steps == len(experts["tasks_m"]) * experts["env_steps"]
+    n_updates = b.ppo.total_env_steps // (b.ppo.num_envs * view.env.episode_steps)
+    for curve in (saved["curve"], saved["error_curve"]):
+        assert len(curve["mean"]) == len(curve["env_steps"]) == n_updates == 4
+        assert curve["env_steps"][-1] == saved["env_steps_per_seed"]
+    assert np.isfinite(saved["error_curve"]["mean"]).all()
+    assert saved["eval_tasks"] == pytest.approx(list(b.eval_tasks))
+    # A mean velocity error per test velocity, finite and below the target plus the speed a
+    # 4-update policy reaches; every episode valid; one row per seed (no second arm).
+    assert len(saved["per_task_error_m"]) == len(b.eval_tasks)
+    for target, error in zip(b.eval_tasks, saved["per_task_error_m"], strict=True):
+        assert 0.0 < error < target + 2.0
+    assert len(saved["per_seed"]) == b.seeds and len(saved["arms"]) == 1 and saved["accuracy_mean"] == 1.0
+    assert saved["start"]["n_tasks"] == len(b.eval_tasks) and np.isfinite(saved["start"]["error_mean_all_m"])
+    assert (run_dir / "baseline" / "baseline_curve.png").stat().st_size > 0
+    text = (run_dir / "report.md").read_text()
+    assert "## Multi-task PPO baseline" in text and "U[0.5, 2] m/s" in text
+    assert f"{saved['error_mean_m']:.2f} m/s over {len(b.eval_tasks)} test targets" in text
 
 
 def test_filtering_scores_contexts_from_per_step_velocities():

@@ -77,8 +77,8 @@ def test_a_pipeline_runs_the_chosen_stages_in_its_order(tmp_path, monkeypatch):
     assert seen["stages"] == cli.PIPELINES["reproduce"][0]
     with pytest.raises(SystemExit, match=r"^error: --stages: demo has no stage 'baseline'; choose from experts, "):
         cli.main(["demo", "--stages", "baseline", "--run-dir", str(tmp_path / "run")])
-    with pytest.raises(SystemExit, match=r"^error: the cheetah_vel task has no baseline stage; its stages are "):
-        cli.main(["reproduce", "--task", "cheetah_vel", "--stages", "baseline", "--run-dir", str(tmp_path / "run")])
+    with pytest.raises(SystemExit, match=r"^error: the cheetah_vel task has no heldout stage; its stages are "):
+        cli.main(["reproduce", "--task", "cheetah_vel", "--stages", "heldout", "--run-dir", str(tmp_path / "run")])
     assert not (tmp_path / "run").exists()
 
 

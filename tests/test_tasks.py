@@ -65,6 +65,14 @@ def test_cheetah_sections_are_its_own():
         ({"task": "cheetah_vel", "cheetah_vel.experts.tasks": (3.5,)}, "cheetah_vel.experts.tasks: target 3.5 m/s"),
         ({"task": "cheetah_vel", "cheetah_vel.env.impl": "torch"}, "cheetah_vel.env.impl must be one of"),
         (
+            {"task": "cheetah_vel", "cheetah_vel.baseline.eval_tasks": (3.5,)},
+            "cheetah_vel.baseline.eval_tasks: target 3.5 m/s",
+        ),
+        (
+            {"task": "cheetah_vel", "cheetah_vel.baseline.ppo.sample_task_range": (2.0, 0.5)},
+            "cheetah_vel.baseline.ppo.sample_task_range must be",
+        ),
+        (
             {
                 "task": "cheetah_vel",
                 "cheetah_vel.experts.ppo.num_envs": 64,

@@ -11,6 +11,11 @@ error evaluated like the BUMPS variants; the paper arm's also at the top level) 
 baseline_curve.png. Training runs in compiled chunks of `baseline.updates_per_chunk` updates, each
 followed by progress.csv rows, an orbax checkpoint and a progress line; a killed run resumes.
 Once the record is written only the newest checkpoint (the trained runs) is kept.
+
+A task without a keyframe prior (`cfg.task`, e.g. cheetah_vel) starts every seed from a fresh
+policy; its env's observation holds no target, so the policy trains on its contextual observation
+(`ContextObserved`) and is scored by the env's own error (the cheetah's mean velocity error, m/s),
+its record naming the task and the unit.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import bc, evaluate, kick_env, kick_model, ppo, rollout, runio
+from bumps_jax import bc, config, evaluate, kick_env, kick_model, ppo, rollout, runio, tasks
 from bumps_jax.stages import experts as experts_stage
 
 OUTPUT = "baseline.json"
@@ -31,6 +36,52 @@ OUTPUT = "baseline.json"
 def inputs(cfg, run_dir: Path) -> dict:
     """The kick prior the experts of this run start from (checked the same way)."""
     return experts_stage.inputs(cfg, run_dir)
+
+
+class ContextObserved:
+    """`env` whose every observation carries its episode's target (`env.with_context`): what one
+    policy over every target trains on when the env's own observation holds none. The rest is `env`'s."""
+
+    def __init__(self, env):
+        self.env = env
+
+    def __getattr__(self, name):
+        return getattr(self.env, name)
+
+    @property
+    def observation_size(self) -> int:
+        return self.env.context_observation_size
+
+    def reset(self, rng, target=None):
+        state = self.env.reset(rng, target)
+        return state.replace(obs=self.env.with_context(state.obs, state.info["target"]))
+
+    def step(self, state, action):
+        nxt = self.env.step(state, action)
+        return nxt.replace(obs=self.env.with_context(nxt.obs, nxt.info["target"]))
+
+
+def record_env(cfg):
+    """The env config as the record carries it: the kick's as it always was, another task's resolved."""
+    return cfg.env if cfg.task == "kick" else config.resolved_env(cfg)
+
+
+def training_env(cfg, env):
+    """The env PPO trains in: the kick's as it is (its observation holds the target), another
+    task's `ContextObserved`."""
+    return env if cfg.task == "kick" else ContextObserved(env)
+
+
+def start_policy(cfg, env, trainer: ppo.Trainer, run_dir: Path, say=print) -> tuple:
+    """The policy every seed starts from and its BC losses: the kick's main kick cloned (`clone_start`),
+    a fresh policy (no losses: None) for a task without a keyframe prior."""
+    if cfg.task != "kick":
+        say(f"a fresh {len(cfg.baseline.ppo.policy_hidden)}-layer policy", flush=True)
+        return trainer.networks.policy_network.init(jax.random.key(0)), None
+    b = cfg.baseline
+    record = kick_model.load_record(experts_stage.prior_path(cfg, run_dir), env_cfg=cfg.env)
+    say(f"cloning the main kick into the {len(b.ppo.policy_hidden)}-layer policy ({b.bc_steps} steps)", flush=True)
+    return clone_start(cfg, env, trainer, jnp.asarray(record["params"]))
 
 
 def clone_start(cfg, env: kick_env.KickEnv, trainer: ppo.Trainer, kick) -> tuple:
@@ -67,8 +118,8 @@ CSV_FIELDS = ("update", "env_steps", "run", "learning_rate", "seed", *ppo.Update
 TRAIN_TARGET = 12.0
 
 
-def training_loop(cfg, trainer: ppo.Trainer, policy0) -> runio.ChunkedTraining:
-    """Every arm's seeds from the clone `policy0`, vmapped over runs, in chunks of updates."""
+def training_loop(cfg, trainer: ppo.Trainer, policy0, unit: str = "m") -> runio.ChunkedTraining:
+    """Every arm's seeds from `policy0`, vmapped over runs, in chunks of updates (errors in `unit`)."""
     b = cfg.baseline
     rates = learning_rates(b)
     seeds = int(b.seeds)
@@ -99,7 +150,7 @@ def training_loop(cfg, trainer: ppo.Trainer, policy0) -> runio.ChunkedTraining:
         m = jax.tree.map(np.asarray, metrics)
         arms = "  ".join(
             f"lr {lr:g}: return {m.episode_return[i * seeds : (i + 1) * seeds, -1].mean():8.2f}"
-            f" error {m.final_error[i * seeds : (i + 1) * seeds, -1].mean():.2f} m"
+            f" error {m.final_error[i * seeds : (i + 1) * seeds, -1].mean():.2f} {unit}"
             for i, lr in enumerate(rates)
         )
         return f"baseline update {update}/{total}  {arms}  {eta}"
@@ -136,71 +187,76 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
     start = time.perf_counter()
     b = cfg.baseline
     stage_dir = Path(run_dir) / "baseline"
-    env = kick_env.KickEnv(cfg.env)
-    trainer = ppo.make_train(b.ppo, env, traced_learning_rate=True)
-    record = kick_model.load_record(experts_stage.prior_path(cfg, run_dir), env_cfg=cfg.env)
-    say(f"cloning the main kick into the {len(b.ppo.policy_hidden)}-layer policy ({b.bc_steps} steps)", flush=True)
-    policy0, bc_losses = clone_start(cfg, env, trainer, jnp.asarray(record["params"]))
+    env = tasks.make_env(cfg.task, cfg.env)
+    unit = env.UNIT
+    trainer = ppo.make_train(b.ppo, training_env(cfg, env), traced_learning_rate=True)
+    policy0, bc_losses = start_policy(cfg, env, trainer, run_dir, say)
     rates = learning_rates(b)
     n_runs = len(rates) * b.seeds
     say(f"training {len(rates)} arm(s) x {b.seeds} seeds x {trainer.n_updates} updates, "
         f"{b.updates_per_chunk} per compiled chunk (compiling first)", flush=True)  # fmt: skip
-    loop = training_loop(cfg, trainer, policy0)
+    loop = training_loop(cfg, trainer, policy0, unit)
     out = runio.train_in_chunks(stage_dir, loop, trainer.n_updates, b.keep_checkpoints, say, max_chunks)
     if not out["finished"]:
         return None
     state, train_s = out["state"], out["wall_s"]
     curves = read_progress(stage_dir / "progress.csv", n_runs, trainer.n_updates)
 
-    rows = evaluate_runs(cfg, env, trainer, policy0, state)
+    rows, per_task = evaluate_runs(cfg, env, trainer, policy0, state)
     env_steps = trainer.n_updates * trainer.steps_per_update
     arms = arms_of(rates, b.seeds, rows[1:], curves, trainer.steps_per_update)
-    tasks = np.asarray(b.eval_tasks, np.float32)
+    eval_tasks = np.asarray(b.eval_tasks, np.float32)
     paper = arms[0]
     payload = {
         # Wall time: training over every call plus this call's clone and evaluation.
-        **runio.provenance(cfg.preset, train_s + time.perf_counter() - start - out["call_s"], cfg.env),
+        **runio.provenance(cfg.preset, train_s + time.perf_counter() - start - out["call_s"], record_env(cfg)),
         "seeds": int(b.seeds),
         "env_steps_per_seed": int(env_steps),
         "learning_rates": list(rates),
         # The paper arm (ppo.learning_rate) at the top level, as the results contract names it.
         **{k: paper[k] for k in ("learning_rate", "curve", "error_curve", "error_mean_m", "accuracy_mean", "per_seed")},
         "arms": arms,
-        "start": rows[0],  # the cloned main kick every seed started from, before PPO
-        "bc_final_loss": float(bc_losses[-1]),
+        "start": rows[0],  # the policy every seed started from (the kick's: the cloned main kick), before PPO
+        **({} if bc_losses is None else {"bc_final_loss": float(bc_losses[-1])}),  # the clone's fit
         "env_steps": int(env_steps),
         "train_wall_s": train_s,
-        "eval_tasks": tasks.tolist(),
+        "eval_tasks": eval_tasks.tolist(),
         "eval_repetitions": int(b.eval_repetitions),
     }
+    if cfg.task != "kick":  # the task's name and unit, and the range its training targets came from
+        payload.update(task=cfg.task, unit=unit, sample_task_range=list(b.ppo.sample_task_range))
+        # Per eval task, the first arm's mean error over its seeds (unit), as BUMPS's tables list them.
+        payload["per_task_error_m"] = per_task[1 : 1 + b.seeds].mean(axis=0).tolist()
     runio.write_json(stage_dir / OUTPUT, payload)
     runio.keep_newest_checkpoint(stage_dir / "checkpoints")  # the trained policies; the rest is history
-    plot_curve(payload, stage_dir / "baseline_curve.png")
+    plot_curve(payload, stage_dir / "baseline_curve.png", tuple(b.ppo.sample_task_range), unit)
     for arm in arms:
-        say(f"baseline, lr {arm['learning_rate']:g}: error {arm['error_mean_m']:.2f} m, "
+        say(f"baseline, lr {arm['learning_rate']:g}: error {arm['error_mean_m']:.2f} {unit}, "
             f"accuracy {arm['accuracy_mean']:.2f}, {env_steps:,} env steps per seed")  # fmt: skip
-    say(f"at the start (the cloned main kick): error {rows[0]['error_mean_all_m']:.2f} m, "
+    start_name = "the cloned main kick" if bc_losses is not None else "the fresh policy"
+    say(f"at the start ({start_name}): error {rows[0]['error_mean_all_m']:.2f} {unit}, "
         f"accuracy {rows[0]['accuracy_mean']:.2f}")  # fmt: skip
     return payload
 
 
-def evaluate_runs(cfg, env, trainer, policy0, state) -> list[dict]:
-    """Table 1 rows (`evaluate.table_row`) on the baseline's eval tasks and noise: row 0 the cloned
-    main kick every seed started from (before PPO), then every run (arm-major, seeds within)."""
+def evaluate_runs(cfg, env, trainer, policy0, state) -> tuple[list[dict], np.ndarray]:
+    """Table 1 rows (`evaluate.table_row`) on the baseline's eval tasks and noise: row 0 the policy
+    every seed started from (before PPO), then every run (arm-major, seeds within); and their mean
+    errors per eval task, (1 + runs, tasks). Each policy sees the contextual observation
+    (`env.with_context`), as it trained."""
     b = cfg.baseline
-    cloned = experts_stage.ExpertParams(ppo.init_normalizer(env.observation_size), policy0)
+    cloned = experts_stage.ExpertParams(ppo.init_normalizer(training_env(cfg, env).observation_size), policy0)
     params = jax.tree.map(
         lambda a, s: jnp.concatenate([jnp.asarray(a, s.dtype)[None], s]),
         cloned,
         jax.vmap(experts_stage.expert_params)(state),
     )
-    tasks = np.asarray(b.eval_tasks, np.float32)
-    keys = rollout.repetition_keys(b.eval_seed, len(tasks), b.eval_repetitions)
+    eval_tasks = np.asarray(b.eval_tasks, np.float32)
+    keys = rollout.repetition_keys(b.eval_seed, len(eval_tasks), b.eval_repetitions)
     grid = rollout.grid_fn(env, experts_stage.expert_policy(trainer.networks))
-    m = grid(params, tasks, tasks, keys)  # (1 + runs, tasks, reps)
-    return [
-        evaluate.table_row(evaluate.summarise_tasks({k: v[s] for k, v in m.items()})) for s in range(len(m["valid"]))
-    ]
+    m = grid(params, eval_tasks, eval_tasks, keys)  # (1 + runs, tasks, reps)
+    summaries = [evaluate.summarise_tasks({k: v[s] for k, v in m.items()}) for s in range(len(m["valid"]))]
+    return [evaluate.table_row(x) for x in summaries], np.stack([x["error_mean_m"] for x in summaries])
 
 
 def arms_of(rates, seeds: int, run_rows: list[dict], curves: dict, steps_per_update: int) -> list[dict]:
@@ -222,9 +278,9 @@ def arms_of(rates, seeds: int, run_rows: list[dict], curves: dict, steps_per_upd
     return arms
 
 
-def plot_curve(payload: dict, path: Path) -> Path:
-    """Per arm, over env steps: the training episodes' mean final error (m) and mean return, each
-    with its 95 % bootstrap band over seeds."""
+def plot_curve(payload: dict, path: Path, target_range=(7.0, 18.0), unit: str = "m") -> Path:
+    """Per arm, over env steps: the training episodes' mean final error (`unit`) and mean return,
+    each with its 95 % bootstrap band over seeds; `target_range`: the training targets' U[low, high]."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
@@ -240,10 +296,12 @@ def plot_curve(payload: dict, path: Path) -> Path:
                 continue
             (line,) = ax.plot(c["env_steps"], c["mean"], label=f"{label}, mean over {payload['seeds']} seeds")
             ax.fill_between(c["env_steps"], c["ci_low"], c["ci_high"], alpha=0.25, color=line.get_color())
-    ax_err.set_ylabel("training episodes' mean final error (m)")
+    ax_err.set_ylabel(f"training episodes' mean final error ({unit})")
     ax_ret.set_ylabel("mean episode return")
     for ax in (ax_err, ax_ret):
         ax.set_xlabel("environment steps (per seed)")
         ax.legend(fontsize=8, title="95% bootstrap bands", title_fontsize=8)
-    fig.suptitle(f"Multi-task PPO, targets U[7, 18] m ({payload['device']}, {payload['preset']})", fontsize=9)
+    lo, hi = target_range
+    targets = f"targets U[{lo:g}, {hi:g}] {unit}"
+    fig.suptitle(f"Multi-task PPO, {targets} ({payload['device']}, {payload['preset']})", fontsize=9)
     return runio.save_figure(fig, path)
