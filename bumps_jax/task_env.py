@@ -124,3 +124,26 @@ class ContextualEnv(Env):
         S, as the env reports them) with targets broadcasting against S, e.g. (T, 1, 1) against
         (C, R) -> (T, C, R)."""
         raise NotImplementedError
+
+
+class ContextObserved:
+    """`env` whose every observation carries its episode's target (`env.with_context`): what one
+    policy over every target trains on when the env's own observation holds none. The rest is `env`'s."""
+
+    def __init__(self, env):
+        self.env = env
+
+    def __getattr__(self, name):
+        return getattr(self.env, name)
+
+    @property
+    def observation_size(self) -> int:
+        return self.env.context_observation_size
+
+    def reset(self, rng, target=None):
+        state = self.env.reset(rng, target)
+        return state.replace(obs=self.env.with_context(state.obs, state.info["target"]))
+
+    def step(self, state, action):
+        nxt = self.env.step(state, action)
+        return nxt.replace(obs=self.env.with_context(nxt.obs, nxt.info["target"]))

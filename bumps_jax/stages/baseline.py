@@ -14,7 +14,7 @@ Once the record is written only the newest checkpoint (the trained runs) is kept
 
 A task without a keyframe prior (`cfg.task`, e.g. cheetah_vel) starts every seed from a fresh
 policy; its env's observation holds no target, so the policy trains on its contextual observation
-(`ContextObserved`) and is scored by the env's own error (the cheetah's mean velocity error, m/s),
+(`task_env.ContextObserved`) and is scored by the env's own error (the cheetah's mean velocity error, m/s),
 its record naming the task and the unit.
 """
 
@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import bc, config, evaluate, kick_env, kick_model, ppo, rollout, runio, tasks
+from bumps_jax import bc, config, evaluate, kick_env, kick_model, ppo, rollout, runio, task_env, tasks
 from bumps_jax.stages import experts as experts_stage
 
 OUTPUT = "baseline.json"
@@ -38,29 +38,6 @@ def inputs(cfg, run_dir: Path) -> dict:
     return experts_stage.inputs(cfg, run_dir)
 
 
-class ContextObserved:
-    """`env` whose every observation carries its episode's target (`env.with_context`): what one
-    policy over every target trains on when the env's own observation holds none. The rest is `env`'s."""
-
-    def __init__(self, env):
-        self.env = env
-
-    def __getattr__(self, name):
-        return getattr(self.env, name)
-
-    @property
-    def observation_size(self) -> int:
-        return self.env.context_observation_size
-
-    def reset(self, rng, target=None):
-        state = self.env.reset(rng, target)
-        return state.replace(obs=self.env.with_context(state.obs, state.info["target"]))
-
-    def step(self, state, action):
-        nxt = self.env.step(state, action)
-        return nxt.replace(obs=self.env.with_context(nxt.obs, nxt.info["target"]))
-
-
 def record_env(cfg):
     """The env config as the record carries it: the kick's as it always was, another task's resolved."""
     return cfg.env if cfg.task == "kick" else config.resolved_env(cfg)
@@ -68,8 +45,8 @@ def record_env(cfg):
 
 def training_env(cfg, env):
     """The env PPO trains in: the kick's as it is (its observation holds the target), another
-    task's `ContextObserved`."""
-    return env if cfg.task == "kick" else ContextObserved(env)
+    task's `task_env.ContextObserved`."""
+    return env if cfg.task == "kick" else task_env.ContextObserved(env)
 
 
 def start_policy(cfg, env, trainer: ppo.Trainer, run_dir: Path, say=print) -> tuple:
