@@ -38,11 +38,6 @@ def inputs(cfg, run_dir: Path) -> dict:
     return experts_stage.inputs(cfg, run_dir)
 
 
-def record_env(cfg):
-    """The env config as the record carries it: the kick's as it always was, another task's resolved."""
-    return cfg.env if cfg.task == "kick" else config.resolved_env(cfg)
-
-
 def training_env(cfg, env):
     """The env PPO trains in: the kick's as it is (its observation holds the target), another
     task's `task_env.ContextObserved`."""
@@ -186,7 +181,7 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
     paper = arms[0]
     payload = {
         # Wall time: training over every call plus this call's clone and evaluation.
-        **runio.provenance(cfg.preset, train_s + time.perf_counter() - start - out["call_s"], record_env(cfg)),
+        **runio.provenance(cfg.preset, train_s + time.perf_counter() - start - out["call_s"], config.resolved_env(cfg)),
         "seeds": int(b.seeds),
         "env_steps_per_seed": int(env_steps),
         "learning_rates": list(rates),

@@ -315,7 +315,7 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
                                                         record["env_steps"])  # fmt: skip
     known = [v for v in record["env_steps_breakdown"].values() if v is not None]
     record["env_steps_total"] = int(sum(known))  # per expert, the parts that are known
-    record.update(runio.provenance(cfg.preset, wall_s + time.perf_counter() - start, cfg.env))
+    record.update(runio.provenance(cfg.preset, wall_s + time.perf_counter() - start, config.resolved_env(cfg)))
     record["eval_repetitions"] = int(e.eval.repetitions)
     runio.write_text(stage_dir / "experts.md", tables.experts_markdown(record))
     runio.write_json(stage_dir / OUTPUT, record)

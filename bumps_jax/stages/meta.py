@@ -150,18 +150,14 @@ def dataset(cfg, run_dir: Path, say=print) -> bc.Dataset:
     t0 = time.perf_counter()
     family = experts_stage.load_family(cfg, run_dir)
     reps = cfg.meta.dataset.repetitions
-    data, metrics = collect_dataset(dataset_env(cfg), family, reps, cfg.meta.dataset.seed)
+    env = dataset_env(cfg)
+    data, metrics = collect_dataset(env, family, reps, cfg.meta.dataset.seed)
     save_dataset(path, data)
     say(
         f"dataset: {len(data.obs)} pairs from {len(family.tasks)} experts x {reps} in {time.perf_counter() - t0:.1f} s;"
-        f" expert error in the recording env {metrics['final_error'].mean():.2f} {unit_of(cfg)}"
+        f" expert error in the recording env {metrics['final_error'].mean():.2f} {env.UNIT}"
     )
     return data
-
-
-def unit_of(cfg) -> str:
-    """The unit of the task's targets and errors (m for the kick, m/s for the cheetah)."""
-    return "m" if cfg.task == "kick" else "m/s"
 
 
 def obs_norm_of_record(table1: dict) -> tuple | None:
@@ -186,7 +182,6 @@ def evaluate_blocked(cfg, depth: int, width: int, params, obs_norm=None) -> dict
     architecture (`meta_programs.meta_grid`, called in blocks of `filter.block` episodes per device),
     which the filter stage then reuses instead of compiling its own: another task's evaluation.
     (The kick's keeps its own program, whose numbers its tests pin.)"""
-
     e, mesh = cfg.meta.eval, sharding.device_mesh()
     grid = meta_programs.meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)
     tasks_, reps = np.asarray(e.tasks, np.float64), int(e.repetitions)
