@@ -40,7 +40,10 @@ def publish(cfg, run_dir: Path, args) -> None:
         for path in publish_mod.publish_task(run_dir, cfg.task):
             print(f"wrote {path}")
         return
-    for path in publish_mod.publish(run_dir, cfg=cfg):
+    made_with = publish_mod.run_config(run_dir, cfg)
+    if made_with.preset != cfg.preset:
+        print(f"{run_dir} is a {made_with.preset} run: publishing it with the {made_with.preset} preset's config")
+    for path in publish_mod.publish(run_dir, cfg=made_with):
         print(f"wrote {path}")
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from bumps_jax import policies, readme_table, report, report_task
+from bumps_jax import config, policies, readme_table, report, report_task, runio
 
 POLICIES = "assets/policies"  # the shipped policies (`policies.write`)
 # What `publish` copies from a finished paper run into the repository: run file -> committed path.
@@ -68,6 +68,24 @@ def publish(run_dir: str | Path, root: str | Path = ".", cfg=None) -> list[Path]
     if (root / "README.md").exists():
         written.append(readme_table.write_readme(root))
     return written
+
+
+def run_config(run_dir: str | Path, cfg):
+    """The config `run_dir` was made with: its preset and overrides as its pipeline.json records
+    them (a run of single stages: its experts record's preset, with `cfg`'s overrides). The
+    policies shipped from a run are shaped by its own config, not by the publishing command's
+    default preset."""
+    run_dir = Path(run_dir)
+    if (run_dir / "pipeline.json").exists():
+        record = runio.read_json(run_dir / "pipeline.json")
+        overrides = record.get("overrides", {})
+    else:
+        record = runio.read_json(run_dir / "experts" / "experts.json", "the experts' record: run train-experts first")
+        overrides = config.overrides_of(cfg)
+    preset = record.get("preset", cfg.preset)
+    if preset == cfg.preset and overrides == config.overrides_of(cfg):
+        return cfg
+    return config.make_config(preset, {key: tuple(v) if isinstance(v, list) else v for key, v in overrides.items()})
 
 
 def write_report(run_dir: str | Path) -> Path:

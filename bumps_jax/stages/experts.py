@@ -279,7 +279,8 @@ def load_final_params(stage_dir: Path, programs: Compiled, n_tasks: int) -> Expe
 
     final = (Path(stage_dir) / "final_params").resolve()
     try:
-        return ocp.StandardCheckpointer().restore(final, expert_params(abstract_state(programs, n_tasks)))
+        with ocp.StandardCheckpointer() as checkpointer:  # closed on leaving: no thread outlives the read
+            return checkpointer.restore(final, expert_params(abstract_state(programs, n_tasks)))
     except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
         reason = type(err).__name__
         raise ValueError(f"{final}: cannot read the trained experts ({reason}); rerun train-experts") from None
