@@ -33,12 +33,11 @@ TOLERANCE_M = 0.1
 MAIN = kick_model.ANCHORS.index("main")
 # Scores only (the distance metric does not depend on it): inside every env's task range.
 TARGET_M = 12.0
-CONTACTS_PER_EPISODE = 12  # the scene's most (see env.warp_contacts): Warp's slots fit the batch
 
 
 def env_for(base_env, impl: str, iterations: int, batch: int, noisy: bool) -> kick_env.KickEnv:
     """The env of one engine at `iterations`, Warp's contact slots sized to `batch` episodes."""
-    overrides = {"impl": impl, "solver_iterations": iterations, "warp_contacts": CONTACTS_PER_EPISODE * batch}
+    overrides = {"impl": impl, "solver_iterations": iterations, "warp_contacts": kick_env.CONTACTS_PER_EPISODE * batch}
     if not noisy:
         overrides.update({f"noise.{k}": 0.0 for k in base_env.noise})
     return kick_env.KickEnv(base_env, overrides)

@@ -1,5 +1,6 @@
 """Scene benchmark: raw MJX physics steps/s and env steps/s of the kick scene, by batch size,
-and the solver/contact design choices measured against each other.
+and the solver/contact design choices measured against each other, all on the env's own
+backend (`env.impl`; `--set env.impl=jax` for MJX-JAX).
 
     python -m benchmarks.scene_bench --out benchmarks/results/scene.json [--quick]
 
@@ -66,7 +67,8 @@ def variant_model(name: str, timestep: float) -> mujoco.MjModel:
 
 def physics_rate(model: mujoco.MjModel, batch: int, n_steps: int = 100, repeats: int = 3, env_cfg=None) -> float:
     """mjx.step calls per second, summed over a batch of standing robots; on the backend of
-    `env_cfg` (`physics.put_physics`; None: MJX-JAX)."""
+    `env_cfg` (`physics.put_physics`; None: MJX-JAX). On Warp, ValueError if the batch
+    overflowed the contact pool (`env_cfg.warp_contacts`): its steps would not be the scene's."""
     mx, blank = physics.put_physics(model, env_cfg) if env_cfg is not None else (mjx.put_model(model), None)
     qpos0 = jnp.asarray(scene.stance_qpos(model))
     ids = scene.scene_ids(model)
@@ -85,7 +87,17 @@ def physics_rate(model: mujoco.MjModel, batch: int, n_steps: int = 100, repeats:
         return jax.lax.scan(body, data, None, n_steps)[0]
 
     data = jax.jit(jax.vmap(init))(jax.random.split(jax.random.key(0), batch))
+    _, overflowed, _ = jax.vmap(physics.read_flags)(run(data))
+    if bool(jnp.any(overflowed)):
+        pool = getattr(env_cfg, "warp_contacts", None)
+        raise ValueError(f"batch {batch}: Warp's contact pool ({pool} slots) overflowed; size env.warp_contacts to it")
     return batch * n_steps / best_time(run, data, repeats)
+
+
+def sized_env(env_cfg, batch: int, per_episode: int = kick_env.CONTACTS_PER_EPISODE) -> kick_env.KickEnv:
+    """The kick env of `env_cfg` with Warp's contact pool sized to `batch` episodes of at most
+    `per_episode` contacts (a capacity, not physics: records do not compare it)."""
+    return kick_env.KickEnv(kick_env.make_config(env_cfg, {"warp_contacts": per_episode * batch}))
 
 
 def env_rate(env: kick_env.KickEnv, batch: int, repeats: int = 3) -> float:
@@ -157,9 +169,10 @@ def main(argv=None) -> None:
     env = kick_env.KickEnv(cfg.env)
     model = env.mj_model
     physics, env_steps = {}, {}
-    for b in batches:
-        physics[str(b)] = physics_rate(model, b)
-        env_steps[str(b)] = env_rate(env, b)
+    for b in batches:  # every rate on the env's own backend (env.impl), its pool sized to the batch
+        env_b = sized_env(cfg.env, b)
+        physics[str(b)] = physics_rate(model, b, env_cfg=env_b.config)
+        env_steps[str(b)] = env_rate(env_b, b)
         print(
             f"batch {b:6d}: physics {physics[str(b)]:12,.0f} steps/s   env {env_steps[str(b)]:12,.0f} steps/s",
             flush=True,
@@ -177,6 +190,7 @@ def main(argv=None) -> None:
             "contact_pairs": int(model.npair),
             "nv": int(model.nv),
         },
+        "impl": env.config.impl,  # every rate above and every variant's: the env's own backend
     }
     runio.write_json(args.out, {**runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env), **payload})
     for name in args.variants.split(","):
@@ -185,7 +199,10 @@ def main(argv=None) -> None:
             kick_env.KickEnv(config.make_config(args.preset, {**overrides, "env.physics_dt": dt}).env) if dt else env
         )
         m = variant_model(name, variant_env.physics_dt)
-        rate = physics_rate(m, variant_batch)
+        # Two contact slots per contact pair, as the committed scene's pool has (12 for 6 pairs).
+        per_episode = kick_env.CONTACTS_PER_EPISODE * m.npair // model.npair
+        pooled = sized_env(variant_env.config, variant_batch, per_episode)
+        rate = physics_rate(m, variant_batch, env_cfg=pooled.config)
         row = {
             "physics_steps_per_s": rate,
             "sim_seconds_per_s": rate * m.opt.timestep,

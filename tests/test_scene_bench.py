@@ -1,0 +1,19 @@
+"""The scene benchmark measures on the env's own backend, with Warp's contact pool sized to the
+batch; a pool too small for the batch is refused rather than timed."""
+
+import pytest
+
+from benchmarks import scene_bench
+from bumps_jax import config, kick_env
+
+
+def test_rates_run_on_the_envs_backend_with_a_pool_sized_to_the_batch():
+    env_cfg = config.make_config("tiny").env
+    assert env_cfg.impl == "warp"
+    env = scene_bench.sized_env(env_cfg, 8)
+    assert env.config.warp_contacts == kick_env.CONTACTS_PER_EPISODE * 8
+    assert kick_env.resolved(env.config) | {"warp_contacts": 0} == kick_env.resolved(env_cfg) | {"warp_contacts": 0}
+    assert scene_bench.physics_rate(env.mj_model, 8, n_steps=5, repeats=1, env_cfg=env.config) > 0
+    starved = kick_env.make_config(env_cfg, {"warp_contacts": 1})  # one slot for 8 standing robots
+    with pytest.raises(ValueError, match="batch 8: Warp's contact pool \\(1 slots\\) overflowed"):
+        scene_bench.physics_rate(env.mj_model, 8, n_steps=5, repeats=1, env_cfg=starved)
