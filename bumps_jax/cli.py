@@ -44,7 +44,8 @@ OTHER = {
     "render": "render the robot in its stance to a PNG",
     "video": "render a GIF of filtered kicks at three distances from a finished run",
     "showcase": "replay the committed prior over a batch of noisy episodes",
-    "evaluate": "evaluate a finished run (experts, meta and filter done) on the held-out targets (--heldout)",
+    "evaluate": "evaluate a finished run (experts, meta and filter done) on the held-out (--heldout) or "
+    "development (--dev) targets",
     "kick": "kick to a target with the shipped meta-policy (assets/policies/): filter a context, then N noisy kicks",
 }
 
@@ -116,6 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--episodes", type=int, default=16)
         if name == "evaluate":
             p.add_argument("--heldout", action="store_true", help="the held-out targets and seed (config: heldout)")
+            p.add_argument("--dev", action="store_true",
+                           help="the development targets and seed (config: dev), for design choices")  # fmt: skip
         if name == "kick":
             p.add_argument("--target", type=float, required=True, help="target distance (m)")
             p.add_argument("--kicks", type=int, default=16, help="noisy kicks at the chosen context (default 16)")

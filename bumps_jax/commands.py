@@ -95,14 +95,19 @@ def showcase(cfg, run_dir: Path, args) -> None:
 
 
 def evaluate(cfg, run_dir: Path, args) -> None:
-    """The held-out stage of a finished run: run_dir/heldout/heldout.json."""
+    """A finished run on the held-out targets (its heldout stage: run_dir/heldout/heldout.json),
+    or on the development targets (`--dev`: run_dir/dev/dev.json, outside the pipeline)."""
     from bumps_jax import pipeline  # noqa: PLC0415
     from bumps_jax.stages import heldout  # noqa: PLC0415
 
-    if not args.heldout:
-        raise ValueError("evaluate runs the held-out evaluation only: add --heldout")
-    pipeline.run_stage("heldout", cfg, run_dir, force=args.force)
-    print(f"wrote {run_dir / 'heldout' / heldout.OUTPUT}")
+    if args.heldout == args.dev:
+        raise ValueError("evaluate needs one of --heldout (reporting) or --dev (design choices)")
+    if args.heldout:
+        pipeline.run_stage("heldout", cfg, run_dir, force=args.force)
+        print(f"wrote {run_dir / 'heldout' / heldout.OUTPUT}")
+        return
+    heldout.run(cfg, runio.check_writable(run_dir), section="dev")
+    print(f"wrote {run_dir / 'dev' / 'dev.json'}")
 
 
 def kick(cfg, run_dir: Path, args) -> None:

@@ -13,6 +13,7 @@ The tree has one section per stage plus the env every stage builds its simulatio
     filter    policy filtering over sampled contexts (Table 2)
     baseline  the multi-task PPO baseline (the paper's Figure 1)
     heldout   the held-out evaluation (`evaluate --heldout`): targets and noise no other stage uses
+    dev       the same evaluation on development targets and noise (`evaluate --dev`), for design choices
     cheetah_vel  HalfCheetah-Vel's own env, experts, meta and filter sections (`task: cheetah_vel`;
                  built in `cheetah_config`)
 
@@ -186,6 +187,17 @@ HELDOUT_TARGETS = (
 )  # fmt: skip
 
 
+# Development targets (`evaluate --dev`): 40 draws from U[7, 18] m (numpy default_rng(20261123)),
+# rounded to the millimetre, off the 0.1 m grid and apart from every held-out target. Design
+# choices are compared on these and `dev.seed`, never on the held-out set or the meta-test seed.
+DEV_TARGETS = (
+    7.485, 7.725, 11.762, 15.049, 12.678, 12.857, 7.861, 16.306, 7.137, 12.657, 14.017, 17.274,
+    15.718, 12.167, 17.826, 7.844, 17.115, 8.475, 7.94, 11.416, 14.351, 8.159, 17.924, 11.516,
+    9.892, 9.214, 7.973, 17.636, 15.21, 15.956, 7.638, 9.478, 16.512, 17.761, 16.85, 15.105,
+    12.963, 17.629, 11.394, 14.617,
+)  # fmt: skip
+
+
 def _heldout() -> ml_collections.ConfigDict:
     cfg = ml_collections.ConfigDict()
     cfg.targets = HELDOUT_TARGETS  # m, off the 0.1 m grid
@@ -194,6 +206,13 @@ def _heldout() -> ml_collections.ConfigDict:
     # Filtering a held-out target: candidates are filter.context_range / context_step's grid and the
     # target itself within +- filter.width, each rolled out this many times on its own episodes.
     cfg.selection_repetitions = 10
+    return cfg
+
+
+def _dev() -> ml_collections.ConfigDict:
+    cfg = _heldout()  # the same evaluation, on targets and noise of its own
+    cfg.targets = DEV_TARGETS  # m, off the 0.1 m grid and off the held-out targets
+    cfg.seed = 3333  # noise of the development episodes; no other section uses it
     return cfg
 
 
@@ -211,6 +230,7 @@ def default_config() -> ml_collections.ConfigDict:
     cfg.filter = _filter()
     cfg.baseline = _baseline()
     cfg.heldout = _heldout()
+    cfg.dev = _dev()
     cfg.cheetah_vel = cheetah_config.sections(_meta(), _filter())
     return cfg
 
@@ -275,6 +295,9 @@ PRESETS: dict[str, dict] = {
         "heldout.targets": HELDOUT_TARGETS[::10],
         "heldout.repetitions": 2,
         "heldout.selection_repetitions": 2,
+        "dev.targets": DEV_TARGETS[::20],
+        "dev.repetitions": 2,
+        "dev.selection_repetitions": 2,
         **cheetah_config.TINY,
     },
 }

@@ -34,6 +34,12 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
     filtering(cfg.filter, task_range)
     baseline(cfg.baseline, task_range, n_steps)
     heldout(cfg.heldout, task_range, cfg.preset)
+    heldout(cfg.dev, task_range, cfg.preset, "dev")
+    shared = [t for t in cfg.dev.targets if np.min(np.abs(np.asarray(cfg.heldout.targets) - t)) < 0.005]
+    if shared:
+        raise ValueError(f"dev.targets: {shared[0]!r} m lies within 0.005 m of a held-out target; keep them apart")
+    if cfg.dev.seed == cfg.heldout.seed:
+        raise ValueError(f"dev.seed {cfg.dev.seed} is heldout.seed: the development noise must be its own")
     physics_capacity(cfg)
     if cfg.filter.net_seed >= cfg.meta.train.n_seeds:
         raise ValueError(
@@ -244,19 +250,20 @@ def baseline_runs(b) -> int:
     return b.seeds * (1 if b.extra_learning_rate is None else 2) * b.ppo.num_envs
 
 
-def heldout(h, task_range, preset: str) -> None:
-    targets(h.targets, task_range, "heldout.targets")
+def heldout(h, task_range, preset: str, name: str = "heldout") -> None:
+    """The held-out section, or another of its layout (`dev`) under `name`."""
+    targets(h.targets, task_range, f"{name}.targets")
     arr = np.asarray(h.targets, np.float64)
     on_grid = np.abs(arr - np.round(arr, 1)) < 0.005 - 1e-9
     if on_grid.any():
         raise ValueError(
-            f"heldout.targets: {float(arr[on_grid][0])!r} m lies within 0.005 m of the 0.1 m grid of the "
-            "meta-test tasks; held-out targets must be off it"
+            f"{name}.targets: {float(arr[on_grid][0])!r} m lies within 0.005 m of the 0.1 m grid of the "
+            f"meta-test tasks; {name} targets must be off it"
         )
-    if preset == "paper" and len(arr) < HELDOUT_MIN_TARGETS:
+    if name == "heldout" and preset == "paper" and len(arr) < HELDOUT_MIN_TARGETS:
         raise ValueError(
-            f"heldout.targets holds {len(arr)} targets; the paper preset needs at least {HELDOUT_MIN_TARGETS}"
+            f"{name}.targets holds {len(arr)} targets; the paper preset needs at least {HELDOUT_MIN_TARGETS}"
         )
-    positive_ints(h, "heldout.", ("repetitions", "selection_repetitions"))
+    positive_ints(h, f"{name}.", ("repetitions", "selection_repetitions"))
     if isinstance(h.seed, bool) or not isinstance(h.seed, int) or h.seed < 0:
-        raise ValueError(f"heldout.seed must be an integer >= 0, got {h.seed!r}")
+        raise ValueError(f"{name}.seed must be an integer >= 0, got {h.seed!r}")

@@ -468,6 +468,29 @@ def test_heldout_scores_every_variant_on_its_own_targets(stage_run, heldout_run)
     assert "## Held-out targets" in text and "| experts_nearest |" in text and "different env" not in text
 
 
+def test_dev_evaluation_uses_its_own_targets_and_noise_and_leaves_the_heldout_record(stage_run, heldout_run):
+    """`evaluate --dev`: the held-out evaluation on the dev section's targets and seed, written to
+    run_dir/dev/, beside (not over) the held-out record; config refuses dev settings that touch it."""
+    cfg, run_dir = stage_run["cfg"], stage_run["dir"]
+    heldout_before = (run_dir / "heldout" / "heldout.json").read_text()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(experts_stage, "load_family", lambda c, d: stage_run["family"])
+        record = heldout.run(cfg, run_dir, say=quiet, section="dev")
+    saved = json.loads((run_dir / "dev" / "dev.json").read_text())
+    assert saved == record and saved["section"] == "dev" and saved["seed"] == cfg.dev.seed == 3333
+    assert saved["targets_m"] == list(cfg.dev.targets) == [7.485, 14.351]
+    assert set(saved["rows"]) == set(heldout_run["record"]["rows"])
+    assert (run_dir / "dev" / "dev.md").read_text().startswith("# Development targets")
+    assert (run_dir / "heldout" / "heldout.json").read_text() == heldout_before
+    for overrides, message in (
+        ({"dev.seed": cfg.heldout.seed}, "dev.seed 2222 is heldout.seed"),
+        ({"dev.targets": (cfg.heldout.targets[0] + 0.001,)}, "within 0.005 m of a held-out target"),
+        ({"dev.targets": (12.3,)}, "dev.targets: 12.3 m lies within 0.005 m of the 0.1 m grid"),
+    ):
+        with pytest.raises(ValueError, match=re.escape(message)):
+            config.make_config("tiny", overrides)
+
+
 def test_publish_ships_the_runs_results_and_policies(stage_run, heldout_run):
     root = heldout_run["root"]
     assert json.loads((root / "results" / "heldout.json").read_text()) == heldout_run["record"]
@@ -517,8 +540,11 @@ def test_kick_filters_a_context_and_reports_the_resting_distances(stage_run, hel
 def test_heldout_refuses_a_run_without_its_stages(tmp_path):
     with pytest.raises(SystemExit, match=re.escape(str(tmp_path / "experts" / "experts.json"))):
         cli.main(["evaluate", "--heldout", "--run-dir", str(tmp_path)])
-    with pytest.raises(SystemExit, match="add --heldout"):
-        cli.main(["evaluate", "--run-dir", str(tmp_path)])
+    with pytest.raises(SystemExit, match=re.escape(str(tmp_path / "experts" / "experts.json"))):
+        cli.main(["evaluate", "--dev", "--run-dir", str(tmp_path)])
+    for both_or_neither in ([], ["--heldout", "--dev"]):
+        with pytest.raises(SystemExit, match="needs one of --heldout"):
+            cli.main(["evaluate", *both_or_neither, "--run-dir", str(tmp_path)])
 
 
 @pytest.mark.parametrize(

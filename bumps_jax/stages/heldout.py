@@ -14,6 +14,9 @@ held-out target it scores
 Selection and the fresh evaluation draw independent noise from `heldout.seed`
 (`filtering.noise_keys`); every variant's fresh kicks share the same noise, target by target.
 Writes run_dir/heldout/heldout.json and heldout.md.
+
+`evaluate --dev` runs the same evaluation from the `dev` section (development targets and noise,
+for design choices) into run_dir/dev/dev.json; it is not a stage of the pipeline.
 """
 
 from __future__ import annotations
@@ -80,19 +83,23 @@ def row(metrics: dict) -> dict:
     }
 
 
-def run(cfg, run_dir: Path, say=print) -> dict:
-    """Every variant on the held-out targets; writes run_dir/heldout/heldout.json and heldout.md."""
+SECTIONS = {"heldout": "Held-out targets", "dev": "Development targets"}  # config section -> title
+
+
+def run(cfg, run_dir: Path, say=print, section: str = "heldout") -> dict:
+    """Every variant on the targets of config `section` ("heldout", or "dev"); writes
+    run_dir/<section>/<section>.json and <section>.md."""
     t_start = time.perf_counter()
     run_dir = Path(run_dir)
     inputs(cfg, run_dir)
-    runio.check_writable(run_dir / "heldout")
-    h, f = cfg.heldout, cfg.filter
+    runio.check_writable(run_dir / section)
+    h, f = cfg[section], cfg.filter
     targets = np.asarray(h.targets, np.float64)
     sel_key, eval_key = filtering.noise_keys(h.seed)
     mesh = sharding.device_mesh()
     family = experts_stage.load_family(cfg, run_dir)
     nearest = nearest_tasks(family.tasks, targets)
-    say(f"held-out: {len(targets)} targets x {h.repetitions} kicks; experts of the nearest task (compiling first)",
+    say(f"{section}: {len(targets)} targets x {h.repetitions} kicks; experts of the nearest task (compiling first)",
         flush=True)  # fmt: skip
     env = kick_env.KickEnv(cfg.env)
     params = jax.tree.map(lambda a: jnp.asarray(a)[nearest], family.params)
@@ -106,7 +113,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     for net in meta_stage.NETS:
         say(f"{net}: unfiltered, then filtered over {len(contexts)} contexts", flush=True)
         metrics[net], metrics[filtered_name(net)], selections[filtered_name(net)] = meta_variants(
-            cfg, run_dir, net, targets, contexts, (sel_key, eval_key), mesh
+            cfg, run_dir, net, targets, contexts, (sel_key, eval_key), mesh, h
         )
     name, a, b = ENSEMBLE
     ens = filtering.ensemble_choice(selections[a], selections[b], metrics[a], metrics[b])
@@ -122,27 +129,27 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         "nearest_expert_task_m": family.tasks[nearest].tolist(),
         "chosen_contexts": {k: s.contexts[s.chosen].tolist() for k, s in selections.items()},
         "filtered_ensemble_uses_11x128": ens.use_b.tolist(),
+        "section": section,
         "config": {
-            "heldout": cfg.heldout.to_dict(),
+            section: h.to_dict(),
             "filter": {k: f[k] for k in ("context_range", "context_step", "width", "net_seed")},
         },  # fmt: skip
         "run": str(run_dir),
         **runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env),
     }
-    runio.write_json(run_dir / "heldout" / OUTPUT, payload)
-    runio.write_text(
-        run_dir / "heldout" / "heldout.md", "# Held-out targets\n\n" + "\n".join(tables.heldout_lines(payload)) + "\n"
-    )
+    runio.write_json(run_dir / section / f"{section}.json", payload)
+    lines = "\n".join(tables.heldout_lines(payload))
+    runio.write_text(run_dir / section / f"{section}.md", f"# {SECTIONS[section]}\n\n{lines}\n")
     for line in tables.heldout_lines(payload):
         say(line)
     return runio.json_safe(payload)
 
 
-def meta_variants(cfg, run_dir: Path, net: str, targets, contexts, noise_keys, mesh):
-    """One meta-policy on the held-out targets: (its unfiltered metrics, its filtered metrics, the
-    selection), each metric of (T, heldout.repetitions) on the held-out evaluation noise. The
-    filter stage's selection rule; "fixed" spends heldout.selection_repetitions per context."""
-    h, f = cfg.heldout, cfg.filter
+def meta_variants(cfg, run_dir: Path, net: str, targets, contexts, noise_keys, mesh, h):
+    """One meta-policy on the evaluation's targets: (its unfiltered metrics, its filtered metrics,
+    the selection), each metric of (T, h.repetitions) on the evaluation noise (`h`: the heldout or
+    dev section). The filter stage's selection rule; "fixed" spends h.selection_repetitions per context."""
+    f = cfg.filter
     sel_key, eval_key = noise_keys
     depth, width = cfg.meta.nets[net]
     # The nets' input normalisation as the meta stage trained them (None: the kick's (phase, target) as they are).
