@@ -33,11 +33,13 @@ lint: $(STAMP)
 demo: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m bumps_jax demo
 
-# The paper preset end to end on a GPU: runs/paper/report.md; finished stages are skipped.
+# The paper preset end to end on a GPU: runs/paper/report.md; finished stages are skipped. A run
+# of the preset as it is then publishes itself (see `publish`); a run with overrides does not.
 # Overrides are dotted keys of the config tree: make reproduce SET="experts.ppo.total_env_steps=2880000"
-# TASK=cheetah_vel runs HalfCheetah-Vel instead of the kick (runs/cheetah_vel/paper).
+# TASK=cheetah_vel runs HalfCheetah-Vel instead of the kick (runs/cheetah_vel/paper, results/cheetah_vel/).
 reproduce: $(STAMP)
 	$(PY) -m bumps_jax reproduce --preset paper $(if $(TASK),--task $(TASK),) $(if $(SET),--set $(SET),)
+	$(if $(SET),@echo "not published: a run with overrides (SET) is an experiment",$(PY) -m bumps_jax publish $(if $(TASK),--task $(TASK) --run-dir runs/$(TASK)/paper,--run-dir runs/paper))
 
 # Copy a finished paper run's results and figures into results/ and docs/ (docs/results.md), its prior into assets/.
 publish: $(STAMP)
