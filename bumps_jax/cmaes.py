@@ -52,7 +52,8 @@ class Search(NamedTuple):
 
     es: Any
     es_params: Any
-    # jitted (Carry, keys (T,), x0 (T, *shape), targets (T,), scale (T, *shape), extra (T,)) -> (Carry, Stats)
+    # jitted (Carry, keys (T,), x0 (T, *shape), targets (T,), scale (T, *shape), extra (T,), leash (T,))
+    # -> (Carry, Stats)
     step: Any
     mesh: Any
     shape: tuple = (kick_model.N_PARAMS,)  # one search's solution: a kick (14,), or a family's knots (K, 14)
@@ -78,7 +79,9 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
     cost_fn(params (P, *shape), keys (P, R), target (), extra ()) -> (mean cost (P,), metrics of
     (..., R) holding "valid"), e.g. `kick_cost` (shape (14,): one kick) or `family_cost` (shape
     (K, 14): a family's knots). Searches step in z space of `kick_model.PARAM_SCALE` units along
-    the last axis, starting at z = 0 with step `sigma_init`.
+    the last axis, starting at z = 0 with step `sigma_init`. A search's `leash` adds leash x the
+    mean over its free parameters of z^2 to every candidate's cost (0: the cost alone), so that
+    CMA-ES ranks candidates far from the start lower; Stats and the best cost include it.
     """
     from evosax.algorithms import CMA_ES  # noqa: PLC0415 (heavy import, only needed here)
 
@@ -88,12 +91,16 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
     es = CMA_ES(population_size=P, solution=jnp.zeros(shape))
     es_params = es.default_params.replace(std_init=jnp.asarray(sigma_init))
 
-    def generation(carry: Carry, key, x0, target, scale, extra):
+    def generation(carry: Carry, key, x0, target, scale, extra, leash):
         ask_key, eval_key, tell_key = jax.random.split(key, 3)
         z, es_state = es.ask(ask_key, carry.es, es_params)
         keys = jnp.broadcast_to(jax.random.split(eval_key, R), (P, R) + eval_key.shape)
         params = kick_model.clip_params(x0 + scale * z)
         cost, metrics = cost_fn(params, keys, target, extra)
+        free = scale > 0
+        axes = tuple(range(1, z.ndim))
+        away = jnp.sum(jnp.where(free, z * z, 0.0), axis=axes) / jnp.maximum(jnp.sum(free), 1)
+        cost = cost + leash * away
         es_state, _ = es.tell(tell_key, z, cost, es_state, es_params)
         i = jnp.argmin(cost)
         better = cost[i] < carry.best_cost
@@ -104,7 +111,7 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
         )
         return carry, Stats(jnp.min(cost), jnp.mean(cost), jnp.mean(metrics["valid"]))
 
-    step = sharding.over_batch(jax.vmap(generation), mesh, (True,) * 6)
+    step = sharding.over_batch(jax.vmap(generation), mesh, (True,) * 7)
     return Search(es, es_params, step, mesh, shape)
 
 
@@ -127,12 +134,14 @@ def family_search(env, mesh, population: int, repetitions: int, sigma_init: floa
 
 
 def run_search(search: Search, x0, targets, free, generations: int, seed: int, extra=None, say=print,
-               label: str = "cma-es", on_generation=None) -> Result:  # fmt: skip
+               label: str = "cma-es", on_generation=None, leash=None) -> Result:  # fmt: skip
     """Run T searches for `generations` generations from key(seed).
 
     x0: (T, *search.shape) starts; targets: (T,) m; free: (T, *search.shape) bool, the parameters
-    each search moves; extra: (T,) numbers handed to the cost (default 0). on_generation(gen,
-    stats) is called on the host after each generation with `Stats` of (T,) numpy arrays.
+    each search moves; extra: (T,) numbers handed to the cost (default 0); leash: (T,) each
+    search's cost per squared scale unit from its start (`make_search`; default 0).
+    on_generation(gen, stats) is called on the host after each generation with `Stats` of (T,)
+    numpy arrays.
     """
     x0 = kick_model.clip_params(jnp.asarray(x0, jnp.float32))
     if x0.shape[1:] != search.shape:
@@ -141,7 +150,10 @@ def run_search(search: Search, x0, targets, free, generations: int, seed: int, e
     targets = jnp.asarray(targets, jnp.float32)
     scale = jnp.where(jnp.asarray(free, bool), jnp.asarray(kick_model.PARAM_SCALE, jnp.float32), 0.0)
     extra = jnp.zeros(n, jnp.float32) if extra is None else jnp.asarray(extra, jnp.float32)
-    x0, targets, scale, extra = sharding.pad((x0, targets, scale, extra), sharding.padded_size(n, search.mesh))
+    leash = jnp.zeros(n, jnp.float32) if leash is None else jnp.broadcast_to(jnp.asarray(leash, jnp.float32), (n,))
+    x0, targets, scale, extra, leash = sharding.pad(
+        (x0, targets, scale, extra, leash), sharding.padded_size(n, search.mesh)
+    )
     T = x0.shape[0]
     key = jax.random.key(seed)
     key, init_key = jax.random.split(key)
@@ -150,7 +162,7 @@ def run_search(search: Search, x0, targets, free, generations: int, seed: int, e
     # CMA-ES starts some fields weakly typed and returns them strongly typed: fix the types now
     # so that the generation program compiles once, not twice.
     carry = jax.tree.map(lambda x: x.astype(x.dtype), carry)
-    inputs = sharding.place((x0, targets, scale, extra), search.mesh)
+    inputs = sharding.place((x0, targets, scale, extra, leash), search.mesh)
     history, clock = [], _Clock(generations)
     for gen in range(generations):
         key, gen_key = jax.random.split(key)
@@ -245,6 +257,10 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     the better of its start and its final CMA-ES mean on `eval_repetitions` fresh noisy episodes
     shared by both, so a task's kick never gets worse than its start.
 
+    With tune_cfg.start_leash > 0 each search's candidates pay that much per squared scale unit
+    of mean distance from their task's start (`make_search`): neighbouring tasks that start alike
+    stay alike. The keep-the-better rule compares the kicks' costs alone.
+
     Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
     "history": (generations, T) best cost per generation, "episodes": int}.
     """
@@ -263,7 +279,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     fitness_json = kick_scoring.fitness_json_of(fitness)
     search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json)
     result = run_search(search, starts, targets, np.ones_like(starts, bool), int(generations), int(tune_cfg.seed),
-                        say=say, label="tuning")  # fmt: skip
+                        say=say, label="tuning", leash=float(tune_cfg.start_leash))  # fmt: skip
     key = result.key
     keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
     pair = sharding.pad((jnp.stack([starts, result.mean], 1), jnp.asarray(targets)), sharding.padded_size(T, mesh))

@@ -95,6 +95,10 @@ def _experts() -> ml_collections.ConfigDict:
     # task at once. Which one the paper run uses is open (docs/decisions.md).
     cfg.tune.scheme = "per_task"
     cfg.tune.knots = 5  # knots of the "family" scheme's contextual kick (>= 2)
+    # "per_task" only: cost per squared PARAM_SCALE unit of a candidate's mean distance from its
+    # task's start, added to its kick cost during the search (0: the kick cost alone). > 0 keeps
+    # tuned kicks near their starts, so tasks that start from the same kick stay one family.
+    cfg.tune.start_leash = 0.0
     cfg.ppo = ppo_config.default_config()
     cfg.ppo.num_envs = 256  # episodes per update (19,200 steps; the paper: 4,096)
     cfg.ppo.num_minibatches = 16  # 16 episodes = 1,200 steps each (the paper: 1,024)

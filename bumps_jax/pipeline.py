@@ -47,7 +47,8 @@ def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]
     tasks.check_stage(cfg.task, name)
     module = stage_module(name)
     wanted = manifest(config.section(cfg, name), module.inputs(config.task_view(cfg), run_dir))
-    status = check_manifest(run_dir / name, wanted, force)
+    defaults = config.section(config.make_config(cfg.preset, {"task": cfg.task}), name)
+    status = check_manifest(run_dir / name, wanted, force, defaults)
     if status == "same" and (run_dir / name / module.OUTPUT).exists():
         status = "done"
     return wanted, status
@@ -163,12 +164,15 @@ def manifest(section: dict, inputs: dict[str, str | Path]) -> dict:
     }
 
 
-def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
+def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, defaults: dict | None = None) -> str:
     """Compare a stage directory's manifest with `wanted` before the stage runs.
 
     Returns "new" (nothing there yet), "same" (its outputs belong to this config and inputs: reuse
     or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
-    StaleRunError naming the differing keys and the two ways on.
+    StaleRunError naming the differing keys and the two ways on. A config key the manifest lacks
+    counts as the same where `wanted` has it at its preset's default (`defaults`: the stage's
+    `config.section` of the preset): a knob added to the tree later defaults to the behaviour
+    before it, so runs made before it resume.
     """
     from bumps_jax import env_records  # noqa: PLC0415
 
@@ -187,6 +191,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
             {"config": have.get("config", {}), "inputs": _hashes(have.get("inputs", {}))},
             {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
         )
+        diff = [key for key in diff if not _added_at_default(key, have, wanted, defaults)]
         if not diff:
             return "same"
     if force:
@@ -201,6 +206,24 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
 
 def write_manifest(stage_dir: Path, wanted: dict) -> Path:
     return runio.write_json(stage_dir / MANIFEST, wanted)
+
+
+def _added_at_default(key: str, have: dict, wanted: dict, defaults: dict | None) -> bool:
+    """Is dotted `key` ("config. ...") missing from the manifest `have` and, in `wanted`, at its
+    value in `defaults` (a config section)?"""
+    if defaults is None or not key.startswith("config."):
+        return False
+    missing, path = object(), key.split(".")[1:]
+
+    def get(d, parts):
+        for part in parts:
+            if not isinstance(d, dict) or part not in d:
+                return missing
+            d = d[part]
+        return d
+
+    mine = get(wanted["config"], path)
+    return get(have.get("config", {}), path) is missing and mine is not missing and mine == get(defaults, path)
 
 
 def _hashes(inputs: dict) -> dict:

@@ -46,6 +46,21 @@ def test_searches_reach_their_own_targets_and_keep_the_rest_fixed():
     assert result.history["valid"].shape == (60, 2) and (result.history["valid"] == 1).all()
 
 
+def test_a_leash_holds_a_search_near_its_start():
+    """leash x mean z^2 over the free parameters joins the cost: with two free parameters, lean
+    from 13 toward 15 and support_hip at its optimum 0, the optimum of (13 + z - 15)^2 + 2 z^2 / 2
+    is z = 1; without a leash the search goes all the way."""
+    x0 = np.tile(kick_model.DEFAULT_PARAMS, (2, 1)).astype(np.float32)
+    free = np.zeros((2, kick_model.N_PARAMS), bool)
+    free[:, :2] = True
+    result = cmaes.run_search(_toy_search(), x0, [15.0, 15.0], free, 60, seed=0, extra=x0[:, 1],
+                              leash=[0.0, 2.0], say=lambda msg: None)  # fmt: skip
+    np.testing.assert_allclose(result.mean[:, 0], [15.0, 14.0], atol=0.25)
+    np.testing.assert_allclose(result.mean[:, 1], x0[:, 1], atol=0.25)
+    with pytest.raises(ValueError, match="experts.tune.start_leash must be a number >= 0, got -1.0"):
+        config.make_config("tiny", {"experts.tune.start_leash": -1.0})
+
+
 def test_a_search_is_reproducible_from_its_seed():
     search = _toy_search()
     x0 = np.asarray(kick_model.DEFAULT_PARAMS, np.float32)[None]
@@ -64,7 +79,9 @@ def test_progress_reports_an_eta():
     assert len(lines) == 3 and lines[0].startswith("toy gen 1/3") and "ETA" in lines[-1]
 
 
-TUNE = ml_collections.ConfigDict({"population_size": 4, "repetitions": 2, "eval_repetitions": 2, "seed": 0})
+TUNE = ml_collections.ConfigDict(
+    {"population_size": 4, "repetitions": 2, "eval_repetitions": 2, "seed": 0, "start_leash": 0.0}
+)
 
 
 def test_tuning_for_tasks_rejects_bad_inputs_before_compiling(env):

@@ -63,6 +63,25 @@ def test_a_rerun_with_other_overrides_is_refused_naming_the_keys(tmp_path, stage
     assert json.loads((tmp_path / "experts" / "out.json").read_text())["seed"] == 7
 
 
+def test_a_knob_added_later_at_its_default_keeps_an_older_run(tmp_path, stages):
+    """A manifest written before a config key existed: the run resumes where the key is at its
+    preset's default (the behaviour before it), and is refused where it is set otherwise."""
+    log, _ = stages
+    pipeline.run_stage("experts", cfg(), tmp_path)
+    manifest = tmp_path / "experts" / pipeline.MANIFEST
+    older = json.loads(manifest.read_text())
+    del older["config"]["experts"]["tune"]["start_leash"]  # as written before the knob existed
+    manifest.write_text(json.dumps(older))
+    pipeline.run_stage("experts", cfg(), tmp_path)
+    assert log == ["experts"]  # up to date: not rerun
+    with pytest.raises(pipeline.StaleRunError, match="experts.tune.start_leash"):
+        pipeline.run_stage("experts", cfg(**{"experts.tune.start_leash": 0.5}), tmp_path)
+    older["config"]["experts"]["seed"] = 9  # a key the manifest has, changed: still refused
+    manifest.write_text(json.dumps(older))
+    with pytest.raises(pipeline.StaleRunError, match="experts.seed"):
+        pipeline.run_stage("experts", cfg(), tmp_path)
+
+
 def test_a_stage_whose_inputs_changed_is_refused(tmp_path, stages):  # defect 3
     log, _ = stages
     pipeline.run_stage("experts", cfg(), tmp_path)
