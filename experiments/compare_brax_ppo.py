@@ -19,8 +19,16 @@ fixed episodes with the deterministic (mean) policy. Writes one record,
 <out-dir>/compare_brax_ppo_halfcheetah_<cpu|gpu>.json (both trainers' per-seed curves, final
 returns, their spread and the verdict), and a .png beside it with both learning curves.
 
-    # one H100: 4-6.5 minutes, estimated (`GPU_ESTIMATE`)
-    python experiments/compare_brax_ppo.py --mode halfcheetah --preset gpu
+It runs in parts, each saved when it finishes (ours with every seed, then each Brax seed) in
+<out-dir>/compare_brax_ppo_halfcheetah_parts/ (`--parts-dir`), with a manifest of the run's
+settings: parts of another setting are refused. A call skips the parts already there and trains
+the rest; `--stop-after-s S` stops it between parts (exit 0) rather than start one that would take
+it past S seconds. The call that finds every part scores them and writes the record. Brax's
+compiled programs are kept for later calls (JAX_COMPILATION_CACHE_DIR, or jax_cache/ in the parts
+directory). One H100 takes ~16-17 minutes in all (`GPU_ESTIMATE`): run the same command until it
+writes the record, four calls of ~4-5 minutes each:
+
+    python experiments/compare_brax_ppo.py --mode halfcheetah --preset gpu --stop-after-s 420
 
 `--preset smoke` runs the same comparison at CPU size (4 episodes of 100 steps per update, 2
 updates, 3 seeds each) on Brax's `fast` env, a stand-in without physics: under a minute on 2 CPU
@@ -36,8 +44,11 @@ Brax runs through `bumps_jax.brax_compat` in both modes.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import datetime
 import functools
-import tempfile
+import json
+import os
 import time
 from pathlib import Path
 
@@ -45,6 +56,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from brax import envs as brax_envs
+from jax.experimental.compilation_cache import compilation_cache as cc
 
 from bumps_jax import brax_compat, cli, config, kick_env, kick_model, ppo, ppo_config, rollout, runio, starting_kicks
 from bumps_jax.stages import experts
@@ -435,31 +447,167 @@ def check_cheetah_run(num_envs: int, num_minibatches: int, env_steps: int, eval_
     return cfg
 
 
+# -- halfcheetah in parts ----------------------------------------------------------------------
+# The gpu preset takes longer than one call may run, so the comparison is made of parts, each saved
+# when it finishes: ours (every seed in one program) and each Brax seed. A call trains the parts
+# not yet in the parts directory, one after another; the call that finds them all scores them.
+
+
+def part_names(seeds) -> list[str]:
+    """The parts of a run, in the order they train: ours, then Brax's seeds."""
+    return ["ours", *(f"brax_seed{s}" for s in seeds)]
+
+
+def run_settings(cfg, env_name: str, episode_length: int, seeds, eval_every: int) -> dict:
+    """What a part's result depends on: the parts directory's manifest. Scoring settings
+    (eval_episodes) are left out: a rerun may score the same parts otherwise."""
+    return runio.json_safe(
+        {
+            "env_name": env_name,
+            "episode_length": episode_length,
+            "seeds": list(seeds),
+            "eval_every": eval_every,
+            "backend": jax.default_backend(),
+            "versions": {k: v for k, v in runio.versions().items() if k in ("jax", "brax", "mujoco-mjx")},
+            "ppo": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.items()},
+        }
+    )
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in tree.items():
+        out.update(_flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
+    return out
+
+
+def open_parts(directory: Path, settings: dict) -> Path:
+    """The parts directory for a run of `settings` (`run_settings`): created with its manifest,
+    or checked against the manifest it has. ValueError, in one line naming every differing
+    setting, when it holds parts of another run."""
+    manifest = directory / "manifest.json"
+    if not manifest.exists():
+        runio.write_json(manifest, {"settings": settings})
+        return directory
+    theirs, ours = _flat(runio.read_json(manifest, "the parts' settings").get("settings", {})), _flat(settings)
+    differ = [f"{k} {theirs.get(k)!r} there, {ours.get(k)!r} here" for k in sorted(set(theirs) | set(ours))
+              if theirs.get(k) != ours.get(k)]  # fmt: skip
+    if differ:
+        raise ValueError(
+            f"{runio.shown(directory)} holds the parts of another run ({'; '.join(differ)}): "
+            "use another --parts-dir or delete it"
+        )
+    return directory
+
+
+def checkpoint_treedef(cfg, env: TimeLimited):
+    """The tree structure of one checkpoint, (normalizer, policy params) of `ppo.make_networks`:
+    a part's saved leaves are rebuilt on it, and a part saved with another is refused."""
+    networks = ppo.make_networks(cfg, env.observation_size, env.action_size)
+
+    def init():
+        return ppo.init_normalizer(env.observation_size), networks.policy_network.init(jax.random.PRNGKey(0))
+
+    return jax.tree_util.tree_structure(jax.eval_shape(init))
+
+
+def save_part(path: Path, run: dict) -> Path:
+    """One finished part as one .npz, written whole or not at all (temp file, then rename): its
+    checkpoints stacked over evals (arrays `leaf<i>`, in tree order) and the rest of `run`
+    (env_steps, wall_s, ...) as JSON with the checkpoints' tree structure."""
+    leaves, treedef = jax.tree_util.tree_flatten(_stack(run["checkpoints"]))
+    meta = {k: v for k, v in run.items() if k != "checkpoints"} | {"treedef": str(treedef)}
+    arrays = {f"leaf{i}": np.asarray(leaf) for i, leaf in enumerate(leaves)}
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("wb") as f:
+        np.savez(f, meta=np.array(json.dumps(runio.json_safe(meta))), **arrays)
+    os.replace(tmp, path)
+    return path
+
+
+def part_meta(path: Path) -> dict:
+    """A saved part's JSON: env_steps, wall_s, device, date, and what else its trainer recorded."""
+    with np.load(path, allow_pickle=False) as data:
+        return json.loads(str(data["meta"]))
+
+
+def load_part(path: Path, treedef) -> dict:
+    """A saved part as its trainer returned it: (evals,) host checkpoints on `treedef`, and the rest."""
+    with np.load(path, allow_pickle=False) as data:
+        run = json.loads(str(data["meta"]))
+        if run.pop("treedef") != str(treedef):
+            raise ValueError(
+                f"{runio.shown(path)}: its checkpoints are not trees of this run's networks: delete it to train it anew"
+            )
+        stacked = jax.tree_util.tree_unflatten(treedef, [data[f"leaf{i}"] for i in range(treedef.num_leaves)])
+    run["checkpoints"] = [_seed(stacked, k) for k in range(len(run["env_steps"]))]
+    return run
+
+
+def stop_before_next(elapsed_s: float, walls_s, stop_after_s: float | None) -> bool:
+    """`--stop-after-s`: after a call's first part, is the next one not to start? It is not when the
+    call's elapsed time plus the next part's expected duration would pass `stop_after_s`; expected:
+    the longest part measured so far (`walls_s`, this call's and earlier calls')."""
+    return stop_after_s is not None and elapsed_s + max(walls_s) > stop_after_s
+
+
 def compare_cheetah(
     env_steps: int,
     num_envs: int,
     num_minibatches: int,
     eval_every: int,
+    parts_dir: Path,
     seeds=(0, 1, 2),
     eval_episodes: int = 64,
     episode_length: int = EPISODE_LENGTH,
     env_name: str = "halfcheetah",
     preset: str = "gpu",
+    stop_after_s: float | None = None,
     say=print,
-) -> dict:
-    """Both trainers from scratch on Brax's `env_name` (`ENVS`), every seed, scored the same way: the record."""
+) -> dict | None:
+    """Both trainers from scratch on Brax's `env_name` (`ENVS`), every seed, scored the same way:
+    the record. Parts already in `parts_dir` (checked by `open_parts`) are skipped; with
+    `stop_after_s` it may stop between parts (`stop_before_next`) and returns None."""
     start = time.perf_counter()
     cfg = check_cheetah_run(num_envs, num_minibatches, env_steps, eval_every, episode_length)
+    open_parts(parts_dir, run_settings(cfg, env_name, episode_length, seeds, eval_every))
     raw_env = make_brax_env(env_name)
     env = TimeLimited(raw_env, episode_length)
+    treedef = checkpoint_treedef(cfg, env)
+    paths = {name: parts_dir / f"{name}.npz" for name in part_names(seeds)}
+    walls, earlier_s = [], 0.0
+    for name, path in paths.items():
+        if path.exists():
+            wall = part_meta(path)["wall_s"]
+            walls.append(wall)
+            earlier_s += wall
+            say(f"{name}: done in an earlier call ({wall:.0f} s), skipped", flush=True)
+    todo = [name for name, path in paths.items() if not path.exists()]
+    brax_seed = dict(zip(part_names(seeds)[1:], seeds, strict=True))
     n_updates = env_steps // (num_envs * episode_length)
-    progress = Progress(n_updates * (1 + len(seeds)), say)
-    say(f"ours: {len(seeds)} seeds in one program, {env_steps:,d} env steps each ({n_updates} updates)", flush=True)
-    ours = run_ours_cheetah(cfg, env, seeds, eval_every, progress)
-    brax_runs = []
-    for seed in seeds:
-        say(f"brax: seed {seed}", flush=True)
-        brax_runs.append(run_brax_cheetah(cfg, env, raw_env, seed, eval_every, progress))
+    progress = Progress(n_updates * len(todo), say)
+    for i, name in enumerate(todo):
+        elapsed = time.perf_counter() - start
+        if i and stop_before_next(elapsed, walls, stop_after_s):
+            say(
+                f"stopped after {elapsed:.0f} s (--stop-after-s {stop_after_s:g}; the next part is expected to take "
+                f"{max(walls):.0f} s): left {', '.join(todo[i:])} and the scoring. The parts done are in "
+                f"{runio.shown(parts_dir)}: rerun the same command to go on",
+                flush=True,
+            )
+            return None
+        if name == "ours":
+            say(f"ours: {len(seeds)} seeds in one program, {env_steps:,d} env steps each ({n_updates} updates)",
+                flush=True)  # fmt: skip
+            run = run_ours_cheetah(cfg, env, seeds, eval_every, progress)
+        else:
+            say(f"brax: seed {brax_seed[name]}", flush=True)
+            run = run_brax_cheetah(cfg, env, raw_env, brax_seed[name], eval_every, progress)
+        run.update(device=runio.device_name(), date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"))
+        save_part(paths[name], run)
+        walls.append(run["wall_s"])
+    parts = {name: load_part(path, treedef) for name, path in paths.items()}
+    ours, brax_runs = parts["ours"], [parts[name] for name in part_names(seeds)[1:]]
     if any(run["env_steps"] != ours["env_steps"] for run in brax_runs):
         raise RuntimeError(f"Brax saved params at {brax_runs[0]['env_steps']}, ours at {ours['env_steps']}")
     n_policies = 2 * len(seeds) * len(ours["env_steps"])
@@ -484,6 +632,8 @@ def compare_cheetah(
         "eval_episodes": eval_episodes,
         "eval": "deterministic (mean) policy, the same fixed episodes for every checkpoint of both trainers",
         "eval_wall_s": round(eval_wall, 2),
+        # Where and when each part trained: a run may take several calls (`--stop-after-s`).
+        "parts": {name: {k: part[k] for k in ("device", "date", "wall_s")} for name, part in parts.items()},
         "brax_published": BRAX_HALFCHEETAH,
         "brax_published_source": BRAX_HALFCHEETAH_SOURCE,
         "ppo": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.items()},
@@ -494,7 +644,8 @@ def compare_cheetah(
         **result,
     }
     record_env = env_record(env_name, raw_env, episode_length)
-    out.update(runio.provenance(preset, time.perf_counter() - start, record_env))
+    # wall_s: this call's and the parts' of earlier calls.
+    out.update(runio.provenance(preset, earlier_s + time.perf_counter() - start, record_env))
     out["env"] = record_env  # as it is: provenance's reading of it adds the kick env's keys
     return out
 
@@ -531,21 +682,21 @@ PRESETS = {
     "smoke": {"num_envs": 4, "num_minibatches": 2, "eval_every": 1, "env_steps": 4 * 100 * 2, "eval_episodes": 2},
 }
 PRESET_ENV = {"gpu": ("halfcheetah", EPISODE_LENGTH), "smoke": ("fast", 100)}
-# The gpu preset's wall time on one H100, estimated, not measured. Anchor: Brax's ppo.train on
-# this project's kick env with whole episodes at 256 envs ran 16,900 env steps/s on an H100
-# (benchmarks/results/training.json), ~15 ms per batched env step of 8 physics steps including
-# its share of training: ~1.9 ms per physics step. Brax's halfcheetah (5 MJX physics steps per
-# env step, a lighter model: 7 bodies, a plane) is latency-bound at 320-960 envs, taken at
-# 0.5-1 ms per physics step: an update's 1000 sequential env steps take 2.5-5 s, its 256 minibatch
-# steps (each with a 1000-step GAE scan) 1.3-2.6 s; ~4-7 s per update. Updates: Brax's 3 seeds
-# one after another (24) and ours vmapped in one program (8, ~1.3x each): ~35 x 4-7 s = 2.3-4.1
-# min. Compiles (ours' init and chunk, Brax's first seed, whose programs the later seeds load from
-# the compilation cache, the evaluator) 1.3-2 min; the evaluation, one call of 30 checkpoints x 64
-# episodes, < 0.5 min. Total 4-6.5 min; each progress line prints an ETA.
-GPU_ESTIMATE = "4-6.5 minutes on one H100 (estimated, not measured)"
+# The gpu preset on one H100, measured on 2026-11-23 in one call, stopped at 550 s: ours, 3 seeds in
+# one program, 8 updates: 231 s, compiling included. Brax, seed 0: 102 s for its first 2 updates,
+# compiling included, then ~27 s an update (55.6 and 53.1 s for the next two pairs). Not reached:
+# the rest of seed 0, seeds 1 and 2 (their programs load from the compilation cache) and the
+# scoring. Projected from these: Brax's seed 0 ~265 s, each later seed 216-265 s; ~16-17 min in
+# all. Each part is 231-265 s, so `--stop-after-s 420` makes each call one part (a second would
+# take it past 420 s) and the run four calls; the fourth also scores (not measured).
+GPU_ESTIMATE = (
+    "~16-17 minutes on one H100 in all (measured 2026-11-23: ours 231 s, compiling included; Brax ~100 s "
+    "for its first 2 updates, compiling included, then ~27 s an update per seed): run it in parts, "
+    "rerunning the same command with --stop-after-s 420 until it writes the record (four calls)"
+)
 
 
-def main(argv=None) -> dict:
+def main(argv=None) -> dict | None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--mode", choices=("kick", "halfcheetah"), default="kick", help="the ground (see above)")
     parser.add_argument("--out-dir", help="kick: runs/compare_brax_ppo; halfcheetah: experiments/results (gpu), "
@@ -565,9 +716,15 @@ def main(argv=None) -> dict:
     cheetah.add_argument("--eval-every", type=int, help="updates between scored checkpoints")
     cheetah.add_argument("--eval-episodes", type=int)
     cheetah.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    cheetah.add_argument("--parts-dir", help="where finished parts are saved (default <out-dir>/<record name>_parts)")
+    cheetah.add_argument("--stop-after-s", type=float, metavar="S",
+                         help="after a part, start no other whose expected duration (the longest part measured, "
+                         "in this call or an earlier one) would take this call past S seconds; 0: one part a call. "
+                         "Rerun the same command to go on")  # fmt: skip
     args = parser.parse_args(argv)
     if args.mode == "halfcheetah":
-        return main_cheetah(parser, args)
+        # JAX_COMPILATION_CACHE_DIR, where set, holds the compilation cache.
+        return main_cheetah(parser, args, os.environ.get("JAX_COMPILATION_CACHE_DIR"))
     try:
         overrides = cli.parse_overrides(args.set)
         num_envs = args.num_envs or 16
@@ -580,41 +737,65 @@ def main(argv=None) -> dict:
     return out
 
 
-def main_cheetah(parser, args) -> dict:
-    """The halfcheetah mode of `main`: settings checked before anything compiles."""
+@contextlib.contextmanager
+def compilation_cache(directory):
+    """JAX's persistent compilation cache in `directory` (every program, however quick to compile)
+    while inside; JAX's own settings again after. Brax's `ppo.train` compiles its programs afresh on
+    every call: with the cache its later seeds, in this call or a later one, load the first's."""
+    before = (jax.config.jax_compilation_cache_dir, jax.config.jax_persistent_cache_min_compile_time_secs)
+    jax.config.update("jax_compilation_cache_dir", str(directory))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before[0])
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", before[1])
+        cc.reset_cache()  # JAX opens its cache once, at the first compile; the next one opens anew
+
+
+def main_cheetah(parser, args, cache_dir: str | None = None) -> dict | None:
+    """The halfcheetah mode of `main`: settings and the parts directory checked before anything
+    compiles. `cache_dir`: the compilation cache's (default: in the parts directory)."""
     if args.set:
         parser.error("--set applies to the kick mode only")
     run = {**PRESETS[args.preset]}
     run.update({key: getattr(args, key) for key in run if getattr(args, key) is not None})
     default_env, episode_length = PRESET_ENV[args.preset]
     env_name = args.env or default_env
+    name = f"compare_brax_ppo_{env_name}" + ("" if args.preset == "gpu" else f"_{args.preset}")
     try:
-        check_cheetah_run(run["num_envs"], run["num_minibatches"], run["env_steps"], run["eval_every"], episode_length)
+        cfg = check_cheetah_run(run["num_envs"], run["num_minibatches"], run["env_steps"], run["eval_every"],
+                                episode_length)  # fmt: skip
         if run["eval_episodes"] < 1 or not args.seeds:
             raise ValueError("--eval-episodes and --seeds must be at least one")
+        if len(set(args.seeds)) != len(args.seeds):
+            raise ValueError(f"--seeds must differ, got {args.seeds}")
+        if args.stop_after_s is not None and args.stop_after_s < 0:
+            raise ValueError(f"--stop-after-s must be at least 0, got {args.stop_after_s:g}")
         default_dir = "experiments/results" if args.preset == "gpu" else "runs/compare_brax_ppo"
         out_dir = runio.check_writable(args.out_dir or default_dir)
+        parts_dir = runio.check_writable(args.parts_dir or out_dir / f"{name}_parts")
+        open_parts(parts_dir, run_settings(cfg, env_name, episode_length, args.seeds, run["eval_every"]))
     except ValueError as err:
         parser.error(str(err))
     if args.preset == "gpu":
         print(f"gpu preset: {GPU_ESTIMATE}", flush=True)
-    with tempfile.TemporaryDirectory() as cache:
-        # Brax's `ppo.train` compiles its programs afresh on every call; with a compilation cache
-        # (this process's own, deleted at the end) its second and third seeds load the first's.
-        jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    with compilation_cache(cache_dir or parts_dir / "jax_cache"):
         out = compare_cheetah(
             run["env_steps"],
             run["num_envs"],
             run["num_minibatches"],
             run["eval_every"],
+            parts_dir,
             seeds=tuple(args.seeds),
             eval_episodes=run["eval_episodes"],
             episode_length=episode_length,
             env_name=env_name,
             preset=args.preset,
+            stop_after_s=args.stop_after_s,
         )
-    name = f"compare_brax_ppo_{env_name}" + ("" if args.preset == "gpu" else f"_{args.preset}")
+    if out is None:
+        return None
     path = runio.write_experiment(out_dir, name, out)
     figure = plot_cheetah(out, path.with_suffix(".png"))
     for arm in ("ours", "brax"):

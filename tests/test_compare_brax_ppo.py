@@ -1,11 +1,16 @@
 """The Brax comparison (experiments/compare_brax_ppo.py), halfcheetah mode: Brax's published
 settings reach Brax through our PPO section unchanged, the gpu preset is a valid run of about
 Brax's published update, bad settings fail before anything compiles, checkpoints are scored back
-to the right trainer, seed and step, and the record's verdict. The run itself compiles programs
-for half a minute or more on a CPU: its smoke preset (`--preset smoke`) is run by hand, not here."""
+to the right trainer, seed and step, and the record's verdict. The run in parts: its smoke preset
+(Brax's `fast` env, 2 seeds) stopped after every part and rerun gives the record of a run in one
+call, a rerun with every part saved trains nothing, parts of another setting are refused by name.
+The real env (`--env halfcheetah`) compiles for minutes on a CPU: it is run by hand, not here."""
 
+import contextlib
 import inspect
+import io
 
+import jax
 import numpy as np
 import pytest
 from brax.training.agents.ppo import train as brax_ppo
@@ -125,3 +130,122 @@ def test_spread_check_asks_both_ways():
     one_way = cmp.spread_check([1.0, 2.0, 9.0], [2.5, 3.0, 3.5])  # ours' mean 4 is above Brax's seeds
     assert not one_way["ours_mean_in_brax_range"] and one_way["brax_mean_in_ours_range"]
     assert not one_way["within_each_others_spread"]
+
+
+# -- the halfcheetah comparison in parts (`--stop-after-s`, the parts directory) ---------------
+
+SMOKE = ["--mode", "halfcheetah", "--preset", "smoke", "--seeds", "0", "1"]
+PARTS = "compare_brax_ppo_fast_smoke_parts"
+
+
+def _main(args) -> tuple[dict | None, str]:
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        record = cmp.main(args)
+    return record, out.getvalue()
+
+
+@pytest.fixture(scope="module")
+def smoke_runs(tmp_path_factory):
+    """The smoke comparison (Brax's `fast` env, 2 seeds) run whole, and run again one part a call
+    (`--stop-after-s 0`): 3 parts, 3 calls. One compilation cache for all, as a user's would be."""
+    root = tmp_path_factory.mktemp("compare")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("JAX_COMPILATION_CACHE_DIR", str(root / "jax_cache"))
+        whole, _ = _main([*SMOKE, "--out-dir", str(root / "whole")])
+        calls, parted = [], [*SMOKE, "--out-dir", str(root / "parted"), "--stop-after-s", "0"]
+        for _ in range(3):
+            record, said = _main(parted)
+            parts = sorted(p.name for p in (root / "parted" / PARTS).glob("*.npz"))
+            calls.append({"record": record, "said": said, "parts": parts})
+    in_parts = (root / "parted" / PARTS / "jax_cache").exists()
+    cache = {"env var's": any((root / "jax_cache").iterdir()), "parts'": in_parts}
+    return {"whole": whole, "calls": calls, "parted": parted, "cache": cache}
+
+
+def _same_result(a: dict, b: dict) -> None:
+    for arm in ("ours", "brax"):
+        assert a[arm]["env_steps"] == b[arm]["env_steps"] == [0, 400, 800]
+        assert a[arm]["eval_return"] == b[arm]["eval_return"], arm
+    assert a["ours"]["training_return"] == b["ours"]["training_return"]
+
+
+def test_a_run_stopped_between_parts_and_rerun_writes_the_record_of_a_whole_run(smoke_runs):
+    first, second, third = smoke_runs["calls"]
+    assert first["record"] is None and first["parts"] == ["ours.npz"]
+    assert "left brax_seed0, brax_seed1 and the scoring" in first["said"]
+    assert "rerun the same command" in first["said"]
+    assert second["record"] is None and second["parts"] == ["brax_seed0.npz", "ours.npz"]
+    assert "ours: done in an earlier call" in second["said"] and "ours: 2 seeds" not in second["said"]
+    record = third["record"]
+    assert third["parts"] == ["brax_seed0.npz", "brax_seed1.npz", "ours.npz"]
+    assert "brax: seed 1" in third["said"] and "brax: seed 0" not in third["said"]
+    _same_result(record, smoke_runs["whole"])
+    assert np.asarray(record["brax"]["eval_return"]).shape == (2, 3)  # seeds x checkpoints
+    assert set(record["parts"]) == {"ours", "brax_seed0", "brax_seed1"}
+    assert record["brax"]["wall_s"] == [record["parts"][f"brax_seed{s}"]["wall_s"] for s in (0, 1)]
+    # The compiled programs went where JAX_COMPILATION_CACHE_DIR says, not into the parts directory.
+    assert smoke_runs["cache"] == {"env var's": True, "parts'": False}
+
+
+def test_a_rerun_with_every_part_saved_trains_nothing_and_writes_the_same_record(smoke_runs, monkeypatch):
+    def no_training(*args, **kwargs):
+        raise AssertionError("a saved part was trained again")
+
+    monkeypatch.setattr(cmp, "run_ours_cheetah", no_training)
+    monkeypatch.setattr(cmp, "run_brax_cheetah", no_training)
+    record, said = _main(smoke_runs["parted"])
+    for name in ("ours", "brax_seed0", "brax_seed1"):
+        assert f"{name}: done in an earlier call" in said
+    _same_result(record, smoke_runs["calls"][-1]["record"])
+    assert record["parts"] == smoke_runs["calls"][-1]["record"]["parts"]
+
+
+@pytest.mark.parametrize(
+    ("change", "named"),
+    [
+        (["--eval-every", "2"], "eval_every 1 there, 2 here"),
+        (["--num-minibatches", "4"], "ppo.num_minibatches 2 there, 4 here"),
+        (["--seeds", "0", "2"], "seeds [0, 1] there, [0, 2] here"),
+    ],
+)
+def test_parts_of_another_setting_are_refused_naming_it(smoke_runs, capsys, change, named):
+    with pytest.raises(SystemExit):
+        cmp.main([*smoke_runs["parted"], *change])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert named in err and f"{PARTS} holds the parts of another run" in err
+    assert err.count(" there, ") == 1  # only the setting that differs
+
+
+def test_a_part_round_trips_and_one_of_other_networks_is_refused(tmp_path):
+    cfg = cmp.cheetah_ppo_config(4, 2, 800)
+    env = cmp.TimeLimited(cmp.make_brax_env("fast"), 100)
+    treedef = cmp.checkpoint_treedef(cfg, env)
+    leaves = [np.full((2, 3), float(i), np.float32) for i in range(treedef.num_leaves)]
+    checkpoints = [jax.tree_util.tree_unflatten(treedef, [x + k for x in leaves]) for k in range(3)]
+    path = cmp.save_part(tmp_path / "ours.npz", {"checkpoints": checkpoints, "env_steps": [0, 1, 2], "wall_s": 1.5})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ours.npz"]  # no temp file left
+    run = cmp.load_part(path, treedef)
+    assert run["env_steps"] == [0, 1, 2] and run["wall_s"] == 1.5
+    assert cmp.part_meta(path)["wall_s"] == 1.5
+    for saved, loaded in zip(checkpoints, run["checkpoints"], strict=True):
+        assert jax.tree_util.tree_structure(loaded) == treedef
+        for a, b in zip(jax.tree_util.tree_leaves(saved), jax.tree_util.tree_leaves(loaded), strict=True):
+            np.testing.assert_array_equal(a, b)
+            assert a.dtype == b.dtype
+    # A later call builds the structure anew: the same one.
+    again = cmp.checkpoint_treedef(cmp.cheetah_ppo_config(4, 2, 800), cmp.TimeLimited(cmp.make_brax_env("fast"), 100))
+    assert again == treedef
+    wider = cfg.copy_and_resolve_references()
+    with wider.unlocked():
+        wider.policy_hidden = (32,) * 5
+    with pytest.raises(ValueError, match="not trees of this run's networks"):
+        cmp.load_part(path, cmp.checkpoint_treedef(wider, env))
+
+
+def test_stop_before_next_weighs_the_longest_part_against_the_budget():
+    assert not cmp.stop_before_next(500.0, [231.0, 265.0], None)  # no budget: never
+    assert cmp.stop_before_next(240.0, [231.0], 420.0)  # 240 + 231 > 420
+    assert not cmp.stop_before_next(100.0, [231.0, 30.0], 420.0)  # 100 + 231 <= 420
+    assert cmp.stop_before_next(190.0, [231.0, 30.0], 420.0)  # the longest, not the last
+    assert cmp.stop_before_next(1.0, [0.5], 0.0)  # 0: one part a call
