@@ -30,15 +30,32 @@ KICK_SECTIONS = {
 }
 
 
+# Keys added to a kick section after the pin, at their default: a manifest without them still
+# resumes (`pipeline.check_manifest`, tests/test_pipeline.py), so the pin is taken without them.
+ADDED_LATER = {"experts": (("experts", "tune", "start_leash"),)}
+
+
 def digest(section: dict) -> str:
     return hashlib.sha256(json.dumps(section, sort_keys=True).encode()).hexdigest()
+
+
+def pinned_part(section: dict, stage: str) -> dict:
+    """`section` without the keys added since the pin; each of them must be at its default (0)."""
+    section = json.loads(json.dumps(section))
+    for *parents, leaf in ADDED_LATER.get(stage, ()):
+        node = section
+        for key in parents:
+            node = node[key]
+        assert node.pop(leaf) == 0, leaf
+    return section
 
 
 @pytest.mark.parametrize("preset", sorted(KICK_SECTIONS))
 def test_the_kicks_stage_sections_are_unchanged(preset):
     cfg = config.make_config(preset)
     assert cfg.task == "kick"
-    assert {s: digest(config.section(cfg, s)) for s in KICK_SECTIONS[preset]} == KICK_SECTIONS[preset]
+    sections = {s: digest(pinned_part(config.section(cfg, s), s)) for s in KICK_SECTIONS[preset]}
+    assert sections == KICK_SECTIONS[preset]
     assert config.task_view(cfg) is cfg
 
 
