@@ -106,7 +106,7 @@ def evaluate(cfg, run_dir: Path, args) -> None:
         pipeline.run_stage("heldout", cfg, run_dir, force=args.force)
         print(f"wrote {run_dir / 'heldout' / heldout.OUTPUT}")
         return
-    heldout.run(cfg, runio.check_writable(run_dir), section="dev")
+    heldout.run(cfg, run_dir, section="dev")  # its inputs checked, then run_dir/dev made writable
     print(f"wrote {run_dir / 'dev' / 'dev.json'}")
 
 

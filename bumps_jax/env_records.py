@@ -10,6 +10,7 @@ from bumps_jax import kick_env
 
 # Env keys that size MuJoCo Warp's buffers: they change no physics, so records may differ in them.
 CAPACITY_KEYS = ("warp_contacts", "warp_constraints_per_world")
+MISSING = "<missing>"  # what `lookup` and `differing_keys` read where a dict lacks a key
 
 
 def env_key(env_cfg: ml_collections.ConfigDict | dict) -> dict:
@@ -23,7 +24,7 @@ def differing_keys(a: dict, b: dict, prefix: str = "") -> list[str]:
     """Dotted keys whose values differ between two nested dicts (missing on one side included)."""
     out = []
     for k in sorted(set(a) | set(b)):
-        va, vb = a.get(k, "<missing>"), b.get(k, "<missing>")
+        va, vb = a.get(k, MISSING), b.get(k, MISSING)
         if isinstance(va, dict) and isinstance(vb, dict):
             out += differing_keys(va, vb, f"{prefix}{k}.")
         elif jsonable(va) != jsonable(vb):
@@ -39,13 +40,14 @@ def check_same_env(record_env: dict | None, env_cfg, what: str) -> None:
     mine, theirs = env_key(env_cfg), env_key(record_env)
     diff = differing_keys(theirs, mine)
     if diff:
-        shown = ", ".join(f"env.{k}: {_get(theirs, k)} there, {_get(mine, k)} here" for k in diff)
+        shown = ", ".join(f"env.{k}: {lookup(theirs, k)} there, {lookup(mine, k)} here" for k in diff)
         raise ValueError(f"{what} was made under another env config ({shown})")
 
 
-def _get(d: dict, dotted: str):
+def lookup(d: dict, dotted: str):
+    """The value at dotted key `dotted` of nested dict `d`, or MISSING."""
     for part in dotted.split("."):
-        d = d.get(part, "<missing>") if isinstance(d, dict) else "<missing>"
+        d = d.get(part, MISSING) if isinstance(d, dict) else MISSING
     return d
 
 

@@ -211,19 +211,14 @@ def write_manifest(stage_dir: Path, wanted: dict) -> Path:
 def _added_at_default(key: str, have: dict, wanted: dict, defaults: dict | None) -> bool:
     """Is dotted `key` ("config. ...") missing from the manifest `have` and, in `wanted`, at its
     value in `defaults` (a config section)?"""
+    from bumps_jax.env_records import MISSING, lookup  # noqa: PLC0415
+
     if defaults is None or not key.startswith("config."):
         return False
-    missing, path = object(), key.split(".")[1:]
-
-    def get(d, parts):
-        for part in parts:
-            if not isinstance(d, dict) or part not in d:
-                return missing
-            d = d[part]
-        return d
-
-    mine = get(wanted["config"], path)
-    return get(have.get("config", {}), path) is missing and mine is not missing and mine == get(defaults, path)
+    path = key.removeprefix("config.")
+    mine = lookup(wanted["config"], path)
+    added = lookup(have.get("config", {}), path) == MISSING
+    return added and mine != MISSING and mine == lookup(defaults, path)
 
 
 def _hashes(inputs: dict) -> dict:

@@ -58,7 +58,19 @@ import numpy as np
 from brax import envs as brax_envs
 from jax.experimental.compilation_cache import compilation_cache as cc
 
-from bumps_jax import brax_compat, cli, config, kick_env, kick_model, ppo, ppo_config, rollout, runio, starting_kicks
+from bumps_jax import (
+    brax_compat,
+    cli,
+    config,
+    env_records,
+    kick_env,
+    kick_model,
+    ppo,
+    ppo_config,
+    rollout,
+    runio,
+    starting_kicks,
+)
 from bumps_jax.stages import experts
 
 
@@ -474,13 +486,6 @@ def run_settings(cfg, env_name: str, episode_length: int, seeds, eval_every: int
     )
 
 
-def _flat(tree: dict, prefix: str = "") -> dict:
-    out = {}
-    for key, value in tree.items():
-        out.update(_flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
-    return out
-
-
 def open_parts(directory: Path, settings: dict) -> Path:
     """The parts directory for a run of `settings` (`run_settings`): created with its manifest,
     or checked against the manifest it has. ValueError, in one line naming every differing
@@ -489,9 +494,9 @@ def open_parts(directory: Path, settings: dict) -> Path:
     if not manifest.exists():
         runio.write_json(manifest, {"settings": settings})
         return directory
-    theirs, ours = _flat(runio.read_json(manifest, "the parts' settings").get("settings", {})), _flat(settings)
-    differ = [f"{k} {theirs.get(k)!r} there, {ours.get(k)!r} here" for k in sorted(set(theirs) | set(ours))
-              if theirs.get(k) != ours.get(k)]  # fmt: skip
+    theirs = runio.read_json(manifest, "the parts' settings").get("settings", {})
+    differ = [f"{k} {env_records.lookup(theirs, k)!r} there, {env_records.lookup(settings, k)!r} here"
+              for k in env_records.differing_keys(theirs, settings)]  # fmt: skip
     if differ:
         raise ValueError(
             f"{runio.shown(directory)} holds the parts of another run ({'; '.join(differ)}): "

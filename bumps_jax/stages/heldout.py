@@ -138,9 +138,9 @@ def run(cfg, run_dir: Path, say=print, section: str = "heldout") -> dict:
         **runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env),
     }
     runio.write_json(run_dir / section / f"{section}.json", payload)
-    lines = "\n".join(tables.heldout_lines(payload))
-    runio.write_text(run_dir / section / f"{section}.md", f"# {SECTIONS[section]}\n\n{lines}\n")
-    for line in tables.heldout_lines(payload):
+    lines = tables.heldout_lines(payload)
+    runio.write_text(run_dir / section / f"{section}.md", f"# {SECTIONS[section]}\n\n" + "\n".join(lines) + "\n")
+    for line in lines:
         say(line)
     return runio.json_safe(payload)
 
