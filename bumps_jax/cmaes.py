@@ -52,8 +52,8 @@ class Search(NamedTuple):
 
     es: Any
     es_params: Any
-    # jitted (Carry, keys (T,), x0 (T, *shape), targets (T,), scale (T, *shape), extra (T,), leash (T,))
-    # -> (Carry, Stats)
+    # jitted (Carry, keys (T,), x0 (T, *shape), targets (T,), scale (T, *shape), extra (T,), leash (T,),
+    # centre (T, *shape)) -> (Carry, Stats)
     step: Any
     mesh: Any
     shape: tuple = (kick_model.N_PARAMS,)  # one search's solution: a kick (14,), or a family's knots (K, 14)
@@ -80,8 +80,9 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
     (..., R) holding "valid"), e.g. `kick_cost` (shape (14,): one kick) or `family_cost` (shape
     (K, 14): a family's knots). Searches step in z space of `kick_model.PARAM_SCALE` units along
     the last axis, starting at z = 0 with step `sigma_init`. A search's `leash` adds leash x the
-    mean over its free parameters of z^2 to every candidate's cost (0: the cost alone), so that
-    CMA-ES ranks candidates far from the start lower; Stats and the best cost include it.
+    mean over its free parameters of the squared distance, in scale units, of the candidate from
+    the search's `centre` params to every candidate's cost (0: the cost alone), so that CMA-ES
+    ranks candidates far from the centre lower; Stats and the best cost include it.
     """
     from evosax.algorithms import CMA_ES  # noqa: PLC0415 (heavy import, only needed here)
 
@@ -91,7 +92,7 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
     es = CMA_ES(population_size=P, solution=jnp.zeros(shape))
     es_params = es.default_params.replace(std_init=jnp.asarray(sigma_init))
 
-    def generation(carry: Carry, key, x0, target, scale, extra, leash):
+    def generation(carry: Carry, key, x0, target, scale, extra, leash, centre):
         ask_key, eval_key, tell_key = jax.random.split(key, 3)
         z, es_state = es.ask(ask_key, carry.es, es_params)
         keys = jnp.broadcast_to(jax.random.split(eval_key, R), (P, R) + eval_key.shape)
@@ -99,7 +100,8 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
         cost, metrics = cost_fn(params, keys, target, extra)
         free = scale > 0
         axes = tuple(range(1, z.ndim))
-        away = jnp.sum(jnp.where(free, z * z, 0.0), axis=axes) / jnp.maximum(jnp.sum(free), 1)
+        off = jnp.where(free, (x0 + scale * z - centre) / jnp.where(free, scale, 1.0), 0.0)
+        away = jnp.sum(off * off, axis=axes) / jnp.maximum(jnp.sum(free), 1)
         cost = cost + leash * away
         es_state, _ = es.tell(tell_key, z, cost, es_state, es_params)
         i = jnp.argmin(cost)
@@ -111,7 +113,7 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
         )
         return carry, Stats(jnp.min(cost), jnp.mean(cost), jnp.mean(metrics["valid"]))
 
-    step = sharding.over_batch(jax.vmap(generation), mesh, (True,) * 7)
+    step = sharding.over_batch(jax.vmap(generation), mesh, (True,) * 8)
     return Search(es, es_params, step, mesh, shape)
 
 
@@ -134,12 +136,14 @@ def family_search(env, mesh, population: int, repetitions: int, sigma_init: floa
 
 
 def run_search(search: Search, x0, targets, free, generations: int, seed: int, extra=None, say=print,
-               label: str = "cma-es", on_generation=None, leash=None) -> Result:  # fmt: skip
+               label: str = "cma-es", on_generation=None, leash=None, centre_fn=None) -> Result:  # fmt: skip
     """Run T searches for `generations` generations from key(seed).
 
     x0: (T, *search.shape) starts; targets: (T,) m; free: (T, *search.shape) bool, the parameters
     each search moves; extra: (T,) numbers handed to the cost (default 0); leash: (T,) each
-    search's cost per squared scale unit from its start (`make_search`; default 0).
+    search's cost per squared scale unit from its centre (`make_search`; default 0).
+    centre_fn(means (T, *shape)) -> (T, *shape): each search's centre for the next generation
+    from every search's current CMA-ES mean params (None: each search's start, fixed).
     on_generation(gen, stats) is called on the host after each generation with `Stats` of (T,)
     numpy arrays.
     """
@@ -163,10 +167,17 @@ def run_search(search: Search, x0, targets, free, generations: int, seed: int, e
     # so that the generation program compiles once, not twice.
     carry = jax.tree.map(lambda x: x.astype(x.dtype), carry)
     inputs = sharding.place((x0, targets, scale, extra, leash), search.mesh)
+    centre = x0
     history, clock = [], _Clock(generations)
     for gen in range(generations):
         key, gen_key = jax.random.split(key)
-        carry, stats = search.step(*sharding.place((carry, jax.random.split(gen_key, T)), search.mesh), *inputs)
+        if centre_fn is not None:
+            means = x0 + scale * carry.es.mean.reshape(x0.shape)
+            centre = sharding.pad(jnp.asarray(centre_fn(means[:n]), jnp.float32), T)
+        carry, stats = search.step(
+            *sharding.place((carry, jax.random.split(gen_key, T)), search.mesh), *inputs,
+            sharding.place(centre, search.mesh),
+        )  # fmt: skip
         stats = Stats(*(np.asarray(s) for s in sharding.unpad(tuple(stats), n)))
         history.append(stats)
         if on_generation is not None:
@@ -259,7 +270,11 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
 
     With tune_cfg.start_leash > 0 each search's candidates pay that much per squared scale unit
     of mean distance from their task's start (`make_search`): neighbouring tasks that start alike
-    stay alike. The keep-the-better rule compares the kicks' costs alone.
+    stay alike. With tune_cfg.neighbour_leash > 0 they pay that much per squared scale unit of
+    mean distance from the midpoint of their neighbouring tasks' current CMA-ES means (one
+    neighbour at either end of the sorted targets), so the tasks move as a chain: a kick between
+    two tasks' kicks is near both. The two leashes add up (one quadratic about their weighted
+    centre). The keep-the-better rule compares the kicks' costs alone.
 
     Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
     "history": (generations, T) best cost per generation, "episodes": int}.
@@ -278,8 +293,9 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
     fitness_json = kick_scoring.fitness_json_of(fitness)
     search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json)
+    leash, centre_fn = _leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
     result = run_search(search, starts, targets, np.ones_like(starts, bool), int(generations), int(tune_cfg.seed),
-                        say=say, label="tuning", leash=float(tune_cfg.start_leash))  # fmt: skip
+                        say=say, label="tuning", leash=leash, centre_fn=centre_fn)  # fmt: skip
     key = result.key
     keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
     pair = sharding.pad((jnp.stack([starts, result.mean], 1), jnp.asarray(targets)), sharding.padded_size(T, mesh))
@@ -293,6 +309,31 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
         "history": result.history["best"],
         "episodes": int(T * (generations * P * R + 2 * E)),
     }
+
+
+def neighbour_midpoints(params: jax.Array, targets) -> jax.Array:
+    """(T, 14): for each task the mean of its neighbours' params (T, 14) in the order of `targets`
+    (T,) (ties keep their order; the first and last task have one neighbour each)."""
+    order = np.argsort(np.asarray(targets), kind="stable")
+    if len(order) < 2:
+        return params
+    ranked = params[order]
+    lower = jnp.concatenate([ranked[1:2], ranked[:-1]])  # the first task's only neighbour is the second
+    upper = jnp.concatenate([ranked[1:], ranked[-2:-1]])
+    return jnp.zeros_like(params).at[order].set(0.5 * (lower + upper))
+
+
+def _leash(starts, targets, to_start: float, to_neighbours: float):
+    """(leash, centre_fn) of `run_search` for the per-task tuning's two leashes."""
+    total = to_start + to_neighbours
+    if to_neighbours == 0.0:
+        return to_start, None
+    starts = jnp.asarray(starts, jnp.float32)
+
+    def centre_fn(means):
+        return (to_start * starts + to_neighbours * neighbour_midpoints(means, targets)) / total
+
+    return total, centre_fn
 
 
 def tune_family(env, targets, knots, start_knots, tune_cfg, generations: int, sigma_init: float, *, fitness,

@@ -100,6 +100,10 @@ def _experts() -> ml_collections.ConfigDict:
     # task's start, added to its kick cost during the search (0: the kick cost alone). > 0 keeps
     # tuned kicks near their starts, so tasks that start from the same kick stay one family.
     cfg.tune.start_leash = 0.0
+    # "per_task" only: cost per squared PARAM_SCALE unit of a candidate's mean distance from the
+    # midpoint of its neighbouring tasks' current means, added during the search (0: none). > 0
+    # tunes the tasks as a chain, so that a kick between two tasks' kicks is near both.
+    cfg.tune.neighbour_leash = 0.0
     cfg.ppo = ppo_config.default_config()
     cfg.ppo.num_envs = 256  # episodes per update (19,200 steps; the paper: 4,096)
     cfg.ppo.num_minibatches = 16  # 16 episodes = 1,200 steps each (the paper: 1,024)

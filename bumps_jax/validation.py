@@ -165,9 +165,10 @@ def experts(e, task_range, n_steps: int) -> None:
     positive_floats(e.tune, "experts.tune.", ("sigma_init",))
     if e.tune.scheme not in TUNE_SCHEMES:
         raise ValueError(f"experts.tune.scheme must be one of {TUNE_SCHEMES}, got {e.tune.scheme!r}")
-    leash = e.tune.start_leash
-    if isinstance(leash, bool) or not isinstance(leash, int | float) or not leash >= 0:
-        raise ValueError(f"experts.tune.start_leash must be a number >= 0, got {leash!r}")
+    for name in ("start_leash", "neighbour_leash"):
+        leash = e.tune[name]
+        if isinstance(leash, bool) or not isinstance(leash, int | float) or not leash >= 0:
+            raise ValueError(f"experts.tune.{name} must be a number >= 0, got {leash!r}")
     if isinstance(e.tune.knots, bool) or e.tune.knots < 2:
         raise ValueError(f"experts.tune.knots must be an integer >= 2, got {e.tune.knots!r}")
     if e.tune.scheme == "family" and len(set(e.tasks)) < 2:

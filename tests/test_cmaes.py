@@ -61,6 +61,26 @@ def test_a_leash_holds_a_search_near_its_start():
         config.make_config("tiny", {"experts.tune.start_leash": -1.0})
 
 
+def test_a_neighbour_leash_pulls_tasks_into_a_chain():
+    """Three searches of lean toward 13, 17, 13 m, each leashed (weight 1) to the midpoint of its
+    neighbours' means (the ends: their one neighbour): best responses x = (t + centre) / 2 meet at
+    14.33, 15.67, 14.33; the midpoints follow the targets' order, not the input order."""
+    params = jnp.arange(4.0)[:, None] * jnp.ones((4, 14))
+    mids = cmaes.neighbour_midpoints(params, [9.0, 7.0, 8.0, 10.0])  # order: rows 1, 2, 0, 3
+    np.testing.assert_allclose(mids[:, 0], [(2 + 3) / 2, 2, (1 + 0) / 2, 0])
+    x0 = np.tile(kick_model.DEFAULT_PARAMS, (3, 1)).astype(np.float32)
+    free = np.zeros((3, kick_model.N_PARAMS), bool)
+    free[:, 0] = True
+    targets = [13.0, 17.0, 13.0]
+    leash, centre_fn = cmaes._leash(x0, [7.0, 8.0, 9.0], 0.0, 1.0)
+    result = cmaes.run_search(_toy_search(), x0, targets, free, 80, seed=0, extra=x0[:, 1],
+                              leash=leash, centre_fn=centre_fn, say=lambda msg: None)  # fmt: skip
+    np.testing.assert_allclose(result.mean[:, 0], [14.33, 15.67, 14.33], atol=0.3)
+    np.testing.assert_array_equal(result.mean[:, 1:], x0[:, 1:])
+    with pytest.raises(ValueError, match="experts.tune.neighbour_leash must be a number >= 0, got -0.5"):
+        config.make_config("tiny", {"experts.tune.neighbour_leash": -0.5})
+
+
 def test_a_search_is_reproducible_from_its_seed():
     search = _toy_search()
     x0 = np.asarray(kick_model.DEFAULT_PARAMS, np.float32)[None]
@@ -80,7 +100,8 @@ def test_progress_reports_an_eta():
 
 
 TUNE = ml_collections.ConfigDict(
-    {"population_size": 4, "repetitions": 2, "eval_repetitions": 2, "seed": 0, "start_leash": 0.0}
+    {"population_size": 4, "repetitions": 2, "eval_repetitions": 2, "seed": 0, "start_leash": 0.0,
+     "neighbour_leash": 0.0}
 )
 
 

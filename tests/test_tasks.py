@@ -32,7 +32,7 @@ KICK_SECTIONS = {
 
 # Keys added to a kick section after the pin, at their default: a manifest without them still
 # resumes (`pipeline.check_manifest`, tests/test_pipeline.py), so the pin is taken without them.
-ADDED_LATER = {"experts": (("experts", "tune", "start_leash"),)}
+ADDED_LATER = {"experts": (("experts", "tune", "start_leash"), ("experts", "tune", "neighbour_leash"))}
 
 
 def digest(section: dict) -> str:
