@@ -78,9 +78,10 @@ def _experts() -> ml_collections.ConfigDict:
     cfg.bc = ml_collections.ConfigDict()
     cfg.bc.steps = 20000  # full-batch Adam steps cloning the starting kick (cosine decay)
     cfg.bc.learning_rate = 1e-2
-    # Each task clones the prior's family at its own calibrated strength; False clones the main
-    # kick for every task.
-    cfg.bc.per_task_strength = True
+    # Where each task's starting kick begins, before tuning: True, the prior's family at the
+    # task's calibrated strength (with `tune.anchor_starts`, the best of that and the prior's
+    # anchors); False, the main kick for every task, so that the tuned kicks are one family.
+    cfg.bc.per_task_strength = False
     cfg.tune = ml_collections.ConfigDict()  # CMA-ES on every task's starting kick, all at once
     cfg.tune.generations = 60  # 0: clone the (blended or anchor) kick as it is
     cfg.tune.sigma_init = 2.0  # in PARAM_SCALE units around each task's start
@@ -103,7 +104,7 @@ def _experts() -> ml_collections.ConfigDict:
     # "per_task" only: cost per squared PARAM_SCALE unit of a candidate's mean distance from the
     # midpoint of its neighbouring tasks' current means, added during the search (0: none). > 0
     # tunes the tasks as a chain, so that a kick between two tasks' kicks is near both.
-    cfg.tune.neighbour_leash = 0.0
+    cfg.tune.neighbour_leash = 1.0
     cfg.ppo = ppo_config.default_config()
     cfg.ppo.num_envs = 256  # episodes per update (19,200 steps; the paper: 4,096)
     cfg.ppo.num_minibatches = 16  # 16 episodes = 1,200 steps each (the paper: 1,024)
@@ -241,6 +242,10 @@ PRESETS: dict[str, dict] = {
         "experts.tune.repetitions": 2,
         "experts.tune.eval_repetitions": 4,
         "experts.tune.anchor_starts": False,
+        # One generation cannot carry the main kick to 8 and 16 m: each task starts from its own
+        # strength, untied to its neighbours.
+        "experts.bc.per_task_strength": True,
+        "experts.tune.neighbour_leash": 0.0,
         "experts.ppo.num_envs": 8,
         "experts.ppo.num_minibatches": 2,
         "experts.ppo.num_epochs": 4,

@@ -3,15 +3,21 @@
 # each ARM trains the paper preset's experts at a short budget (25 PPO updates each) and the
 # meta-policies (30,000 BC epochs) on development seeds (101), and scores the meta-policies
 # unfiltered on 110 development targets halfway between the meta-test tasks. Never the meta-test
-# seed or the held-out set. Records land in runs/dev_<arm>/; a finished stage is not rerun.
+# seed or the held-out set. A part seed=<n> moves the four seeds together (default 101).
+# Records land in runs/dev_<arm>/; a finished stage is not rerun.
 #
 #   experiments/dev_starting_kicks.sh ARM [ARM ...]
-#   ARM: per_task | family | family12 | start_leash=<w> | neighbour_leash=<w> | main_start,neighbour_leash=<w>
+#   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
+#        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
 set -euo pipefail
 tasks=$(python3 -c 'print("[" + ",".join(f"{7.05 + 0.1 * i:.2f}" for i in range(110)) + "]")')
-common=(experts.eval.seed=101 experts.tune.seed=101 experts.seed=101 meta.eval.seed=101 "meta.eval.tasks=$tasks"
-        experts.ppo.total_env_steps=480000 experts.updates_per_chunk=25 meta.train.epochs=30000)
+# The comparison's reference (arm per_task): every task from the best of its blended kick and the
+# prior's anchors, tuned on its own; each arm's parts change it.
+common=("meta.eval.tasks=$tasks" experts.ppo.total_env_steps=480000 experts.updates_per_chunk=25 meta.train.epochs=30000
+        experts.tune.scheme=per_task experts.bc.per_task_strength=true experts.tune.anchor_starts=true
+        experts.tune.start_leash=0 experts.tune.neighbour_leash=0)
 for arm in "$@"; do
+  seed=101
   sets=()
   IFS=, read -ra parts <<< "$arm"
   for part in "${parts[@]}"; do
@@ -19,13 +25,15 @@ for arm in "$@"; do
       per_task) sets+=(experts.tune.scheme=per_task) ;;
       family) sets+=(experts.tune.scheme=family) ;;
       family12) sets+=(experts.tune.scheme=family experts.tune.knots=12) ;;
-      start_leash=*|neighbour_leash=*) sets+=("experts.tune.$part") ;;
+      start_leash=*|neighbour_leash=*|generations=*) sets+=("experts.tune.$part") ;;
       main_start) sets+=(experts.bc.per_task_strength=false) ;;
+      seed=*) seed=${part#seed=} ;;
       *) echo "unknown arm part: $part" >&2; exit 2 ;;
     esac
   done
+  seeds=(experts.eval.seed=$seed experts.tune.seed=$seed experts.seed=$seed meta.eval.seed=$seed)
   run="runs/dev_${arm//[=,]/_}"
   for stage in train-experts meta-train; do
-    python -m bumps_jax "$stage" --preset paper --run-dir "$run" --set "${common[@]}" "${sets[@]}"
+    python -m bumps_jax "$stage" --preset paper --run-dir "$run" --set "${common[@]}" "${seeds[@]}" "${sets[@]}"
   done
 done
