@@ -47,8 +47,7 @@ def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]
     tasks.check_stage(cfg.task, name)
     module = stage_module(name)
     wanted = manifest(config.section(cfg, name), module.inputs(config.task_view(cfg), run_dir))
-    defaults = config.section(config.make_config(cfg.preset, {"task": cfg.task}), name)
-    status = check_manifest(run_dir / name, wanted, force, defaults)
+    status = check_manifest(run_dir / name, wanted, force)
     if status == "same" and (run_dir / name / module.OUTPUT).exists():
         status = "done"
     return wanted, status
@@ -109,6 +108,8 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
         if status == "done":
             execute(name, cfg, run_dir, wanted, status, say)
             continue
+        if status in ("new", "forced"):  # a stage made anew counts its own time, not its predecessor's
+            timing["stages_s"].pop(name, None)
         if not counted:  # a report says whether the run was resumed
             timing["calls"], counted = timing.get("calls", 0) + 1, True
         # A SIGKILL skips the `finally` below; this mark lets the next call count the lost time.
@@ -164,15 +165,15 @@ def manifest(section: dict, inputs: dict[str, str | Path]) -> dict:
     }
 
 
-def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, defaults: dict | None = None) -> str:
+def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
     """Compare a stage directory's manifest with `wanted` before the stage runs.
 
     Returns "new" (nothing there yet), "same" (its outputs belong to this config and inputs: reuse
     or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
     StaleRunError naming the differing keys and the two ways on. A config key the manifest lacks
-    counts as the same where `wanted` has it at its preset's default (`defaults`: the stage's
-    `config.section` of the preset): a knob added to the tree later defaults to the behaviour
-    before it, so runs made before it resume.
+    counts as the same where `wanted` has it at the value that behaves as the code did before the
+    key existed (`config.ADDED_KNOBS`), so runs made before a knob resume; set otherwise, the
+    stage is stale (whatever the preset's default).
     """
     from bumps_jax import env_records  # noqa: PLC0415
 
@@ -191,7 +192,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, defaults:
             {"config": have.get("config", {}), "inputs": _hashes(have.get("inputs", {}))},
             {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
         )
-        diff = [key for key in diff if not _added_at_default(key, have, wanted, defaults)]
+        diff = [key for key in diff if not _added_at_its_old_behaviour(key, have, wanted)]
         if not diff:
             return "same"
     if force:
@@ -208,17 +209,15 @@ def write_manifest(stage_dir: Path, wanted: dict) -> Path:
     return runio.write_json(stage_dir / MANIFEST, wanted)
 
 
-def _added_at_default(key: str, have: dict, wanted: dict, defaults: dict | None) -> bool:
-    """Is dotted `key` ("config. ...") missing from the manifest `have` and, in `wanted`, at its
-    value in `defaults` (a config section)?"""
+def _added_at_its_old_behaviour(key: str, have: dict, wanted: dict) -> bool:
+    """Is dotted `key` ("config. ...") missing from the manifest `have` and, in `wanted`, at the
+    value `config.ADDED_KNOBS` gives for it?"""
     from bumps_jax.env_records import MISSING, lookup  # noqa: PLC0415
 
-    if defaults is None or not key.startswith("config."):
-        return False
     path = key.removeprefix("config.")
-    mine = lookup(wanted["config"], path)
-    added = lookup(have.get("config", {}), path) == MISSING
-    return added and mine != MISSING and mine == lookup(defaults, path)
+    if not key.startswith("config.") or path not in config.ADDED_KNOBS:
+        return False
+    return lookup(have.get("config", {}), path) == MISSING and lookup(wanted["config"], path) == config.ADDED_KNOBS[path]
 
 
 def _hashes(inputs: dict) -> dict:

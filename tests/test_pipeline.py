@@ -64,8 +64,9 @@ def test_a_rerun_with_other_overrides_is_refused_naming_the_keys(tmp_path, stage
 
 
 def test_a_knob_added_later_at_its_default_keeps_an_older_run(tmp_path, stages):
-    """A manifest written before a config key existed: the run resumes where the key is at its
-    preset's default (the behaviour before it), and is refused where it is set otherwise."""
+    """A manifest written before a config key existed: the run resumes where the key is at the
+    value that behaves as before it (config.ADDED_KNOBS), and is refused where it is set otherwise,
+    even at a preset's default (the paper's neighbour leash is 1, the code before it had none)."""
     log, _ = stages
     pipeline.run_stage("experts", cfg(), tmp_path)
     manifest = tmp_path / "experts" / pipeline.MANIFEST
@@ -76,6 +77,10 @@ def test_a_knob_added_later_at_its_default_keeps_an_older_run(tmp_path, stages):
     assert log == ["experts"]  # up to date: not rerun
     with pytest.raises(pipeline.StaleRunError, match="experts.tune.start_leash"):
         pipeline.run_stage("experts", cfg(**{"experts.tune.start_leash": 0.5}), tmp_path)
+    del older["config"]["experts"]["tune"]["neighbour_leash"]
+    manifest.write_text(json.dumps(older))
+    with pytest.raises(pipeline.StaleRunError, match="experts.tune.neighbour_leash"):
+        pipeline.run_stage("experts", cfg(**{"experts.tune.neighbour_leash": 1.0}), tmp_path)
     older["config"]["experts"]["seed"] = 9  # a key the manifest has, changed: still refused
     manifest.write_text(json.dumps(older))
     with pytest.raises(pipeline.StaleRunError, match="experts.seed"):
@@ -156,6 +161,19 @@ def test_pipeline_skips_finished_stages_and_counts_its_calls(tmp_path, stages, m
     assert record["overrides"] == {}
     assert "resumed across 2 calls" in report.pipeline_lines(record)[0]
     assert "in one call" in report.pipeline_lines({**record, "calls": 1})[0]
+
+
+def test_a_stage_made_anew_counts_its_own_time_not_its_predecessors(tmp_path, stages):
+    """--force recomputes the experts and removes the meta stage: neither adds its time to the
+    seconds the replaced outputs took."""
+    pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)
+    path = tmp_path / "pipeline.json"
+    record = json.loads(path.read_text())
+    record["stages_s"] = {"experts": 1000.0, "meta": 500.0}
+    path.write_text(json.dumps(record))
+    pipeline.run_pipeline(("experts", "meta"), cfg(**{"experts.seed": 7}), tmp_path, force=True)
+    record = json.loads(path.read_text())
+    assert record["stages_s"]["experts"] < 100.0 and record["stages_s"]["meta"] < 100.0
 
 
 def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, stages, monkeypatch):

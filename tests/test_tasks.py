@@ -33,7 +33,7 @@ KICK_SECTIONS = {
 
 # Keys added to a kick section after the pin, at their default: a manifest without them still
 # resumes (`pipeline.check_manifest`, tests/test_pipeline.py), so the pin is taken without them.
-ADDED_LATER = {"experts": (("experts", "tune", "start_leash"), ("experts", "tune", "neighbour_leash"))}
+ADDED_LATER = {"experts": tuple(tuple(key.split(".")) for key in config.ADDED_KNOBS)}
 
 
 def digest(section: dict) -> str:
@@ -48,7 +48,7 @@ def pinned_part(section: dict, stage: str) -> dict:
         node = section
         for key in parents:
             node = node[key]
-        if node[leaf] == 0:
+        if node[leaf] == config.ADDED_KNOBS[".".join((*parents, leaf))]:
             del node[leaf]
     return section
 
