@@ -217,7 +217,8 @@ def _added_at_its_old_behaviour(key: str, have: dict, wanted: dict) -> bool:
     path = key.removeprefix("config.")
     if not key.startswith("config.") or path not in config.ADDED_KNOBS:
         return False
-    return lookup(have.get("config", {}), path) == MISSING and lookup(wanted["config"], path) == config.ADDED_KNOBS[path]
+    missing = lookup(have.get("config", {}), path) == MISSING
+    return missing and lookup(wanted["config"], path) == config.ADDED_KNOBS[path]
 
 
 def _hashes(inputs: dict) -> dict:

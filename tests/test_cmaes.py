@@ -100,8 +100,14 @@ def test_progress_reports_an_eta():
 
 
 TUNE = ml_collections.ConfigDict(
-    {"population_size": 4, "repetitions": 2, "eval_repetitions": 2, "seed": 0, "start_leash": 0.0,
-     "neighbour_leash": 0.0}
+    {
+        "population_size": 4,
+        "repetitions": 2,
+        "eval_repetitions": 2,
+        "seed": 0,
+        "start_leash": 0.0,
+        "neighbour_leash": 0.0,
+    }
 )
 
 

@@ -1,0 +1,104 @@
+"""Are a run's experts one family? Their kicks replayed between their tasks.
+
+A meta-policy asked for a context between two training tasks answers, at best, something like
+the two neighbouring experts' joint trajectories mixed in proportion. This replays exactly that
+mix, without any net: each expert's noise-free joint trajectory (the meta stage's dataset.npz),
+interpolated linearly in the target between the two experts around it ("interpolated"), and the
+nearer expert's trajectory alone ("nearest"). Where the mix misses and the nearest does not,
+neighbouring experts are different kicks and no net trained on them can be trusted between them.
+Scored on the development targets and noise (the config's `dev` section), never on the meta-test
+or held-out ones. Writes <out-dir>/interpolation[_<name>]_<cpu|gpu>.json.
+
+    python experiments/interpolation.py --run-dir runs/paper --repetitions 16
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from bumps_jax import config, publish, rollout, runio, tasks
+from bumps_jax.stages import meta as meta_stage
+
+RULES = ("interpolated", "nearest")
+
+
+def expert_tables(data) -> tuple[np.ndarray, np.ndarray]:
+    """(normalised contexts (E,) ascending, joint trajectories (E, T, 22)) of a meta dataset
+    (E experts x K repetitions x T steps; the first repetition of each expert)."""
+    tasks_ = np.unique(data.task)
+    n_per_expert = len(data.task) // len(tasks_)
+    n_steps = int(round(1.0 / np.diff(np.unique(data.obs[:, 0]))[0]))
+    obs = data.obs.reshape(len(tasks_), n_per_expert, -1)[:, :n_steps]
+    actions = data.actions.reshape(len(tasks_), n_per_expert, -1)[:, :n_steps]
+    order = np.argsort(obs[:, 0, 1])
+    return obs[order, 0, 1], actions[order]
+
+
+def mixed_policy(params, obs):
+    """The interpolated (params["nearest"] 0) or nearest-expert (1) open-loop policy over the
+    experts' trajectories params["table"] (E, T, 22) at contexts params["contexts"] (E,)."""
+    contexts, table = params["contexts"], params["table"]
+    i = jnp.clip(jnp.searchsorted(contexts, obs[1]) - 1, 0, contexts.shape[0] - 2)
+    w = jnp.clip((obs[1] - contexts[i]) / (contexts[i + 1] - contexts[i]), 0.0, 1.0)
+    w = jnp.where(params["nearest"] > 0, jnp.round(w), w)
+    return (1 - w) * rollout.table_policy(table[i], obs) + w * rollout.table_policy(table[i + 1], obs)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run-dir", default="runs/paper", help="a run whose meta stage recorded its dataset")
+    parser.add_argument("--repetitions", type=int, default=16, help="noisy kicks per target and rule")
+    parser.add_argument("--name", default="", help="a suffix of the record's name (e.g. the run's)")
+    parser.add_argument("--out-dir", default="experiments/results")
+    args = parser.parse_args(argv)
+    dataset = Path(args.run_dir) / "meta" / "dataset.npz"
+    if args.repetitions < 1:
+        parser.error(f"--repetitions must be at least 1, got {args.repetitions}")
+    if not dataset.exists():
+        parser.error(f"{dataset} does not exist: run the meta stage of {args.run_dir} first")
+    try:
+        cfg = publish.run_config(args.run_dir, config.make_config("paper"))
+    except ValueError as err:
+        parser.error(str(err))
+
+    start = time.perf_counter()
+    contexts, table = expert_tables(meta_stage.load_dataset(dataset))
+    env = tasks.make_env(cfg.task, cfg.env)
+    targets = np.asarray(cfg.dev.targets, np.float32)
+    params = {
+        "contexts": jnp.stack([jnp.asarray(contexts)] * 2),
+        "table": jnp.stack([jnp.asarray(table)] * 2),
+        "nearest": jnp.array([0, 1]),
+    }
+    keys = rollout.repetition_keys(int(cfg.dev.seed), len(targets), args.repetitions)
+    metrics = rollout.grid_fn(env, mixed_policy)(params, targets, targets, keys)
+    error = np.asarray(metrics["final_error"]).mean(-1)  # (2, targets)
+    rows = {}
+    for rule, e in zip(RULES, error, strict=True):
+        rows[rule] = {
+            "error_mean_m": float(e.mean()),
+            "targets_above_2m": int((e > 2.0).sum()),
+            "error_max_m": float(e.max()),
+            "per_target_error_m": e.tolist(),
+        }
+        print(f"{rule:12s} error {e.mean():.2f} m, {rows[rule]['targets_above_2m']} targets above 2 m, "
+              f"worst {e.max():.2f} m at {targets[e.argmax()]:.2f} m")  # fmt: skip
+    payload = {
+        "run": runio.shown(args.run_dir),
+        "experts_tasks_m": [float(t) for t in cfg.experts.tasks],
+        "targets_m": targets.tolist(),
+        "seed": int(cfg.dev.seed),
+        "repetitions": args.repetitions,
+        "rows": rows,
+    }
+    name = "interpolation" + (f"_{args.name}" if args.name else "")
+    print(runio.write_experiment(args.out_dir, name, payload, cfg, time.perf_counter() - start))
+
+
+if __name__ == "__main__":
+    main()
