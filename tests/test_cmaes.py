@@ -79,6 +79,8 @@ def test_a_neighbour_leash_pulls_tasks_into_a_chain():
     np.testing.assert_array_equal(result.mean[:, 1:], x0[:, 1:])
     with pytest.raises(ValueError, match="experts.tune.neighbour_leash must be a number >= 0, got -0.5"):
         config.make_config("tiny", {"experts.tune.neighbour_leash": -0.5})
+    with pytest.raises(ValueError, match="neighbour_leash applies to the 'per_task' scheme only"):
+        config.make_config("paper", {"experts.tune.scheme": "family"})
 
 
 def test_a_search_is_reproducible_from_its_seed():
