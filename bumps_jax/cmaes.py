@@ -293,7 +293,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
     fitness_json = kick_scoring.fitness_json_of(fitness)
     search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json)
-    leash, centre_fn = _leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
+    leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
     result = run_search(search, starts, targets, np.ones_like(starts, bool), int(generations), int(tune_cfg.seed),
                         say=say, label="tuning", leash=leash, centre_fn=centre_fn)  # fmt: skip
     key = result.key
@@ -323,8 +323,11 @@ def neighbour_midpoints(params: jax.Array, targets) -> jax.Array:
     return jnp.zeros_like(params).at[order].set(0.5 * (lower + upper))
 
 
-def _leash(starts, targets, to_start: float, to_neighbours: float):
-    """(leash, centre_fn) of `run_search` for the per-task tuning's two leashes."""
+def tuning_leash(starts, targets, to_start: float, to_neighbours: float):
+    """(leash, centre_fn) of `run_search` for the per-task tuning's two leashes: `to_start` per
+    squared scale unit from each task's start (T, 14), `to_neighbours` from the midpoint of its
+    neighbours' current means in the order of `targets` (T,). Their sum is one quadratic about
+    the weighted mean of the two centres (the constant left over ranks no candidate)."""
     total = to_start + to_neighbours
     if to_neighbours == 0.0:
         return to_start, None

@@ -72,7 +72,7 @@ def test_a_neighbour_leash_pulls_tasks_into_a_chain():
     free = np.zeros((3, kick_model.N_PARAMS), bool)
     free[:, 0] = True
     targets = [13.0, 17.0, 13.0]
-    leash, centre_fn = cmaes._leash(x0, [7.0, 8.0, 9.0], 0.0, 1.0)
+    leash, centre_fn = cmaes.tuning_leash(x0, [7.0, 8.0, 9.0], 0.0, 1.0)
     result = cmaes.run_search(_toy_search(), x0, targets, free, 80, seed=0, extra=x0[:, 1],
                               leash=leash, centre_fn=centre_fn, say=lambda msg: None)  # fmt: skip
     np.testing.assert_allclose(result.mean[:, 0], [14.33, 15.67, 14.33], atol=0.3)
