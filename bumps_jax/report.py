@@ -132,6 +132,8 @@ def env_steps_lines(experts: dict) -> list[str]:
             f"Starting kicks as a family: the largest jump between neighbouring tasks is {jump['jump']:.2f} scale "
             f"units of `{jump['param']}` between {jump['between_m'][0]:g} and {jump['between_m'][1]:g} m."
         )
+    if experts.get("starting_kicks_midpoints"):
+        lines.append(tables.midpoints_line(experts["starting_kicks_midpoints"]))
     return [*lines, ""]
 
 

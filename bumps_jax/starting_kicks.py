@@ -122,6 +122,28 @@ def evaluate_starting_kicks(cfg, env: kick_env.KickEnv, kicks) -> dict:
     return evaluate.tasks_record(e.tasks, metrics)
 
 
+def evaluate_midpoints(cfg, env: kick_env.KickEnv, kicks) -> dict | None:
+    """The kicks halfway between neighbouring tasks' starting kicks (T, 14): each pair's joint
+    trajectories mixed 50/50 and played at the midpoint of their targets, `experts.eval` noisy
+    kicks each (`evaluate`'s statistics; None for fewer than two distinct tasks). A meta-policy
+    between two training tasks does at best about this: a miss here means the neighbours are
+    different kicks (`experiments/interpolation.py` replays the same at any target)."""
+    e = cfg.experts
+    targets = np.asarray(e.tasks, np.float32)
+    order = np.argsort(targets, kind="stable")
+    pairs = [(a, b) for a, b in zip(order[:-1], order[1:], strict=True) if targets[a] != targets[b]]
+    if not pairs:
+        return None
+    lower, upper = (np.array(side) for side in zip(*pairs, strict=True))
+    tables_ = kick_model.action_tables(jnp.asarray(kicks, jnp.float32), env.n_steps, env.dt)
+    mixed = 0.5 * (tables_[lower] + tables_[upper])
+    midpoints = 0.5 * (targets[lower] + targets[upper])
+    metrics = evaluate.evaluate_experts(env, rollout.table_policy, mixed, midpoints, e.eval.repetitions, e.eval.seed)
+    record = evaluate.tasks_record(midpoints, metrics)
+    record["targets_above_2m"] = int(sum(t["error_mean_m"] > 2.0 for t in record["per_task"]))
+    return record
+
+
 def read_starting_kicks(path, targets) -> dict[float, np.ndarray]:
     """Each of `targets`' (m) kick params (14,) from a run's starting_kicks.json; ValueError naming
     the path and the targets the record lacks."""

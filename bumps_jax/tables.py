@@ -69,6 +69,7 @@ def starting_kicks_lines(record: dict) -> list[str]:
     """What the experts' PPO started from, scored as the experts are (an experts record's
     "starting_kicks"), and its jump between neighbouring tasks; nothing for older records."""
     kicks, jump = record.get("starting_kicks"), record.get("starting_kicks_smoothness")
+    mid = record.get("starting_kicks_midpoints")
     lines = []
     if kicks:
         lines.append(
@@ -80,7 +81,19 @@ def starting_kicks_lines(record: dict) -> list[str]:
             f"Largest jump between neighbouring tasks' starting kicks: {jump['jump']:.2f} scale units of "
             f"`{jump['param']}`, {jump['between_m'][0]:g} -> {jump['between_m'][1]:g} m."
         )
+    if mid:
+        lines.append(midpoints_line(mid))
     return [*lines, ""] if lines else []
+
+
+def midpoints_line(mid: dict) -> str:
+    """One sentence on an experts record's "starting_kicks_midpoints"."""
+    worst = max(mid["per_task"], key=lambda t: t["error_mean_m"])
+    return (
+        f"Halfway between neighbouring starting kicks (their trajectories mixed 50/50): error "
+        f"{num(mid['error_mean_all_m'])} m over {len(mid['per_task'])} midpoints, {mid['targets_above_2m']} "
+        f"above 2 m, the worst {worst['error_mean_m']:.2f} m at {worst['target_m']:g} m."
+    )
 
 
 def table1_markdown(rows: dict) -> str:

@@ -6,10 +6,13 @@ mix, without any net: each expert's noise-free joint trajectory (the meta stage'
 interpolated linearly in the target between the two experts around it ("interpolated"), and the
 nearer expert's trajectory alone ("nearest"). Where the mix misses and the nearest does not,
 neighbouring experts are different kicks and no net trained on them can be trusted between them.
-Scored on the development targets and noise (the config's `dev` section), never on the meta-test
-or held-out ones. Writes <out-dir>/interpolation[_<name>]_<cpu|gpu>.json.
+With `--kicks` (a run's starting_kicks.json) the same is done with the experts' starting kicks
+before behaviour cloning and PPO, so a miss can be placed before or after PPO. Scored on the
+development targets and noise (the config's `dev` section), never on the meta-test or held-out
+ones. Writes <out-dir>/interpolation[_<name>]_<cpu|gpu>.json.
 
     python experiments/interpolation.py --run-dir runs/paper --repetitions 16
+    python experiments/interpolation.py --run-dir runs/paper --kicks runs/paper/experts/starting_kicks.json
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import config, publish, rollout, runio, tasks
+from bumps_jax import config, kick_model, publish, rollout, runio, starting_kicks, tasks
 from bumps_jax.stages import meta as meta_stage
 
 RULES = ("interpolated", "nearest")
@@ -39,6 +42,16 @@ def expert_tables(data) -> tuple[np.ndarray, np.ndarray]:
     return obs[order, 0, 1], actions[order]
 
 
+def kick_tables(path, env) -> tuple[np.ndarray, np.ndarray]:
+    """`expert_tables` of the starting kicks in a run's starting_kicks.json, played in `env`."""
+    record = runio.read_json(path, "starting kicks of an experts run")
+    targets = np.asarray(record["tasks_m"], np.float32)
+    kicks = starting_kicks.read_starting_kicks(path, targets.tolist())
+    table = kick_model.action_tables(np.stack(list(kicks.values())), env.n_steps, env.dt)
+    order = np.argsort(targets)
+    return np.asarray(env.normalise_context(targets))[order], np.asarray(table)[order]
+
+
 def mixed_policy(params, obs):
     """The interpolated (params["nearest"] 0) or nearest-expert (1) open-loop policy over the
     experts' trajectories params["table"] (E, T, 22) at contexts params["contexts"] (E,)."""
@@ -53,22 +66,28 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run-dir", default="runs/paper", help="a run whose meta stage recorded its dataset")
     parser.add_argument("--repetitions", type=int, default=16, help="noisy kicks per target and rule")
+    parser.add_argument("--kicks", default=None, help="a run's starting_kicks.json: its kicks instead of the experts")
     parser.add_argument("--name", default="", help="a suffix of the record's name (e.g. the run's)")
     parser.add_argument("--out-dir", default="experiments/results")
     args = parser.parse_args(argv)
     dataset = Path(args.run_dir) / "meta" / "dataset.npz"
     if args.repetitions < 1:
         parser.error(f"--repetitions must be at least 1, got {args.repetitions}")
-    if not dataset.exists():
+    if args.kicks is None and not dataset.exists():
         parser.error(f"{dataset} does not exist: run the meta stage of {args.run_dir} first")
+    if args.kicks is not None and not Path(args.kicks).exists():
+        parser.error(f"--kicks {args.kicks} does not exist")
     try:
         cfg = publish.run_config(args.run_dir, config.make_config("paper"))
     except ValueError as err:
         parser.error(str(err))
 
     start = time.perf_counter()
-    contexts, table = expert_tables(meta_stage.load_dataset(dataset))
     env = tasks.make_env(cfg.task, cfg.env)
+    if args.kicks is None:
+        contexts, table = expert_tables(meta_stage.load_dataset(dataset))
+    else:
+        contexts, table = kick_tables(args.kicks, env)
     targets = np.asarray(cfg.dev.targets, np.float32)
     params = {
         "contexts": jnp.stack([jnp.asarray(contexts)] * 2),
@@ -90,6 +109,7 @@ def main(argv=None) -> None:
               f"worst {e.max():.2f} m at {targets[e.argmax()]:.2f} m")  # fmt: skip
     payload = {
         "run": runio.shown(args.run_dir),
+        "replayed": "experts" if args.kicks is None else f"starting kicks ({runio.shown(args.kicks)})",
         "experts_tasks_m": [float(t) for t in cfg.experts.tasks],
         "targets_m": targets.tolist(),
         "seed": int(cfg.dev.seed),

@@ -180,10 +180,11 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
 
     # Table 1's first row, under the run directory, with the results contract's keys.
     stage_dir = tmp_path / "whole" / "experts"
-    seen = []  # the experts' evaluation, then the starting kicks' (the same call)
+    seen, calls = [], []  # the experts' evaluation, the starting kicks', their midpoints' (one function)
     original = experts.evaluate.evaluate_experts
 
     def spy(*args, **kwargs):
+        calls.append(args)
         seen.append(original(*args, **kwargs))
         return seen[-1]
 
@@ -212,8 +213,15 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
     assert set(on_disk["per_task"][0]) >= {"target_m", "accuracy", "error_mean_m", "error_std_m"}
     # Accuracy is each task's fraction of valid kicks (struck, not fallen, no blow-up) of its
     # episodes, the error their mean final error, both recomputed from the per-episode metrics.
-    assert len(seen) == 2
+    assert len(seen) == 3
     np.testing.assert_allclose([r["accuracy"] for r in start_row["per_task"]], seen[1]["valid"].mean(axis=1))
+    # Halfway between the two: their joint trajectories mixed 50/50, played at 10 m.
+    mid = on_disk["starting_kicks_midpoints"]
+    assert [r["target_m"] for r in mid["per_task"]] == [10.0] and list(calls[2][3]) == [10.0]
+    starts = kick_model.action_tables(np.asarray(kicks["params"]), N_STEPS, calls[2][0].dt)
+    np.testing.assert_allclose(calls[2][2][0], 0.5 * (starts[0] + starts[1]), atol=1e-6)
+    np.testing.assert_allclose(mid["per_task"][0]["error_mean_m"], seen[2]["final_error"].mean())
+    assert mid["targets_above_2m"] == int(mid["per_task"][0]["error_mean_m"] > 2.0)
     m = seen[0]
     assert m["valid"].shape == (2, cfg.experts.eval.repetitions)
     assert np.all(m["valid"] <= m["struck"] * (1 - m["fallen"]) * (1 - m["blown_up"]))

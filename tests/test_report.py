@@ -34,18 +34,22 @@ def test_report_counts_the_experts_env_steps_and_shows_their_starting_kicks(tmp_
     experts = {**_common(), "tasks_m": [7.0, 7.5], "env_steps": 1000, "accuracy_mean": 1.0, "accuracy_std": 0.0,
                "error_mean_m": 0.3, "error_std_m": 0.1, "error_mean_all_m": 0.3, "starting_kicks": row,
                "env_steps_breakdown": {"prior": 300, "tuning": 50, "ppo": 1000},
-               "starting_kicks_smoothness": {"jump": 1.5, "param": "back_knee", "between_m": [7.0, 7.5]}}  # fmt: skip
+               "starting_kicks_smoothness": {"jump": 1.5, "param": "back_knee", "between_m": [7.0, 7.5]},
+               "starting_kicks_midpoints": {**row, "targets_above_2m": 0,
+                                            "per_task": [{"target_m": 7.25, "error_mean_m": 1.5}]}}  # fmt: skip
     runio.write_json(tmp_path / "experts" / "experts.json", experts)
     text = report.build(tmp_path)
     assert "| starting kicks (before PPO) | 0.50 +- 0.10 | - | 1.25 +- 0.50 | - | 1.50 |" in text
     assert "share of the kick prior 300, starting-kick tuning 50, PPO 1,000; 1,350 in all." in text
     assert "All 2 experts: 2,700 (PPO 2,000)." in text
     assert "1.50 scale units of `back_knee` between 7 and 7.5 m" in text
+    midpoints = "mixed 50/50): error 1.50 m over 1 midpoints, 0 above 2 m, the worst 1.50 m at 7.25 m."
+    assert midpoints in text
     # experts.md says the same under the experts' row.
     md = tables.experts_markdown({**experts, "rel_error_mean": 0.03, "tasks_above_threshold": 2, "n_tasks": 2,
                                   "n_reps": 2, "per_task": []})  # fmt: skip
     assert "starting kicks (before PPO): accuracy 0.50 +- 0.10, error 1.25 +- 0.50 m (1.50 m over all tasks)." in md
-    assert "1.50 scale units of `back_knee`, 7 -> 7.5 m." in md
+    assert "1.50 scale units of `back_knee`, 7 -> 7.5 m." in md and midpoints in md
     # A prior record that does not say how it was made leaves its share unknown, not zero.
     runio.write_json(tmp_path / "experts" / "experts.json",
                      {**experts, "env_steps_breakdown": {"prior": None, "tuning": 50, "ppo": 1000}})  # fmt: skip
