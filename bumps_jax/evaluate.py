@@ -56,11 +56,13 @@ def table_row(per_task: dict, threshold: float = ACCURACY_THRESHOLD) -> dict:
 # -- single-task experts (Table 1, first row) ------------------------------------------------
 
 
-def evaluate_experts(env: task_env.ContextualEnv, apply_fn, params, tasks, n_reps: int = 100, seed: int = 0) -> dict:
+def evaluate_experts(env: task_env.ContextualEnv, apply_fn, params, tasks, n_reps: int = 100, seed: int = 0,
+                     keys=None) -> dict:  # fmt: skip
     """Each expert on its own task, `n_reps` noisy kicks each, in one vmapped program.
 
-    params: a pytree with a leading task axis (N, ...); tasks: (N,) m. Returns the final
-    metrics as numpy arrays of shape (N, n_reps).
+    params: a pytree with a leading task axis (N, ...); tasks: (N,) m; keys: (N, n_reps) episode
+    keys (default: `rollout.repetition_keys(seed, N, n_reps)`). Returns the final metrics as
+    numpy arrays of shape (N, n_reps).
     """
     tasks = np.asarray(tasks, np.float32)
     if tasks.ndim != 1 or len(tasks) == 0:
@@ -71,7 +73,11 @@ def evaluate_experts(env: task_env.ContextualEnv, apply_fn, params, tasks, n_rep
     # Expert i on task i only (grid_fn would score every expert on every task).
     program = rollout.matched_fn(env, apply_fn)
     targets = jnp.asarray(tasks)
-    metrics = program(params, targets, targets, rollout.repetition_keys(seed, len(tasks), n_reps))
+    if keys is None:
+        keys = rollout.repetition_keys(seed, len(tasks), n_reps)
+    if keys.shape != (len(tasks), n_reps):
+        raise ValueError(f"keys must have shape ({len(tasks)}, {n_reps}), got {keys.shape}")
+    metrics = program(params, targets, targets, keys)
     return jax.tree_util.tree_map(np.asarray, metrics)
 
 

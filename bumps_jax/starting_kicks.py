@@ -1,7 +1,8 @@
 """The keyframe kicks the kick's experts start from, before behaviour cloning and PPO.
 
 `starting_kicks` makes each task's kick from the kick prior's record (`prior_kicks`), tuned by
-CMA-ES per task or as one contextual family; `evaluate_starting_kicks` scores them as the
+CMA-ES per task or as one contextual family; `evaluate_starting_kicks` scores them (and the
+kicks halfway between neighbours) as the
 experts are scored; `read_starting_kicks` reads them back from a run's starting_kicks.json.
 """
 
@@ -112,36 +113,34 @@ def smoothness(kicks, targets) -> dict | None:
     return kick_model.largest_jump(kicks, targets) if len(set(np.asarray(targets).tolist())) > 1 else None
 
 
-def evaluate_starting_kicks(cfg, env: kick_env.KickEnv, kicks) -> dict:
+def evaluate_starting_kicks(cfg, env: kick_env.KickEnv, kicks) -> tuple[dict, dict | None]:
     """The tasks' starting kicks (T, 14) scored exactly as their experts are (the same tasks,
     `experts.eval` noisy kicks and seed, `evaluate`'s statistics): Table 1's "starting kicks
-    (before PPO)" row, with its per-task list."""
-    e = cfg.experts
-    tables_ = kick_model.action_tables(jnp.asarray(kicks, jnp.float32), env.n_steps, env.dt)
-    metrics = evaluate.evaluate_experts(env, rollout.table_policy, tables_, e.tasks, e.eval.repetitions, e.eval.seed)
-    return evaluate.tasks_record(e.tasks, metrics)
-
-
-def evaluate_midpoints(cfg, env: kick_env.KickEnv, kicks) -> dict | None:
-    """The kicks halfway between neighbouring tasks' starting kicks (T, 14): each pair's joint
-    trajectories mixed 50/50 and played at the midpoint of their targets, `experts.eval` noisy
-    kicks each (`evaluate`'s statistics; None for fewer than two distinct tasks). A meta-policy
-    between two training tasks does at best about this: a miss here means the neighbours are
-    different kicks (`experiments/interpolation.py` replays the same at any target)."""
+    (before PPO)" row, with its per-task list; and in the same program the kicks halfway between
+    neighbouring tasks (None for fewer than two distinct tasks): each pair's joint trajectories
+    mixed 50/50, played at the midpoint of their targets on noise of their own, with
+    "targets_above_2m". A meta-policy between two training tasks does at best about this: a miss
+    there means the neighbours are different kicks (`experiments/interpolation.py` replays the
+    same at any target)."""
     e = cfg.experts
     targets = np.asarray(e.tasks, np.float32)
+    reps, seed = int(e.eval.repetitions), int(e.eval.seed)
+    tables_ = kick_model.action_tables(jnp.asarray(kicks, jnp.float32), env.n_steps, env.dt)
     order = np.argsort(targets, kind="stable")
     pairs = [(a, b) for a, b in zip(order[:-1], order[1:], strict=True) if targets[a] != targets[b]]
-    if not pairs:
-        return None
-    lower, upper = (np.array(side) for side in zip(*pairs, strict=True))
-    tables_ = kick_model.action_tables(jnp.asarray(kicks, jnp.float32), env.n_steps, env.dt)
-    mixed = 0.5 * (tables_[lower] + tables_[upper])
+    lower, upper = (np.array([pair[i] for pair in pairs], int) for i in (0, 1))
     midpoints = 0.5 * (targets[lower] + targets[upper])
-    metrics = evaluate.evaluate_experts(env, rollout.table_policy, mixed, midpoints, e.eval.repetitions, e.eval.seed)
-    record = evaluate.tasks_record(midpoints, metrics)
-    record["targets_above_2m"] = int(sum(t["error_mean_m"] > 2.0 for t in record["per_task"]))
-    return record
+    mid_keys = jax.random.split(jax.random.fold_in(jax.random.key(seed), 1), len(pairs) * reps)
+    keys = jnp.concatenate([rollout.repetition_keys(seed, len(targets), reps), mid_keys.reshape(len(pairs), reps)])
+    params = jnp.concatenate([tables_, 0.5 * (tables_[lower] + tables_[upper])])
+    metrics = evaluate.evaluate_experts(env, rollout.table_policy, params, np.concatenate([targets, midpoints]),
+                                        reps, keys=keys)  # fmt: skip
+    kicks_record = evaluate.tasks_record(e.tasks, {k: v[: len(targets)] for k, v in metrics.items()})
+    if not pairs:
+        return kicks_record, None
+    mid_record = evaluate.tasks_record(midpoints, {k: v[len(targets) :] for k, v in metrics.items()})
+    mid_record["targets_above_2m"] = int(sum(t["error_mean_m"] > 2.0 for t in mid_record["per_task"]))
+    return kicks_record, mid_record
 
 
 def read_starting_kicks(path, targets) -> dict[float, np.ndarray]:

@@ -169,11 +169,8 @@ def experts(e, task_range, n_steps: int) -> None:
         leash = e.tune[name]
         if isinstance(leash, bool) or not isinstance(leash, int | float) or not leash >= 0:
             raise ValueError(f"experts.tune.{name} must be a number >= 0, got {leash!r}")
-    leashed = [name for name in ("start_leash", "neighbour_leash") if e.tune[name] > 0]
-    if e.tune.scheme == "family" and leashed:
-        raise ValueError(
-            f"experts.tune.{leashed[0]} applies to the 'per_task' scheme only; with scheme 'family' set it to 0"
-        )
+        if leash > 0 and e.tune.scheme == "family":
+            raise ValueError(f"experts.tune.{name} applies to the 'per_task' scheme only; with 'family' set it to 0")
     if isinstance(e.tune.knots, bool) or e.tune.knots < 2:
         raise ValueError(f"experts.tune.knots must be an integer >= 2, got {e.tune.knots!r}")
     if e.tune.scheme == "family" and len(set(e.tasks)) < 2:

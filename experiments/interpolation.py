@@ -24,18 +24,17 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import config, kick_model, publish, rollout, runio, starting_kicks, tasks
+from bumps_jax import config, kick_model, publish, rollout, runio, tasks
 from bumps_jax.stages import meta as meta_stage
 
 RULES = ("interpolated", "nearest")
 
 
-def expert_tables(data) -> tuple[np.ndarray, np.ndarray]:
+def expert_tables(data, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
     """(normalised contexts (E,) ascending, joint trajectories (E, T, 22)) of a meta dataset
-    (E experts x K repetitions x T steps; the first repetition of each expert)."""
+    (E experts x K repetitions x T = `n_steps` steps; the first repetition of each expert)."""
     tasks_ = np.unique(data.task)
     n_per_expert = len(data.task) // len(tasks_)
-    n_steps = int(round(1.0 / np.diff(np.unique(data.obs[:, 0]))[0]))
     obs = data.obs.reshape(len(tasks_), n_per_expert, -1)[:, :n_steps]
     actions = data.actions.reshape(len(tasks_), n_per_expert, -1)[:, :n_steps]
     order = np.argsort(obs[:, 0, 1])
@@ -46,8 +45,7 @@ def kick_tables(path, env) -> tuple[np.ndarray, np.ndarray]:
     """`expert_tables` of the starting kicks in a run's starting_kicks.json, played in `env`."""
     record = runio.read_json(path, "starting kicks of an experts run")
     targets = np.asarray(record["tasks_m"], np.float32)
-    kicks = starting_kicks.read_starting_kicks(path, targets.tolist())
-    table = kick_model.action_tables(np.stack(list(kicks.values())), env.n_steps, env.dt)
+    table = kick_model.action_tables(np.asarray(record["params"], np.float32), env.n_steps, env.dt)
     order = np.argsort(targets)
     return np.asarray(env.normalise_context(targets))[order], np.asarray(table)[order]
 
@@ -85,7 +83,7 @@ def main(argv=None) -> None:
     start = time.perf_counter()
     env = tasks.make_env(cfg.task, cfg.env)
     if args.kicks is None:
-        contexts, table = expert_tables(meta_stage.load_dataset(dataset))
+        contexts, table = expert_tables(meta_stage.load_dataset(dataset), env.n_steps)
     else:
         contexts, table = kick_tables(args.kicks, env)
     targets = np.asarray(cfg.dev.targets, np.float32)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from tiny_experts import N_STEPS, pipeline_config
 
-from bumps_jax import bc, config, kick_model, runio, starting_kicks
+from bumps_jax import bc, config, kick_model, rollout, runio, starting_kicks
 from bumps_jax.stages import experts
 from bumps_jax.stages import prior as prior_stage
 
@@ -180,11 +180,11 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
 
     # Table 1's first row, under the run directory, with the results contract's keys.
     stage_dir = tmp_path / "whole" / "experts"
-    seen, calls = [], []  # the experts' evaluation, the starting kicks', their midpoints' (one function)
+    seen, calls = [], []  # the experts' evaluation, then the starting kicks' and their midpoints' (one call)
     original = experts.evaluate.evaluate_experts
 
     def spy(*args, **kwargs):
-        calls.append(args)
+        calls.append((args, kwargs))
         seen.append(original(*args, **kwargs))
         return seen[-1]
 
@@ -213,14 +213,17 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
     assert set(on_disk["per_task"][0]) >= {"target_m", "accuracy", "error_mean_m", "error_std_m"}
     # Accuracy is each task's fraction of valid kicks (struck, not fallen, no blow-up) of its
     # episodes, the error their mean final error, both recomputed from the per-episode metrics.
-    assert len(seen) == 3
-    np.testing.assert_allclose([r["accuracy"] for r in start_row["per_task"]], seen[1]["valid"].mean(axis=1))
+    assert len(seen) == 2
+    np.testing.assert_allclose([r["accuracy"] for r in start_row["per_task"]], seen[1]["valid"][:2].mean(axis=1))
+    # The starting kicks meet the experts' noise, episode for episode.
+    experts_keys = rollout.repetition_keys(cfg.experts.eval.seed, 2, 2)
+    np.testing.assert_array_equal(jax.random.key_data(calls[1][1]["keys"][:2]), jax.random.key_data(experts_keys))
     # Halfway between the two: their joint trajectories mixed 50/50, played at 10 m.
     mid = on_disk["starting_kicks_midpoints"]
-    assert [r["target_m"] for r in mid["per_task"]] == [10.0] and list(calls[2][3]) == [10.0]
-    starts = kick_model.action_tables(np.asarray(kicks["params"]), N_STEPS, calls[2][0].dt)
-    np.testing.assert_allclose(calls[2][2][0], 0.5 * (starts[0] + starts[1]), atol=1e-6)
-    np.testing.assert_allclose(mid["per_task"][0]["error_mean_m"], seen[2]["final_error"].mean())
+    assert [r["target_m"] for r in mid["per_task"]] == [10.0] and list(calls[1][0][3]) == [8.0, 12.0, 10.0]
+    starts = kick_model.action_tables(np.asarray(kicks["params"]), N_STEPS, calls[1][0][0].dt)
+    np.testing.assert_allclose(calls[1][0][2][2], 0.5 * (starts[0] + starts[1]), atol=1e-6)
+    np.testing.assert_allclose(mid["per_task"][0]["error_mean_m"], seen[1]["final_error"][2].mean())
     assert mid["targets_above_2m"] == int(mid["per_task"][0]["error_mean_m"] > 2.0)
     m = seen[0]
     assert m["valid"].shape == (2, cfg.experts.eval.repetitions)

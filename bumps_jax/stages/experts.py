@@ -310,9 +310,10 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
         runio.write_json(stage_dir / OUTPUT, record)
         return record
     kicks = runio.read_json(stage_dir / "starting_kicks.json")
-    record["starting_kicks"] = starting_kicks.evaluate_starting_kicks(cfg, programs.env, kicks["params"])
+    record["starting_kicks"], record["starting_kicks_midpoints"] = starting_kicks.evaluate_starting_kicks(
+        cfg, programs.env, kicks["params"]
+    )
     record["starting_kicks_smoothness"] = starting_kicks.smoothness(kicks["params"], e.tasks)
-    record["starting_kicks_midpoints"] = starting_kicks.evaluate_midpoints(cfg, programs.env, kicks["params"])
     record["env_steps_breakdown"] = env_steps_breakdown(cfg, stage_dir.parent, kicks, programs.env.n_steps,
                                                         record["env_steps"])  # fmt: skip
     known = [v for v in record["env_steps_breakdown"].values() if v is not None]
