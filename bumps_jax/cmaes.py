@@ -118,12 +118,17 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
 
 
 @functools.lru_cache(maxsize=8)
-def kick_search(env, mesh, population: int, repetitions: int, sigma_init: float, fitness_json: str) -> Search:
-    """`make_search` of `kick_cost`, kept per settings: the prior's three anchors, or a resumed
-    tuning in the same process, compile it once (about a minute on a CPU)."""
-    return make_search(
-        kick_scoring.kick_cost(env, kick_scoring.weights(fitness_json)), population, repetitions, sigma_init, mesh
-    )
+def kick_search(env, mesh, population: int, repetitions: int, sigma_init: float, fitness_json: str,
+                midpoint_weight: float = 0.0) -> Search:  # fmt: skip
+    """`make_search` of `kick_cost` (with `midpoint_weight` > 0: `chain_cost`, its extra the
+    neighbours of `neighbour_partners`), kept per settings: the prior's three anchors, or a
+    resumed tuning in the same process, compile it once (about a minute on a CPU)."""
+    fitness = kick_scoring.weights(fitness_json)
+    if midpoint_weight > 0:
+        cost = kick_scoring.chain_cost(env, fitness, midpoint_weight)
+    else:
+        cost = kick_scoring.kick_cost(env, fitness)
+    return make_search(cost, population, repetitions, sigma_init, mesh)
 
 
 @functools.lru_cache(maxsize=4)
@@ -136,7 +141,8 @@ def family_search(env, mesh, population: int, repetitions: int, sigma_init: floa
 
 
 def run_search(search: Search, x0, targets, free, generations: int, seed: int, extra=None, say=print,
-               label: str = "cma-es", on_generation=None, leash=None, centre_fn=None) -> Result:  # fmt: skip
+               label: str = "cma-es", on_generation=None, leash=None, centre_fn=None,
+               extra_fn=None) -> Result:  # fmt: skip
     """Run T searches for `generations` generations from key(seed).
 
     x0: (T, *search.shape) starts; targets: (T,) m; free: (T, *search.shape) bool, the parameters
@@ -144,6 +150,8 @@ def run_search(search: Search, x0, targets, free, generations: int, seed: int, e
     search's cost per squared scale unit from its centre (`make_search`; default 0).
     centre_fn(means (T, *shape)) -> (T, *shape): each search's centre for the next generation
     from every search's current CMA-ES mean params (None: each search's start, fixed).
+    extra_fn(means (T, *shape)) -> (T, ...): likewise each search's extra for the next generation
+    (None: `extra`, fixed).
     on_generation(gen, stats) is called on the host after each generation with `Stats` of (T,)
     numpy arrays.
     """
@@ -166,17 +174,19 @@ def run_search(search: Search, x0, targets, free, generations: int, seed: int, e
     # CMA-ES starts some fields weakly typed and returns them strongly typed: fix the types now
     # so that the generation program compiles once, not twice.
     carry = jax.tree.map(lambda x: x.astype(x.dtype), carry)
-    inputs = sharding.place((x0, targets, scale, extra, leash), search.mesh)
-    centre = x0
+    x0, targets, scale, leash = sharding.place((x0, targets, scale, leash), search.mesh)
+    centre, extra = x0, sharding.place(extra, search.mesh)
     history, clock = [], _Clock(generations)
     for gen in range(generations):
         key, gen_key = jax.random.split(key)
+        means = x0 + scale * carry.es.mean.reshape(x0.shape)
         if centre_fn is not None:
-            means = x0 + scale * carry.es.mean.reshape(x0.shape)
-            centre = sharding.pad(jnp.asarray(centre_fn(means[:n]), jnp.float32), T)
+            centre = sharding.place(sharding.pad(jnp.asarray(centre_fn(means[:n]), jnp.float32), T), search.mesh)
+        if extra_fn is not None:
+            extra = sharding.place(sharding.pad(jnp.asarray(extra_fn(means[:n]), jnp.float32), T), search.mesh)
         carry, stats = search.step(
-            *sharding.place((carry, jax.random.split(gen_key, T)), search.mesh), *inputs,
-            sharding.place(centre, search.mesh),
+            *sharding.place((carry, jax.random.split(gen_key, T)), search.mesh), x0, targets, scale, extra, leash,
+            centre,
         )  # fmt: skip
         stats = Stats(*(np.asarray(s) for s in sharding.unpad(tuple(stats), n)))
         history.append(stats)
@@ -274,7 +284,10 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     mean distance from the midpoint of their neighbouring tasks' current CMA-ES means (one
     neighbour at either end of the sorted targets), so the tasks move as a chain: a kick between
     two tasks' kicks is near both. The two leashes add up (one quadratic about their weighted
-    centre). The keep-the-better rule compares the kicks' costs alone.
+    centre). With tune_cfg.midpoint_weight > 0 a candidate also pays that much times the mean cost
+    of the kicks halfway between it and its neighbouring tasks' current CMA-ES means
+    (`kick_scoring.chain_cost`: two more episodes per episode). The keep-the-better rule compares
+    the kicks' costs alone.
 
     Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
     "history": (generations, T) best cost per generation, "episodes": int}.
@@ -292,10 +305,12 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     mesh = mesh or sharding.device_mesh()
     P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
     fitness_json = kick_scoring.fitness_json_of(fitness)
-    search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json)
+    midpoint_weight = float(tune_cfg.midpoint_weight)
+    search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json, midpoint_weight)
     leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
+    extra_fn = (lambda means: neighbour_partners(means, targets)) if midpoint_weight > 0 else None
     result = run_search(search, starts, targets, np.ones_like(starts, bool), int(generations), int(tune_cfg.seed),
-                        say=say, label="tuning", leash=leash, centre_fn=centre_fn)  # fmt: skip
+                        say=say, label="tuning", leash=leash, centre_fn=centre_fn, extra_fn=extra_fn)  # fmt: skip
     key = result.key
     keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
     pair = sharding.pad((jnp.stack([starts, result.mean], 1), jnp.asarray(targets)), sharding.padded_size(T, mesh))
@@ -307,8 +322,25 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
         "tuned_cost": costs[:, 1],
         "improved": improved,
         "history": result.history["best"],
-        "episodes": int(T * (generations * P * R + 2 * E)),
+        # every episode played: with the halfway kicks, three per candidate's episode
+        "episodes": int(T * (generations * P * R * (3 if midpoint_weight > 0 else 1) + 2 * E)),
     }
+
+
+def neighbour_partners(params: jax.Array, targets) -> jax.Array:
+    """(T, 2, 16): for each task its lower and upper neighbour in the order of `targets` (T,), each
+    as its params (14, clipped to the bounds), its target and 1, or the task's own params and
+    target and 0 where it has none (the first and the last task): `chain_cost`'s extra."""
+    targets = np.asarray(targets, np.float32)
+    order = np.argsort(targets, kind="stable")
+    rank = np.argsort(order, kind="stable")  # each task's place in the sorted order
+    lower, upper = order[np.maximum(rank - 1, 0)], order[np.minimum(rank + 1, len(order) - 1)]
+    params = kick_model.clip_params(jnp.asarray(params, jnp.float32))
+
+    def row(index, present):
+        return jnp.concatenate([params[index], targets[index][:, None], present[:, None].astype(np.float32)], 1)
+
+    return jnp.stack([row(lower, rank > 0), row(upper, rank < len(order) - 1)], 1)
 
 
 def neighbour_midpoints(params: jax.Array, targets) -> jax.Array:

@@ -105,6 +105,11 @@ def _experts() -> ml_collections.ConfigDict:
     # midpoint of its neighbouring tasks' current means, added during the search (0: none). > 0
     # tunes the tasks as a chain, so that a kick between two tasks' kicks is near both.
     cfg.tune.neighbour_leash = 1.0
+    # "per_task" only: weight of the mean cost of the kicks halfway between a candidate and its
+    # neighbouring tasks' current means (their joint trajectories mixed 50/50, played at the
+    # middle target), added during the search (0: none; > 0 triples the tuning's episodes). > 0
+    # tunes the tasks so that what a meta-policy plays between two of them still kicks.
+    cfg.tune.midpoint_weight = 0.0
     cfg.ppo = ppo_config.default_config()
     cfg.ppo.num_envs = 256  # episodes per update (19,200 steps; the paper: 4,096)
     cfg.ppo.num_minibatches = 16  # 16 episodes = 1,200 steps each (the paper: 1,024)
@@ -225,7 +230,11 @@ def default_config() -> ml_collections.ConfigDict:
 # Knobs added to the tree after runs were made, each at the value that behaves as the code did
 # before it: a stage manifest without the knob is the same run where the knob has that value
 # (pipeline.check_manifest); at any other value, a preset's default included, the stage is stale.
-ADDED_KNOBS = {"experts.tune.start_leash": 0.0, "experts.tune.neighbour_leash": 0.0}
+ADDED_KNOBS = {
+    "experts.tune.start_leash": 0.0,
+    "experts.tune.neighbour_leash": 0.0,
+    "experts.tune.midpoint_weight": 0.0,
+}
 
 # Each preset: dotted overrides of the defaults (the paper's values).
 PRESETS: dict[str, dict] = {

@@ -35,6 +35,37 @@ def kick_cost(env: kick_env.KickEnv, fitness):
     return cost_fn
 
 
+def chain_cost(env: kick_env.KickEnv, fitness, midpoint_weight: float):
+    """`kick_cost` plus `midpoint_weight` x the mean cost of the kicks halfway between the
+    candidate and its neighbouring tasks' kicks: fn(params (P, 14), keys (P, R), target, extra
+    (2, 16)) -> (mean cost (P,), the candidates' own metrics of (P, R)).
+
+    extra's two rows are the lower and the upper neighbour: its params (14), its target (m) and
+    1 where it exists, else 0 (the first and the last task have one neighbour). A halfway kick
+    plays the candidate's and the neighbour's joint trajectories mixed 50/50 at the middle of the
+    two targets, on the candidate's own episodes: what a meta-policy between two training tasks
+    plays at best. A candidate that kicks well alone but not mixed with its neighbours ranks low.
+    """
+    n_params = kick_model.N_PARAMS
+    episodes = jax.vmap(rollout.over_reps(rollout.episode_fn(env, rollout.table_policy)), in_axes=(0, None, None, 0))
+    halfway_episodes = jax.vmap(episodes, in_axes=(1, 0, 0, None), out_axes=1)  # over the two neighbours
+
+    def cost_fn(params, keys, target, extra):
+        tables = kick_model.action_tables(params, env.n_steps, env.dt)  # (P, n_steps, 22)
+        metrics = episodes(tables, target, target, keys)
+        cost = jnp.mean(kick_model.fitness(metrics, target, fitness), axis=1)
+        neighbours = kick_model.action_tables(extra[:, :n_params], env.n_steps, env.dt)  # (2, n_steps, 22)
+        mixed = 0.5 * (tables[:, None] + neighbours[None])  # (P, 2, n_steps, 22)
+        middle = 0.5 * (target + extra[:, n_params])  # (2,)
+        halfway = halfway_episodes(mixed, middle, middle, keys)  # (P, 2, R)
+        halfway_cost = jnp.mean(kick_model.fitness(halfway, middle[None, :, None], fitness), axis=2)
+        present = extra[:, n_params + 1]
+        halfway_mean = jnp.sum(halfway_cost * present, axis=1) / jnp.maximum(jnp.sum(present), 1.0)
+        return cost + midpoint_weight * halfway_mean, metrics
+
+    return cost_fn
+
+
 def family_cost(env: kick_env.KickEnv, fitness, knots, targets):
     """The cost of a contextual kick over many tasks: fn(knot params (P, K, 14), keys (P, R),
     target, extra) -> (mean cost (P,), metrics of (P, T, R)).

@@ -165,7 +165,7 @@ def experts(e, task_range, n_steps: int) -> None:
     positive_floats(e.tune, "experts.tune.", ("sigma_init",))
     if e.tune.scheme not in TUNE_SCHEMES:
         raise ValueError(f"experts.tune.scheme must be one of {TUNE_SCHEMES}, got {e.tune.scheme!r}")
-    for name in ("start_leash", "neighbour_leash"):
+    for name in ("start_leash", "neighbour_leash", "midpoint_weight"):
         leash = e.tune[name]
         if isinstance(leash, bool) or not isinstance(leash, int | float) or not leash >= 0:
             raise ValueError(f"experts.tune.{name} must be a number >= 0, got {leash!r}")

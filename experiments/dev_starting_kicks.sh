@@ -8,6 +8,7 @@
 #
 #   experiments/dev_starting_kicks.sh ARM [ARM ...]
 #   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
+#        | midpoint_weight=<w>
 #        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
 set -euo pipefail
 tasks=$(python3 -c 'print("[" + ",".join(f"{7.05 + 0.1 * i:.2f}" for i in range(110)) + "]")')
@@ -15,7 +16,7 @@ tasks=$(python3 -c 'print("[" + ",".join(f"{7.05 + 0.1 * i:.2f}" for i in range(
 # prior's anchors, tuned on its own; each arm's parts change it.
 common=("meta.eval.tasks=$tasks" experts.ppo.total_env_steps=480000 experts.updates_per_chunk=25 meta.train.epochs=30000
         experts.tune.scheme=per_task experts.bc.per_task_strength=true experts.tune.anchor_starts=true
-        experts.tune.start_leash=0 experts.tune.neighbour_leash=0)
+        experts.tune.start_leash=0 experts.tune.neighbour_leash=0 experts.tune.midpoint_weight=0)
 for arm in "$@"; do
   seed=101
   sets=()
@@ -25,7 +26,7 @@ for arm in "$@"; do
       per_task) sets+=(experts.tune.scheme=per_task) ;;
       family) sets+=(experts.tune.scheme=family) ;;
       family12) sets+=(experts.tune.scheme=family experts.tune.knots=12) ;;
-      start_leash=*|neighbour_leash=*|generations=*) sets+=("experts.tune.$part") ;;
+      start_leash=*|neighbour_leash=*|midpoint_weight=*|generations=*) sets+=("experts.tune.$part") ;;
       main_start) sets+=(experts.bc.per_task_strength=false) ;;
       seed=*) seed=${part#seed=} ;;
       *) echo "unknown arm part: $part" >&2; exit 2 ;;

@@ -2,6 +2,7 @@
 
 import csv
 
+import jax
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
@@ -83,6 +84,40 @@ def test_a_neighbour_leash_pulls_tasks_into_a_chain():
         config.make_config("paper", {"experts.tune.scheme": "family"})
 
 
+def test_each_task_meets_its_neighbours_in_target_order():
+    """`neighbour_partners`: rows lower and upper neighbour, each params, target, present; the
+    first and last task's missing neighbour is their own kick, absent."""
+    params = jnp.arange(3.0)[:, None] + jnp.zeros((3, kick_model.N_PARAMS)) + kick_model.PARAM_LOW
+    partners = np.asarray(cmaes.neighbour_partners(params, [9.0, 7.0, 8.0]))  # order: rows 1, 2, 0
+    assert partners.shape == (3, 2, kick_model.N_PARAMS + 2)
+    np.testing.assert_allclose(partners[:, :, -2], [[8.0, 9.0], [7.0, 8.0], [7.0, 9.0]])  # targets
+    np.testing.assert_allclose(partners[:, :, -1], [[1, 0], [0, 1], [1, 1]])  # present
+    np.testing.assert_allclose(partners[:, :, 0] - kick_model.PARAM_LOW[0], [[2, 0], [1, 2], [1, 0]])
+    with pytest.raises(ValueError, match="experts.tune.midpoint_weight must be a number >= 0, got -1"):
+        config.make_config("tiny", {"experts.tune.midpoint_weight": -1})
+
+
+def test_the_chain_cost_adds_the_kicks_halfway_to_the_neighbours(env):
+    """With no neighbour the chain cost is the kick's own cost; a neighbour with the candidate's
+    own kick and target makes a halfway kick that is the candidate itself on the same episodes,
+    so the cost becomes (1 + weight) x its own; a neighbour with another kick changes it."""
+    main = kick_model.load_record()["params"]
+    slow = main.copy()
+    slow[kick_model.PARAM_NAMES.index("strength")] = 0.1
+    chain = kick_scoring.chain_cost(env, kick_scoring.weights(kick_scoring.fitness_json_of(FITNESS)), 0.5)
+    keys = jax.random.split(jax.random.key(0), 2).reshape(1, 2)
+
+    def row(kick, present):
+        return np.concatenate([kick, [12.0, present]]).astype(np.float32)
+
+    extras = jnp.stack([np.stack([row(main, 0), row(main, 0)]), np.stack([row(main, 1), row(main, 1)]),
+                        np.stack([row(main, 1), row(main, 0)]), np.stack([row(slow, 1), row(main, 0)])])  # fmt: skip
+    costs = np.asarray(jax.jit(jax.vmap(lambda extra: chain(main[None], keys, 12.0, extra)[0][0]))(extras))
+    alone = costs[0]
+    np.testing.assert_allclose(costs[1:3], [1.5 * alone, 1.5 * alone], rtol=1e-5)
+    assert abs(costs[3] - 1.5 * alone) > 1e-3 * alone
+
+
 def test_a_search_is_reproducible_from_its_seed():
     search = _toy_search()
     x0 = np.asarray(kick_model.DEFAULT_PARAMS, np.float32)[None]
@@ -109,6 +144,7 @@ TUNE = ml_collections.ConfigDict(
         "seed": 0,
         "start_leash": 0.0,
         "neighbour_leash": 0.0,
+        "midpoint_weight": 0.0,
     }
 )
 
