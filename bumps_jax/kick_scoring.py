@@ -47,21 +47,21 @@ def chain_cost(env: kick_env.KickEnv, fitness, midpoint_weight: float):
     plays at best. A candidate that kicks well alone but not mixed with its neighbours ranks low.
     """
     n_params = kick_model.N_PARAMS
-    episodes = jax.vmap(rollout.over_reps(rollout.episode_fn(env, rollout.table_policy)), in_axes=(0, None, None, 0))
-    halfway_episodes = jax.vmap(episodes, in_axes=(1, 0, 0, None), out_axes=1)  # over the two neighbours
+    episode = rollout.over_reps(rollout.episode_fn(env, rollout.table_policy))
+    # inner: a candidate's three kicks (its own, halfway down, halfway up) at their targets on
+    # the same keys; outer: the candidates, each on its own keys (one compiled episode)
+    episodes = jax.vmap(jax.vmap(episode, in_axes=(0, 0, 0, None)), in_axes=(0, None, None, 0))
 
     def cost_fn(params, keys, target, extra):
-        tables = kick_model.action_tables(params, env.n_steps, env.dt)  # (P, n_steps, 22)
-        metrics = episodes(tables, target, target, keys)
-        cost = jnp.mean(kick_model.fitness(metrics, target, fitness), axis=1)
+        tables = kick_model.action_tables(params, env.n_steps, env.dt)[:, None]  # (P, 1, n_steps, 22)
         neighbours = kick_model.action_tables(extra[:, :n_params], env.n_steps, env.dt)  # (2, n_steps, 22)
-        mixed = 0.5 * (tables[:, None] + neighbours[None])  # (P, 2, n_steps, 22)
-        middle = 0.5 * (target + extra[:, n_params])  # (2,)
-        halfway = halfway_episodes(mixed, middle, middle, keys)  # (P, 2, R)
-        halfway_cost = jnp.mean(kick_model.fitness(halfway, middle[None, :, None], fitness), axis=2)
+        kicks = jnp.concatenate([tables, 0.5 * (tables + neighbours[None])], axis=1)  # (P, 3, n_steps, 22)
+        goals = jnp.concatenate([jnp.reshape(target, (1,)), 0.5 * (target + extra[:, n_params])])  # (3,)
+        metrics = episodes(kicks, goals, goals, keys)  # (P, 3, R)
+        costs = jnp.mean(kick_model.fitness(metrics, goals[None, :, None], fitness), axis=2)  # (P, 3)
         present = extra[:, n_params + 1]
-        halfway_mean = jnp.sum(halfway_cost * present, axis=1) / jnp.maximum(jnp.sum(present), 1.0)
-        return cost + midpoint_weight * halfway_mean, metrics
+        halfway = jnp.sum(costs[:, 1:] * present, axis=1) / jnp.maximum(jnp.sum(present), 1.0)
+        return costs[:, 0] + midpoint_weight * halfway, {k: v[:, 0] for k, v in metrics.items()}
 
     return cost_fn
 
