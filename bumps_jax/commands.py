@@ -34,6 +34,7 @@ def report(cfg, run_dir: Path, args) -> None:
 
 def publish(cfg, run_dir: Path, args) -> None:
     """A finished paper run into the repository; another task's run into results/<task>/."""
+    from bumps_jax import pipeline, tasks  # noqa: PLC0415
     from bumps_jax import publish as publish_mod  # noqa: PLC0415
 
     if cfg.task != "kick":
@@ -41,6 +42,10 @@ def publish(cfg, run_dir: Path, args) -> None:
             print(f"wrote {path}")
         return
     made_with = publish_mod.run_config(run_dir, cfg)
+    try:
+        pipeline.check_current(made_with, run_dir, tasks.STAGES[made_with.task])
+    except pipeline.StaleRunError as err:
+        raise ValueError(f"not published: {err}") from None
     if made_with.preset != cfg.preset:
         print(f"{run_dir} is a {made_with.preset} run: publishing it with the {made_with.preset} preset's config")
     for path in publish_mod.publish(run_dir, cfg=made_with):

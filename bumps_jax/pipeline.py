@@ -60,6 +60,15 @@ def run_stage(name: str, cfg, run_dir: Path, force: bool = False, say=print) -> 
     return execute(name, cfg, run_dir, *plan(name, cfg, run_dir, force), say=say)
 
 
+def check_current(cfg, run_dir: Path, stages) -> None:
+    """StaleRunError unless every one of `stages` that `run_dir` holds was made with `cfg` and the
+    inputs there now (its manifest, `check_manifest`): what publishing a run checks first, so that
+    no record goes out under a config it was not made with."""
+    for name in stages:
+        if (run_dir / name).exists():
+            plan(name, cfg, run_dir)
+
+
 def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print) -> dict:
     """One stage after `plan`: reuse its record, or write its manifest and run it."""
     module = stage_module(name)

@@ -87,6 +87,15 @@ def test_a_knob_added_later_at_its_default_keeps_an_older_run(tmp_path, stages):
         pipeline.run_stage("experts", cfg(), tmp_path)
 
 
+def test_publishing_checks_every_stage_the_run_holds_against_the_config(tmp_path, stages):
+    """`publish` first checks the run's stages against the config it names (`check_current`):
+    stages the run lacks are skipped; one made with another config stops it, naming the key."""
+    pipeline.run_stage("experts", cfg(), tmp_path)
+    pipeline.check_current(cfg(), tmp_path, ("experts", "meta", "filter"))
+    with pytest.raises(pipeline.StaleRunError, match="experts.seed"):
+        pipeline.check_current(cfg(**{"experts.seed": 7}), tmp_path, ("experts", "meta"))
+
+
 def test_a_stage_whose_inputs_changed_is_refused(tmp_path, stages):  # defect 3
     log, _ = stages
     pipeline.run_stage("experts", cfg(), tmp_path)
