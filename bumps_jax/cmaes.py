@@ -177,13 +177,17 @@ def run_search(search: Search, x0, targets, free, generations: int, seed: int, e
     x0, targets, scale, leash = sharding.place((x0, targets, scale, leash), search.mesh)
     centre, extra = x0, sharding.place(extra, search.mesh)
     history, clock = [], _Clock(generations)
+
+    def follow(fn, carry):  # fn of every search's current CMA-ES mean params, padded and placed
+        means = x0[:n] + scale[:n] * carry.es.mean[:n].reshape(x0[:n].shape)
+        return sharding.place(sharding.pad(jnp.asarray(fn(means), jnp.float32), T), search.mesh)
+
     for gen in range(generations):
         key, gen_key = jax.random.split(key)
-        means = x0 + scale * carry.es.mean.reshape(x0.shape)
         if centre_fn is not None:
-            centre = sharding.place(sharding.pad(jnp.asarray(centre_fn(means[:n]), jnp.float32), T), search.mesh)
+            centre = follow(centre_fn, carry)
         if extra_fn is not None:
-            extra = sharding.place(sharding.pad(jnp.asarray(extra_fn(means[:n]), jnp.float32), T), search.mesh)
+            extra = follow(extra_fn, carry)
         carry, stats = search.step(
             *sharding.place((carry, jax.random.split(gen_key, T)), search.mesh), x0, targets, scale, extra, leash,
             centre,
@@ -327,32 +331,36 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     }
 
 
-def neighbour_partners(params: jax.Array, targets) -> jax.Array:
-    """(T, 2, 16): for each task its lower and upper neighbour in the order of `targets` (T,), each
-    as its params (14, clipped to the bounds), its target and 1, or the task's own params and
-    target and 0 where it has none (the first and the last task): `chain_cost`'s extra."""
-    targets = np.asarray(targets, np.float32)
-    order = np.argsort(targets, kind="stable")
+def neighbours(targets) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each task's lower and upper neighbour in the order of `targets` (T,) (ties keep their
+    order): indices (T,) each, and (T,) bool whether it has one; a missing neighbour (the first
+    and the last task's) is the task itself."""
+    order = np.argsort(np.asarray(targets), kind="stable")
     rank = np.argsort(order, kind="stable")  # each task's place in the sorted order
-    lower, upper = order[np.maximum(rank - 1, 0)], order[np.minimum(rank + 1, len(order) - 1)]
+    has_lower, has_upper = rank > 0, rank < len(order) - 1
+    return order[np.maximum(rank - 1, 0)], order[np.minimum(rank + 1, len(order) - 1)], has_lower, has_upper
+
+
+def neighbour_partners(params: jax.Array, targets) -> jax.Array:
+    """(T, 2, 16): for each task its lower and upper neighbour (`neighbours`), each as its params
+    (14, clipped to the bounds), its target and 1, or the task's own params and target and 0
+    where it has none: `chain_cost`'s extra."""
+    targets = np.asarray(targets, np.float32)
+    lower, upper, has_lower, has_upper = neighbours(targets)
     params = kick_model.clip_params(jnp.asarray(params, jnp.float32))
 
     def row(index, present):
         return jnp.concatenate([params[index], targets[index][:, None], present[:, None].astype(np.float32)], 1)
 
-    return jnp.stack([row(lower, rank > 0), row(upper, rank < len(order) - 1)], 1)
+    return jnp.stack([row(lower, has_lower), row(upper, has_upper)], 1)
 
 
 def neighbour_midpoints(params: jax.Array, targets) -> jax.Array:
-    """(T, 14): for each task the mean of its neighbours' params (T, 14) in the order of `targets`
-    (T,) (ties keep their order; the first and last task have one neighbour each)."""
-    order = np.argsort(np.asarray(targets), kind="stable")
-    if len(order) < 2:
-        return params
-    ranked = params[order]
-    lower = jnp.concatenate([ranked[1:2], ranked[:-1]])  # the first task's only neighbour is the second
-    upper = jnp.concatenate([ranked[1:], ranked[-2:-1]])
-    return jnp.zeros_like(params).at[order].set(0.5 * (lower + upper))
+    """(T, 14): for each task the mean of its neighbours' params (T, 14) (`neighbours`; the first
+    and last task's one neighbour counts twice; a lone task is its own)."""
+    lower, upper, has_lower, has_upper = neighbours(targets)
+    lower, upper = np.where(has_lower, lower, upper), np.where(has_upper, upper, lower)
+    return 0.5 * (params[lower] + params[upper])
 
 
 def tuning_leash(starts, targets, to_start: float, to_neighbours: float):

@@ -166,10 +166,10 @@ def experts(e, task_range, n_steps: int) -> None:
     if e.tune.scheme not in TUNE_SCHEMES:
         raise ValueError(f"experts.tune.scheme must be one of {TUNE_SCHEMES}, got {e.tune.scheme!r}")
     for name in ("start_leash", "neighbour_leash", "midpoint_weight"):
-        leash = e.tune[name]
-        if isinstance(leash, bool) or not isinstance(leash, int | float) or not leash >= 0:
-            raise ValueError(f"experts.tune.{name} must be a number >= 0, got {leash!r}")
-        if leash > 0 and e.tune.scheme == "family":
+        weight = e.tune[name]
+        if isinstance(weight, bool) or not isinstance(weight, int | float) or not weight >= 0:
+            raise ValueError(f"experts.tune.{name} must be a number >= 0, got {weight!r}")
+        if weight > 0 and e.tune.scheme == "family":
             raise ValueError(f"experts.tune.{name} applies to the 'per_task' scheme only; with 'family' set it to 0")
     if isinstance(e.tune.knots, bool) or e.tune.knots < 2:
         raise ValueError(f"experts.tune.knots must be an integer >= 2, got {e.tune.knots!r}")
