@@ -45,6 +45,7 @@ class Stats(NamedTuple):
     best: jax.Array  # lowest mean cost among this generation's candidates
     mean: jax.Array  # mean cost over the population
     valid: jax.Array  # fraction of valid kicks over the population's episodes
+    overflow: jax.Array  # fraction of episodes whose physics ran out of contact slots (Warp; else 0)
 
 
 class Search(NamedTuple):
@@ -111,7 +112,8 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
             jnp.where(better, cost[i], carry.best_cost),
             jnp.where(better, params[i], carry.best_params),
         )
-        return carry, Stats(jnp.min(cost), jnp.mean(cost), jnp.mean(metrics["valid"]))
+        overflow = jnp.mean(metrics["overflow"]) if "overflow" in metrics else jnp.zeros(())
+        return carry, Stats(jnp.min(cost), jnp.mean(cost), jnp.mean(metrics["valid"]), overflow)
 
     step = sharding.over_batch(jax.vmap(generation), mesh, (True,) * 8)
     return Search(es, es_params, step, mesh, shape)
@@ -193,6 +195,11 @@ def run_search(search: Search, x0, targets, free, generations: int, seed: int, e
             centre,
         )  # fmt: skip
         stats = Stats(*(np.asarray(s) for s in sharding.unpad(tuple(stats), n)))
+        if stats.overflow.max() > 0:  # dropped contacts: every cost of this generation is wrong
+            raise RuntimeError(
+                f"{label} gen {gen + 1}: the physics ran out of contact slots in "
+                f"{stats.overflow.max():.0%} of a search's episodes; raise env.warp_contacts"
+            )
         history.append(stats)
         if on_generation is not None:
             on_generation(gen, stats)
@@ -240,6 +247,7 @@ def optimise(env, start, target: float, free_params, cfg, csv_path=None, mesh=No
                          f"{start.shape} and {tuple(free_params)!r}")  # fmt: skip
     _check_search(env, [target], cfg.population_size, cfg.repetitions, cfg.sigma_init, cfg.generations)
     mesh = mesh or sharding.device_mesh()
+    _check_pool(env, int(cfg.population_size) * int(cfg.repetitions), "the search")
     search = kick_search(env, mesh, int(cfg.population_size), int(cfg.repetitions), float(cfg.sigma_init),
                          kick_scoring.fitness_json_of(cfg.fitness))  # fmt: skip
     free = np.array([n in free_params for n in kick_model.PARAM_NAMES])
@@ -308,6 +316,8 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     kick_scoring.check_count("eval_repetitions", tune_cfg.eval_repetitions)
     mesh = mesh or sharding.device_mesh()
     P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
+    per_device = sharding.padded_size(T, mesh) // mesh.size  # searches each device plays at once
+    _check_pool(env, per_device * P * R, "the tuning (tasks x population x repetitions)")
     fitness_json = kick_scoring.fitness_json_of(fitness)
     midpoint_weight = float(tune_cfg.midpoint_weight)
     search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json, midpoint_weight)
@@ -409,6 +419,7 @@ def tune_family(env, targets, knots, start_knots, tune_cfg, generations: int, si
     kick_scoring.check_count("eval_repetitions", tune_cfg.eval_repetitions)
     mesh = mesh or sharding.device_mesh()
     P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
+    _check_pool(env, P * R * T, "the family tuning (population x repetitions x tasks)")
     fitness_json = kick_scoring.fitness_json_of(fitness)
     search = family_search(env, mesh, P, R, float(sigma_init), fitness_json, tuple(knots.tolist()),
                            tuple(targets.tolist()))  # fmt: skip
@@ -432,6 +443,18 @@ def tune_family(env, targets, knots, start_knots, tune_cfg, generations: int, si
         "history": result.history["best"][:, 0],
         "episodes": int(generations * P * R * T + 2 * E * T),
     }
+
+
+def _check_pool(env, episodes: int, what: str) -> None:
+    """ValueError when one physics call of a search (on one device) plays more episodes than
+    Warp's contact pool holds (`kick_env` config `warp_contacts`): its contacts would be dropped
+    and every cost be wrong. A search's program is not split into chunks as rollouts are."""
+    most = getattr(env, "max_episodes", None)
+    if most is not None and episodes > most:
+        raise ValueError(
+            f"env.warp_contacts {env.config.warp_contacts} holds {most} episodes, but {what} plays {episodes} "
+            f"in one physics call: set env.warp_contacts to at least {episodes * env.contacts_per_episode}"
+        )
 
 
 def _check_search(env, targets, population, repetitions, sigma_init, generations) -> None:

@@ -47,21 +47,22 @@ def chain_cost(env: kick_env.KickEnv, fitness, midpoint_weight: float):
     plays at best. A candidate that kicks well alone but not mixed with its neighbours ranks low.
     """
     n_params = kick_model.N_PARAMS
-    episode = rollout.over_reps(rollout.episode_fn(env, rollout.table_policy))
-    # inner: a candidate's three kicks (its own, halfway down, halfway up) at their targets on
-    # the same keys; outer: the candidates, each on its own keys (one compiled episode)
-    episodes = jax.vmap(jax.vmap(episode, in_axes=(0, 0, 0, None)), in_axes=(0, None, None, 0))
+    # the candidates, each on its own keys
+    episodes = jax.vmap(rollout.over_reps(rollout.episode_fn(env, rollout.table_policy)), in_axes=(0, None, None, 0))
 
     def cost_fn(params, keys, target, extra):
-        tables = kick_model.action_tables(params, env.n_steps, env.dt)[:, None]  # (P, 1, n_steps, 22)
+        tables = kick_model.action_tables(params, env.n_steps, env.dt)  # (P, n_steps, 22)
         neighbours = kick_model.action_tables(extra[:, :n_params], env.n_steps, env.dt)  # (2, n_steps, 22)
-        kicks = jnp.concatenate([tables, 0.5 * (tables + neighbours[None])], axis=1)  # (P, 3, n_steps, 22)
+        kicks = jnp.stack([tables, *(0.5 * (tables + neighbours[i]) for i in range(2))])  # (3, P, n_steps, 22)
         goals = jnp.concatenate([jnp.reshape(target, (1,)), 0.5 * (target + extra[:, n_params])])  # (3,)
-        metrics = episodes(kicks, goals, goals, keys)  # (P, 3, R)
-        costs = jnp.mean(kick_model.fitness(metrics, goals[None, :, None], fitness), axis=2)  # (P, 3)
+        # the candidate's own kicks, then the halfway kicks down and up, on the same keys: one
+        # after another, so that a physics call holds no more episodes than the search alone
+        # (Warp's contact pool is sized for that) and the episode compiles once
+        metrics = jax.lax.map(lambda kg: episodes(kg[0], kg[1], kg[1], keys), (kicks, goals))  # (3, P, R)
+        costs = jnp.mean(kick_model.fitness(metrics, goals[:, None, None], fitness), axis=2).T  # (P, 3)
         present = extra[:, n_params + 1]
         halfway = jnp.sum(costs[:, 1:] * present, axis=1) / jnp.maximum(jnp.sum(present), 1.0)
-        return costs[:, 0] + midpoint_weight * halfway, {k: v[:, 0] for k, v in metrics.items()}
+        return costs[:, 0] + midpoint_weight * halfway, {k: v[0] for k, v in metrics.items()}
 
     return cost_fn
 

@@ -81,14 +81,19 @@ def cheetah_vel(c, prefix: str) -> None:
 
 
 def physics_capacity(cfg) -> None:
-    """Warp's contact pool holds every episode of each training program (rollouts larger than
-    the pool run in chunks; a PPO program cannot)."""
+    """Warp's contact pool holds every episode of each training program and of the experts'
+    kick tuning (rollouts larger than the pool run in chunks; a PPO or CMA-ES program cannot)."""
     if cfg.env.impl != "warp":
         return
     most = cfg.env.warp_contacts // kick_env.CONTACTS_PER_EPISODE
     programs = {
         "experts (len(experts.tasks) x experts.ppo.num_envs)": len(cfg.experts.tasks) * cfg.experts.ppo.num_envs,
         "baseline (baseline.seeds x learning rates x baseline.ppo.num_envs)": baseline_runs(cfg.baseline),
+        "experts tuning (len(experts.tasks) x experts.tune.population_size x experts.tune.repetitions)": len(
+            cfg.experts.tasks
+        )
+        * cfg.experts.tune.population_size
+        * cfg.experts.tune.repetitions,
     }
     for name, n in programs.items():
         if n > most:

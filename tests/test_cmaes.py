@@ -114,8 +114,8 @@ def test_the_chain_cost_adds_the_kicks_halfway_to_the_neighbours(env):
                         np.stack([row(main, 1), row(main, 0)]), np.stack([row(slow, 1), row(main, 0)])])  # fmt: skip
     costs = np.asarray(jax.jit(jax.vmap(lambda extra: chain(main[None], keys, 12.0, extra)[0][0]))(extras))
     alone = costs[0]
-    # equal up to float32 physics batched three kicks at a time instead of one
-    np.testing.assert_allclose(costs[1:3], [1.5 * alone, 1.5 * alone], rtol=1e-3)
+    # equal up to float32: the same episodes, compiled inside another program
+    np.testing.assert_allclose(costs[1:3], [1.5 * alone, 1.5 * alone], rtol=1e-4)
     assert abs(costs[3] - 1.5 * alone) > 0.05 * alone, costs
 
 

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax import c_replay, config, kick_env, kick_model, ppo, ppo_config, rollout, scene, task_env
+from bumps_jax import c_replay, cmaes, config, kick_env, kick_model, ppo, ppo_config, rollout, scene, task_env
 
 NO_NOISE = {f"noise.{k}": 0.0 for k in ("ball_xy", "joint_angle", "friction", "actuator_gain")}
 MAIN = kick_model.ANCHORS.index("main")
@@ -143,3 +143,24 @@ def test_one_ppo_update_over_two_tasks_runs_on_warp(warp):
     state, metrics = jax.jit(jax.vmap(trainer.train))(jax.random.split(jax.random.key(0), 2), jnp.array([9.0, 15.0]))
     assert np.asarray(state.update).tolist() == [1, 1]
     assert all(np.isfinite(np.asarray(v)).all() for v in metrics)
+
+
+def test_the_tuning_with_halfway_kicks_fits_the_pool_of_the_search_alone(warp, anchors):
+    """The halfway kicks play after the candidates' own, not beside them: a pool that holds one
+    generation's own episodes (2 tasks x 2 candidates x 1) is enough, and no contact is dropped.
+    A pool one episode smaller is refused in one line before anything compiles."""
+    tune = {"population_size": 2, "repetitions": 1, "eval_repetitions": 1, "midpoint_weight": 1.0}
+    tune = config.make_config("tiny", {f"experts.tune.{k}": v for k, v in tune.items()})
+    fitness = config.make_config("tiny").prior.fitness
+    starts = np.stack([anchors[MAIN]] * 2)
+    out = cmaes.tune_for_tasks(warp_env(contacts=12 * 4), [11.0, 12.0], starts, tune.experts.tune, 1, 0.5,
+                               fitness=fitness, say=lambda m: None)  # fmt: skip
+    assert np.isfinite(out["tuned_cost"]).all() and out["episodes"] == 2 * (1 * 2 * 1 * 3 + 2 * 1)
+    with pytest.raises(ValueError, match="env.warp_contacts 36 holds 3 episodes, but the tuning") as err:
+        cmaes.tune_for_tasks(warp_env(contacts=12 * 3), [11.0, 12.0], starts, tune.experts.tune, 1, 0.5,
+                             fitness=fitness, say=lambda m: None)  # fmt: skip
+    assert "\n" not in str(err.value)
+    # the config says so before any stage starts: the paper preset's pool holds its tuning, not twice it
+    with pytest.raises(ValueError, match="but the experts tuning .* runs 11776") as err:
+        config.make_config("paper", {"experts.tune.population_size": 64})
+    assert "\n" not in str(err.value)
