@@ -109,7 +109,7 @@ def _experts() -> ml_collections.ConfigDict:
     # neighbouring tasks' current means (their joint trajectories mixed 50/50, played at the
     # middle target), added during the search (0: none; > 0 triples the tuning's episodes). > 0
     # tunes the tasks so that what a meta-policy plays between two of them still kicks.
-    cfg.tune.midpoint_weight = 1.0
+    cfg.tune.midpoint_weight = 0.0
     cfg.ppo = ppo_config.default_config()
     cfg.ppo.num_envs = 256  # episodes per update (19,200 steps; the paper: 4,096)
     cfg.ppo.num_minibatches = 16  # 16 episodes = 1,200 steps each (the paper: 1,024)
@@ -260,7 +260,6 @@ PRESETS: dict[str, dict] = {
         # strength, untied to its neighbours.
         "experts.bc.per_task_strength": True,
         "experts.tune.neighbour_leash": 0.0,
-        "experts.tune.midpoint_weight": 0.0,
         "experts.ppo.num_envs": 8,
         "experts.ppo.num_minibatches": 2,
         "experts.ppo.num_epochs": 4,

@@ -21,9 +21,8 @@ KICK_SECTIONS = {
     },
     "paper": {
         "prior": "e38b970f96217601c6ed4c31aff219830db04d78627ad7239a92aca0fb1dfadc",
-        # re-pinned when the paper's starting kicks became one chain from the main kick (2026-11-23),
-        # and when its tuning began to score the kicks halfway between neighbours (2026-11-24)
-        "experts": "61a586074f85faa9c468edce3ea9ecc820f0501045af8b8e0f23bd683caf2ba8",
+        # re-pinned when the paper's starting kicks became one chain from the main kick (2026-11-23)
+        "experts": "2aa908080e313ea063f9b33c771e766b06258e203f3fd40617f4dc201c27948c",
         "meta": "b3cbdc5da8d75d3f3d733a551ce389880e93f61c2b330750bd0b66d84070b146",
         "filter": "ab9e5ff5612b5c379ee36c36ee5c678ece58954c529f0017aab817c2269f29c9",
         "heldout": "3d00234a9a024e9b03d79264da1858dd0404759e5043654ec3c158bebcff9205",
