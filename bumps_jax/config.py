@@ -82,6 +82,13 @@ def _experts() -> ml_collections.ConfigDict:
     # task's calibrated strength (with `tune.anchor_starts`, the best of that and the prior's
     # anchors); False, the main kick for every task, so that the tuned kicks are one family.
     cfg.bc.per_task_strength = False
+    # With per_task_strength False: the prior's anchor every task starts from (`kick_model.ANCHORS`).
+    cfg.bc.common_start = "main"
+    # With per_task_strength False: True sets each task's copy of that kick to the strength at
+    # which it rests nearest the task's target (read from a noisy sweep of its strength,
+    # `tune.eval_repetitions` episodes per strength), so that the tasks start spread over their
+    # targets as one kick; False keeps the kick's own strength for every task.
+    cfg.bc.common_start_strength = False
     cfg.tune = ml_collections.ConfigDict()  # CMA-ES on every task's starting kick, all at once
     cfg.tune.generations = 60  # 0: clone the (blended or anchor) kick as it is
     cfg.tune.sigma_init = 2.0  # in PARAM_SCALE units around each task's start
@@ -234,6 +241,8 @@ ADDED_KNOBS = {
     "experts.tune.start_leash": 0.0,
     "experts.tune.neighbour_leash": 0.0,
     "experts.tune.midpoint_weight": 0.0,
+    "experts.bc.common_start": "main",
+    "experts.bc.common_start_strength": False,
 }
 
 # Each preset: dotted overrides of the defaults (the paper's values).

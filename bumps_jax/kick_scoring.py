@@ -179,12 +179,30 @@ def sweep(env, anchors, strengths, target: float, repetitions: int = 8, seed: in
     """The blended kick (`kick_model.blend_params` of anchors (3, 14)) at each strength in [0, 1]:
     rows of its mean and std resting distance, sideways offset, valid and fallen fractions over
     `repetitions` noisy episodes, the same for every strength."""
+    strengths = _strengths(strengths)
+    batch = jax.vmap(kick_model.blend_params, in_axes=(None, 0))(jnp.asarray(anchors), jnp.asarray(strengths))
+    return _sweep_rows(env, batch, strengths, target, repetitions, seed, mesh)
+
+
+def strength_sweep(env, kick, strengths, target: float, repetitions: int = 8, seed: int = 2, mesh=None) -> list[dict]:
+    """`sweep`'s rows for one kick (14,) with its strength set to each of `strengths` in [0, 1]
+    and every other parameter kept."""
+    strengths = _strengths(strengths)
+    batch = np.tile(np.asarray(kick, np.float32), (len(strengths), 1))
+    batch[:, kick_model.PARAM_NAMES.index("strength")] = strengths
+    return _sweep_rows(env, batch, strengths, target, repetitions, seed, mesh)
+
+
+def _strengths(strengths) -> np.ndarray:
     strengths = np.asarray(strengths, np.float32)
     if strengths.ndim != 1 or not len(strengths) or not np.all((strengths >= 0) & (strengths <= 1)):
         raise ValueError(f"strengths must be a 1-d list in [0, 1], got {strengths.tolist()!r}")
+    return strengths
+
+
+def _sweep_rows(env, batch, strengths, target, repetitions, seed, mesh) -> list[dict]:
     check_count("repetitions", repetitions)
     kick_env.check_targets(target, env.config.task_range)
-    batch = jax.vmap(kick_model.blend_params, in_axes=(None, 0))(jnp.asarray(anchors), jnp.asarray(strengths))
     keys = jnp.broadcast_to(jax.random.split(jax.random.key(seed), repetitions), (len(strengths), repetitions))
     out = replay(env, batch, np.full(len(strengths), target, np.float32), keys, mesh)
     return [

@@ -22,15 +22,26 @@ def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray,
     """The prior family's kick (N, 14) for each of `targets` (N,) m, what was chosen, and the
     episodes the choice cost.
 
-    The family at each target's calibrated strength (or the main kick for every target), or
-    with `tune.anchor_starts` the best of that and the prior's anchors on `tune.eval_repetitions`
-    noisy kicks at the target.
+    The family at each target's calibrated strength, or with `tune.anchor_starts` the best of
+    that and the prior's anchors on `tune.eval_repetitions` noisy kicks at the target. Without
+    `bc.per_task_strength`: one anchor (`bc.common_start`) for every target, with
+    `bc.common_start_strength` each copy at the strength where that kick rests nearest its target.
     """
     e = cfg.experts
     targets = np.asarray(targets, np.float32)
     info = {"start_targets_m": targets.tolist()}
     if not e.bc.per_task_strength:
-        return np.tile(np.asarray(record["params"], np.float32), (len(targets), 1)), info, 0
+        kick = np.asarray(record["anchors"][kick_model.ANCHORS.index(e.bc.common_start)], np.float32)
+        starts = np.tile(kick, (len(targets), 1))
+        info["common_start"] = e.bc.common_start
+        if not e.bc.common_start_strength:
+            return starts, info, 0
+        strengths = np.linspace(0.1, 1.0, 19)
+        rows = kick_scoring.strength_sweep(env, kick, strengths, float(cfg.prior.target), e.tune.eval_repetitions)
+        table = kick_model.calibration({"sweep": rows})
+        starts[:, kick_model.PARAM_NAMES.index("strength")] = np.interp(targets, table[:, 1], table[:, 0])
+        info["common_start_sweep"] = rows
+        return starts, info, len(strengths) * int(e.tune.eval_repetitions)
     anchors = jnp.asarray(record["anchors"], jnp.float32)
     table = jnp.asarray(kick_model.calibration(record))
     starts = np.asarray(jax.vmap(lambda t: kick_model.kick_for(anchors, table, t))(jnp.asarray(targets)))

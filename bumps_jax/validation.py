@@ -10,7 +10,7 @@ import math
 import ml_collections
 import numpy as np
 
-from bumps_jax import kick_env, ppo_config
+from bumps_jax import kick_env, kick_model, ppo_config
 
 # The paper preset's held-out set must hold at least this many targets.
 HELDOUT_MIN_TARGETS = 50
@@ -162,6 +162,15 @@ def experts(e, task_range, n_steps: int) -> None:
     positive_ints(e, "experts.", ("updates_per_chunk", "keep_checkpoints"))
     positive_ints(e.bc, "experts.bc.", ("steps",))
     positive_floats(e.bc, "experts.bc.", ("learning_rate",))
+    if e.bc.common_start not in kick_model.ANCHORS:
+        raise ValueError(f"experts.bc.common_start must be one of {kick_model.ANCHORS}, got {e.bc.common_start!r}")
+    if not isinstance(e.bc.common_start_strength, bool):
+        raise ValueError(f"experts.bc.common_start_strength must be true or false, got {e.bc.common_start_strength!r}")
+    if e.bc.per_task_strength and (e.bc.common_start != "main" or e.bc.common_start_strength):
+        raise ValueError(
+            "experts.bc.common_start and common_start_strength apply when every task starts from one kick: "
+            "set experts.bc.per_task_strength to false"
+        )
     positive_ints(e.tune, "experts.tune.", ("repetitions", "eval_repetitions", "population_size"))
     if isinstance(e.tune.generations, bool) or e.tune.generations < 0:
         raise ValueError(f"experts.tune.generations must be an integer >= 0, got {e.tune.generations!r}")

@@ -10,13 +10,16 @@
 #   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
 #        | midpoint_weight=<w>
 #        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
+#        | start=<anchor>[,spread] (every task starts from that prior anchor; spread: each at the strength
+#          where that kick rests nearest its target)
 set -euo pipefail
 tasks=$(python3 -c 'print("[" + ",".join(f"{7.05 + 0.1 * i:.2f}" for i in range(110)) + "]")')
 # The comparison's reference (arm per_task): every task from the best of its blended kick and the
 # prior's anchors, tuned on its own; each arm's parts change it.
 common=("meta.eval.tasks=$tasks" experts.ppo.total_env_steps=480000 experts.updates_per_chunk=25 meta.train.epochs=30000
         experts.tune.scheme=per_task experts.bc.per_task_strength=true experts.tune.anchor_starts=true
-        experts.tune.start_leash=0 experts.tune.neighbour_leash=0 experts.tune.midpoint_weight=0)
+        experts.tune.start_leash=0 experts.tune.neighbour_leash=0 experts.tune.midpoint_weight=0
+        experts.bc.common_start=main experts.bc.common_start_strength=false)
 for arm in "$@"; do
   seed=101
   sets=()
@@ -28,6 +31,8 @@ for arm in "$@"; do
       family12) sets+=(experts.tune.scheme=family experts.tune.knots=12) ;;
       start_leash=*|neighbour_leash=*|midpoint_weight=*|generations=*) sets+=("experts.tune.$part") ;;
       main_start) sets+=(experts.bc.per_task_strength=false) ;;
+      start=*) sets+=(experts.bc.per_task_strength=false "experts.bc.common_start=${part#start=}") ;;
+      spread) sets+=(experts.bc.common_start_strength=true) ;;
       seed=*) seed=${part#seed=} ;;
       *) echo "unknown arm part: $part" >&2; exit 2 ;;
     esac

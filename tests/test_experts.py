@@ -80,6 +80,31 @@ def test_starting_kicks_read_the_runs_prior(tmp_path):
         np.testing.assert_allclose(kicks, expected, rtol=1e-6)
 
 
+def test_one_anchor_starts_every_task_at_its_own_strength():
+    """Without per-task strength, `bc.common_start` names the kick every task starts from; with
+    `bc.common_start_strength` each task's copy differs only in its strength, read from a noisy
+    sweep of that kick's strength: where the sweep's distance rises, the strength rests at the target."""
+    tasks = (8.0, 12.0, 16.0)
+    record = kick_model.load_record()
+    long_kick = record["anchors"][kick_model.ANCHORS.index("long")]
+    one = {"experts.tasks": tasks, "experts.bc.per_task_strength": False, "experts.bc.common_start": "long"}
+    kicks, info = starting_kicks.starting_kicks(pipeline_config(**one), record, say=lambda *a, **k: None)
+    np.testing.assert_array_equal(kicks, np.tile(long_kick, (3, 1)))
+    assert info["common_start"] == "long" and info["episodes"] == 0
+    cfg = pipeline_config(**one, **{"experts.bc.common_start_strength": True})
+    kicks, info = starting_kicks.starting_kicks(cfg, record, say=lambda *a, **k: None)
+    strength = kick_model.PARAM_NAMES.index("strength")
+    others = np.arange(kick_model.N_PARAMS) != strength
+    np.testing.assert_array_equal(kicks[:, others], np.tile(long_kick[others], (3, 1)))
+    assert np.all(np.diff(kicks[:, strength]) >= 0) and np.all((kicks[:, strength] >= 0.1) & (kicks[:, strength] <= 1))
+    assert len(info["common_start_sweep"]) == 19 and info["episodes"] == 19 * cfg.experts.tune.eval_repetitions
+    table = kick_model.calibration({"sweep": info["common_start_sweep"]})
+    inside = (np.asarray(tasks) > table[0, 1]) & (np.asarray(tasks) < table[-1, 1])
+    assert inside.any()
+    rests = np.interp(kicks[inside, strength], table[:, 0], table[:, 1])
+    np.testing.assert_allclose(rests, np.asarray(tasks)[inside], atol=1e-3)
+
+
 def test_family_starting_kicks_are_the_prior_family_between_knots():
     """Scheme "family", no tuning (nothing compiled): the prior's blended kicks at 3 knots over
     the tasks' range make the contextual kick; each task's kick is it at the task's target."""
