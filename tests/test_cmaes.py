@@ -119,6 +119,20 @@ def test_the_chain_cost_adds_the_kicks_halfway_to_the_neighbours(env):
     assert abs(costs[3] - 1.5 * alone) > 0.05 * alone, costs
 
 
+def test_a_generation_whose_physics_dropped_contacts_stops_the_search():
+    """Warp marks the episodes of a physics call that ran out of contact slots: their costs are
+    wrong, so the search stops in one line instead of ranking them."""
+
+    def cost_fn(params, keys, target, extra):
+        return (params[:, 0] - target) ** 2, {"valid": jnp.ones(keys.shape), "overflow": jnp.ones(keys.shape)}
+
+    search = cmaes.make_search(cost_fn, 4, 2, 1.0, sharding.device_mesh())
+    x0 = np.asarray(kick_model.DEFAULT_PARAMS, np.float32)[None]
+    with pytest.raises(RuntimeError, match="toy gen 1: the physics ran out of contact slots in 100%") as err:
+        cmaes.run_search(search, x0, [14.0], np.ones((1, 14), bool), 3, 0, say=lambda m: None, label="toy")
+    assert "\n" not in str(err.value)
+
+
 def test_a_search_is_reproducible_from_its_seed():
     search = _toy_search()
     x0 = np.asarray(kick_model.DEFAULT_PARAMS, np.float32)[None]
