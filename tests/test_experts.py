@@ -80,10 +80,11 @@ def test_starting_kicks_read_the_runs_prior(tmp_path):
         np.testing.assert_allclose(kicks, expected, rtol=1e-6)
 
 
-def test_one_anchor_starts_every_task_at_its_own_strength():
+def test_one_anchor_starts_every_task_at_its_own_strength(monkeypatch):
     """Without per-task strength, `bc.common_start` names the kick every task starts from; with
     `bc.common_start_strength` each task's copy differs only in its strength, read from a noisy
-    sweep of that kick's strength: where the sweep's distance rises, the strength rests at the target."""
+    sweep of that kick's strength. The physics is a stand-in here (rest = 30 m x strength), so
+    nothing compiles and each task's strength is known: its target / 30."""
     tasks = (8.0, 12.0, 16.0)
     record = kick_model.load_record()
     long_kick = record["anchors"][kick_model.ANCHORS.index("long")]
@@ -91,18 +92,22 @@ def test_one_anchor_starts_every_task_at_its_own_strength():
     kicks, info = starting_kicks.starting_kicks(pipeline_config(**one), record, say=lambda *a, **k: None)
     np.testing.assert_array_equal(kicks, np.tile(long_kick, (3, 1)))
     assert info["common_start"] == "long" and info["episodes"] == 0
+    strength = kick_model.PARAM_NAMES.index("strength")
+    played = []
+
+    def stand_in(env, params, targets, keys, mesh=None):
+        played.append(np.asarray(params))
+        rest = np.broadcast_to(30.0 * np.asarray(params)[:, strength, None], keys.shape)
+        return {"distance": rest, "lateral": 0 * rest, "valid": 1 + 0 * rest, "fallen": 0 * rest}
+
+    monkeypatch.setattr(starting_kicks.kick_scoring, "replay", stand_in)
     cfg = pipeline_config(**one, **{"experts.bc.common_start_strength": True})
     kicks, info = starting_kicks.starting_kicks(cfg, record, say=lambda *a, **k: None)
-    strength = kick_model.PARAM_NAMES.index("strength")
     others = np.arange(kick_model.N_PARAMS) != strength
+    np.testing.assert_array_equal(played[0][:, others], np.tile(long_kick[others], (19, 1)))  # one kick swept
     np.testing.assert_array_equal(kicks[:, others], np.tile(long_kick[others], (3, 1)))
-    assert np.all(np.diff(kicks[:, strength]) >= 0) and np.all((kicks[:, strength] >= 0.1) & (kicks[:, strength] <= 1))
+    np.testing.assert_allclose(kicks[:, strength], np.asarray(tasks) / 30.0, rtol=1e-5)
     assert len(info["common_start_sweep"]) == 19 and info["episodes"] == 19 * cfg.experts.tune.eval_repetitions
-    table = kick_model.calibration({"sweep": info["common_start_sweep"]})
-    inside = (np.asarray(tasks) > table[0, 1]) & (np.asarray(tasks) < table[-1, 1])
-    assert inside.any()
-    rests = np.interp(kicks[inside, strength], table[:, 0], table[:, 1])
-    np.testing.assert_allclose(rests, np.asarray(tasks)[inside], atol=1e-3)
 
 
 def test_family_starting_kicks_are_the_prior_family_between_knots():
