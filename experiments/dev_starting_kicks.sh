@@ -4,7 +4,8 @@
 # meta-policies (30,000 BC epochs) on development seeds (101), and scores the meta-policies
 # unfiltered on 110 development targets halfway between the meta-test tasks. Never the meta-test
 # seed or the held-out set. A part seed=<n> moves the four seeds together (default 101).
-# Records land in runs/dev_<arm>/; a finished stage is not rerun.
+# Records land in runs/dev_<arm>/ (a finished stage is not rerun) and are copied to
+# experiments/results/dev_starting_kicks/<arm>_{experts,table1}_<device>.json.
 #
 #   experiments/dev_starting_kicks.sh ARM [ARM ...]
 #   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
@@ -42,4 +43,11 @@ for arm in "$@"; do
   for stage in train-experts meta-train; do
     python -m bumps_jax "$stage" --preset paper --run-dir "$run" --set "${common[@]}" "${seeds[@]}" "${sets[@]}"
   done
+  # the device as the records' names give it: h100, h200, gpu or cpu
+  device=$(python -c 'import json, sys; d = json.load(open(sys.argv[1]))["device"]
+print(next((k.lower() for k in ("H100", "H200") if k in d), "cpu" if "cpu" in d.lower() else "gpu"))' "$run/experts/experts.json")
+  out=experiments/results/dev_starting_kicks
+  mkdir -p "$out"
+  cp "$run/experts/experts.json" "$out/${arm//[=,]/_}_experts_$device.json"
+  cp "$run/meta/table1.json" "$out/${arm//[=,]/_}_table1_$device.json"
 done
