@@ -449,7 +449,7 @@ def _check_pool(env, episodes: int, what: str) -> None:
     """ValueError when one physics call of a search (on one device) plays more episodes than
     Warp's contact pool holds (`kick_env` config `warp_contacts`): its contacts would be dropped
     and every cost be wrong. A search's program is not split into chunks as rollouts are."""
-    most = getattr(env, "max_episodes", None)
+    most = env.max_episodes  # None: not Warp, no pool
     if most is not None and episodes > most:
         raise ValueError(
             f"env.warp_contacts {env.config.warp_contacts} holds {most} episodes, but {what} plays {episodes} "

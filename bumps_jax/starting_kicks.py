@@ -17,6 +17,9 @@ import numpy as np
 
 from bumps_jax import evaluate, kick_env, kick_model, kick_scoring, rollout, runio
 
+# The strengths `bc.common_start_strength` sweeps its one kick over to place each task's copy.
+COMMON_START_STRENGTHS = np.linspace(0.1, 1.0, 19)
+
 
 def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray, dict, int]:
     """The prior family's kick (N, 14) for each of `targets` (N,) m, what was chosen, and the
@@ -36,12 +39,12 @@ def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray,
         info["common_start"] = e.bc.common_start
         if not e.bc.common_start_strength:
             return starts, info, 0
-        strengths = np.linspace(0.1, 1.0, 19)
-        rows = kick_scoring.strength_sweep(env, kick, strengths, float(cfg.prior.target), e.tune.eval_repetitions)
+        reps = int(e.tune.eval_repetitions)
+        rows = kick_scoring.strength_sweep(env, kick, COMMON_START_STRENGTHS, float(cfg.prior.target), reps)
         table = kick_model.calibration({"sweep": rows})
         starts[:, kick_model.PARAM_NAMES.index("strength")] = np.interp(targets, table[:, 1], table[:, 0])
         info["common_start_sweep"] = rows
-        return starts, info, len(strengths) * int(e.tune.eval_repetitions)
+        return starts, info, len(COMMON_START_STRENGTHS) * reps
     anchors = jnp.asarray(record["anchors"], jnp.float32)
     table = jnp.asarray(kick_model.calibration(record))
     starts = np.asarray(jax.vmap(lambda t: kick_model.kick_for(anchors, table, t))(jnp.asarray(targets)))

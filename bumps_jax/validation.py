@@ -86,14 +86,11 @@ def physics_capacity(cfg) -> None:
     if cfg.env.impl != "warp":
         return
     most = cfg.env.warp_contacts // kick_env.CONTACTS_PER_EPISODE
+    tuning = len(cfg.experts.tasks) * cfg.experts.tune.population_size * cfg.experts.tune.repetitions
     programs = {
         "experts (len(experts.tasks) x experts.ppo.num_envs)": len(cfg.experts.tasks) * cfg.experts.ppo.num_envs,
         "baseline (baseline.seeds x learning rates x baseline.ppo.num_envs)": baseline_runs(cfg.baseline),
-        "experts tuning (len(experts.tasks) x experts.tune.population_size x experts.tune.repetitions)": len(
-            cfg.experts.tasks
-        )
-        * cfg.experts.tune.population_size
-        * cfg.experts.tune.repetitions,
+        "experts tuning (len(experts.tasks) x experts.tune.population_size x experts.tune.repetitions)": tuning,
     }
     for name, n in programs.items():
         if n > most:
@@ -164,8 +161,6 @@ def experts(e, task_range, n_steps: int) -> None:
     positive_floats(e.bc, "experts.bc.", ("learning_rate",))
     if e.bc.common_start not in kick_model.ANCHORS:
         raise ValueError(f"experts.bc.common_start must be one of {kick_model.ANCHORS}, got {e.bc.common_start!r}")
-    if not isinstance(e.bc.common_start_strength, bool):
-        raise ValueError(f"experts.bc.common_start_strength must be true or false, got {e.bc.common_start_strength!r}")
     if e.bc.per_task_strength and (e.bc.common_start != "main" or e.bc.common_start_strength):
         raise ValueError(
             "experts.bc.common_start and common_start_strength apply when every task starts from one kick: "

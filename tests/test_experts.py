@@ -104,10 +104,11 @@ def test_one_anchor_starts_every_task_at_its_own_strength(monkeypatch):
     cfg = pipeline_config(**one, **{"experts.bc.common_start_strength": True})
     kicks, info = starting_kicks.starting_kicks(cfg, record, say=lambda *a, **k: None)
     others = np.arange(kick_model.N_PARAMS) != strength
-    np.testing.assert_array_equal(played[0][:, others], np.tile(long_kick[others], (19, 1)))  # one kick swept
+    n = len(starting_kicks.COMMON_START_STRENGTHS)
+    np.testing.assert_array_equal(played[0][:, others], np.tile(long_kick[others], (n, 1)))  # one kick swept
     np.testing.assert_array_equal(kicks[:, others], np.tile(long_kick[others], (3, 1)))
     np.testing.assert_allclose(kicks[:, strength], np.asarray(tasks) / 30.0, rtol=1e-5)
-    assert len(info["common_start_sweep"]) == 19 and info["episodes"] == 19 * cfg.experts.tune.eval_repetitions
+    assert len(info["common_start_sweep"]) == n and info["episodes"] == n * cfg.experts.tune.eval_repetitions
 
 
 def test_family_starting_kicks_are_the_prior_family_between_knots():
