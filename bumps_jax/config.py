@@ -80,15 +80,15 @@ def _experts() -> ml_collections.ConfigDict:
     cfg.bc.learning_rate = 1e-2
     # Where each task's starting kick begins, before tuning: True, the prior's family at the
     # task's calibrated strength (with `tune.anchor_starts`, the best of that and the prior's
-    # anchors); False, the main kick for every task, so that the tuned kicks are one family.
+    # anchors); False, one kick (`common_start`) for every task, so that the tuned kicks are one family.
     cfg.bc.per_task_strength = False
     # With per_task_strength False: the prior's anchor every task starts from (`kick_model.ANCHORS`).
-    cfg.bc.common_start = "main"
+    cfg.bc.common_start = "long"
     # With per_task_strength False: True sets each task's copy of that kick to the strength at
     # which it rests nearest the task's target (read from a noisy sweep of its strength,
     # `tune.eval_repetitions` episodes per strength), so that the tasks start spread over their
     # targets as one kick; False keeps the kick's own strength for every task.
-    cfg.bc.common_start_strength = False
+    cfg.bc.common_start_strength = True
     cfg.tune = ml_collections.ConfigDict()  # CMA-ES on every task's starting kick, all at once
     cfg.tune.generations = 60  # 0: clone the (blended or anchor) kick as it is
     cfg.tune.sigma_init = 2.0  # in PARAM_SCALE units around each task's start
@@ -268,6 +268,8 @@ PRESETS: dict[str, dict] = {
         # One generation cannot carry the main kick to 8 and 16 m: each task starts from its own
         # strength, untied to its neighbours.
         "experts.bc.per_task_strength": True,
+        "experts.bc.common_start": "main",
+        "experts.bc.common_start_strength": False,
         "experts.tune.neighbour_leash": 0.0,
         "experts.ppo.num_envs": 8,
         "experts.ppo.num_minibatches": 2,

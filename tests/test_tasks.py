@@ -21,8 +21,9 @@ KICK_SECTIONS = {
     },
     "paper": {
         "prior": "e38b970f96217601c6ed4c31aff219830db04d78627ad7239a92aca0fb1dfadc",
-        # re-pinned when the paper's starting kicks became one chain from the main kick (2026-11-23)
-        "experts": "2aa908080e313ea063f9b33c771e766b06258e203f3fd40617f4dc201c27948c",
+        # re-pinned when the paper's starting kicks became one chain from the long kick, each task's
+        # copy at its own strength (2026-11-24)
+        "experts": "b59c534644c8f26550333e7ebd047419bdf7e64e5a95f3bfe5d4d1cc0319ea97",
         "meta": "b3cbdc5da8d75d3f3d733a551ce389880e93f61c2b330750bd0b66d84070b146",
         "filter": "ab9e5ff5612b5c379ee36c36ee5c678ece58954c529f0017aab817c2269f29c9",
         "heldout": "3d00234a9a024e9b03d79264da1858dd0404759e5043654ec3c158bebcff9205",
