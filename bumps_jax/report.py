@@ -301,21 +301,43 @@ def speed_lines(bench: dict | None, scaling: dict | None) -> list[str]:
     return [*lines, ""]
 
 
+def stages_elsewhere(pipeline: dict | None) -> list[str]:
+    """The paper run's stages that the committed pipeline record did not run (all of them without a
+    pipeline record): their committed records were made by a stage command or an earlier run."""
+    ran = (pipeline or {}).get("stages_s", {})
+    return [stage for stage in COMMITTED if stage != "pipeline" and stage not in ran]
+
+
+def provenance_note(root: Path, pipeline: dict | None) -> str:
+    """Which command made the committed records: one reproduce, or the stages the pipeline record
+    ran plus each other stage's record's own command and date."""
+    if not pipeline:
+        return "The stages ran one by one. Each file under results/ names the command that made it.\n\n"
+    overrides = ", ".join(f"`{k}={v}`" for k, v in pipeline.get("overrides", {}).items()) or "none"
+    elsewhere = [s for s in stages_elsewhere(pipeline) if load(root, COMMITTED[s])]
+    if not elsewhere:
+        return (
+            f"Made by one `python -m bumps_jax reproduce --preset paper` (overrides: {overrides}) and published with "
+            "`python -m bumps_jax publish`. Each file under results/ names the command that made it.\n\n"
+        )
+    records = {s: load(root, COMMITTED[s]) for s in elsewhere}
+    same = all(r.get("env") == pipeline.get("env") and r.get("preset") == pipeline.get("preset") for r in records.values())
+    others = "; ".join(f"{s}: `{r.get('command', '?')}` ({str(r.get('date', '?'))[:10]})" for s, r in records.items())
+    return (
+        f"Made by `{pipeline.get('command', '?')}` (stages {', '.join(pipeline.get('stages_s', {}))}; overrides: "
+        f"{overrides}) and published with `python -m bumps_jax publish`. The pipeline did not run the other stages; "
+        f"their records ({'the same' if same else 'ANOTHER'} preset and env config) were made by {others}. Each file "
+        "under results/ names the command that made it.\n\n"
+    )
+
+
 def write_committed(root: str | Path = ".") -> Path:
     """docs/results.md from the committed GPU results (results/, figures in docs/)."""
     root = Path(root)
     text = build(root, COMMITTED, figures_dir="docs", title="BUMPS on the simulated NAO: committed GPU results")
     path = root / "docs" / "results.md"
     path.parent.mkdir(parents=True, exist_ok=True)
-    pipeline = load(root, COMMITTED["pipeline"])
-    if pipeline:
-        overrides = ", ".join(f"`{k}={v}`" for k, v in pipeline.get("overrides", {}).items()) or "none"
-        note = (
-            f"Made by one `python -m bumps_jax reproduce --preset paper` (overrides: {overrides}) and published with "
-            "`python -m bumps_jax publish`. Each file under results/ names the command that made it.\n\n"
-        )
-    else:
-        note = "The stages ran one by one. Each file under results/ names the command that made it.\n\n"
+    note = provenance_note(root, load(root, COMMITTED["pipeline"]))
     speed = speed_lines(load(root, BENCH), load(root, SCALING))
     head, _, rest = text.partition("\n\n")
     body = rest.replace("](docs/", "](")  # figures sit beside the report

@@ -84,7 +84,8 @@ def _paper_run(tmp_path):
     baseline = {**common, "seeds": 6, "env_steps": 2000, "error_mean_m": 3.5, "accuracy_mean": 0.8,
                 "eval_tasks": [7.1, 7.2]}  # fmt: skip
     (run / "baseline" / "baseline.json").write_text(json.dumps(baseline))
-    pipeline = {**common, "stages_s": {"train-experts": 60.0, "filter": 30.0}, "wall_s": 90.0,
+    pipeline = {**common, "stages_s": {"prior": 5.0, "experts": 60.0, "meta": 10.0, "filter": 10.0, "baseline": 5.0},
+                "wall_s": 90.0,
                 "overrides": {"experts.ppo.total_env_steps": "1000"}}  # fmt: skip
     (run / "pipeline.json").write_text(json.dumps(pipeline))
     return run
@@ -92,7 +93,7 @@ def _paper_run(tmp_path):
 
 def test_report_shows_pipeline_time_and_baseline(tmp_path):
     text = report.build(_paper_run(tmp_path))
-    assert "**1.5 min** in all (train-experts 60 s, filter 30 s" in text
+    assert "**1.5 min** in all (prior 5 s, experts 60 s, meta 10 s, filter 10 s, baseline 5 s" in text
     assert "6 seeds, 2,000 env steps per seed: meta-test error 3.50 m" in text
     assert "BUMPS's experts used 2,000 PPO env steps in all (2 experts of 1,000); the baseline 12,000" in text
     assert "Best BUMPS variant (filtered_ensemble): 0.90 m against the baseline's 3.50 m" in text
@@ -116,6 +117,22 @@ def test_publish_copies_a_run_and_rebuilds_results_md(tmp_path):
     assert "![docs/context_map.png](context_map.png)" in text
     # The prior is the run's own, not whatever an older run left in results/.
     assert "12 m prior over 100 noisy kicks: mean error 0.68 m" in text
+
+
+def test_results_md_names_the_stages_a_partial_pipeline_did_not_run(tmp_path):
+    run = _paper_run(tmp_path)
+    record = json.loads((run / "pipeline.json").read_text())
+    record.update(stages_s={"experts": 60.0, "meta": 10.0, "filter": 10.0}, command="python -m bumps_jax reproduce --stages x")
+    (run / "pipeline.json").write_text(json.dumps(record))
+    prior = json.loads((run / "prior" / "kick_prior.json").read_text())
+    (run / "prior" / "kick_prior.json").write_text(json.dumps({**prior, "command": "make kick-prior", "date": "2026-01-02T00"}))
+    root = tmp_path / "repo"
+    publish.publish(run, root)
+    text = (root / "docs" / "results.md").read_text()
+    assert "one `python -m bumps_jax reproduce" not in text
+    assert "The pipeline did not run the other stages; their records (the same preset and env config)" in text
+    assert "prior: `make kick-prior` (2026-01-02)" in text
+    assert "baseline: `python -m bumps_jax demo`" in text
 
 
 def test_publish_refuses_an_empty_run(tmp_path):
