@@ -93,9 +93,11 @@ def derived(cfg, overrides: dict):
 
 def expert_config(cfg, updates: int, workload: int = 1):
     """`cfg` with its experts' budget cut to `updates` updates (one chunk), starting from the
-    prior's blended kicks as they are; with `workload` K, every task K times (each its own seed)."""
+    prior's blended kicks as they are; with `workload` K, every task K times (each its own seed)
+    and Warp's contact pool K times the preset's, so that every episode keeps its contact slots."""
     n_steps = kick_env.KickEnv(cfg.env).n_steps
     return derived(cfg, {
+        "env.warp_contacts": cfg.env.warp_contacts * workload,
         "experts.ppo.total_env_steps": cfg.experts.ppo.num_envs * n_steps * updates,
         "experts.updates_per_chunk": updates,
         "experts.tasks": tuple(cfg.experts.tasks) * workload,

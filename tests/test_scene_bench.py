@@ -17,3 +17,13 @@ def test_rates_run_on_the_envs_backend_with_a_pool_sized_to_the_batch():
     starved = kick_env.make_config(env_cfg, {"warp_contacts": 1})  # one slot for 8 standing robots
     with pytest.raises(ValueError, match="batch 8: Warp's contact pool \\(1 slots\\) overflowed"):
         scene_bench.physics_rate(env.mj_model, 8, n_steps=5, repeats=1, env_cfg=starved)
+
+
+def test_the_scaled_experts_workload_gets_a_contact_pool_to_match():
+    from benchmarks import bench
+
+    paper = config.make_config("paper")
+    cut = bench.expert_config(paper, updates=1, workload=8)  # refused before the pool was scaled
+    assert len(cut.experts.tasks) == 8 * len(paper.experts.tasks)
+    assert cut.env.warp_contacts == 8 * paper.env.warp_contacts
+    assert bench.expert_config(paper, updates=1).env.warp_contacts == paper.env.warp_contacts
