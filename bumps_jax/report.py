@@ -321,7 +321,9 @@ def provenance_note(root: Path, pipeline: dict | None) -> str:
             "`python -m bumps_jax publish`. Each file under results/ names the command that made it.\n\n"
         )
     records = {s: load(root, COMMITTED[s]) for s in elsewhere}
-    same = all(r.get("env") == pipeline.get("env") and r.get("preset") == pipeline.get("preset") for r in records.values())
+    same = all(
+        r.get("env") == pipeline.get("env") and r.get("preset") == pipeline.get("preset") for r in records.values()
+    )
     others = "; ".join(f"{s}: `{r.get('command', '?')}` ({str(r.get('date', '?'))[:10]})" for s, r in records.items())
     return (
         f"Made by `{pipeline.get('command', '?')}` (stages {', '.join(pipeline.get('stages_s', {}))}; overrides: "

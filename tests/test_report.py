@@ -122,10 +122,14 @@ def test_publish_copies_a_run_and_rebuilds_results_md(tmp_path):
 def test_results_md_names_the_stages_a_partial_pipeline_did_not_run(tmp_path):
     run = _paper_run(tmp_path)
     record = json.loads((run / "pipeline.json").read_text())
-    record.update(stages_s={"experts": 60.0, "meta": 10.0, "filter": 10.0}, command="python -m bumps_jax reproduce --stages x")
+    record.update(
+        stages_s={"experts": 60.0, "meta": 10.0, "filter": 10.0}, command="python -m bumps_jax reproduce --stages x"
+    )
     (run / "pipeline.json").write_text(json.dumps(record))
     prior = json.loads((run / "prior" / "kick_prior.json").read_text())
-    (run / "prior" / "kick_prior.json").write_text(json.dumps({**prior, "command": "make kick-prior", "date": "2026-01-02T00"}))
+    (run / "prior" / "kick_prior.json").write_text(
+        json.dumps({**prior, "command": "make kick-prior", "date": "2026-01-02T00"})
+    )
     root = tmp_path / "repo"
     publish.publish(run, root)
     text = (root / "docs" / "results.md").read_text()
