@@ -436,11 +436,19 @@ def heldout_run(stage_run, tmp_path_factory):
     (results/heldout.json, assets/policies/)."""
     cfg, run_dir = stage_run["cfg"], stage_run["dir"]
     root = tmp_path_factory.mktemp("repo")
+    variants = {}  # net -> what heldout.meta_variants returned (the dev test replays them)
+    real = heldout.meta_variants
+
+    def kept(cfg, run_dir, net, *args):
+        variants[net] = real(cfg, run_dir, net, *args)
+        return variants[net]
+
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(experts_stage, "load_family", lambda c, d: stage_run["family"])
+        mp.setattr(heldout, "meta_variants", kept)
         record = heldout.run(cfg, run_dir, say=quiet)
         written = publish.publish(run_dir, root, cfg=cfg)
-    return {"record": record, "root": root, "written": written}
+    return {"record": record, "root": root, "written": written, "variants": variants}
 
 
 def test_heldout_scores_every_variant_on_its_own_targets(stage_run, heldout_run):
@@ -473,9 +481,25 @@ def test_dev_evaluation_uses_its_own_targets_and_noise_and_leaves_the_heldout_re
     run_dir/dev/, beside (not over) the held-out record; config refuses dev settings that touch it."""
     cfg, run_dir = stage_run["cfg"], stage_run["dir"]
     heldout_before = (run_dir / "heldout" / "heldout.json").read_text()
+    # The meta-policies' variants are the held-out run's code path (scored there); here they replay
+    # its outputs (same shapes), and what the dev section hands them is checked: on a CPU each of
+    # their six physics calls costs seconds whatever its batch.
+    handed = []
+
+    def replay(cfg_, run_dir_, net, targets, contexts, noise_keys, mesh, h):
+        handed.append((net, np.asarray(targets).tolist(), noise_keys, h))
+        return heldout_run["variants"][net]
+
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(experts_stage, "load_family", lambda c, d: stage_run["family"])
+        mp.setattr(heldout, "meta_variants", replay)
         record = heldout.run(cfg, run_dir, say=quiet, section="dev")
+    assert [net for net, *_ in handed] == list(meta_stage.NETS)
+    dev_keys = filtering.noise_keys(cfg.dev.seed)
+    for _, targets, keys, h in handed:
+        assert targets == list(cfg.dev.targets) and h == cfg.dev
+        for got, want in zip(keys, dev_keys, strict=True):
+            np.testing.assert_array_equal(jax.random.key_data(got), jax.random.key_data(want))
     saved = json.loads((run_dir / "dev" / "dev.json").read_text())
     assert saved == record and saved["section"] == "dev" and saved["seed"] == cfg.dev.seed == 3333
     assert saved["targets_m"] == list(cfg.dev.targets) == [7.485, 14.351]
