@@ -314,13 +314,12 @@ def provenance_note(root: Path, pipeline: dict | None) -> str:
     if not pipeline:
         return "The stages ran one by one. Each file under results/ names the command that made it.\n\n"
     overrides = ", ".join(f"`{k}={v}`" for k, v in pipeline.get("overrides", {}).items()) or "none"
-    elsewhere = [s for s in stages_elsewhere(pipeline) if load(root, COMMITTED[s])]
-    if not elsewhere:
+    records = {s: record for s in stages_elsewhere(pipeline) if (record := load(root, COMMITTED[s]))}
+    if not records:
         return (
             f"Made by one `python -m bumps_jax reproduce --preset paper` (overrides: {overrides}) and published with "
             "`python -m bumps_jax publish`. Each file under results/ names the command that made it.\n\n"
         )
-    records = {s: load(root, COMMITTED[s]) for s in elsewhere}
     same = all(
         r.get("env") == pipeline.get("env") and r.get("preset") == pipeline.get("preset") for r in records.values()
     )
