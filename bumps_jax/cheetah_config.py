@@ -71,7 +71,10 @@ def _baseline(experts: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     # ... with each episode's target drawn from U[lo, hi] of the experts' velocities (m/s) ...
     b.ppo.sample_task_range = (min(experts.tasks), max(experts.tasks))
     # ... and per seed the env steps that all of one BUMPS run's experts used together
-    # (13 experts x 10.24 M = 133.12 M, 1,300 updates).
+    # (13 experts x 10.24 M = 133.12 M), in as many updates as one expert makes (100): each update
+    # rolls out the episodes of all the experts' updates of one round (13 x 512), in the experts'
+    # 16 minibatches.
+    b.ppo.num_envs = len(experts.tasks) * experts.ppo.num_envs
     b.ppo.total_env_steps = len(experts.tasks) * experts.ppo.total_env_steps
     # A second arm: the same seeds at this policy learning rate, trained beside the first
     # (ppo.learning_rate) in one program; None: the first arm only.
@@ -81,13 +84,16 @@ def _baseline(experts: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
 
 def sections(meta: ml_collections.ConfigDict, filter_: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """HalfCheetah-Vel's sections (env, experts, meta, filter, baseline), sized to run in 15 minutes on one
-    H100 (docs/decisions.md: the estimate, which leaves out the baseline's seeds x 133 M env
-    steps). `meta` and `filter_` are fresh copies of the kick's
-    sections (the same keys); this task's velocities and sizes replace theirs."""
+    H100 (docs/decisions.md). `meta` and `filter_` are fresh copies of the kick's sections (the same
+    keys); this task's velocities and sizes replace theirs."""
     cfg = ml_collections.ConfigDict()
     cfg.env = cheetah_env.default_config()
     experts = cfg.experts = _experts()
-    cfg.env.warp_contacts = cheetah_env.CONTACTS_PER_GEOM * 8 * len(experts.tasks) * experts.ppo.num_envs
+    cfg.baseline = _baseline(experts)
+    # Warp's contact pool holds the larger of the two training programs: the experts' 13 x 512
+    # episodes, or the baseline's seeds x 13 x 512.
+    largest = max(len(experts.tasks) * experts.ppo.num_envs, cfg.baseline.seeds * cfg.baseline.ppo.num_envs)
+    cfg.env.warp_contacts = cheetah_env.CONTACTS_PER_GEOM * 8 * largest
     cfg.meta = meta
     cfg.meta.dataset.repetitions = 8  # episodes per expert, reset noise on: the states a closed loop meets
     cfg.meta.train.learning_rate = 1e-3
@@ -105,7 +111,6 @@ def sections(meta: ml_collections.ConfigDict, filter_: ml_collections.ConfigDict
     cfg.filter.width = 0.3  # m/s: a task's candidates are the contexts within +- width of it
     cfg.filter.halving_rungs = (2, 8, 32)
     cfg.filter.eval_repetitions = 20
-    cfg.baseline = _baseline(experts)
     return cfg
 
 
