@@ -7,7 +7,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from bumps_jax import config, policies, readme_table, report, report_task, runio
+from bumps_jax import cheetah_table, config, policies, readme_table, report, report_task, runio
 
 POLICIES = "assets/policies"  # the shipped policies (`policies.write`)
 # What `publish` copies from a finished paper run into the repository: run file -> committed path.
@@ -98,7 +98,8 @@ def write_report(run_dir: str | Path) -> Path:
 
 
 def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list[Path]:
-    """Copy a finished run of `task` (not the kick) into results/<task>/ (`TASK_PUBLISHED`)."""
+    """Copy a finished run of `task` (not the kick) into results/<task>/ (`TASK_PUBLISHED`); for
+    HalfCheetah-Vel, then regenerate our rows of its comparison with the published results."""
     run_dir, root = Path(run_dir), Path(root)
     if report_task.run_task(run_dir) != task:
         raise ValueError(f"{run_dir} holds no {task} run (its records name {report_task.run_task(run_dir)!r})")
@@ -111,4 +112,6 @@ def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list
             written.append(dest)
     if not any(p.suffix == ".json" for p in written):
         raise ValueError(f"{run_dir} holds no stage results to publish")
+    if task == "cheetah_vel" and (root / cheetah_table.DOC).exists():
+        written.append(cheetah_table.write(root))  # our rows beside the published results
     return written

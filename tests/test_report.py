@@ -4,7 +4,9 @@ import json
 import re
 from pathlib import Path
 
-from bumps_jax import config, publish, readme_table, report, runio, tables
+import pytest
+
+from bumps_jax import cheetah_table, config, publish, readme_table, report, runio, tables
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -210,3 +212,48 @@ def test_records_of_different_env_configs_name_the_differing_keys(tmp_path):
     (tmp_path / "meta" / "table1.json").write_text(json.dumps(meta))
     text = report.build(tmp_path)
     assert "experts, meta ran under different env configs (differing: env.impl, env.noise.friction)" in text
+
+
+def test_cheetah_rows_are_the_records_and_replace_only_their_block(tmp_path):
+    env = {"episode_steps": 200, "task_range": [0.0, 3.0], "ctrl_dt": 0.05}
+    net = {"error_mean_m": 0.4, "n_tasks": 30}
+    records = {
+        "experts": {"env": env, "tasks_m": [0.0, 1.5, 3.0], "env_steps_total": 1000},
+        "table1": {
+            "env": env,
+            "rows": {"experts": {"error_mean_m": 0.3, "n_tasks": 3}, "meta_4x256": net},
+            "eval": {"repetitions": 20},
+            "dataset_pairs": 600,
+        },  # fmt: skip
+        "table2": {"env": env, "rows": {"filtered_4x256": {"error_mean_m": 0.25, "rollouts": 600, "n_tasks": 30}}},
+        "baseline": {
+            "env": env,
+            "error_mean_m": 0.05,
+            "seeds": 2,
+            "per_seed": [{"error_mean_m": 0.04}, {"error_mean_m": 0.06}],
+            "eval_tasks": [1.0] * 30,
+            "eval_repetitions": 20,
+            "env_steps_per_seed": 3000,
+        },  # fmt: skip
+    }
+    for name, record in records.items():
+        runio.write_json(tmp_path / cheetah_table.RECORDS[name], record)
+    rows = cheetah_table.rows(tmp_path)
+    # Speed terms: -200 steps x each record's mean speed error; the env steps are the records' own.
+    assert "4x256: -80 (mean speed error 0.40 m/s)" in rows[0] and "over 30 test velocities" in rows[0]
+    assert "3,000: 3 experts x 1,000 (PPO), then 600 steps" in rows[0]
+    assert "filtered_4x256: -50 (0.25 m/s; 20 selection rollouts per task)" in rows[1]
+    assert "speed term -10 (mean speed error 0.050 m/s, mean of 2 seeds: 0.040, 0.060)" in rows[2]
+    doc = tmp_path / cheetah_table.DOC
+    doc.parent.mkdir(parents=True)
+    doc.write_text(f"before\n{cheetah_table.BEGIN}\nstale row\n{cheetah_table.END}\nafter\n")
+    cheetah_table.write(tmp_path)
+    assert doc.read_text() == f"before\n{cheetah_table.block(tmp_path)}\nafter\n" and "stale" not in doc.read_text()
+    doc.write_text("no markers\n")
+    with pytest.raises(ValueError, match="has no generated rows"):
+        cheetah_table.write(tmp_path)
+
+
+def test_committed_cheetah_rows_are_the_committed_records():
+    text = Path(cheetah_table.DOC).read_text()
+    assert cheetah_table.block() in text
