@@ -25,10 +25,16 @@ settings: parts of another setting are refused. A call skips the parts already t
 the rest; `--stop-after-s S` stops it between parts (exit 0) rather than start one that would take
 it past S seconds. The call that finds every part scores them and writes the record. Brax's
 compiled programs are kept for later calls (JAX_COMPILATION_CACHE_DIR, or jax_cache/ in the parts
-directory). One H100 takes ~16-17 minutes in all (`GPU_ESTIMATE`): run the same command until it
+directory). One H100 takes ~17-18 minutes in all (`GPU_ESTIMATE`): run the same command until it
 writes the record, four calls of ~4-5 minutes each:
 
     python experiments/compare_brax_ppo.py --mode halfcheetah --preset gpu --stop-after-s 420
+
+At the gpu preset's 2.56 M env steps per seed neither trainer's policy has learned to run. The
+gpu_10m preset trains both for 10.24 M env steps per seed on 100-step episodes (scored on whole
+1000-step episodes, as the gpu preset): <out-dir>/compare_brax_ppo_halfcheetah_gpu_10m_gpu.json.
+
+    python experiments/compare_brax_ppo.py --mode halfcheetah --preset gpu_10m --stop-after-s 300
 
 `--preset smoke` runs the same comparison at CPU size (4 episodes of 100 steps per update, 2
 updates, 3 seeds each) on Brax's `fast` env, a stand-in without physics: under a minute on 2 CPU
@@ -201,10 +207,13 @@ EPISODE_LENGTH = BRAX_HALFCHEETAH["episode_length"]
 NO_CLIP = 1e9
 MATCHED_DIFFERENCES = (
     "rollouts: ours collects whole episodes from fresh resets every update; Brax is run the same "
-    "way (unroll_length = episode_length = 1000, num_envs episodes per update, one unroll per env), "
-    "not with its published 2048 envs x 20-step unrolls x 8",
+    "way (unroll_length = episode_length, the record's env.episode_length: num_envs episodes per "
+    "update, one unroll per env), not with its published 2048 envs x 20-step unrolls x 8",
     "budget: env_steps_per_seed, not the published 50M; num_envs whole episodes per update in "
     "num_minibatches minibatches (published: 327,680 steps per update in 32 minibatches of 10,240)",
+    "episodes: both train on episodes of env.episode_length steps, cut by Brax's EpisodeWrapper and "
+    "bootstrapped through the cut the same way; both are scored on episodes of eval_episode_length "
+    "(the published 1000)",
     "networks: both ours (ppo.make_networks, given to Brax as its network factory): tanh MLPs, not "
     "swish; an unsquashed Gaussian with a learned state-independent log-std, not a tanh-squashed one; "
     "the env clips actions to [-1, 1], its control cost is paid on the unclipped action",
@@ -565,14 +574,16 @@ def compare_cheetah(
     seeds=(0, 1, 2),
     eval_episodes: int = 64,
     episode_length: int = EPISODE_LENGTH,
+    eval_episode_length: int | None = None,
     env_name: str = "halfcheetah",
     preset: str = "gpu",
     stop_after_s: float | None = None,
     say=print,
 ) -> dict | None:
     """Both trainers from scratch on Brax's `env_name` (`ENVS`), every seed, scored the same way:
-    the record. Parts already in `parts_dir` (checked by `open_parts`) are skipped; with
-    `stop_after_s` it may stop between parts (`stop_before_next`) and returns None."""
+    the record. Both train on episodes of `episode_length` steps and are scored on episodes of
+    `eval_episode_length` (default: the same). Parts already in `parts_dir` (checked by `open_parts`)
+    are skipped; with `stop_after_s` it may stop between parts (`stop_before_next`) and returns None."""
     start = time.perf_counter()
     cfg = check_cheetah_run(num_envs, num_minibatches, env_steps, eval_every, episode_length)
     open_parts(parts_dir, run_settings(cfg, env_name, episode_length, seeds, eval_every))
@@ -619,7 +630,8 @@ def compare_cheetah(
     say(f"scoring {n_policies} checkpoints x {eval_episodes} episodes, deterministic policy", flush=True)
     t = time.perf_counter()
     networks = ppo.make_networks(cfg, env.observation_size, env.action_size)
-    evaluate = make_evaluator(env, networks, eval_episodes, seed=1000)
+    eval_env = TimeLimited(raw_env, eval_episode_length or episode_length)
+    evaluate = make_evaluator(eval_env, networks, eval_episodes, seed=1000)
     ours_curves, brax_curves = score_checkpoints(
         evaluate, ours.pop("checkpoints"), [r["checkpoints"] for r in brax_runs]
     )
@@ -635,6 +647,7 @@ def compare_cheetah(
         "steps_per_update": num_envs * episode_length,
         "eval_every_updates": eval_every,
         "eval_episodes": eval_episodes,
+        "eval_episode_length": eval_env.n_steps,
         "eval": "deterministic (mean) policy, the same fixed episodes for every checkpoint of both trainers",
         "eval_wall_s": round(eval_wall, 2),
         # Where and when each part trained: a run may take several calls (`--stop-after-s`).
@@ -681,24 +694,46 @@ def plot_cheetah(out: dict, path: Path) -> Path:
 # gpu: 8 updates of 320 whole episodes, 2,560,000 env steps per seed (Brax's published budget is
 # 50M). An update is 320,000 steps in 32 minibatches of 10 episodes (10,000 steps), 8 epochs: about
 # Brax's published update (2048 envs x 20 steps x 8 unrolls = 327,680 steps in 32 minibatches of 10,240).
+# At that budget neither trainer's policy runs (the gpu record of 2026-11-24: final returns near 0),
+# so its verdict says little. gpu_10m: 10.24 M env steps per seed, 4x the gpu preset's, in 50
+# updates of 2048 training episodes of 100 steps (204,800 steps, 32 minibatches of 6,400): an
+# update's cost is its 100 sequential steps, so 50 of them fit one device call per part; scored,
+# as the gpu preset, on whole 1000-step episodes.
 # smoke: Brax's `fast` stand-in env, 100-step episodes, 2 updates of 4 episodes: a record and a plot, not a result.
 PRESETS = {
     "gpu": {"num_envs": 320, "num_minibatches": 32, "eval_every": 2, "env_steps": 320 * 1000 * 8, "eval_episodes": 64},
+    "gpu_10m": {
+        "num_envs": 2048,
+        "num_minibatches": 32,
+        "eval_every": 10,
+        "env_steps": 2048 * 100 * 50,
+        "eval_episodes": 64,
+    },  # fmt: skip
     "smoke": {"num_envs": 4, "num_minibatches": 2, "eval_every": 1, "env_steps": 4 * 100 * 2, "eval_episodes": 2},
 }
-PRESET_ENV = {"gpu": ("halfcheetah", EPISODE_LENGTH), "smoke": ("fast", 100)}
+# Per preset: Brax's env, the training episodes' length and the scored episodes' length (steps).
+PRESET_ENV = {
+    "gpu": ("halfcheetah", EPISODE_LENGTH, EPISODE_LENGTH),
+    "gpu_10m": ("halfcheetah", 100, EPISODE_LENGTH),
+    "smoke": ("fast", 100, 100),
+}
 # The gpu preset on one H100, measured on 2026-11-23 in one call, stopped at 550 s: ours, 3 seeds in
 # one program, 8 updates: 231 s, compiling included. Brax, seed 0: 102 s for its first 2 updates,
 # compiling included, then ~27 s an update (55.6 and 53.1 s for the next two pairs). Not reached:
 # the rest of seed 0, seeds 1 and 2 (their programs load from the compilation cache) and the
 # scoring. Projected from these: Brax's seed 0 ~265 s, each later seed 216-265 s; ~16-17 min in
 # all. Each part is 231-265 s, so `--stop-after-s 420` makes each call one part (a second would
-# take it past 420 s) and the run four calls; the fourth also scores (not measured).
-GPU_ESTIMATE = (
-    "~16-17 minutes on one H100 in all (measured 2026-11-23: ours 231 s, compiling included; Brax ~100 s "
-    "for its first 2 updates, compiling included, then ~27 s an update per seed): run it in parts, "
-    "rerunning the same command with --stop-after-s 420 until it writes the record (four calls)"
-)
+# take it past 420 s) and the run four calls; the fourth also scores. The whole run, 2026-11-24
+# (one H100, four calls): ours 249 s, Brax's seeds 275, 236 and 235 s, 1,050 s with the scoring.
+# gpu_10m, projected from those (not measured): an update costs its sequential steps, ~31 ms a step
+# for ours' 3 x 320 episodes and ~27 ms for one Brax seed's 320; at 6.4x the episodes per step,
+# guessed 2-3x that: ours ~6-8 min, each Brax seed ~4-5 min, ~20 min in all, one part per call.
+GPU_ESTIMATE = {
+    "gpu": "~17-18 minutes on one H100 in all (measured 2026-11-24: parts of 235-275 s, compiling included): "
+    "run it in parts, rerunning the same command with --stop-after-s 420 until it writes the record (four calls)",
+    "gpu_10m": "~20 minutes on one H100 in all (projected, not measured): run it in parts, rerunning the same "
+    "command with --stop-after-s 300 until it writes the record (four calls)",
+}
 
 
 def main(argv=None) -> dict | None:
@@ -765,7 +800,7 @@ def main_cheetah(parser, args, cache_dir: str | None = None) -> dict | None:
         parser.error("--set applies to the kick mode only")
     run = {**PRESETS[args.preset]}
     run.update({key: getattr(args, key) for key in run if getattr(args, key) is not None})
-    default_env, episode_length = PRESET_ENV[args.preset]
+    default_env, episode_length, eval_episode_length = PRESET_ENV[args.preset]
     env_name = args.env or default_env
     name = f"compare_brax_ppo_{env_name}" + ("" if args.preset == "gpu" else f"_{args.preset}")
     try:
@@ -777,14 +812,14 @@ def main_cheetah(parser, args, cache_dir: str | None = None) -> dict | None:
             raise ValueError(f"--seeds must differ, got {args.seeds}")
         if args.stop_after_s is not None and args.stop_after_s < 0:
             raise ValueError(f"--stop-after-s must be at least 0, got {args.stop_after_s:g}")
-        default_dir = "experiments/results" if args.preset == "gpu" else "runs/compare_brax_ppo"
+        default_dir = "experiments/results" if args.preset.startswith("gpu") else "runs/compare_brax_ppo"
         out_dir = runio.check_writable(args.out_dir or default_dir)
         parts_dir = runio.check_writable(args.parts_dir or out_dir / f"{name}_parts")
         open_parts(parts_dir, run_settings(cfg, env_name, episode_length, args.seeds, run["eval_every"]))
     except ValueError as err:
         parser.error(str(err))
-    if args.preset == "gpu":
-        print(f"gpu preset: {GPU_ESTIMATE}", flush=True)
+    if args.preset in GPU_ESTIMATE:
+        print(f"{args.preset} preset: {GPU_ESTIMATE[args.preset]}", flush=True)
     with compilation_cache(cache_dir or parts_dir / "jax_cache"):
         out = compare_cheetah(
             run["env_steps"],
@@ -795,6 +830,7 @@ def main_cheetah(parser, args, cache_dir: str | None = None) -> dict | None:
             seeds=tuple(args.seeds),
             eval_episodes=run["eval_episodes"],
             episode_length=episode_length,
+            eval_episode_length=eval_episode_length,
             env_name=env_name,
             preset=args.preset,
             stop_after_s=args.stop_after_s,

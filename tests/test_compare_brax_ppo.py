@@ -9,6 +9,7 @@ The real env (`--env halfcheetah`) compiles for minutes on a CPU: it is run by h
 import contextlib
 import inspect
 import io
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -43,8 +44,8 @@ def test_brax_gets_its_published_halfcheetah_settings_through_ours():
 
 
 def test_the_gpu_preset_is_a_valid_run_of_about_brax_s_published_update():
-    run, (env, length) = cmp.PRESETS["gpu"], cmp.PRESET_ENV["gpu"]
-    assert env == "halfcheetah" and length == cmp.EPISODE_LENGTH
+    run, (env, length, scored) = cmp.PRESETS["gpu"], cmp.PRESET_ENV["gpu"]
+    assert env == "halfcheetah" and length == scored == cmp.EPISODE_LENGTH
     cfg = cmp.check_cheetah_run(run["num_envs"], run["num_minibatches"], run["env_steps"], run["eval_every"], length)
     b = cmp.BRAX_HALFCHEETAH
     published_update = b["num_envs"] * b["unroll_length"] * b["batch_size"] * b["num_minibatches"] // b["num_envs"]
@@ -55,6 +56,17 @@ def test_the_gpu_preset_is_a_valid_run_of_about_brax_s_published_update():
     assert run["env_steps"] // update >= 8  # enough updates for a curve
     smoke = cmp.PRESETS["smoke"]
     cmp.check_cheetah_run(smoke["num_envs"], smoke["num_minibatches"], smoke["env_steps"], smoke["eval_every"], 100)
+
+
+def test_the_gpu_10m_preset_trains_4x_longer_on_short_episodes_and_scores_whole_ones():
+    run, (env, length, scored) = cmp.PRESETS["gpu_10m"], cmp.PRESET_ENV["gpu_10m"]
+    assert env == "halfcheetah" and length == 100 and scored == cmp.EPISODE_LENGTH
+    cfg = cmp.check_cheetah_run(run["num_envs"], run["num_minibatches"], run["env_steps"], run["eval_every"], length)
+    assert run["env_steps"] == 4 * cmp.PRESETS["gpu"]["env_steps"]
+    assert (
+        cfg.num_minibatches == cmp.BRAX_HALFCHEETAH["num_minibatches"]
+        and run["env_steps"] // run["num_envs"] // 100 == 50
+    )
 
 
 @pytest.mark.parametrize(
@@ -199,6 +211,26 @@ def test_a_rerun_with_every_part_saved_trains_nothing_and_writes_the_same_record
         assert f"{name}: done in an earlier call" in said
     _same_result(record, smoke_runs["calls"][-1]["record"])
     assert record["parts"] == smoke_runs["calls"][-1]["record"]["parts"]
+
+
+def test_saved_parts_are_scored_on_episodes_of_the_scoring_length(smoke_runs, monkeypatch):
+    def no_training(*args, **kwargs):
+        raise AssertionError("a saved part was trained again")
+
+    monkeypatch.setattr(cmp, "run_ours_cheetah", no_training)
+    monkeypatch.setattr(cmp, "run_brax_cheetah", no_training)
+    parted = smoke_runs["parted"]
+    parts_dir = Path(parted[parted.index("--out-dir") + 1]) / PARTS
+    smoke = cmp.PRESETS["smoke"]
+    sizes = [smoke[k] for k in ("env_steps", "num_envs", "num_minibatches", "eval_every")]
+    quiet = dict(say=lambda *a, **k: None, env_name="fast", preset="smoke")
+    record = cmp.compare_cheetah(*sizes, parts_dir, seeds=(0, 1), eval_episodes=smoke["eval_episodes"],
+                                 episode_length=100, eval_episode_length=300, **quiet)  # fmt: skip
+    trained_on = smoke_runs["calls"][-1]["record"]
+    assert record["eval_episode_length"] == 300 and record["env"]["episode_length"] == 100
+    assert trained_on["eval_episode_length"] == 100
+    for arm in ("ours", "brax"):  # the same checkpoints, scored over 3x the steps
+        assert not np.allclose(record[arm]["eval_return"], trained_on[arm]["eval_return"]), arm
 
 
 @pytest.mark.parametrize(
