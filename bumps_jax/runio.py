@@ -57,7 +57,7 @@ def provenance(preset: str, wall_s: float, env: dict, command: str | None = None
 
     from bumps_jax import kick_env  # noqa: PLC0415
 
-    return {
+    record = {
         "device": device_name(),
         "n_devices": jax.device_count(),
         "versions": versions(),
@@ -67,6 +67,9 @@ def provenance(preset: str, wall_s: float, env: dict, command: str | None = None
         "wall_s": round(float(wall_s), 3),
         "env": kick_env.resolved(env),
     }
+    if os.environ.get("XLA_FLAGS"):  # compiler flags change speed (and may change numbers): kept with them
+        record["xla_flags"] = os.environ["XLA_FLAGS"]
+    return record
 
 
 def command_line() -> str:

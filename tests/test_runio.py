@@ -76,3 +76,13 @@ def test_an_experiment_record_is_named_by_the_backend_and_carries_its_provenance
     assert record["value"] == 1.5 and record["wall_s"] == 2.0 and record["preset"] == "tiny"
     assert record["env"]["physics_dt"] == kick_env.resolved(cfg.env)["physics_dt"] > 0
     assert runio.read_json(runio.write_experiment(tmp_path, "bare", {"value": 2})) == {"value": 2}
+
+
+def test_a_record_keeps_the_compiler_flags_it_ran_under(monkeypatch):
+    from bumps_jax import config
+
+    env = config.make_config("tiny").env
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    assert "xla_flags" not in runio.provenance("tiny", 1.0, env)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_enable_command_buffer=FUSION,WHILE")
+    assert runio.provenance("tiny", 1.0, env)["xla_flags"] == "--xla_gpu_enable_command_buffer=FUSION,WHILE"
