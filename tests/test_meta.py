@@ -538,20 +538,34 @@ def test_kick_filters_a_context_and_reports_the_resting_distances(stage_run, hel
     directory = heldout_run["root"] / "assets" / "policies"
     shipped = policies.load(directory)
     # The command's env: the policies' own, with the contact pool sized to its 16 kicks (a user's
-    # setting wins); the same program serves this call and the command's below.
+    # setting wins).
     env_cfg = policies.kick_env_config(shipped.manifest, None, 16)
     assert env_cfg.warp_contacts == kick_env.CONTACTS_PER_EPISODE * 16
     assert policies.kick_env_config(shipped.manifest, {"warp_contacts": 4096}, 16).warp_contacts == 4096
     assert kick_env.resolved(env_cfg) | {"warp_contacts": 0} == kick_env.resolved(
         policies.env_config(shipped.manifest)
     ) | {"warp_contacts": 0}
-    out = policies.filtered_kicks(shipped, "meta_4x256", 12.3, 16, env_cfg, selection_repetitions=2)
+    # The command filters and kicks once (on a CPU each of its two physics calls costs seconds):
+    # it hands `filtered_kicks` that env, and prints what that returned.
+    calls = []
+    real = policies.filtered_kicks
+
+    def spy(*args, **kwargs):
+        calls.append((args, kwargs, real(*args, **kwargs)))
+        return calls[-1][2]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(policies, "filtered_kicks", spy)
+        cli.main(["kick", "--target", "12.3", "--kicks", "16", "--selection-reps", "2", "--policies", str(directory)])
+    printed = capsys.readouterr().out
+    assert len(calls) == 1
+    (got_shipped, net, target, n_kicks, got_cfg, reps, seed), kwargs, out = calls[0]
+    assert (net, target, n_kicks, reps, seed, kwargs) == ("meta_4x256", 12.3, 16, 2, 0, {})
+    assert got_shipped.manifest == shipped.manifest and kick_env.resolved(got_cfg) == kick_env.resolved(env_cfg)
     assert out.context in (11.5, 12.3) and list(out.candidates) == [11.5, 12.3]
     assert out.distance.shape == (16,) and np.all(np.isfinite(out.distance))
     # The error is the resting point's distance to the target: at least its miss along the line.
     assert np.all(out.final_error >= np.abs(out.distance - 12.3) - 1e-4)
-    cli.main(["kick", "--target", "12.3", "--kicks", "16", "--selection-reps", "2", "--policies", str(directory)])
-    printed = capsys.readouterr().out
     assert "physics backend " + stage_run["cfg"].env.impl + ", step 2.5 ms" in printed
     each = next(line for line in printed.splitlines() if line.startswith("each kick (m): "))
     np.testing.assert_allclose([float(d) for d in each.split(":")[1].split()], out.distance, atol=0.006)
