@@ -12,7 +12,8 @@ from bumps_jax.stages import baseline
 
 
 def test_tiny_baseline_writes_curve_for_two_seeds_and_two_arms(tmp_path, monkeypatch):
-    cfg = config.make_config("tiny")
+    # The tiny preset with two updates instead of three: on a CPU each update's episodes cost seconds.
+    cfg = config.make_config("tiny", {"baseline.ppo.total_env_steps": 2 * 8 * 75})
     scored = []  # the per-episode metrics of every policy evaluated, in order
     original = evaluate.summarise_tasks
     monkeypatch.setattr(evaluate, "summarise_tasks", lambda m: scored.append(m) or original(m))
@@ -25,18 +26,18 @@ def test_tiny_baseline_writes_curve_for_two_seeds_and_two_arms(tmp_path, monkeyp
     said = []
     payload = baseline.run(cfg, tmp_path, say=lambda *a, **k: said.append(a[0]))
     assert any("resumed from update 1" in line for line in said)
-    assert sum("baseline update" in line for line in said) == 2  # updates 2 and 3, not 1 again
+    assert sum("baseline update" in line for line in said) == 1  # update 2, not 1 again
     rows = (stage_dir / "progress.csv").read_text().strip().splitlines()
-    assert len(rows) == 1 + 3 * 2 * 2 and len(set(rows)) == len(rows)  # each (update, run) once
+    assert len(rows) == 1 + 2 * 2 * 2 and len(set(rows)) == len(rows)  # each (update, run) once
     saved = json.loads((stage_dir / "baseline.json").read_text())
-    assert sorted(p.name for p in (stage_dir / "checkpoints").iterdir()) == ["3"]  # the trained runs only
+    assert sorted(p.name for p in (stage_dir / "checkpoints").iterdir()) == ["2"]  # the trained runs only
     assert saved["seeds"] == 2 and saved["env"]["physics_dt"] == 0.0025 and saved["env"]["impl"] == "warp"
     curve = saved["curve"]
     n = len(curve["env_steps"])
-    assert n == 3 and all(len(curve[k]) == n for k in ("mean", "ci_low", "ci_high"))
+    assert n == 2 and all(len(curve[k]) == n for k in ("mean", "ci_low", "ci_high"))
     assert np.all(np.asarray(curve["ci_low"]) <= np.asarray(curve["mean"]) + 1e-6)
     assert np.all(np.asarray(curve["mean"]) <= np.asarray(curve["ci_high"]) + 1e-6)
-    assert curve["env_steps"][-1] == payload["env_steps"] == payload["env_steps_per_seed"] == 3 * 8 * 75
+    assert curve["env_steps"][-1] == payload["env_steps"] == payload["env_steps_per_seed"] == 2 * 8 * 75
     assert np.isfinite(saved["error_mean_m"])
     # Two arms (the paper's rate first), the same seeds each, in one program: the start, then 2 x 2 runs.
     assert saved["learning_rates"] == [1e-5, 1e-4] and [a["learning_rate"] for a in saved["arms"]] == [1e-5, 1e-4]
