@@ -203,13 +203,15 @@ def test_tiny_optimisation_improves(tmp_path, env):
     # Start from a poor kick (swing too weak for 12 m) so there is something to improve.
     start = kick_model.load_record()["params"].copy()
     start[kick_model.PARAM_NAMES.index("strength")] = 0.45
-    cfg = config.make_config("tiny", {"prior.population_size": 6, "prior.generations": 4, "prior.repetitions": 1,
+    # Two generations: each is a physics call of seconds on a CPU; the best of the second is
+    # compared with the first generation's mean.
+    cfg = config.make_config("tiny", {"prior.population_size": 6, "prior.generations": 2, "prior.repetitions": 1,
                                       "prior.sigma_init": 1.5}).prior  # fmt: skip
     free = ("strength", "swing_hip", "back_knee")
     out = cmaes.optimise(env, start, 12.0, free, cfg, csv_path=tmp_path / "progress.csv", say=lambda m: None)
     with open(tmp_path / "progress.csv") as f:
         rows = list(csv.DictReader(f))
-    assert [int(r["generation"]) for r in rows] == [0, 1, 2, 3]
+    assert [int(r["generation"]) for r in rows] == [0, 1]
     assert float(rows[-1]["best_so_far"]) < float(rows[0]["mean_fitness"])
     assert out["best_cost"] == pytest.approx(float(rows[-1]["best_so_far"]))
     moved = [kick_model.PARAM_NAMES.index(n) for n in free]
