@@ -32,7 +32,7 @@ def contextual(env):
 @pytest.fixture(scope="session")
 def expert_programs(env):
     """The tiny experts' programs (tiny_experts.py), compiled on first use: test_experts.py
-    trains with them and test_sharding.py's single-device side too."""
+    trains with them."""
     from bumps_jax.stages import experts as experts_stage
 
     return experts_stage.compile_programs(tiny_experts.pipeline_config(), env)

@@ -1,7 +1,7 @@
 """Run by test_sharding.py in a fresh process with N_DEVICES host devices (XLA reads the device
 count once, at start-up): trains tiny experts and filters a synthetic family on a mesh of
 N_DEVICES devices, and prints what they produced as JSON. The single-device side of both runs in
-the test's own process, on conftest's programs that test_experts.py and test_filtering.py use."""
+the test's own process (the filtering on conftest's program that test_filtering.py uses too)."""
 
 import json
 import sys
@@ -16,10 +16,17 @@ import tiny_experts
 from bumps_jax import config, filtering, kick_env, rollout, sharding
 from bumps_jax.stages import experts
 
-# Three devices: the 2 tiny experts fill them with one padded copy, so padding and unpadding run.
-# On a CPU each device's share of a Warp physics step is a callback into Python, one at a time,
-# so every device more adds its steps' cost (this process: 4 devices 124 s, 2 devices 72 s).
-N_DEVICES = 3
+# Two devices and three tiny experts: two on each device, one of them a padded copy, so padding
+# and unpadding run. On a CPU each device's share of a Warp physics step is a callback into Python,
+# one at a time, so every device more adds its steps' cost (this process: 4 devices 124 s, 3
+# devices 93 s, 2 devices 72 s).
+N_DEVICES = 2
+TASKS = (8.0, 12.0, 16.0)
+
+
+def experts_config():
+    """The tiny experts' config (tiny_experts.py) with TASKS: both sides of the test train it."""
+    return tiny_experts.pipeline_config(**{"experts.tasks": TASKS})
 
 
 def quiet(*args, **kwargs):
@@ -27,7 +34,7 @@ def quiet(*args, **kwargs):
 
 
 def train(env, run_dir: Path) -> dict:
-    cfg = tiny_experts.pipeline_config()  # 2 tasks on 3 devices: one padded copy
+    cfg = experts_config()  # 3 tasks on 2 devices: one padded copy
     programs = experts.compile_programs(cfg, env, mesh=sharding.device_mesh(N_DEVICES))
     # Stop after one chunk and resume: the sharded path must also restore checkpoints.
     experts.train(cfg, run_dir, programs, say=quiet, stop_after_chunks=1)
@@ -36,7 +43,7 @@ def train(env, run_dir: Path) -> dict:
     return {"params": [np.asarray(x).tolist() for x in leaves], "finished": out["finished"]}
 
 
-# All 18 selection episodes in one call (6 on each of 3 devices): a call costs its 600 physics
+# All 18 selection episodes in one call (9 on each of 2 devices): a call costs its 600 physics
 # steps on every device, nearly whatever its batch.
 EPISODES_PER_CALL = 18
 

@@ -1,5 +1,5 @@
 """Sharding over devices changes where work runs, not what it computes: tiny experts and a
-filtering selection on a mesh of 3 (host) devices equal those on one device."""
+filtering selection on a mesh of 2 (host) devices equal those on one device."""
 
 import json
 import os
@@ -11,7 +11,6 @@ import jax
 import numpy as np
 import pytest
 import sharded_run
-import tiny_experts
 
 from bumps_jax import sharding
 from bumps_jax.stages import experts
@@ -20,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def sharded_vs_single(env, contextual, expert_programs, tmp_path_factory):
+def sharded_vs_single(env, contextual, tmp_path_factory):
     run_env = dict(
         os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={sharded_run.N_DEVICES}", JAX_PLATFORMS="cpu"
     )
@@ -30,10 +29,11 @@ def sharded_vs_single(env, contextual, expert_programs, tmp_path_factory):
     )
     assert proc.returncode == 0, proc.stderr[-4000:]
     sharded = json.loads(proc.stdout.strip().splitlines()[-1])
-    # The single-device side runs here, on the programs test_experts.py and test_filtering.py
-    # build (the selection in one call of 18 episodes, the sharded one's 6 on each device).
-    out = experts.train(tiny_experts.pipeline_config(), tmp_path_factory.mktemp("one_device"), expert_programs,
-                        say=lambda *a, **k: None)  # fmt: skip
+    # The single-device side runs here (the selection in one call of 18 episodes on the program
+    # test_filtering.py builds, the sharded one's 9 on each device).
+    cfg = sharded_run.experts_config()
+    programs = experts.compile_programs(cfg, env)
+    out = experts.train(cfg, tmp_path_factory.mktemp("one_device"), programs, say=lambda *a, **k: None)
     leaves = jax.tree.leaves(experts.expert_params(out["state"]))
     grid, params = contextual
     single = {
@@ -50,11 +50,12 @@ def test_sharded_experts_equal_single_device_experts(sharded_vs_single):
     assert len(a) == len(b) and len(a) > 0
     for x, y in zip(a, b, strict=True):
         x, y = np.asarray(x), np.asarray(y)
-        assert x.shape == y.shape and x.shape[0] == 2  # the padded third task is dropped
-        # Not bit-identical: XLA picks its CPU kernels per batch shape (2 tasks vs 1 per
+        assert x.shape == y.shape and x.shape[0] == 3  # the padded fourth task is dropped
+        # Not bit-identical: XLA picks its CPU kernels per batch shape (3 tasks vs 2 per
         # device), and PPO updates through contact dynamics carry the last-bit differences on
-        # (measured 4.2e-5 after these two updates on 3 devices, 3e-6 on 4; 9.7e-5 with 3 tasks at
-        # the default policy noise). A wrong slice or a mixed-up task would differ by O(1).
+        # (measured 4.9e-5 after these two updates with 3 tasks on 2 devices; with 2 tasks 4.2e-5
+        # on 3 devices, 3e-6 on 4; 9.7e-5 with 3 tasks at the default policy noise). A wrong slice
+        # or a mixed-up task would differ by O(1).
         np.testing.assert_allclose(x, y, rtol=1e-3, atol=1e-3)
 
 
@@ -65,8 +66,9 @@ def test_sharded_filtering_makes_the_same_choices(sharded_vs_single):
     # kick's contact amplifies last-bit differences, now and then by centimetres (measured with 8
     # episodes per call against 2 on each of 4 devices: one of the 18 rollouts 5.1 cm apart with
     # the 2.5 ms prior, 4.9 mm with the 5 ms one, the other 17 within 0.13 mm; with 18 against 6 on
-    # each of 3 devices all 18 equal). A wrong slice moves a whole block of episodes to another rollout's place:
-    # repetitions of one context land 0.1-0.3 m apart, other contexts metres apart.
+    # each of 3 devices, or 9 on each of 2, all 18 equal). A wrong slice moves a whole block of
+    # episodes to another rollout's place: repetitions of one context land 0.1-0.3 m apart, other
+    # contexts metres apart.
     distance_gap = np.abs(np.subtract(single["filter"]["distance"], sharded["filter"]["distance"]))
     assert (distance_gap > 1e-2).sum() <= 1 and distance_gap.max() < 0.1, distance_gap
     # A candidate's score on each task is a mean over its 3 repetitions: the one outlier moves it

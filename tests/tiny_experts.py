@@ -1,5 +1,5 @@
-"""The tiny expert-training config of test_experts.py and test_sharding.py (and of the process
-that test starts): conftest builds its programs once per test worker."""
+"""The tiny expert-training config of test_experts.py and test_sharding.py (there with a third
+task, also in the process that test starts): conftest builds its programs once per test worker."""
 
 from bumps_jax import config
 
