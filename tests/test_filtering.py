@@ -4,6 +4,7 @@ noise independence, bad inputs, and one tiny MJX run with the stand-in contextua
 import jax
 import numpy as np
 import pytest
+from rollout_memo import RolloutMemo
 
 from bumps_jax import config, filtering
 
@@ -143,8 +144,10 @@ def test_bad_inputs_name_the_value(call, match):
 BLOCK = 8  # every stage below runs as batches of 8 episodes: one compiled program (conftest's)
 
 
-def test_filtering_end_to_end_in_mjx(env, contextual):
+def test_filtering_end_to_end_in_mjx(env, contextual, monkeypatch):
     grid, params = contextual
+    memo = RolloutMemo()  # a call asking for episodes played before gets their metrics
+    memo.patch(monkeypatch, filtering)
     task_range = tuple(env.config.task_range)
     # Inside the prior family's monotone part (its sweep rises up to the main kick, 12 m).
     tasks = np.array([9.0, 10.0])
@@ -176,6 +179,7 @@ def test_filtering_end_to_end_in_mjx(env, contextual):
     # of its 3 candidates: contexts 9 and 10 m, or one shared) rollouts or fewer.
     kw = dict(task_range=task_range, block=BLOCK)
     one = filtering.filter_policy(grid, params, contexts, tasks, 2.0, 2, sel_key, rungs=(2,), **kw)
+    assert memo.hits == 1  # the one rung asked for the fixed selection's episodes, no others
     assert one.chosen.tolist() == sel.chosen.tolist() and one.rollouts == sel.rollouts == 8
     np.testing.assert_allclose(one.scores, sel.scores, rtol=1e-6)
     halved = filtering.filter_policy(grid, params, contexts, tasks, 2.0, 2, sel_key, rungs=(1, 2), keep=0.3, **kw)

@@ -3,7 +3,6 @@
 stages end to end on stand-in experts."""
 
 import csv
-import hashlib
 import json
 import re
 import shutil
@@ -13,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import stand_ins
+from rollout_memo import RolloutMemo
 
 from bumps_jax import bc, cli, config, evaluate, filtering, kick_env, pipeline, policies, publish, report, runio, tables
 from bumps_jax.stages import experts as experts_stage
@@ -271,46 +271,10 @@ OVERRIDES = {
 }
 
 
-class RolloutMemo:
-    """The stages' rollout calls (`filtering.run_blocked`, `meta.evaluate_unfiltered`), each run
-    once per program and inputs: the two nets of OVERRIDES are one architecture trained from the
-    same seeds on the same dataset, so they end as the same params, and every stage rolls them out
-    on the same episodes. A call whose program and inputs (every array's bytes) equal an earlier
-    call's gets copies of that call's metrics; any other call runs. On a CPU each costs seconds."""
-
-    def __init__(self):
-        self.done, self.runs, self.hits = {}, 0, 0
-
-    def wrap(self, fn):
-        def memo(grid, *args, **kwargs):
-            key = (id(grid), fn.__name__, _digest((args, sorted(kwargs.items()))))
-            if key in self.done:
-                self.hits += 1
-            else:
-                self.runs += 1
-                self.done[key] = (grid, fn(grid, *args, **kwargs))  # the grid kept: its id stays its own
-            return {k: np.array(v) for k, v in self.done[key][1].items()}
-
-        return memo
-
-    def patch(self, mp):
-        mp.setattr(filtering, "run_blocked", self.wrap(filtering.run_blocked))
-        mp.setattr(meta_stage, "evaluate_unfiltered", self.wrap(meta_stage.evaluate_unfiltered))
-
-
-def _digest(tree) -> str:
-    """A hash of every leaf's type, shape and bytes (random keys by their key data)."""
-    h = hashlib.sha256()
-    for leaf in jax.tree.leaves(tree):
-        if isinstance(leaf, jax.Array) and jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key):
-            leaf = jax.random.key_data(leaf)
-        a = np.asarray(leaf)
-        h.update(f"{type(leaf).__name__} {a.dtype} {a.shape}".encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
-
-
-ROLLOUTS = RolloutMemo()  # shared by the stage run and the held-out run below
+# The two nets of OVERRIDES are one architecture trained from the same seeds on the same dataset,
+# so they end as the same params, and every stage rolls them out on the same episodes: their
+# rollouts run once (on a CPU each call costs seconds). Shared by the stage and held-out runs.
+ROLLOUTS = RolloutMemo()
 
 
 def _experts_run(cfg, run_dir):
@@ -343,7 +307,7 @@ def stage_run(tmp_path_factory):
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(experts_stage, "load_family", load_family)
-        ROLLOUTS.patch(mp)
+        ROLLOUTS.patch(mp, filtering, meta_stage)
         table1 = pipeline.run_stage("meta", cfg, run_dir, say=quiet)
         table2 = pipeline.run_stage("filter", cfg, run_dir, say=quiet)
         # Both up to date now: read back, no work (the filter's reading of the nets' checkpoints
@@ -490,7 +454,7 @@ def heldout_run(stage_run, tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(experts_stage, "load_family", lambda c, d: stage_run["family"])
         mp.setattr(heldout, "meta_variants", kept)
-        ROLLOUTS.patch(mp)
+        ROLLOUTS.patch(mp, filtering, meta_stage)
         record = heldout.run(cfg, run_dir, say=quiet)
         written = publish.publish(run_dir, root, cfg=cfg)
     return {"record": record, "root": root, "written": written, "variants": variants}
