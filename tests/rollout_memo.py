@@ -1,4 +1,5 @@
-"""A memo of rollout calls for tests whose code rolls out the same episodes more than once."""
+"""A memo of rollout calls for tests whose code rolls out the same episodes more than once, and
+the digest of inputs it keys them by."""
 
 import hashlib
 
@@ -37,12 +38,13 @@ class RolloutMemo:
 
 
 def digest(tree) -> str:
-    """A hash of every leaf's type, shape and bytes (random keys by their key data)."""
+    """A hash of every leaf's type, shape, dtype (and weak typing) and bytes (random keys by their
+    key data)."""
     h = hashlib.sha256()
     for leaf in jax.tree.leaves(tree):
         if isinstance(leaf, jax.Array) and jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key):
             leaf = jax.random.key_data(leaf)
         a = np.asarray(leaf)
-        h.update(f"{type(leaf).__name__} {a.dtype} {a.shape}".encode())
+        h.update(f"{type(leaf).__name__} {a.dtype} {getattr(leaf, 'weak_type', None)} {a.shape}".encode())
         h.update(a.tobytes())
     return h.hexdigest()

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from rollout_memo import digest
 from tiny_experts import N_STEPS, pipeline_config
 
 from bumps_jax import bc, config, kick_model, rollout, runio, starting_kicks
@@ -184,6 +185,20 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
     # one must not tune again (its cloning came from the checkpoint).
     cfg = pipeline_config(**{"experts.tune.generations": 1, "experts.tune.eval_repetitions": 2})
     quiet = dict(say=lambda *a, **k: None)
+    # Each PPO chunk runs once per input (the state's and targets' bytes): a chunk asked again from
+    # the same state gets the first one's outputs (on a CPU each costs seconds). The inputs asked
+    # for are checked below.
+    done, asked = {}, []
+    real_chunk = experts.run_chunk
+
+    def run_chunk(programs_, state, targets):
+        key = (id(programs_), digest((state, targets)))
+        if key not in done:
+            done[key] = real_chunk(programs_, state, targets)
+        asked.append(key)
+        return done[key]
+
+    monkeypatch.setattr(experts, "run_chunk", run_chunk)
     whole = experts.train(cfg, tmp_path / "whole", programs, **quiet)
     assert whole["finished"]
 
@@ -197,6 +212,9 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
     record = json.loads((tmp_path / "split" / "experts" / "starting_kicks.json").read_text())
     assert record["tuned"] and np.asarray(record["params"]).shape == (2, kick_model.N_PARAMS)
     _same_trees(whole["state"], resumed["state"])
+    # Bit for bit, the interrupted run started from the whole run's starting state and resumed
+    # from its state after update 1: it asked for the whole run's two chunks again.
+    assert len(set(asked[:2])) == 2 and asked[2:] == asked[:2]
     # The progress log is the same, row for row: one per update and task.
     whole_csv = (tmp_path / "whole" / "experts" / "progress.csv").read_text()
     assert whole_csv == (tmp_path / "split" / "experts" / "progress.csv").read_text()
@@ -277,6 +295,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
     assert any(f"{ckpts / str(latest)} is unreadable" in s for s in said), said
     assert any(f"resumed from update {latest - 1}" in s for s in said), said
     _same_trees(again["state"], whole["state"])
+    assert asked[4:] == asked[1:2]  # from the state after update 1, bit for bit
 
 
 def test_read_starting_kicks_finds_each_target_and_names_missing_ones():
