@@ -15,7 +15,9 @@ def cheetah_run(tmp_path_factory):
     """The tiny preset's cheetah pipeline (experts, meta, filter, baseline) in one call: its config, directory and
     timing."""
     run_dir = tmp_path_factory.mktemp("cheetah")
-    cfg = config.make_config("tiny", {"task": "cheetah_vel"})
+    # Both meta-policies of one small architecture: one compiled rollout program serves the two.
+    nets = {f"cheetah_vel.meta.nets.{name}": (1, 16) for name in ("meta_4x256", "meta_11x128")}
+    cfg = config.make_config("tiny", {"task": "cheetah_vel", **nets})
     timing = pipeline.run_pipeline(pipeline.ORDER, cfg, run_dir, say=lambda *a, **k: None)
     return {"cfg": cfg, "dir": run_dir, "timing": timing}
 
