@@ -43,15 +43,18 @@ def expert_programs(env):
 # order (`--no-loadscope-reorder`): these start first, so that no long file is left running alone
 # at the end. The other files follow in their usual order.
 SLOWEST_FIRST = (
-    "test_experts.py",
     "test_meta.py",
+    "test_experts.py",
     "test_cmaes.py",
     "test_sharding.py",
-    "test_baseline.py",
     "test_engines.py",
+    "test_cheetah_pipeline.py",
+    "test_baseline.py",
     "test_ppo.py",
     "test_filtering.py",
-    "test_cheetah_pipeline.py",
+    "test_compare_brax_ppo.py",
+    "test_kick_env.py",
+    "test_cheetah_env.py",
 )
 
 
