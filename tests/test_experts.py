@@ -12,7 +12,7 @@ import pytest
 from rollout_memo import digest
 from tiny_experts import N_STEPS, pipeline_config
 
-from bumps_jax import bc, config, kick_model, rollout, runio, starting_kicks
+from bumps_jax import bc, cmaes, config, kick_model, kick_scoring, rollout, runio, starting_kicks
 from bumps_jax.stages import experts
 from bumps_jax.stages import prior as prior_stage
 
@@ -199,6 +199,28 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
         return done[key]
 
     monkeypatch.setattr(experts, "run_chunk", run_chunk)
+    # Likewise each physics program of the starting kicks' tuning (the CMA-ES generation, the
+    # scoring of kicks) runs once per input: the interrupted run's tuning asks for the whole run's.
+    tuned = []
+
+    def memo(program, name):
+        def call(*args):
+            key = (name, digest(args))
+            if key not in done:
+                done[key] = program(*args)
+            tuned.append(key)
+            return done[key]
+
+        return call
+
+    real_search, real_costs = cmaes.kick_search, kick_scoring.cost_program
+
+    def kick_search(*args):
+        search = real_search(*args)
+        return search._replace(step=memo(search.step, "gen"))
+
+    monkeypatch.setattr(cmaes, "kick_search", kick_search)
+    monkeypatch.setattr(kick_scoring, "cost_program", lambda *args: memo(real_costs(*args), "costs"))
     whole = experts.train(cfg, tmp_path / "whole", programs, **quiet)
     assert whole["finished"]
 
@@ -212,6 +234,9 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
     record = json.loads((tmp_path / "split" / "experts" / "starting_kicks.json").read_text())
     assert record["tuned"] and np.asarray(record["params"]).shape == (2, kick_model.N_PARAMS)
     _same_trees(whole["state"], resumed["state"])
+    # The interrupted run tuned on the whole run's inputs, bit for bit; the resumed one did not tune.
+    assert len(tuned) >= 4 and tuned[len(tuned) // 2 :] == tuned[: len(tuned) // 2], tuned
+    assert {name for name, _ in tuned} == {"gen", "costs"}
     # Bit for bit, the interrupted run started from the whole run's starting state and resumed
     # from its state after update 1: it asked for the whole run's two chunks again.
     assert len(set(asked[:2])) == 2 and asked[2:] == asked[:2]
