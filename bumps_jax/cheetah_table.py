@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from bumps_jax import runio
 from bumps_jax.report import load
 
 DOC = "docs/cheetah_vel_published.md"
@@ -91,10 +92,4 @@ def block(root: str | Path = ".") -> str:
 
 def write(root: str | Path = ".") -> Path:
     """Replace the generated rows in root/DOC (between its markers) by `block`."""
-    path = Path(root) / DOC
-    text = path.read_text()
-    start, end = text.find(BEGIN), text.find(END)
-    if start < 0 or end < start:
-        raise ValueError(f"{path} has no generated rows (its markers {BEGIN!r} ... {END!r})")
-    path.write_text(text[:start] + block(root) + text[end + len(END) :])
-    return path
+    return runio.replace_block(Path(root) / DOC, BEGIN, END, block(root), "generated rows")

@@ -139,6 +139,17 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     return path
 
 
+def replace_block(path: str | os.PathLike, begin: str, end: str, block: str, what: str) -> Path:
+    """Replace the text of `path` from the line `begin` to the line `end` (both included) by `block`,
+    which carries the markers again. ValueError naming the file and the markers where it lacks them."""
+    path = Path(path)
+    text = path.read_text()
+    start, stop = text.find(begin), text.find(end)
+    if start < 0 or stop < start:
+        raise ValueError(f"{path} has no {what} (its markers {begin!r} ... {end!r})")
+    return write_text(path, text[:start] + block + text[stop + len(end) :])
+
+
 def read_json(path: str | os.PathLike, what: str = "") -> dict:
     """The JSON object in `path`, or ValueError naming the path (missing, unreadable or not JSON)."""
     path = Path(path)
