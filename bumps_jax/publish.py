@@ -101,6 +101,8 @@ def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list
     """Copy a finished run of `task` (not the kick) into results/<task>/ (`TASK_PUBLISHED`); for
     HalfCheetah-Vel, then regenerate our rows of its comparison with the published results."""
     run_dir, root = Path(run_dir), Path(root)
+    if not any((run_dir / rel).exists() for rel in TASK_PUBLISHED if rel.endswith(".json")):
+        raise ValueError(f"{run_dir} holds no stage results to publish")
     if report_task.run_task(run_dir) != task:
         raise ValueError(f"{run_dir} holds no {task} run (its records name {report_task.run_task(run_dir)!r})")
     written = []

@@ -62,6 +62,8 @@ def test_a_rerun_is_up_to_date_and_publishes_into_results(cheetah_run, tmp_path)
     assert all(p.parent == tmp_path / "results" / "cheetah_vel" for p in written)
     with pytest.raises(ValueError, match="holds no kick run"):
         publish.publish_task(cheetah_run["dir"], "kick", root=tmp_path)
+    with pytest.raises(ValueError, match="empty holds no stage results to publish"):
+        publish.publish_task(tmp_path / "empty", "cheetah_vel", root=tmp_path)
 
 
 def test_the_baseline_trains_one_policy_on_the_experts_velocities_and_scores_the_test_ones(cheetah_run):
