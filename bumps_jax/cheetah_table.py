@@ -3,9 +3,10 @@
 from the committed records in results/cheetah_vel/.
 
 The published columns are returns; our records keep the mean speed error |v - v*| over an episode
-(m/s). A return is -sum over the steps of (|v - v*| + ctrl * |a|^2), so -steps x error is the
-return's speed term: the return without its control cost, an upper bound on the return, on the same
-footing as the doc's reference points, which also leave the control cost out."""
+(m/s). A return is -sum over the steps of (w |v - v*| + ctrl |a|^2), w the env's `reward.velocity`,
+so -steps x w x error is the return's speed term: the return without its control cost, an upper
+bound on the return, on the same footing as the doc's reference points, which also leave the
+control cost out."""
 
 from __future__ import annotations
 
@@ -23,9 +24,10 @@ END = "<!-- end of our generated rows -->"
 RECORDS = {name: f"results/cheetah_vel/{name}.json" for name in ("experts", "table1", "table2", "baseline")}
 
 
-def speed_term(error: float, steps: int) -> str:
-    """The return's speed term of a mean speed error over an episode of `steps` steps."""
-    return f"{-steps * error:.0f}"
+def speed_term(error: float, steps: int, weight: float) -> str:
+    """The return's speed term of a mean speed error over an episode of `steps` steps, each step's
+    reward weighing the speed error by `weight`."""
+    return f"{-steps * weight * error:.0f}"
 
 
 def rows(root: str | Path = ".") -> list[str]:
@@ -36,7 +38,7 @@ def rows(root: str | Path = ".") -> list[str]:
     first = next((r for r in rec.values() if r), None)
     if first is None:
         return []
-    steps = int(first["env"]["episode_steps"])
+    steps, weight = int(first["env"]["episode_steps"]), float(first["env"]["reward"]["velocity"])
     lo, hi = first["env"]["task_range"]
     version = f"ours: U[{lo:g}, {hi:g}] m/s, {steps} steps of {first['env']['ctrl_dt']:g} s (`docs/cheetah_vel.md`)"
     training = "not recorded"
@@ -51,7 +53,7 @@ def rows(root: str | Path = ".") -> list[str]:
         nets = {net: r for net, r in t1["rows"].items() if net != "experts"}
         n_tasks = max((r["n_tasks"] for r in nets.values()), default=0)
         cells = [
-            f"{net.removeprefix('meta_')}: {speed_term(r['error_mean_m'], steps)} (mean speed error "
+            f"{net.removeprefix('meta_')}: {speed_term(r['error_mean_m'], steps, weight)} (mean speed error "
             f"{r['error_mean_m']:.2f} m/s)"
             for net, r in nets.items()
         ]
@@ -65,7 +67,7 @@ def rows(root: str | Path = ".") -> list[str]:
         for name, r in t2["rows"].items():
             per_task = r["rollouts"] / r["n_tasks"]
             cells.append(
-                f"{name}: {speed_term(r['error_mean_m'], steps)} ({r['error_mean_m']:.2f} m/s; "
+                f"{name}: {speed_term(r['error_mean_m'], steps, weight)} ({r['error_mean_m']:.2f} m/s; "
                 f"{per_task:.0f} selection rollouts per task)"
             )
         out.append(
@@ -75,8 +77,9 @@ def rows(root: str | Path = ".") -> list[str]:
         )
     if base:
         seeds = ", ".join(f"{s['error_mean_m']:.3f}" for s in base["per_seed"])
+        term = speed_term(base["error_mean_m"], steps, weight)
         out.append(
-            f"| multi-task PPO (ours; the target as input) | speed term {speed_term(base['error_mean_m'], steps)} "
+            f"| multi-task PPO (ours; the target as input) | speed term {term} "
             f"(mean speed error {base['error_mean_m']:.3f} m/s, mean of {base['seeds']} seeds: {seeds}) over "
             f"{len(base['eval_tasks'])} test velocities x {base['eval_repetitions']} episodes | none: the target "
             f"is an input | {base['env_steps_per_seed']:,} per seed (PPO) | {version} | `{RECORDS['baseline']}` |"

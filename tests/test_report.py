@@ -215,7 +215,7 @@ def test_records_of_different_env_configs_name_the_differing_keys(tmp_path):
 
 
 def test_cheetah_rows_are_the_records_and_replace_only_their_block(tmp_path):
-    env = {"episode_steps": 200, "task_range": [0.0, 3.0], "ctrl_dt": 0.05}
+    env = {"episode_steps": 200, "task_range": [0.0, 3.0], "ctrl_dt": 0.05, "reward": {"velocity": 1.0, "ctrl": 0.05}}
     net = {"error_mean_m": 0.4, "n_tasks": 30}
     records = {
         "experts": {"env": env, "tasks_m": [0.0, 1.5, 3.0], "env_steps_total": 1000},
