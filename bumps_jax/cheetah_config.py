@@ -11,7 +11,7 @@ import copy
 
 import ml_collections
 
-from bumps_jax import cheetah_env, ppo_config
+from bumps_jax import cheetah_env, ppo_config, validation
 
 # Meta-training velocities (m/s): a grid of 0.25 m/s over PEARL's U[0, 3] range.
 TRAIN_TASKS = tuple(round(0.25 * i, 2) for i in range(13))
@@ -91,8 +91,8 @@ def sections(meta: ml_collections.ConfigDict, filter_: ml_collections.ConfigDict
     experts = cfg.experts = _experts()
     cfg.baseline = _baseline(experts)
     # Warp's contact pool holds the larger of the two training programs: the experts' 13 x 512
-    # episodes, or the baseline's seeds x 13 x 512.
-    largest = max(len(experts.tasks) * experts.ppo.num_envs, cfg.baseline.seeds * cfg.baseline.ppo.num_envs)
+    # episodes, or the baseline's seeds x arms x 13 x 512.
+    largest = max(len(experts.tasks) * experts.ppo.num_envs, validation.baseline_runs(cfg.baseline))
     cfg.env.warp_contacts = cheetah_env.CONTACTS_PER_GEOM * 8 * largest
     cfg.meta = meta
     cfg.meta.dataset.repetitions = 8  # episodes per expert, reset noise on: the states a closed loop meets

@@ -708,7 +708,7 @@ PRESETS = {
         "eval_every": 10,
         "env_steps": 2048 * 100 * 50,
         "eval_episodes": 64,
-    },  # fmt: skip
+    },
     "smoke": {"num_envs": 4, "num_minibatches": 2, "eval_every": 1, "env_steps": 4 * 100 * 2, "eval_episodes": 2},
 }
 # Per preset: Brax's env, the training episodes' length and the scored episodes' length (steps).
