@@ -36,6 +36,10 @@ gpu_10m preset trains both for 10.24 M env steps per seed on 100-step episodes (
 
     python experiments/compare_brax_ppo.py --mode halfcheetah --preset gpu_10m --stop-after-s 300
 
+Brax's AutoResetWrapper restarts each env from its own first state, so Brax trains from num_envs
+start states while ours draws fresh resets every update. `--brax-resets fresh` matches that (Brax's
+own `num_resets_per_eval`: new keys after every update): <record name>_fresh_resets.json.
+
 `--preset smoke` runs the same comparison at CPU size (4 episodes of 100 steps per update, 2
 updates, 3 seeds each) on Brax's `fast` env, a stand-in without physics: under a minute on 2 CPU
 cores, a record and a plot (runs/compare_brax_ppo/compare_brax_ppo_fast_smoke_cpu.json), not a
@@ -217,9 +221,22 @@ MATCHED_DIFFERENCES = (
     "networks: both ours (ppo.make_networks, given to Brax as its network factory): tanh MLPs, not "
     "swish; an unsquashed Gaussian with a learned state-independent log-std, not a tanh-squashed one; "
     "the env clips actions to [-1, 1], its control cost is paid on the unclipped action",
-    "resets: Brax's AutoResetWrapper restarts each env from its own first state; ours draws a fresh reset every update",
     f"gradient clipping at a norm of {NO_CLIP:g} in both (none in effect; Brax's settings: none)",
 )
+# What each `--brax-resets` mode makes of the one setting the two trainers may start differently.
+# first: Brax as it ships (its AutoResetWrapper); fresh: Brax's own `num_resets_per_eval`, one
+# reset per update with new keys, so that both start every update's episodes from fresh resets.
+BRAX_RESETS = {
+    "first": "resets: Brax's AutoResetWrapper restarts each env from its own first state (num_envs start "
+    "states for the whole run); ours draws a fresh reset every update",
+    "fresh": "resets: matched, both from fresh resets every update (Brax: num_resets_per_eval = eval_every, "
+    "a reset with new keys after every update; its AutoResetWrapper's restart is replaced before it steps)",
+}
+
+
+def differences(brax_resets: str) -> list[str]:
+    """The record's `differences`: what is not matched, and how the starts of episodes compare."""
+    return [*MATCHED_DIFFERENCES, BRAX_RESETS[brax_resets]]
 
 
 def cheetah_ppo_config(num_envs: int, num_minibatches: int, env_steps: int):
@@ -372,11 +389,14 @@ def run_ours_cheetah(cfg, env: TimeLimited, seeds, eval_every: int, progress: Pr
     }
 
 
-def run_brax_cheetah(cfg, env: TimeLimited, raw_env, seed: int, eval_every: int, progress: Progress) -> dict:
+def run_brax_cheetah(
+    cfg, env: TimeLimited, raw_env, seed: int, eval_every: int, progress: Progress, brax_resets: str = "first"
+) -> dict:
     """Brax's `ppo.train` on the raw env (Brax wraps it with its own EpisodeWrapper and
     AutoResetWrapper), one whole episode per env per update like ours; a host copy of its
     (normalizer, policy) from `policy_params_fn` at the same env steps as ours. Brax's own
-    evaluator is off."""
+    evaluator is off. `brax_resets` (`BRAX_RESETS`): "fresh" resets every env with new keys after
+    every update (Brax's `num_resets_per_eval`), as ours starts each update; "first": Brax's default."""
     steps_per_update = int(cfg.num_envs) * env.n_steps
     n_evals = int(cfg.total_env_steps) // (steps_per_update * eval_every)
     steps, checkpoints = [], []
@@ -400,6 +420,7 @@ def run_brax_cheetah(cfg, env: TimeLimited, raw_env, seed: int, eval_every: int,
         num_eval_envs=1,  # Brax builds its evaluator even when it does not run it
         policy_params_fn=on_params,
         seed=seed,
+        num_resets_per_eval=eval_every if brax_resets == "fresh" else 0,
     )
     return {"env_steps": steps, "checkpoints": checkpoints, "wall_s": round(time.perf_counter() - start, 2)}
 
@@ -479,7 +500,7 @@ def part_names(seeds) -> list[str]:
     return ["ours", *(f"brax_seed{s}" for s in seeds)]
 
 
-def run_settings(cfg, env_name: str, episode_length: int, seeds, eval_every: int) -> dict:
+def run_settings(cfg, env_name: str, episode_length: int, seeds, eval_every: int, brax_resets: str = "first") -> dict:
     """What a part's result depends on: the parts directory's manifest. Scoring settings
     (eval_episodes) are left out: a rerun may score the same parts otherwise."""
     return runio.json_safe(
@@ -492,6 +513,8 @@ def run_settings(cfg, env_name: str, episode_length: int, seeds, eval_every: int
             "versions": {k: v for k, v in runio.versions().items() if k in ("jax", "brax", "mujoco-mjx")},
             "ppo": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.items()},
         }
+        # Brax's default resets name no key, so the parts of runs made before the choice existed still match.
+        | ({} if brax_resets == "first" else {"brax_resets": brax_resets})
     )
 
 
@@ -578,15 +601,16 @@ def compare_cheetah(
     env_name: str = "halfcheetah",
     preset: str = "gpu",
     stop_after_s: float | None = None,
+    brax_resets: str = "first",
     say=print,
 ) -> dict | None:
     """Both trainers from scratch on Brax's `env_name` (`ENVS`), every seed, scored the same way:
     the record. Both train on episodes of `episode_length` steps and are scored on episodes of
-    `eval_episode_length` (default: the same). Parts already in `parts_dir` (checked by `open_parts`)
+    `eval_episode_length` (default: the same); Brax's resets as `brax_resets` says (`BRAX_RESETS`). Parts already in `parts_dir` (checked by `open_parts`)
     are skipped; with `stop_after_s` it may stop between parts (`stop_before_next`) and returns None."""
     start = time.perf_counter()
     cfg = check_cheetah_run(num_envs, num_minibatches, env_steps, eval_every, episode_length)
-    open_parts(parts_dir, run_settings(cfg, env_name, episode_length, seeds, eval_every))
+    open_parts(parts_dir, run_settings(cfg, env_name, episode_length, seeds, eval_every, brax_resets))
     raw_env = make_brax_env(env_name)
     env = TimeLimited(raw_env, episode_length)
     treedef = checkpoint_treedef(cfg, env)
@@ -618,7 +642,7 @@ def compare_cheetah(
             run = run_ours_cheetah(cfg, env, seeds, eval_every, progress)
         else:
             say(f"brax: seed {brax_seed[name]}", flush=True)
-            run = run_brax_cheetah(cfg, env, raw_env, brax_seed[name], eval_every, progress)
+            run = run_brax_cheetah(cfg, env, raw_env, brax_seed[name], eval_every, progress, brax_resets)
         run.update(device=runio.device_name(), date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"))
         save_part(paths[name], run)
         walls.append(run["wall_s"])
@@ -658,7 +682,8 @@ def compare_cheetah(
         "brax_train_kwargs": {
             k: v for k, v in brax_compat.train_kwargs(cfg, env).items() if k not in ("environment", "network_factory")
         },
-        "differences": list(MATCHED_DIFFERENCES),
+        "brax_resets": brax_resets,
+        "differences": differences(brax_resets),
         **result,
     }
     record_env = env_record(env_name, raw_env, episode_length)
@@ -756,6 +781,10 @@ def main(argv=None) -> dict | None:
     cheetah.add_argument("--eval-every", type=int, help="updates between scored checkpoints")
     cheetah.add_argument("--eval-episodes", type=int)
     cheetah.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    cheetah.add_argument("--brax-resets", choices=tuple(BRAX_RESETS), default="first",
+                         help="first: Brax's AutoResetWrapper as it ships (each env restarts from its first state); "
+                         "fresh: Brax resets every env with new keys after every update, as ours (record name "
+                         "+ _fresh_resets)")  # fmt: skip
     cheetah.add_argument("--parts-dir", help="where finished parts are saved (default <out-dir>/<record name>_parts)")
     cheetah.add_argument("--stop-after-s", type=float, metavar="S",
                          help="after a part, start no other whose expected duration (the longest part measured, "
@@ -803,6 +832,7 @@ def main_cheetah(parser, args, cache_dir: str | None = None) -> dict | None:
     default_env, episode_length, eval_episode_length = PRESET_ENV[args.preset]
     env_name = args.env or default_env
     name = f"compare_brax_ppo_{env_name}" + ("" if args.preset == "gpu" else f"_{args.preset}")
+    name += "" if args.brax_resets == "first" else f"_{args.brax_resets}_resets"
     try:
         cfg = check_cheetah_run(run["num_envs"], run["num_minibatches"], run["env_steps"], run["eval_every"],
                                 episode_length)  # fmt: skip
@@ -815,7 +845,8 @@ def main_cheetah(parser, args, cache_dir: str | None = None) -> dict | None:
         default_dir = "experiments/results" if args.preset.startswith("gpu") else "runs/compare_brax_ppo"
         out_dir = runio.check_writable(args.out_dir or default_dir)
         parts_dir = runio.check_writable(args.parts_dir or out_dir / f"{name}_parts")
-        open_parts(parts_dir, run_settings(cfg, env_name, episode_length, args.seeds, run["eval_every"]))
+        open_parts(parts_dir, run_settings(cfg, env_name, episode_length, args.seeds, run["eval_every"],
+                                           args.brax_resets))  # fmt: skip
     except ValueError as err:
         parser.error(str(err))
     if args.preset in GPU_ESTIMATE:
@@ -834,6 +865,7 @@ def main_cheetah(parser, args, cache_dir: str | None = None) -> dict | None:
             env_name=env_name,
             preset=args.preset,
             stop_after_s=args.stop_after_s,
+            brax_resets=args.brax_resets,
         )
     if out is None:
         return None

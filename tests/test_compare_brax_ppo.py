@@ -281,3 +281,52 @@ def test_stop_before_next_weighs_the_longest_part_against_the_budget():
     assert not cmp.stop_before_next(100.0, [231.0, 30.0], 420.0)  # 100 + 231 <= 420
     assert cmp.stop_before_next(190.0, [231.0, 30.0], 420.0)  # the longest, not the last
     assert cmp.stop_before_next(1.0, [0.5], 0.0)  # 0: one part a call
+
+
+# -- Brax's resets (`--brax-resets`) -------------------------------------------------------------
+
+
+class _KeyedFast:
+    """Brax's `fast` env whose reset hands every key it is given to the host (`seen`)."""
+
+    def __init__(self):
+        self.env, self.seen = cmp.make_brax_env("fast"), []
+
+    def __getattr__(self, name):
+        return getattr(self.env, name)
+
+    def reset(self, rng):
+        jax.debug.callback(lambda key: self.seen.append(tuple(np.asarray(key).ravel())), rng)
+        return self.env.reset(rng)
+
+
+def _starts(mode: str, num_envs: int, updates: int) -> set:
+    """The reset keys Brax's training run of `mode` used (`--brax-resets`), `updates` updates of `num_envs`."""
+    cfg = cmp.check_cheetah_run(num_envs, 2, num_envs * 100 * updates, updates, 100)
+    raw = _KeyedFast()
+    run = cmp.run_brax_cheetah(cfg, cmp.TimeLimited(raw, 100), raw, 0, updates, lambda *a: None, mode)
+    assert run["env_steps"] == [0, num_envs * 100 * updates]
+    return set(raw.seen)
+
+
+def test_brax_starts_every_update_from_fresh_resets_only_when_asked():
+    num_envs, updates = 4, 3
+    first, fresh = _starts("first", num_envs, updates), _starts("fresh", num_envs, updates)
+    # first: the num_envs start states of the first reset, restarted by Brax's AutoResetWrapper for
+    # the whole run; fresh: those and new ones after every update (the last update's unused). Both
+    # also reset the one env of Brax's evaluator once, built though it does not run.
+    assert first <= fresh
+    assert len(fresh - first) == num_envs * updates
+    assert len(first) == num_envs + 1
+
+
+def test_the_resets_choice_names_its_record_its_parts_and_its_difference(tmp_path, capsys):
+    args = [*SMOKE, "--brax-resets", "fresh", "--out-dir", str(tmp_path), "--stop-after-s", "0"]
+    record, said = _main(args)
+    assert record is None and "left brax_seed0" in said
+    manifest = runio.read_json(tmp_path / "compare_brax_ppo_fast_smoke_fresh_resets_parts" / "manifest.json", "")
+    assert manifest["settings"]["brax_resets"] == "fresh"
+    assert cmp.differences("fresh")[-1].startswith("resets: matched")
+    with pytest.raises(SystemExit):
+        cmp.main([*SMOKE, "--brax-resets", "never"])
+    assert "--brax-resets: invalid choice: 'never'" in capsys.readouterr().err
