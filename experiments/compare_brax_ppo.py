@@ -606,8 +606,9 @@ def compare_cheetah(
 ) -> dict | None:
     """Both trainers from scratch on Brax's `env_name` (`ENVS`), every seed, scored the same way:
     the record. Both train on episodes of `episode_length` steps and are scored on episodes of
-    `eval_episode_length` (default: the same); Brax's resets as `brax_resets` says (`BRAX_RESETS`). Parts already in `parts_dir` (checked by `open_parts`)
-    are skipped; with `stop_after_s` it may stop between parts (`stop_before_next`) and returns None."""
+    `eval_episode_length` (default: the same); Brax's resets as `brax_resets` says (`BRAX_RESETS`).
+    Parts already in `parts_dir` (checked by `open_parts`) are skipped; with `stop_after_s` it may
+    stop between parts (`stop_before_next`) and returns None."""
     start = time.perf_counter()
     cfg = check_cheetah_run(num_envs, num_minibatches, env_steps, eval_every, episode_length)
     open_parts(parts_dir, run_settings(cfg, env_name, episode_length, seeds, eval_every, brax_resets))
