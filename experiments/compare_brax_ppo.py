@@ -38,7 +38,9 @@ gpu_10m preset trains both for 10.24 M env steps per seed on 100-step episodes (
 
 Brax's AutoResetWrapper restarts each env from its own first state, so Brax trains from num_envs
 start states while ours draws fresh resets every update. `--brax-resets fresh` matches that (Brax's
-own `num_resets_per_eval`: new keys after every update): <record name>_fresh_resets.json.
+own `num_resets_per_eval`: new keys after every update): <record name>_fresh_resets.json. Seeds
+other than 0 1 2 name the record too (`--seeds 0 1 2 3 4 5`: <record name>_seeds0-5.json). Beside
+the spread verdict the record gives Welch's t-test of the two mean final returns.
 
 `--preset smoke` runs the same comparison at CPU size (4 episodes of 100 steps per update, 2
 updates, 3 seeds each) on Brax's `fast` env, a stand-in without physics: under a minute on 2 CPU
@@ -65,6 +67,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.stats
 from brax import envs as brax_envs
 from jax.experimental.compilation_cache import compilation_cache as cc
 
@@ -441,14 +444,21 @@ def _seed(tree, i: int):
 
 
 def spread_check(ours_final, brax_final) -> dict:
-    """Is each trainer's mean final return inside the range (min to max) of the other's seeds?"""
+    """Is each trainer's mean final return inside the range (min to max) of the other's seeds? And
+    Welch's t-test of the two means (unequal variances; two-sided p; None below 2 seeds an arm)."""
     ours_final, brax_final = np.asarray(ours_final), np.asarray(brax_final)
     ours_in = bool(brax_final.min() <= ours_final.mean() <= brax_final.max())
     brax_in = bool(ours_final.min() <= brax_final.mean() <= ours_final.max())
+    welch_t = welch_p = None
+    if min(ours_final.size, brax_final.size) >= 2:
+        test = scipy.stats.ttest_ind(ours_final, brax_final, equal_var=False)
+        welch_t, welch_p = float(test.statistic), float(test.pvalue)
     return {
         "ours_mean_in_brax_range": ours_in,
         "brax_mean_in_ours_range": brax_in,
         "within_each_others_spread": ours_in and brax_in,
+        "welch_t": welch_t,
+        "welch_p": welch_p,
     }
 
 
@@ -823,6 +833,17 @@ def compilation_cache(directory):
         cc.reset_cache()  # JAX opens its cache once, at the first compile; the next one opens anew
 
 
+def seeds_suffix(seeds) -> str:
+    """The record name's mark for seeds other than the default 0 1 2: `_seeds0-5` for a run of
+    seeds, `_seeds1_4_7` otherwise; "" for the default."""
+    seeds = list(seeds)
+    if seeds == [0, 1, 2]:
+        return ""
+    if len(seeds) > 1 and seeds == list(range(seeds[0], seeds[0] + len(seeds))):
+        return f"_seeds{seeds[0]}-{seeds[-1]}"
+    return "_seeds" + "_".join(str(s) for s in seeds)
+
+
 def main_cheetah(parser, args, cache_dir: str | None = None) -> dict | None:
     """The halfcheetah mode of `main`: settings and the parts directory checked before anything
     compiles. `cache_dir`: the compilation cache's (default: in the parts directory)."""
@@ -834,6 +855,7 @@ def main_cheetah(parser, args, cache_dir: str | None = None) -> dict | None:
     env_name = args.env or default_env
     name = f"compare_brax_ppo_{env_name}" + ("" if args.preset == "gpu" else f"_{args.preset}")
     name += "" if args.brax_resets == "first" else f"_{args.brax_resets}_resets"
+    name += seeds_suffix(args.seeds)
     try:
         cfg = check_cheetah_run(run["num_envs"], run["num_minibatches"], run["env_steps"], run["eval_every"],
                                 episode_length)  # fmt: skip
@@ -877,7 +899,8 @@ def main_cheetah(parser, args, cache_dir: str | None = None) -> dict | None:
         final = f"{rec['final_return_mean']:.1f} +- {rec['final_return_std']:.1f}"
         curve = np.round(np.mean(rec["eval_return"], axis=0), 1).tolist()
         print(f"{arm}: final return {final} {np.round(rec['final_return'], 1).tolist()}  mean curve {curve}")
-    print(f"within each other's seed spread: {out['within_each_others_spread']}  wall {out['wall_s']:.0f} s")
+    welch = "" if out["welch_t"] is None else f"  Welch t {out['welch_t']:.2f}, p {out['welch_p']:.3f}"
+    print(f"within each other's seed spread: {out['within_each_others_spread']}{welch}  wall {out['wall_s']:.0f} s")
     print(f"{runio.shown(path)}\n{runio.shown(figure)}")
     return out
 

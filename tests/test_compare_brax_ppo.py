@@ -142,12 +142,22 @@ def test_spread_check_asks_both_ways():
     one_way = cmp.spread_check([1.0, 2.0, 9.0], [2.5, 3.0, 3.5])  # ours' mean 4 is above Brax's seeds
     assert not one_way["ours_mean_in_brax_range"] and one_way["brax_mean_in_ours_range"]
     assert not one_way["within_each_others_spread"]
+    # Welch's t by hand: means 4 and 3, variances (ddof 1) 19 and 0.25 over 3 seeds each.
+    t = (4.0 - 3.0) / np.sqrt(19.0 / 3 + 0.25 / 3)
+    assert one_way["welch_t"] == pytest.approx(t) and 0.5 < one_way["welch_p"] < 1.0
+    assert cmp.spread_check([1.0], [2.0, 3.0])["welch_t"] is None
+
+
+def test_seeds_other_than_the_default_name_the_record():
+    assert cmp.seeds_suffix([0, 1, 2]) == ""
+    assert cmp.seeds_suffix(range(6)) == "_seeds0-5"
+    assert cmp.seeds_suffix([1, 4, 7]) == "_seeds1_4_7"
 
 
 # -- the halfcheetah comparison in parts (`--stop-after-s`, the parts directory) ---------------
 
 SMOKE = ["--mode", "halfcheetah", "--preset", "smoke", "--seeds", "0", "1"]
-PARTS = "compare_brax_ppo_fast_smoke_parts"
+PARTS = "compare_brax_ppo_fast_smoke_seeds0-1_parts"
 
 
 def _main(args) -> tuple[dict | None, str]:
@@ -238,12 +248,14 @@ def test_saved_parts_are_scored_on_episodes_of_the_scoring_length(smoke_runs, mo
     [
         (["--eval-every", "2"], "eval_every 1 there, 2 here"),
         (["--num-minibatches", "4"], "ppo.num_minibatches 2 there, 4 here"),
-        (["--seeds", "0", "2"], "seeds [0, 1] there, [0, 2] here"),
+        # Other seeds name another record, so only a parts directory given by hand can meet them.
+        (["--seeds", "0", "2", "--parts-dir", "{parts}"], "seeds [0, 1] there, [0, 2] here"),
     ],
 )
 def test_parts_of_another_setting_are_refused_naming_it(smoke_runs, capsys, change, named):
+    parts = Path(smoke_runs["parted"][smoke_runs["parted"].index("--out-dir") + 1]) / PARTS
     with pytest.raises(SystemExit):
-        cmp.main([*smoke_runs["parted"], *change])
+        cmp.main([*smoke_runs["parted"], *(arg.format(parts=parts) for arg in change)])
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert named in err and f"{PARTS} holds the parts of another run" in err
     assert err.count(" there, ") == 1  # only the setting that differs
@@ -324,7 +336,8 @@ def test_the_resets_choice_names_its_record_its_parts_and_its_difference(tmp_pat
     args = [*SMOKE, "--brax-resets", "fresh", "--out-dir", str(tmp_path), "--stop-after-s", "0"]
     record, said = _main(args)
     assert record is None and "left brax_seed0" in said
-    manifest = runio.read_json(tmp_path / "compare_brax_ppo_fast_smoke_fresh_resets_parts" / "manifest.json", "")
+    parts = tmp_path / "compare_brax_ppo_fast_smoke_fresh_resets_seeds0-1_parts"
+    manifest = runio.read_json(parts / "manifest.json", "")
     assert manifest["settings"]["brax_resets"] == "fresh"
     assert cmp.differences("fresh")[-1].startswith("resets: matched")
     with pytest.raises(SystemExit):
