@@ -34,7 +34,7 @@ At the gpu preset's 2.56 M env steps per seed neither trainer's policy has learn
 gpu_10m preset trains both for 10.24 M env steps per seed on 100-step episodes (scored on whole
 1000-step episodes, as the gpu preset): <out-dir>/compare_brax_ppo_halfcheetah_gpu_10m_gpu.json.
 
-    python experiments/compare_brax_ppo.py --mode halfcheetah --preset gpu_10m --stop-after-s 300
+    python experiments/compare_brax_ppo.py --mode halfcheetah --preset gpu_10m --stop-after-s 540
 
 Brax's AutoResetWrapper restarts each env from its own first state, so Brax trains from num_envs
 start states while ours draws fresh resets every update. `--brax-resets fresh` matches that (Brax's
@@ -761,14 +761,16 @@ PRESET_ENV = {
 # all. Each part is 231-265 s, so `--stop-after-s 420` makes each call one part (a second would
 # take it past 420 s) and the run four calls; the fourth also scores. The whole run, 2026-11-24
 # (one H100, four calls): ours 249 s, Brax's seeds 275, 236 and 235 s, 1,050 s with the scoring.
-# gpu_10m, projected from those (not measured): an update costs its sequential steps, ~31 ms a step
+# gpu_10m, measured 2026-11-24 (one H100, fresh resets, 6 seeds, four calls): ours, 6 seeds in one
+# program, 256 s; Brax's seeds 175-228 s each (the first compiling); 1,431 s with the scoring.
+# The projection made before it, from the gpu preset: an update costs its sequential steps, ~31 ms a step
 # for ours' 3 x 320 episodes and ~27 ms for one Brax seed's 320; at 6.4x the episodes per step,
 # guessed 2-3x that: ours ~6-8 min, each Brax seed ~4-5 min, ~20 min in all, one part per call.
 GPU_ESTIMATE = {
     "gpu": "~17-18 minutes on one H100 in all (measured 2026-11-24: parts of 235-275 s, compiling included): "
     "run it in parts, rerunning the same command with --stop-after-s 420 until it writes the record (four calls)",
-    "gpu_10m": "~20 minutes on one H100 in all (projected, not measured): run it in parts, rerunning the same "
-    "command with --stop-after-s 300 until it writes the record (four calls)",
+    "gpu_10m": "~13 minutes on one H100 for 3 seeds each, ~24 for 6 (measured 2026-11-24): run it in parts, "
+    "rerunning the same command with --stop-after-s 540 until it writes the record",
 }
 
 
