@@ -445,7 +445,8 @@ def _seed(tree, i: int):
 
 def spread_check(ours_final, brax_final) -> dict:
     """Is each trainer's mean final return inside the range (min to max) of the other's seeds? And
-    Welch's t-test of the two means (unequal variances; two-sided p; None below 2 seeds an arm)."""
+    Welch's t-test of the two means (unequal variances; two-sided p; None below 2 seeds an arm,
+    NaN, which the record writes as null, where neither arm's returns vary)."""
     ours_final, brax_final = np.asarray(ours_final), np.asarray(brax_final)
     ours_in = bool(brax_final.min() <= ours_final.mean() <= brax_final.max())
     brax_in = bool(ours_final.min() <= brax_final.mean() <= ours_final.max())

@@ -9,7 +9,6 @@ The real env (`--env halfcheetah`) compiles for minutes on a CPU: it is run by h
 import contextlib
 import inspect
 import io
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -182,7 +181,7 @@ def smoke_runs(tmp_path_factory):
             calls.append({"record": record, "said": said, "parts": parts})
     in_parts = (root / "parted" / PARTS / "jax_cache").exists()
     cache = {"env var's": any((root / "jax_cache").iterdir()), "parts'": in_parts}
-    return {"whole": whole, "calls": calls, "parted": parted, "cache": cache}
+    return {"whole": whole, "calls": calls, "parted": parted, "parts_dir": root / "parted" / PARTS, "cache": cache}
 
 
 def _same_result(a: dict, b: dict) -> None:
@@ -229,8 +228,7 @@ def test_saved_parts_are_scored_on_episodes_of_the_scoring_length(smoke_runs, mo
 
     monkeypatch.setattr(cmp, "run_ours_cheetah", no_training)
     monkeypatch.setattr(cmp, "run_brax_cheetah", no_training)
-    parted = smoke_runs["parted"]
-    parts_dir = Path(parted[parted.index("--out-dir") + 1]) / PARTS
+    parts_dir = smoke_runs["parts_dir"]
     smoke = cmp.PRESETS["smoke"]
     sizes = [smoke[k] for k in ("env_steps", "num_envs", "num_minibatches", "eval_every")]
     quiet = dict(say=lambda *a, **k: None, env_name="fast", preset="smoke")
@@ -253,9 +251,8 @@ def test_saved_parts_are_scored_on_episodes_of_the_scoring_length(smoke_runs, mo
     ],
 )
 def test_parts_of_another_setting_are_refused_naming_it(smoke_runs, capsys, change, named):
-    parts = Path(smoke_runs["parted"][smoke_runs["parted"].index("--out-dir") + 1]) / PARTS
     with pytest.raises(SystemExit):
-        cmp.main([*smoke_runs["parted"], *(arg.format(parts=parts) for arg in change)])
+        cmp.main([*smoke_runs["parted"], *(arg.format(parts=smoke_runs["parts_dir"]) for arg in change)])
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert named in err and f"{PARTS} holds the parts of another run" in err
     assert err.count(" there, ") == 1  # only the setting that differs
