@@ -5,6 +5,8 @@ For each physics backend (`--backends`, default MJX-JAX and MuJoCo Warp), at the
 - aggregate PPO env-steps/s of all experts in one vmapped program;
 - filtering rollouts/s and the wall time of the high-sample-rate variant (1091 contexts).
 On the config's own backend (`env.impl`) only:
+- the experts again with GAE as a device loop of one iteration per step (Brax's way) against
+  the unrolled GAE of the config (`experts.ppo.unroll_gae`);
 - Brax's `ppo.train` on one task (one expert's batch) and at the experts' total batch;
 - BC (meta-training) gradient steps/s of both meta-policies, each in its own program and both
   in one.
@@ -251,7 +253,7 @@ def parse_args(argv=None):
                         help="config overrides, e.g. env.physics_dt=0.005")  # fmt: skip
     parser.add_argument("--out-dir", default="benchmarks/results")
     parser.add_argument(
-        "--skip", nargs="*", default=(), choices=("scene", "experts", "brax", "bc", "filter", "scaling")
+        "--skip", nargs="*", default=(), choices=("scene", "experts", "gae", "brax", "bc", "filter", "scaling")
     )
     parser.add_argument("--backends", nargs="+", default=list(kick_env.IMPLS), choices=kick_env.IMPLS,
                         help="physics backends measured side by side (the config's own is measured last)")  # fmt: skip
@@ -301,7 +303,15 @@ def sections(cfg, size: dict, backends, one, every, k: int) -> list:
     def filter_on(mesh, workload=1):
         return lambda: bench_filter(cfg, size["filter_step"], size["filter_reps"], mesh, workload)
 
+    def experts_gae(unroll: bool):
+        """The experts' rate with GAE unrolled or as a loop, keys suffixed `_gae_unrolled` / `_gae_loop`."""
+        part = bench_experts(derived(cfg, {"experts.ppo.unroll_gae": unroll}), size["bench_updates"], one)
+        suffix = "_gae_unrolled" if unroll else "_gae_loop"
+        return {f"{key}{suffix}": value for key, value in part.items() if key.startswith("experts_")}
+
     return out + [
+        ("gae", lambda: experts_gae(False), None),
+        ("gae", lambda: experts_gae(True), None),
         ("scaling-filter", (filter_on(one, k), filter_on(every, k)), "filter_rollouts_per_s"),
         ("brax", lambda: bench_brax(cfg, size["brax_epochs"]), None),
         ("brax", lambda: bench_brax(cfg, size["brax_epochs"], all_tasks=True), None),
@@ -317,6 +327,10 @@ def ratios(training: dict, own: str) -> None:
         if key in per.get("jax", {}) and key in per.get("warp", {}):
             training[f"{key.removesuffix('_per_s')}_warp_vs_jax"] = per["warp"][key] / per["jax"][key]
     mine = per.get(own, {})
+    if "experts_env_steps_per_s_gae_loop" in training and "experts_env_steps_per_s_gae_unrolled" in training:
+        training["experts_gae_unrolled_vs_loop"] = (
+            training["experts_env_steps_per_s_gae_unrolled"] / training["experts_env_steps_per_s_gae_loop"]
+        )
     for suffix in ("", "_total_batch"):
         brax = training.get(f"brax_ppo_env_steps_per_s{suffix}")
         if brax and "experts_env_steps_per_s" in mine:
@@ -332,7 +346,10 @@ def main(argv=None) -> dict:
     own = cfg.env.impl
     # Every program splits its batch with `jax.jit` over a mesh (`sharding.over_batch`).
     training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": "jit", "backend": own, "backends": {}}
-    training["projections"] = ["experts_ppo_projected_s", "bc_wall_s", "bc_joint_wall_s"]
+    training["projections"] = [
+        "experts_ppo_projected_s", "experts_ppo_projected_s_gae_loop", "experts_ppo_projected_s_gae_unrolled",
+        "bc_wall_s", "bc_joint_wall_s",
+    ]  # fmt: skip
     scaling: dict = {"devices": n_dev, "sharding": "jit", "workload": args.scale_workload, "backend": own}
 
     def save(section: str) -> None:

@@ -243,6 +243,8 @@ ADDED_KNOBS = {
     "experts.tune.midpoint_weight": 0.0,
     "experts.bc.common_start": "main",
     "experts.bc.common_start_strength": False,
+    "experts.ppo.unroll_gae": False,
+    "baseline.ppo.unroll_gae": False,
 }
 
 # Each preset: dotted overrides of the defaults (the paper's values).

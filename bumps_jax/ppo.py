@@ -2,9 +2,11 @@
 
 PureJaxRL pattern: `make_train(config, env)` returns pure functions; the whole training loop is
 a `lax.scan` over updates with no host round-trip inside, so `jax.vmap` over tasks trains every
-expert in one compiled program. From Brax we take the networks (`ppo.networks`), the loss
-(`ppo.losses.compute_ppo_loss`, which computes GAE itself), the observation normaliser
-(`acme.running_statistics`) and the gradient step (`gradients.gradient_update_fn`); we do not
+expert in one compiled program. From Brax we take the networks (`ppo.networks`), the
+observation normaliser (`acme.running_statistics`) and the gradient step
+(`gradients.gradient_update_fn`); the loss is Brax's `ppo.losses.compute_ppo_loss` rewritten
+(`ppo_loss`: the same terms, GAE from the minibatch's current values) so that its GAE can be
+unrolled (`unroll_gae`), and a test holds the two equal. We do not
 use `ppo.train` (it replicates over devices with `jax.device_put_replicated` and cannot be
 vmapped).
 
@@ -134,26 +136,48 @@ def init_normalizer(obs_size: int) -> running_statistics.RunningStatisticsState:
 # -- GAE as the loss sees it ------------------------------------------------------------------
 
 
-def advantages(rewards, values, dones, bootstrap_value, discount: float, gae_lambda: float, truncation=None):
-    """Brax's GAE with our episode ends: returns (value targets, advantages), both (T, B).
+def gae(truncation, termination, rewards, values, bootstrap_value, discount: float, gae_lambda: float, unroll: bool):
+    """Brax's GAE (`ppo.losses.compute_gae`: the same recursion and outputs) over (T, B) arrays:
+    (value targets, advantages), both (T, B) and without gradient.
+
+    A truncated step's own TD error is zeroed and the step before it bootstraps on its value;
+    a termination stops the return. With `unroll` the backward recursion is unrolled into
+    straight-line code that XLA fuses; otherwise it is a device loop of one iteration per time
+    step, as Brax's (on a GPU each iteration costs kernel launches: see docs/decisions.md).
+    """
+    keep = 1.0 - truncation
+    live = discount * (1.0 - termination)
+    next_values = jnp.concatenate([values[1:], bootstrap_value[None]], axis=0)
+    deltas = (rewards + live * next_values - values) * keep
+
+    def back(acc, step):
+        delta, decay = step
+        acc = delta + decay * acc
+        return acc, acc
+
+    _, vs_minus_v = jax.lax.scan(
+        back, jnp.zeros_like(bootstrap_value), (deltas, live * keep * gae_lambda), reverse=True, unroll=bool(unroll)
+    )
+    vs = vs_minus_v + values
+    next_vs = jnp.concatenate([vs[1:], bootstrap_value[None]], axis=0)
+    advantage = (rewards + live * next_vs - values) * keep
+    return jax.lax.stop_gradient(vs), jax.lax.stop_gradient(advantage)
+
+
+def advantages(
+    rewards, values, dones, bootstrap_value, discount: float, gae_lambda: float, truncation=None, unroll=True
+):
+    """GAE with our episode ends: returns (value targets, advantages), both (T, B).
 
     rewards, values, dones: (T, B); bootstrap_value: (B,); truncation: (T, B) or None (zeros).
     A done step is a termination unless it is also a truncation (a time-limit cut, flagged by
     the env's `info["truncation"]`); a truncated step bootstraps as in Brax: its own TD error
     and advantage are zeroed and the step before it bootstraps on its value. This is the
-    mapping `compute_ppo_loss` applies to our transitions (`discount = 1 - done`,
+    mapping `ppo_loss` applies to our transitions (`discount = 1 - done`,
     `termination = done * (1 - truncation)`), exposed for testing.
     """
     truncation = jnp.zeros_like(rewards) if truncation is None else truncation
-    return ppo_losses.compute_gae(
-        truncation=truncation,
-        termination=dones * (1 - truncation),
-        rewards=rewards,
-        values=values,
-        bootstrap_value=bootstrap_value,
-        lambda_=gae_lambda,
-        discount=discount,
-    )
+    return gae(truncation, dones * (1 - truncation), rewards, values, bootstrap_value, discount, gae_lambda, unroll)
 
 
 # -- rollout ----------------------------------------------------------------------------------
@@ -225,28 +249,42 @@ class _SGDCarry(NamedTuple):
     rng: jax.Array
 
 
-def _loss(ctx: _Context, params, normalizer, data, rng):
+def ppo_loss(ctx: _Context, params, normalizer, data, rng):
+    """Brax's PPO loss (`ppo.losses.compute_ppo_loss` at our settings: no value clipping, no
+    distributional critic) on a minibatch of whole episodes `data` (M, T), its GAE from `gae`
+    with the current value net: (total loss, metrics)."""
     cfg = ctx.config
-    return ppo_losses.compute_ppo_loss(
-        params,
-        normalizer,
-        data,
-        rng,
-        ctx.networks,
-        entropy_cost=cfg.entropy_cost,
-        discounting=cfg.discount,
-        reward_scaling=cfg.reward_scaling,
-        gae_lambda=cfg.gae_lambda,
-        clipping_epsilon=cfg.clip_epsilon,
-        normalize_advantage=cfg.normalize_advantage,
-        vf_coefficient=cfg.vf_coefficient,
+    dist = ctx.networks.parametric_action_distribution
+    data = jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), data)  # time first: (T, M)
+    logits = ctx.networks.policy_network.apply(normalizer, params.policy, data.observation)
+    values = ctx.networks.value_network.apply(normalizer, params.value, data.observation)
+    bootstrap = ctx.networks.value_network.apply(normalizer, params.value, data.next_observation[-1])
+    truncation = data.extras["state_extras"]["truncation"]
+    termination = (1 - data.discount) * (1 - truncation)
+    rewards = data.reward * cfg.reward_scaling
+    vs, advantage = gae(
+        truncation, termination, rewards, values, bootstrap, cfg.discount, cfg.gae_lambda, cfg.unroll_gae
     )
+    if cfg.normalize_advantage:
+        advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+    behaviour = data.extras["policy_extras"]
+    ratio = jnp.exp(dist.log_prob(logits, behaviour["raw_action"]) - behaviour["log_prob"])
+    clipped = jnp.clip(ratio, 1 - cfg.clip_epsilon, 1 + cfg.clip_epsilon)
+    policy_loss = -jnp.mean(jnp.minimum(ratio * advantage, clipped * advantage))
+    v_loss = 0.5 * cfg.vf_coefficient * jnp.mean((vs - values) ** 2)
+    entropy_loss = -cfg.entropy_cost * jnp.mean(dist.entropy(logits, rng))
+    kl = dist.create_dist(logits).kl_divergence(dist.create_dist(behaviour["distribution_params"]))
+    total = policy_loss + v_loss + entropy_loss
+    metrics = {"total_loss": total, "policy_loss": policy_loss, "v_loss": v_loss, "entropy_loss": entropy_loss}
+    return total, {**metrics, "kl_mean": jnp.mean(kl)}
 
 
 def _minibatch_step(ctx: _Context, normalizer, carry: _SGDCarry, minibatch):
     """One gradient step on one minibatch of whole episodes (M, T): -> (carry, loss metrics)."""
     rng, key = jax.random.split(carry.rng)
-    step = gradients.gradient_update_fn(functools.partial(_loss, ctx), ctx.optimizer, pmap_axis_name=None, has_aux=True)
+    step = gradients.gradient_update_fn(
+        functools.partial(ppo_loss, ctx), ctx.optimizer, pmap_axis_name=None, has_aux=True
+    )
     (_, metrics), params, opt_state = step(carry.params, normalizer, minibatch, key, optimizer_state=carry.opt_state)
     return _SGDCarry(params, opt_state, rng), metrics
 

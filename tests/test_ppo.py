@@ -10,6 +10,7 @@ import numpy as np
 import optax
 import pytest
 from brax.envs.base import State
+from brax.training import types
 from brax.training.agents.ppo import losses as ppo_losses
 
 from bumps_jax import config, kick_model, ppo, ppo_config, starting_kicks
@@ -84,9 +85,9 @@ def test_gae_bootstraps_through_truncation_as_brax():
     vs_term, _ = ppo.advantages(*args, 0.9, 1.0)
     np.testing.assert_allclose(np.asarray(vs_term)[:, 0], [1 + 0.9 * 2, 2.0, 4.8], rtol=1e-6)
     np.testing.assert_allclose(np.asarray(vs_term)[:, 1], [1 + 0.9 * 2 + 0.81 * 3, 2 + 0.9 * 3, 3.0], rtol=1e-6)
-    # And equal to Brax's own GAE fed as Brax's loss feeds it, at another lambda too.
-    for lam in (1.0, 0.7):
-        ours = ppo.advantages(*args, 0.9, lam, truncation=jnp.asarray(truncation))
+    # And equal to Brax's own GAE fed as Brax's loss feeds it, at another lambda too, unrolled or a loop.
+    for lam, unroll in ((1.0, True), (0.7, True), (0.7, False)):
+        ours = ppo.advantages(*args, 0.9, lam, truncation=jnp.asarray(truncation), unroll=unroll)
         brax = ppo_losses.compute_gae(
             truncation=jnp.asarray(truncation),
             # Brax's loss: termination = (1 - discount) * (1 - truncation), with discount = 1 - done.
@@ -98,7 +99,66 @@ def test_gae_bootstraps_through_truncation_as_brax():
             discount=0.9,
         )
         for a, b in zip(ours, brax, strict=True):
-            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
+
+
+def _minibatch(rng, networks, n_episodes: int, n_steps: int, obs_size: int):
+    """Transitions (M, T) as the rollout stores them, from the policy's own samples; episodes 0 and 1
+    end early (a termination, then a time-limit cut)."""
+    keys = jax.random.split(rng, 5)
+    obs = jax.random.uniform(keys[0], (n_episodes, n_steps + 1, obs_size))
+    policy = networks.policy_network.init(keys[1])
+    logits = networks.policy_network.apply(None, policy, obs[:, :-1])
+    dist = networks.parametric_action_distribution
+    raw = dist.sample_no_postprocessing(logits, keys[2])
+    done = jnp.zeros((n_episodes, n_steps)).at[:, -1].set(1.0).at[0, 5].set(1.0).at[1, 7].set(1.0)
+    truncation = jnp.zeros_like(done).at[1, 7].set(1.0)
+    return types.Transition(
+        observation=obs[:, :-1],
+        action=raw,
+        reward=jax.random.normal(keys[3], (n_episodes, n_steps)) * 10 - 50,
+        discount=1.0 - done,
+        next_observation=obs[:, 1:],
+        extras={
+            "policy_extras": {
+                "log_prob": dist.log_prob(logits, raw) + 0.1,
+                "raw_action": raw,
+                "distribution_params": logits,
+            },
+            "state_extras": {"truncation": truncation},
+        },
+    )
+
+
+@pytest.mark.parametrize("unroll", [True, False])
+def test_loss_and_gradient_equal_braxs(unroll):
+    """`ppo.ppo_loss` is Brax's `compute_ppo_loss` at our settings: the same loss terms and
+    gradient on a minibatch of 8 episodes of 12 steps (float rounding apart)."""
+    cfg = ppo_config.make_config(overrides={"unroll_gae": unroll, "gae_lambda": 0.95})
+    networks = ppo.make_networks(cfg, 3, 4)
+    ctx = ppo._Context(None, networks, None, cfg)
+    key = jax.random.PRNGKey(3)
+    data = _minibatch(key, networks, 8, 12, 3)
+    params = ppo.PPONetworkParams(networks.policy_network.init(key), networks.value_network.init(jax.random.PRNGKey(4)))
+
+    def brax(p):
+        return ppo_losses.compute_ppo_loss(
+            p, None, data, key, networks, entropy_cost=cfg.entropy_cost, discounting=cfg.discount,
+            reward_scaling=cfg.reward_scaling, gae_lambda=cfg.gae_lambda, clipping_epsilon=cfg.clip_epsilon,
+            normalize_advantage=cfg.normalize_advantage, vf_coefficient=cfg.vf_coefficient,
+        )  # fmt: skip
+
+    (want, want_metrics), want_grad = jax.value_and_grad(brax, has_aux=True)(params)
+    (got, got_metrics), got_grad = jax.value_and_grad(lambda p: ppo.ppo_loss(ctx, p, None, data, key), has_aux=True)(
+        params
+    )
+    assert abs(float(want)) > 1e-3 and float(want_metrics["kl_mean"]) > 0
+    for name in ("total_loss", "policy_loss", "v_loss", "entropy_loss", "kl_mean"):
+        np.testing.assert_allclose(float(got_metrics[name]), float(want_metrics[name]), rtol=1e-5, err_msg=name)
+    flat_want, flat_got = jax.tree.leaves(want_grad), jax.tree.leaves(got_grad)
+    assert len(flat_want) == len(flat_got) and max(float(jnp.abs(g).max()) for g in flat_want) > 1e-3
+    for a, b in zip(flat_got, flat_want, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
 
 
 class _CountingEnv:
