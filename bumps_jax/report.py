@@ -56,10 +56,12 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
         return "\n".join([*lines, "No stage has written results in this directory yet.", ""])
     presets = sorted({v["preset"] for v in found.values() if v})
     lines += [*preamble_lines(presets, first), "## Stages", ""]
-    stage_lines, total = stages_table(found)
+    # The held-out evaluation and the baseline are stages of the pipeline too; a row where they ran.
+    ran = {name: extras[name] for name in ("heldout", "baseline") if extras[name]}
+    stage_lines, own_s = stages_table({**found, **ran})
     lines += stage_lines
     lines += mixed_steps_lines({**found, "baseline": extras["baseline"], "heldout": extras["heldout"]})
-    lines += pipeline_lines(extras["pipeline"], total)
+    lines += pipeline_lines(extras["pipeline"], own_s)
 
     if found["prior"]:
         p = found["prior"]
@@ -100,18 +102,19 @@ def preamble_lines(presets: list[str], first: dict) -> list[str]:
     return [f"Preset: {', '.join(presets)}{tiny}", f"Device: {first['device']}; versions: {versions}", ""]
 
 
-def stages_table(found: dict) -> tuple[list[str], float]:
-    """The stages' table (wall time, physics, command; None: not run) and the sum of their wall times."""
+def stages_table(found: dict) -> tuple[list[str], dict[str, float]]:
+    """The stages' table (wall time, physics, command; None: not run) and each run stage's own wall
+    time (name -> s)."""
     lines = ["| stage | wall time (s) | physics (step, backend) | command |", "|---|---|---|---|"]
-    total = 0.0
+    own_s = {}
     for name, payload in found.items():
         if payload is None:
             used = " (the committed `assets/kick_prior.json` was used)" if name == "prior" else ""
             lines.append(f"| {name} | not run{used} | | |")
             continue
-        total += payload["wall_s"]
+        own_s[name] = payload["wall_s"]
         lines.append(f"| {name} | {payload['wall_s']:.0f} | {physics_step(payload)} | `{payload['command']}` |")
-    return [*lines, f"| **sum of the stages' own wall times** | **{total:.0f}** | | |", ""], total
+    return [*lines, f"| **sum of the stages' own wall times** | **{sum(own_s.values()):.0f}** | | |", ""], own_s
 
 
 def env_steps_lines(experts: dict) -> list[str]:
@@ -178,12 +181,14 @@ def differing_env_lines(payloads: dict) -> list[str]:
             ""]  # fmt: skip
 
 
-def pipeline_lines(pipeline: dict | None, stages_total_s: float | None = None) -> list[str]:
-    """The pipeline record's line; `stages_total_s` (the stages' own wall times, kept with their
-    checkpoints) shows up a record that missed calls killed before they could write it."""
+def pipeline_lines(pipeline: dict | None, own_s: dict[str, float] | None = None) -> list[str]:
+    """The pipeline record's line; `own_s` (name -> a stage's own wall time, kept with its
+    checkpoints) shows up a record that missed calls killed before they could write it. Only the
+    stages the record counts are compared: a stage run by its own command is not the pipeline's."""
     if not pipeline:
         return []
     stages = pipeline.get("stages_s", pipeline.get("stages", {}))  # "stages" in records before the contract's name
+    stages_total_s = sum((own_s or {}).get(name, 0.0) for name in stages)
     parts = ", ".join(f"{k} {v:.0f} s" for k, v in stages.items())
     calls = pipeline.get("calls")  # absent in records older than the count
     how = {None: "resumed across calls where a stage was cut", 1: "in one call"}.get(

@@ -31,9 +31,9 @@ def build_task(run_dir: str | Path, task: str) -> str:
         return "\n".join([*lines, "No stage has written results in this directory yet.", ""])
     unit = first.get("unit", "m")
     lines += preamble_lines([first["preset"]], first)
-    stage_lines, total = stages_table(found)
+    stage_lines, own_s = stages_table(found)
     lines += stage_lines
-    lines += pipeline_lines(load(run_dir, EXTRAS["pipeline"]), total)
+    lines += pipeline_lines(load(run_dir, EXTRAS["pipeline"]), own_s)
     if found["experts"]:
         lines += ["## Experts (each on its own training target)", "", tables.task_experts_markdown(found["experts"])]
     if found["meta"]:

@@ -96,6 +96,8 @@ def _paper_run(tmp_path):
 def test_report_shows_pipeline_time_and_baseline(tmp_path):
     text = report.build(_paper_run(tmp_path))
     assert "**1.5 min** in all (prior 5 s, experts 60 s, meta 10 s, filter 10 s, baseline 5 s" in text
+    # The baseline ran as a stage of the pipeline: its row in the stages' table, counted in the sum.
+    assert "\n| baseline | " in text.split("## Stages")[1].split("**sum")[0]
     assert "6 seeds, 2,000 env steps per seed: meta-test error 3.50 m" in text
     assert "BUMPS's experts used 2,000 PPO env steps in all (2 experts of 1,000); the baseline 12,000" in text
     assert "Best BUMPS variant (filtered_ensemble): 0.90 m against the baseline's 3.50 m" in text
