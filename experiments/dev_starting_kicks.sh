@@ -8,8 +8,10 @@
 # experiments/results/dev_starting_kicks/<arm>_{experts,table1}_<device>.json.
 #
 #   experiments/dev_starting_kicks.sh ARM [ARM ...]
+#   STAGES=train-experts experiments/dev_starting_kicks.sh ARM ...   (the experts only: their
+#        starting kicks' scores, before any net is trained)
 #   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
-#        | midpoint_weight=<w>
+#        | midpoint_weight=<w> | repetitions=<n> (noisy kicks per CMA-ES candidate)
 #        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
 #        | start=<anchor>[,spread] (every task starts from that prior anchor; spread: each at the strength
 #          where that kick rests nearest its target)
@@ -30,7 +32,7 @@ for arm in "$@"; do
       per_task) sets+=(experts.tune.scheme=per_task) ;;
       family) sets+=(experts.tune.scheme=family) ;;
       family12) sets+=(experts.tune.scheme=family experts.tune.knots=12) ;;
-      start_leash=*|neighbour_leash=*|midpoint_weight=*|generations=*) sets+=("experts.tune.$part") ;;
+      start_leash=*|neighbour_leash=*|midpoint_weight=*|generations=*|repetitions=*) sets+=("experts.tune.$part") ;;
       main_start) sets+=(experts.bc.per_task_strength=false) ;;
       start=*) sets+=(experts.bc.per_task_strength=false "experts.bc.common_start=${part#start=}") ;;
       spread) sets+=(experts.bc.common_start_strength=true) ;;
@@ -40,7 +42,7 @@ for arm in "$@"; do
   done
   seeds=(experts.eval.seed=$seed experts.tune.seed=$seed experts.seed=$seed meta.eval.seed=$seed)
   run="runs/dev_${arm//[=,]/_}"
-  for stage in train-experts meta-train; do
+  for stage in ${STAGES:-train-experts meta-train}; do
     python -m bumps_jax "$stage" --preset paper --run-dir "$run" --set "${common[@]}" "${seeds[@]}" "${sets[@]}"
   done
   # the device as the records' names give it: h100, h200, gpu or cpu
@@ -49,5 +51,5 @@ print(next((k.lower() for k in ("H100", "H200") if k in d), "cpu" if "cpu" in d.
   out=experiments/results/dev_starting_kicks
   mkdir -p "$out"
   cp "$run/experts/experts.json" "$out/${arm//[=,]/_}_experts_$device.json"
-  cp "$run/meta/table1.json" "$out/${arm//[=,]/_}_table1_$device.json"
+  if [ -f "$run/meta/table1.json" ]; then cp "$run/meta/table1.json" "$out/${arm//[=,]/_}_table1_$device.json"; fi
 done
