@@ -11,7 +11,7 @@
 #   STAGES=train-experts experiments/dev_starting_kicks.sh ARM ...   (the experts only: their
 #        starting kicks' scores, before any net is trained)
 #   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
-#        | midpoint_weight=<w> | repetitions=<n> (noisy kicks per CMA-ES candidate)
+#        | midpoint_weight=<w> | repetitions=<n> (noisy kicks per CMA-ES candidate) | env.<key>=<value>
 #        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
 #        | start=<anchor>[,spread] (every task starts from that prior anchor; spread: each at the strength
 #          where that kick rests nearest its target)
@@ -37,6 +37,7 @@ for arm in "$@"; do
       start=*) sets+=(experts.bc.per_task_strength=false "experts.bc.common_start=${part#start=}") ;;
       spread) sets+=(experts.bc.common_start_strength=true) ;;
       seed=*) seed=${part#seed=} ;;
+      env.*) sets+=("$part") ;;  # an env setting as it is, e.g. env.warp_contacts=<n> for larger batches
       *) echo "unknown arm part: $part" >&2; exit 2 ;;
     esac
   done
