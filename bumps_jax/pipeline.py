@@ -83,7 +83,13 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
                 shutil.rmtree(run_dir / later)
     write_manifest(run_dir / name, wanted)
     say(f"== {name}" + (" (resuming)" if status == "same" else ""), flush=True)
-    return module.run(config.task_view(cfg), run_dir, say=say)
+    # Ctrl-C only asks the stage to stop (a KeyboardInterrupt raised inside a Warp callback
+    # crashed the process): its chunk loops stop at their next chunk, a stage without chunks
+    # when it is done, and the call then ends as an interrupted one.
+    with runio.stop_on_interrupt(say, at="this chunk, or at the end of this stage") as stop:
+        record = module.run(config.task_view(cfg), run_dir, say=say)
+        stop.check()
+    return record
 
 
 def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> dict:

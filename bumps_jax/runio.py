@@ -297,20 +297,29 @@ class _StopFlag:
 
 
 @contextlib.contextmanager
-def stop_on_interrupt(say=print):
+def stop_on_interrupt(say=print, at: str = "this chunk"):
     """A chunk loop that Ctrl-C stops cleanly: SIGINT only sets a flag, which the loop reads between
-    chunks (`flag.check()`), so the interrupt never lands inside JAX or orbax (where it can be swallowed
-    or crash the process); a second Ctrl-C stops at once. Outside the main thread it changes nothing."""
+    chunks (`flag.check()`), so the interrupt never lands inside JAX, Warp or orbax (where it can be
+    swallowed or crash the process); a second Ctrl-C stops at once. `at`: where the loop stops, as
+    the message says it. Inside another one (a stage's guard around its chunk loops) it shares the
+    outer flag, so an interrupt either catches stops the loop at its next chunk. Outside the main
+    thread it changes nothing."""
+    previous = signal.getsignal(signal.SIGINT)
+    outer = getattr(previous, "stop_flag", None)
+    if outer is not None:
+        yield outer
+        return
     flag = _StopFlag()
 
     def handler(signum, frame):
         if flag.requested:
             raise KeyboardInterrupt
         flag.requested = True
-        say("\ninterrupt: stopping after this chunk (Ctrl-C again to stop at once)", flush=True)
+        say(f"\ninterrupt: stopping after {at} (Ctrl-C again to stop at once)", flush=True)
 
+    handler.stop_flag = flag
     try:
-        previous = signal.signal(signal.SIGINT, handler)
+        signal.signal(signal.SIGINT, handler)
     except ValueError:  # not the main thread
         yield flag
         return

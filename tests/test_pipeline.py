@@ -4,6 +4,9 @@ The stages here are stand-ins (no simulation): what is tested is the runner arou
 """
 
 import json
+import os
+import signal
+import time
 import types
 from pathlib import Path
 
@@ -183,6 +186,31 @@ def test_a_stage_made_anew_counts_its_own_time_not_its_predecessors(tmp_path, st
     pipeline.run_pipeline(("experts", "meta"), cfg(**{"experts.seed": 7}), tmp_path, force=True)
     record = json.loads(path.read_text())
     assert record["stages_s"]["experts"] < 100.0 and record["stages_s"]["meta"] < 100.0
+
+
+def test_ctrl_c_in_a_stage_without_chunks_ends_the_call_after_that_stage(tmp_path, stages, monkeypatch):
+    """SIGINT inside a stage never raises there (it crashed a Warp callback): the stage finishes,
+    its time is counted, the call ends as interrupted, and the next call goes on from the next stage."""
+    log, modules = stages
+    inner = modules["experts"].run
+
+    def pressed_during(cfg, run_dir, say=print):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)  # the handler has run: no KeyboardInterrupt here
+        return inner(cfg, run_dir, say)
+
+    monkeypatch.setattr(modules["experts"], "run", pressed_during)
+    before = signal.getsignal(signal.SIGINT)
+    said = []
+    with pytest.raises(runio.Interrupted):
+        pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path, say=lambda *a, **k: said.append(a[0]))
+    assert signal.getsignal(signal.SIGINT) is before
+    assert log == ["experts"] and (tmp_path / "experts" / "out.json").exists()
+    assert any("stopping after this chunk, or at the end of this stage" in line for line in said)
+    record = json.loads((tmp_path / "pipeline.json").read_text())
+    assert "open" not in record and "experts" in record["stages_s"]
+    pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path, say=lambda *a, **k: None)
+    assert log == ["experts", "meta"]
 
 
 def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, stages, monkeypatch):

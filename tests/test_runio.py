@@ -30,6 +30,22 @@ def test_sigint_sets_a_flag_and_a_second_one_stops_at_once():
     assert signal.getsignal(signal.SIGINT) is before  # restored
 
 
+def test_a_loop_inside_a_guard_shares_its_flag():
+    """A chunk loop inside a stage's guard sees an interrupt the guard caught before the loop began."""
+    said = []
+    before = signal.getsignal(signal.SIGINT)
+    with runio.stop_on_interrupt(lambda *a, **k: said.append(a[0]), at="this stage") as guard:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        assert said == ["\ninterrupt: stopping after this stage (Ctrl-C again to stop at once)"]
+        with runio.stop_on_interrupt() as loop:
+            assert loop is guard
+            with pytest.raises(runio.Interrupted):
+                loop.check()
+        assert signal.getsignal(signal.SIGINT) is not before  # the inner one left the guard's handler
+    assert signal.getsignal(signal.SIGINT) is before
+
+
 def test_ctrl_c_stops_a_training_run_within_a_chunk_and_it_resumes(tmp_path):  # issue: defect 10
     env = dict(
         os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])
