@@ -31,6 +31,7 @@ COMMITTED = {
 }
 BENCH = "benchmarks/results/training.json"
 SCALING = "benchmarks/results/scaling.json"
+GAE = "benchmarks/results/experts_gae.json"  # `bench --skip ...` keeping only the experts' GAE comparison
 PRIOR_ASSET = "assets/kick_prior.json"
 
 
@@ -248,9 +249,10 @@ def baseline_lines(baseline: dict | None, experts: dict | None, filtered: dict |
     return [*lines, ""]
 
 
-def speed_lines(bench: dict | None, scaling: dict | None) -> list[str]:
+def speed_lines(bench: dict | None, scaling: dict | None, gae: dict | None = None) -> list[str]:
     """The speed section from `make bench`'s record: one column per physics backend measured
-    (a record from before the backends were measured side by side: one column)."""
+    (a record from before the backends were measured side by side: one column); with `gae`, the
+    bench's record of the experts' PPO with GAE as a loop and unrolled (`ppo.unroll_gae`)."""
     if not bench:
         return []
     per = bench.get("backends") or {bench.get("env", {}).get("impl", "backend not recorded"): bench}
@@ -303,6 +305,21 @@ def speed_lines(bench: dict | None, scaling: dict | None) -> list[str]:
             f"{scaling['filter_rollouts_speedup']:.2f}x, at {scaling.get('workload', 1)} times the paper's work "
             "(copies of every expert; filtering repetitions), measured on one device and on all in one run.",
         ]
+    if gae and gae.get("experts_gae_unrolled_vs_loop"):
+        lines += [
+            "",
+            f"PPO's GAE (`ppo.unroll_gae`), the experts' chunk side by side on {gae['device']}, {gae['date'][:10]}, "
+            f"physics step {physics_step(gae)}: {gae['experts_env_steps_per_s_gae_loop']:,.0f} env-steps/s as a "
+            f"device loop, {gae['experts_env_steps_per_s_gae_unrolled']:,.0f} unrolled "
+            f"({gae['experts_gae_unrolled_vs_loop']:.2f}x); the experts' PPO projected "
+            f"{gae['experts_ppo_projected_s_gae_loop']:.0f} s -> {gae['experts_ppo_projected_s_gae_unrolled']:.0f} s "
+            f"(`{GAE}`)."
+            + (
+                " The tables above are older than it: their PPO ran GAE as the loop."
+                if bench["date"] < gae["date"]
+                else ""
+            ),
+        ]
     return [*lines, ""]
 
 
@@ -344,7 +361,7 @@ def write_committed(root: str | Path = ".") -> Path:
     path = root / "docs" / "results.md"
     path.parent.mkdir(parents=True, exist_ok=True)
     note = provenance_note(root, load(root, COMMITTED["pipeline"]))
-    speed = speed_lines(load(root, BENCH), load(root, SCALING))
+    speed = speed_lines(load(root, BENCH), load(root, SCALING), load(root, GAE))
     head, _, rest = text.partition("\n\n")
     body = rest.replace("](docs/", "](")  # figures sit beside the report
     path.write_text(head + "\n\n" + note + body + ("\n" + "\n".join(speed) + "\n" if speed else ""))

@@ -259,3 +259,15 @@ def test_cheetah_rows_are_the_records_and_replace_only_their_block(tmp_path):
 def test_committed_cheetah_rows_are_the_committed_records():
     text = Path(cheetah_table.DOC).read_text()
     assert cheetah_table.block() in text
+
+
+def test_the_speed_section_reads_the_gae_record_and_says_which_is_older():
+    bench = {**_common("paper"), "date": "2026-11-23T10:00:00+00:00", "experts_env_steps_per_s": 250_000.0}
+    gae = {**_common("paper"), "date": "2026-11-24T10:00:00+00:00", "experts_env_steps_per_s_gae_loop": 300_000.0,
+           "experts_env_steps_per_s_gae_unrolled": 450_000.0, "experts_gae_unrolled_vs_loop": 1.5,
+           "experts_ppo_projected_s_gae_loop": 900.0, "experts_ppo_projected_s_gae_unrolled": 600.0}  # fmt: skip
+    text = "\n".join(report.speed_lines(bench, None, gae))
+    assert "300,000 env-steps/s as a device loop, 450,000 unrolled (1.50x)" in text
+    assert "projected 900 s -> 600 s" in text and "The tables above are older than it" in text
+    assert "older than it" not in "\n".join(report.speed_lines({**bench, "date": gae["date"]}, None, gae))
+    assert "unroll_gae" not in "\n".join(report.speed_lines(bench, None, None))
