@@ -172,9 +172,8 @@ def advantages(
     rewards, values, dones: (T, B); bootstrap_value: (B,); truncation: (T, B) or None (zeros).
     A done step is a termination unless it is also a truncation (a time-limit cut, flagged by
     the env's `info["truncation"]`); a truncated step bootstraps as in Brax: its own TD error
-    and advantage are zeroed and the step before it bootstraps on its value. This is the
-    mapping `ppo_loss` applies to our transitions (`discount = 1 - done`,
-    `termination = done * (1 - truncation)`), exposed for testing.
+    and advantage are zeroed and the step before it bootstraps on its value. `ppo_loss` calls it
+    on its minibatch (done = 1 - the transitions' discount), as Brax's loss maps them.
     """
     truncation = jnp.zeros_like(rewards) if truncation is None else truncation
     return gae(truncation, dones * (1 - truncation), rewards, values, bootstrap_value, discount, gae_lambda, unroll)
@@ -251,8 +250,8 @@ class _SGDCarry(NamedTuple):
 
 def ppo_loss(ctx: _Context, params, normalizer, data, rng):
     """Brax's PPO loss (`ppo.losses.compute_ppo_loss` at our settings: no value clipping, no
-    distributional critic) on a minibatch of whole episodes `data` (M, T), its GAE from `gae`
-    with the current value net: (total loss, metrics)."""
+    distributional critic) on a minibatch of whole episodes `data` (M, T), its GAE from
+    `advantages` with the current value net: (total loss, metrics)."""
     cfg = ctx.config
     dist = ctx.networks.parametric_action_distribution
     data = jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), data)  # time first: (T, M)
@@ -260,10 +259,9 @@ def ppo_loss(ctx: _Context, params, normalizer, data, rng):
     values = ctx.networks.value_network.apply(normalizer, params.value, data.observation)
     bootstrap = ctx.networks.value_network.apply(normalizer, params.value, data.next_observation[-1])
     truncation = data.extras["state_extras"]["truncation"]
-    termination = (1 - data.discount) * (1 - truncation)
     rewards = data.reward * cfg.reward_scaling
-    vs, advantage = gae(
-        truncation, termination, rewards, values, bootstrap, cfg.discount, cfg.gae_lambda, cfg.unroll_gae
+    vs, advantage = advantages(
+        rewards, values, 1 - data.discount, bootstrap, cfg.discount, cfg.gae_lambda, truncation, cfg.unroll_gae
     )
     if cfg.normalize_advantage:
         advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)

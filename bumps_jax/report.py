@@ -61,7 +61,7 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
     ran = {name: extras[name] for name in ("heldout", "baseline") if extras[name]}
     stage_lines, own_s = stages_table({**found, **ran})
     lines += stage_lines
-    lines += mixed_steps_lines({**found, "baseline": extras["baseline"], "heldout": extras["heldout"]})
+    lines += mixed_steps_lines({**found, **ran})
     lines += pipeline_lines(extras["pipeline"], own_s)
 
     if found["prior"]:

@@ -10,8 +10,8 @@ from bumps_jax import config, pipeline, tasks
 
 # sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the
 # task switch existed: a change here makes every kick run made before it refuse to resume. The
-# experts' and baseline's pins were retaken with `ppo.unroll_gae` = True (2026-11-24): their PPO's
-# GAE is unrolled now, so both stages of older runs are rerun (the knob at False resumes them).
+# experts' and baseline's pins were retaken with `ppo.unroll_gae` = True (2026-11-24): both stages
+# of older runs now refuse to resume unless run with the knob at False (`config.ADDED_KNOBS`).
 KICK_SECTIONS = {
     "tiny": {
         "prior": "7129f2c0c8a5fbc223648451c94ff60aa6c7cd5fb1e7dfdb2cefd1160c757983",
