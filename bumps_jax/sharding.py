@@ -1,10 +1,13 @@
 """Spreading a batch axis (experts, episodes) over devices with JAX's own sharding.
 
 Every batched program of the pipeline is a `vmap` over independent items: experts in
-training, episodes in filtering. `over_batch` jits such a function with its batch split over a
-one-axis `Mesh`: XLA's SPMD partitioner gives each device its slice, with no communication.
-On one device the mesh has one member and the program is the one that runs everywhere else,
-so there is a single code path.
+training, episodes in filtering. `over_batch` runs such a function on each device's slice of the
+batch (`jax.shard_map` over a one-axis `Mesh`), with no communication. It is a `shard_map` and not
+a plain `jit` with sharded inputs because XLA's SPMD partitioner cannot split a foreign call:
+it gathers the whole batch onto every device around each of Warp's physics calls, so every
+device would step every episode (and overflow a contact pool sized for its own share). On one
+device the mesh has one member and the program is the one that runs everywhere else, so there
+is a single code path.
 
 The batch must divide evenly over the devices: `pad` repeats the last item up to a multiple
 of the mesh size and callers drop the copies (`unpad`) before anything is saved, so
@@ -88,11 +91,19 @@ def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0):
     `mesh`, the others replicated, and every output split on axis `out_axis`.
 
     `fn` must treat the items of its batch independently (a vmap), so each device's slice
-    gives what the whole batch would; XLA's SPMD partitioner splits the program.
+    gives what the whole batch would: each device runs `fn` on its slice alone. Values `fn`
+    closes over (a blank Warp episode, with its contact pool) are copied to every device.
     """
     in_specs = tuple(P(AXIS) if b else P() for b in batched)
-    out = NamedSharding(mesh, P(*([None] * out_axis), AXIS))
-    return jax.jit(fn, in_shardings=tuple(NamedSharding(mesh, s) for s in in_specs), out_shardings=out)
+    out_spec = P(*([None] * out_axis), AXIS)
+    # check_vma off: a scan whose carry starts from a replicated constant (the blank episode)
+    # and becomes per-device is fine here, since every output is split over the batch anyway.
+    local = jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_spec, check_vma=False)
+    return jax.jit(
+        local,
+        in_shardings=tuple(NamedSharding(mesh, s) for s in in_specs),
+        out_shardings=NamedSharding(mesh, out_spec),
+    )
 
 
 def place(tree, mesh: Mesh):

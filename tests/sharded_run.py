@@ -1,6 +1,6 @@
 """Run by test_sharding.py in a fresh process with N_DEVICES host devices (XLA reads the device
-count once, at start-up): trains tiny experts and filters a synthetic family on a mesh of
-N_DEVICES devices, and prints what they produced as JSON. The single-device side of both runs in
+count once, at start-up): trains tiny experts, filters a synthetic family and steps episodes
+through a small contact pool on a mesh of N_DEVICES devices, and prints what they produced as JSON. The single-device side of both runs in
 the test's own process (the filtering on conftest's program that test_filtering.py uses too)."""
 
 import json
@@ -9,6 +9,7 @@ import tempfile
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import stand_ins
 import tiny_experts
@@ -61,6 +62,34 @@ def filter_synthetic(env, grid, params, n_devices: int) -> dict:
     return {"chosen": sel.chosen.tolist(), "distance": sel.distance.tolist(), "scores": sel.scores.tolist()}
 
 
+# Warp's contact pool for 4 episodes, and 8 episodes split over the devices: 4 on each.
+POOL_EPISODES = 4
+
+
+def pool_per_device() -> dict:
+    """One control step of 2 * POOL_EPISODES episodes over N_DEVICES devices, with a contact pool
+    for POOL_EPISODES: whether any overflowed, and whether the program gathers a batch across
+    devices (it must not: each device steps only its own share of the episodes)."""
+    pool = {"warp_contacts": kick_env.CONTACTS_PER_EPISODE * POOL_EPISODES}
+    env = kick_env.KickEnv(config.make_config("tiny").env, pool)
+
+    def step(keys):
+        def one(key):
+            state = env.step(env.reset(key, 10.0), jnp.zeros(env.action_size))
+            return state.info["overflow"], state.pipeline_state.qpos
+
+        return jax.vmap(one)(keys)
+
+    program = sharding.over_batch(step, sharding.device_mesh(N_DEVICES), (True,))
+    keys = jax.random.split(jax.random.key(0), N_DEVICES * POOL_EPISODES)
+    overflow, qpos = program(keys)
+    return {
+        "overflow": np.asarray(overflow).tolist(),
+        "finite": bool(np.isfinite(np.asarray(qpos)).all()),
+        "gathers": "all-gather" in program.lower(keys).compile().as_text(),
+    }
+
+
 def main() -> None:
     assert len(jax.devices()) == N_DEVICES, jax.devices()
     env = kick_env.KickEnv(config.make_config("tiny").env)
@@ -69,6 +98,7 @@ def main() -> None:
     params = jax.tree.map(lambda a: a[None], stand_ins.synthetic_contextual_params())
     grid = rollout.grid_fn(env, stand_ins.contextual_apply, sharding.device_mesh(N_DEVICES))
     out["filter"] = filter_synthetic(env, grid, params, N_DEVICES)
+    out["pool"] = pool_per_device()
     json.dump(out, sys.stdout)
 
 

@@ -77,6 +77,16 @@ def test_sharded_filtering_makes_the_same_choices(sharded_vs_single):
     assert (score_gap > 1e-2).sum() <= 3 and score_gap.max() < 0.1, score_gap
 
 
+def test_each_device_steps_only_its_own_episodes(sharded_vs_single):
+    # A plain jit over the mesh ran Warp's physics on the whole batch on every device (gathered
+    # around each physics call): 8 episodes through a contact pool for 4 overflowed, all 8.
+    _, sharded = sharded_vs_single
+    pool = sharded["pool"]
+    assert len(pool["overflow"]) == sharded_run.N_DEVICES * sharded_run.POOL_EPISODES
+    assert not any(pool["overflow"]) and pool["finite"]
+    assert not pool["gathers"]
+
+
 def test_padding_repeats_the_last_item_and_unpad_drops_it():
     mesh = sharding.device_mesh(1)
     assert sharding.padded_size(23, mesh) == 23
