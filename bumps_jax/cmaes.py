@@ -246,7 +246,7 @@ def optimise(env, start, target: float, free_params, cfg, csv_path=None, mesh=No
         raise ValueError(f"need start ({kick_model.N_PARAMS},) and free_params among PARAM_NAMES, got "
                          f"{start.shape} and {tuple(free_params)!r}")  # fmt: skip
     _check_search(env, [target], cfg.population_size, cfg.repetitions, cfg.sigma_init, cfg.generations)
-    mesh = mesh or sharding.device_mesh()
+    mesh = mesh or sharding.device_mesh(impl=env.config.impl)
     _check_pool(env, int(cfg.population_size) * int(cfg.repetitions), "the search")
     search = kick_search(env, mesh, int(cfg.population_size), int(cfg.repetitions), float(cfg.sigma_init),
                          kick_scoring.fitness_json_of(cfg.fitness))  # fmt: skip
@@ -314,7 +314,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
         raise ValueError(f"generations must be an integer >= 0, got {generations!r}")
     _check_search(env, targets, tune_cfg.population_size, tune_cfg.repetitions, sigma_init, 1)
     kick_scoring.check_count("eval_repetitions", tune_cfg.eval_repetitions)
-    mesh = mesh or sharding.device_mesh()
+    mesh = mesh or sharding.device_mesh(impl=env.config.impl)
     P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
     per_device = sharding.padded_size(T, mesh) // mesh.size  # searches each device plays at once
     _check_pool(env, per_device * P * R, "the tuning (tasks x population x repetitions)")
@@ -417,7 +417,7 @@ def tune_family(env, targets, knots, start_knots, tune_cfg, generations: int, si
     _check_search(env, targets, tune_cfg.population_size, tune_cfg.repetitions, sigma_init, 1)
     kick_env.check_targets(knots.tolist(), env.config.task_range)
     kick_scoring.check_count("eval_repetitions", tune_cfg.eval_repetitions)
-    mesh = mesh or sharding.device_mesh()
+    mesh = mesh or sharding.device_mesh(impl=env.config.impl)
     P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
     _check_pool(env, P * R * T, "the family tuning (population x repetitions x tasks)")
     fitness_json = kick_scoring.fitness_json_of(fitness)

@@ -133,7 +133,8 @@ def kick(cfg, run_dir: Path, args) -> None:
     env_overrides = {k.removeprefix("env."): v for k, v in config.overrides_of(cfg).items() if k.startswith("env.")}
     from bumps_jax import sharding  # noqa: PLC0415
 
-    env_cfg = policies.kick_env_config(manifest, env_overrides, args.kicks, sharding.device_mesh().size)
+    n_devices = sharding.device_mesh(impl=policies.env_config(manifest, env_overrides).impl).size
+    env_cfg = policies.kick_env_config(manifest, env_overrides, args.kicks, n_devices)
     if args.net not in manifest.get("nets", {}):
         raise ValueError(f"--net {args.net!r}: the shipped nets are {sorted(manifest.get('nets', {}))}")
     from bumps_jax import kick_env  # noqa: PLC0415

@@ -134,7 +134,7 @@ def best_starts(env, targets, candidates, fitness, repetitions: int = 16, seed: 
                          f"{targets.shape} and {candidates.shape}")  # fmt: skip
     check_count("repetitions", repetitions)
     kick_env.check_targets(targets.tolist(), env.config.task_range)
-    mesh = mesh or sharding.device_mesh()
+    mesh = mesh or sharding.device_mesh(impl=env.config.impl)
     n_tasks, n_candidates = candidates.shape[:2]
     keys = jnp.broadcast_to(jax.random.split(jax.random.key(seed), repetitions), (n_candidates, repetitions))
     padded = sharding.pad((jnp.asarray(candidates), jnp.asarray(targets)), sharding.padded_size(n_tasks, mesh))
@@ -147,7 +147,7 @@ def best_starts(env, targets, candidates, fitness, repetitions: int = 16, seed: 
 
 def replay(env, params, targets, keys, mesh=None) -> dict:
     """Kicks params (N, 14) at targets (N,) m over keys (N, R): the env's final metrics, (N, R) numpy."""
-    mesh = mesh or sharding.device_mesh()
+    mesh = mesh or sharding.device_mesh(impl=env.config.impl)
     n = len(targets)
     tables = kick_model.action_tables(kick_model.clip_params(jnp.asarray(params, jnp.float32)), env.n_steps, env.dt)
     targets = jnp.asarray(targets, jnp.float32)

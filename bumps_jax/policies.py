@@ -182,7 +182,7 @@ def filtered_kicks(
     contexts = filtering.candidate_contexts(targets, grid)
     contexts = contexts[np.abs(contexts - targets[0]) <= f["width"] + 1e-6]
     entry = shipped.manifest["nets"][net]
-    mesh = sharding.device_mesh()
+    mesh = sharding.device_mesh(impl=env_cfg.impl)
     program = meta_programs.meta_grid(env_cfg, entry["depth"], entry["width"], mesh)
     params = jax.tree.map(lambda a: np.asarray(a)[None], shipped.nets[net])
     sel_key, eval_key = filtering.noise_keys(seed)

@@ -1,13 +1,17 @@
 """Spreading a batch axis (experts, episodes) over devices with JAX's own sharding.
 
 Every batched program of the pipeline is a `vmap` over independent items: experts in
-training, episodes in filtering. `over_batch` runs such a function on each device's slice of the
-batch (`jax.shard_map` over a one-axis `Mesh`), with no communication. It is a `shard_map` and not
-a plain `jit` with sharded inputs because XLA's SPMD partitioner cannot split a foreign call:
-it gathers the whole batch onto every device around each of Warp's physics calls, so every
-device would step every episode (and overflow a contact pool sized for its own share). On one
-device the mesh has one member and the program is the one that runs everywhere else, so there
-is a single code path.
+training, episodes in filtering. `over_batch` jits such a function with its batch split over a
+one-axis `Mesh`, each device computing its slice, with no communication. On one device the
+mesh has one member and the program is the one that runs everywhere else.
+
+How the split is made depends on the devices. On GPUs, XLA's SPMD partitioner splits the
+program (`jit` with sharded inputs; a `shard_map` of the experts' trainer crashed XLA's
+compiler on two H200s). It cannot split a foreign call, though: it gathers the whole batch onto
+every device around each of Warp's physics calls, so every device would step every episode
+(and overflow a contact pool sized for its share). That is no loss on GPUs, where Warp runs on
+one GPU per process (`device_mesh`), but on several CPU devices, where Warp's calls are host
+callbacks, each device runs its slice as a `shard_map`.
 
 The batch must divide evenly over the devices: `pad` repeats the last item up to a multiple
 of the mesh size and callers drop the copies (`unpad`) before anything is saved, so
@@ -15,7 +19,8 @@ checkpoints and results do not depend on how many devices made them.
 
 Several hosts: start one process per host and call `jax.distributed.initialize()` before
 anything else (see README, "Several GPUs and hosts"); `jax.devices()` then lists every
-host's devices and `device_mesh()` spans them all.
+host's devices and `device_mesh()` spans them all (with JAX physics: MJX's Warp backend runs on
+one GPU per process, `device_mesh`).
 """
 
 from __future__ import annotations
@@ -28,12 +33,26 @@ from jax.sharding import PartitionSpec as P
 AXIS = "batch"
 
 
-def device_mesh(n_devices: int | None = None) -> Mesh:
-    """A one-axis mesh over the first `n_devices` devices (default: all of them)."""
+def device_mesh(n_devices: int | None = None, impl: str | None = None) -> Mesh:
+    """A one-axis mesh over the first `n_devices` devices (default: all that the physics can use).
+
+    `impl` is the physics backend of the programs that will run on it (`env.impl`; None: no
+    physics). MJX's Warp backend runs on one GPU per process: its physics call crashes the
+    process (a segmentation fault) when a program steps episodes on a second GPU, whatever
+    Warp's graph mode (measured with mujoco-mjx 3.17 and warp-lang 1.18 on two H200s). So with
+    Warp on GPUs the default is one device, and more is refused. On CPU devices Warp's calls
+    are host callbacks and split like any other program.
+    """
     devices = jax.devices()
-    n = len(devices) if n_devices is None else int(n_devices)
+    one_gpu = impl == "warp" and devices[0].platform == "gpu"
+    n = (1 if one_gpu else len(devices)) if n_devices is None else int(n_devices)
     if not 1 <= n <= len(devices):
         raise ValueError(f"n_devices must be in [1, {len(devices)}] (the devices visible), got {n_devices!r}")
+    if one_gpu and n > 1:
+        raise ValueError(
+            f"n_devices {n} with env.impl 'warp': MJX's Warp physics runs on one GPU per process "
+            "(a second GPU crashes it); use one device, or env.impl=jax to spread over GPUs"
+        )
     return Mesh(np.asarray(devices[:n]), (AXIS,))
 
 
@@ -91,16 +110,19 @@ def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0):
     `mesh`, the others replicated, and every output split on axis `out_axis`.
 
     `fn` must treat the items of its batch independently (a vmap), so each device's slice
-    gives what the whole batch would: each device runs `fn` on its slice alone. Values `fn`
-    closes over (a blank Warp episode, with its contact pool) are copied to every device.
+    gives what the whole batch would. On several CPU devices each runs `fn` on its own slice
+    (`shard_map`: values `fn` closes over, such as a blank Warp episode with its contact pool,
+    are copied to every device); elsewhere XLA's partitioner splits the program (module
+    docstring).
     """
     in_specs = tuple(P(AXIS) if b else P() for b in batched)
     out_spec = P(*([None] * out_axis), AXIS)
-    # check_vma off: a scan whose carry starts from a replicated constant (the blank episode)
-    # and becomes per-device is fine here, since every output is split over the batch anyway.
-    local = jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_spec, check_vma=False)
+    if mesh.size > 1 and mesh.devices.flat[0].platform == "cpu":
+        # check_vma off: a scan whose carry starts from a replicated constant (the blank episode)
+        # and becomes per-device is fine here, since every output is split over the batch anyway.
+        fn = jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_spec, check_vma=False)
     return jax.jit(
-        local,
+        fn,
         in_shardings=tuple(NamedSharding(mesh, s) for s in in_specs),
         out_shardings=NamedSharding(mesh, out_spec),
     )

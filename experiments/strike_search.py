@@ -179,7 +179,7 @@ def search(args, env, starts, kinds):
     x0 = np.stack([starts[s] for _, s, _ in rows])
     fitness = config.default_config().prior.fitness
     searches = cmaes.make_search(height_cost(env, fitness), args.population, args.repetitions, args.sigma,
-                                 sharding.device_mesh())  # fmt: skip
+                                 sharding.device_mesh(impl=env.config.impl))  # fmt: skip
     result = cmaes.run_search(searches, x0, [t for t, _, _ in rows], np.ones_like(x0, bool), args.generations,
                               args.seed, extra=[kinds[k] for _, _, k in rows], label="strike search")  # fmt: skip
     return rows, result.mean, result.key

@@ -1,7 +1,8 @@
 """Run by test_sharding.py in a fresh process with N_DEVICES host devices (XLA reads the device
 count once, at start-up): trains tiny experts, filters a synthetic family and steps episodes
-through a small contact pool on a mesh of N_DEVICES devices, and prints what they produced as JSON. The single-device side of both runs in
-the test's own process (the filtering on conftest's program that test_filtering.py uses too)."""
+through a small contact pool on a mesh of N_DEVICES devices, and prints what they produced as
+JSON. The single-device side of the first two runs in the test's own process (the filtering on
+conftest's program that test_filtering.py uses too)."""
 
 import json
 import sys
@@ -36,7 +37,7 @@ def quiet(*args, **kwargs):
 
 def train(env, run_dir: Path) -> dict:
     cfg = experts_config()  # 3 tasks on 2 devices: one padded copy
-    programs = experts.compile_programs(cfg, env, mesh=sharding.device_mesh(N_DEVICES))
+    programs = experts.compile_programs(cfg, env, mesh=sharding.device_mesh(N_DEVICES, impl="warp"))
     # Stop after one chunk and resume: the sharded path must also restore checkpoints.
     experts.train(cfg, run_dir, programs, say=quiet, stop_after_chunks=1)
     out = experts.train(cfg, run_dir, programs, say=quiet)
@@ -80,7 +81,7 @@ def pool_per_device() -> dict:
 
         return jax.vmap(one)(keys)
 
-    program = sharding.over_batch(step, sharding.device_mesh(N_DEVICES), (True,))
+    program = sharding.over_batch(step, sharding.device_mesh(N_DEVICES, impl="warp"), (True,))
     keys = jax.random.split(jax.random.key(0), N_DEVICES * POOL_EPISODES)
     overflow, qpos = program(keys)
     return {
@@ -96,7 +97,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         out = {"experts": train(env, Path(tmp))}
     params = jax.tree.map(lambda a: a[None], stand_ins.synthetic_contextual_params())
-    grid = rollout.grid_fn(env, stand_ins.contextual_apply, sharding.device_mesh(N_DEVICES))
+    grid = rollout.grid_fn(env, stand_ins.contextual_apply, sharding.device_mesh(N_DEVICES, impl="warp"))
     out["filter"] = filter_synthetic(env, grid, params, N_DEVICES)
     out["pool"] = pool_per_device()
     json.dump(out, sys.stdout)

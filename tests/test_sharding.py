@@ -102,3 +102,17 @@ def test_bad_device_counts_are_named():
         sharding.device_mesh(0)
     with pytest.raises(ValueError, match="n_devices"):
         sharding.device_mesh(10_000)
+
+
+def test_warp_on_gpus_runs_on_one_gpu_and_refuses_more(monkeypatch):
+    # Warp's physics crashes a process that steps episodes on a second GPU (mujoco-mjx 3.17).
+    class Gpu:
+        platform = "gpu"
+
+    monkeypatch.setattr(jax, "devices", lambda: [Gpu(), Gpu()])
+    monkeypatch.setattr(sharding, "Mesh", lambda devices, axes: devices)  # the devices it would span
+    assert len(sharding.device_mesh(impl="warp")) == 1
+    assert len(sharding.device_mesh(impl="jax")) == 2 and len(sharding.device_mesh()) == 2
+    assert len(sharding.device_mesh(1, impl="warp")) == 1
+    with pytest.raises(ValueError, match="n_devices 2 with env.impl 'warp'"):
+        sharding.device_mesh(2, impl="warp")

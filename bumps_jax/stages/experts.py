@@ -151,7 +151,7 @@ def compile_programs(cfg, env=None, mesh=None) -> Compiled:
     """The experts' programs for a pipeline config (its task's `experts` section and env,
     `config.task_view`); compiled on first call."""
     env = env or tasks.make_env(cfg.task, cfg.env)
-    mesh = mesh or sharding.device_mesh()
+    mesh = mesh or sharding.device_mesh(impl=env.config.impl)
     trainer = ppo.make_train(cfg.experts.ppo, env)
     make = make_init(cfg.experts, env, trainer) if cfg.task == "kick" else make_fresh_init(trainer)
     init = sharding.over_batch(jax.vmap(make), mesh, (True, True, True))

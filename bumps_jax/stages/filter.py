@@ -87,7 +87,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     inputs(cfg, run_dir)
     f, stage_dir = cfg.filter, run_dir / "filter"
     targets = np.asarray(f.tasks, np.float64)
-    mesh = sharding.device_mesh()  # a mesh of one on a single device: the same program
+    mesh = sharding.device_mesh(impl=cfg.env.impl)  # a mesh of one on a single device: the same program
     grids = {
         "low": filtering.candidate_contexts(targets, filtering.context_grid(*f.context_range, f.context_step)),
         "high": filtering.candidate_contexts(targets, filtering.context_grid(*f.context_range, f.high_context_step)),

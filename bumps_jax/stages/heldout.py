@@ -96,7 +96,7 @@ def run(cfg, run_dir: Path, say=print, section: str = "heldout") -> dict:
     h, f = cfg[section], cfg.filter
     targets = np.asarray(h.targets, np.float64)
     sel_key, eval_key = filtering.noise_keys(h.seed)
-    mesh = sharding.device_mesh()
+    mesh = sharding.device_mesh(impl=cfg.env.impl)
     family = experts_stage.load_family(cfg, run_dir)
     nearest = nearest_tasks(family.tasks, targets)
     say(f"{section}: {len(targets)} targets x {h.repetitions} kicks; experts of the nearest task (compiling first)",

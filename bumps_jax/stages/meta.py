@@ -182,7 +182,7 @@ def evaluate_blocked(cfg, depth: int, width: int, params, obs_norm=None) -> dict
     architecture (`meta_programs.meta_grid`, called in blocks of `filter.block` episodes per device),
     which the filter stage then reuses instead of compiling its own: another task's evaluation.
     (The kick's keeps its own program, whose numbers its tests pin.)"""
-    e, mesh = cfg.meta.eval, sharding.device_mesh()
+    e, mesh = cfg.meta.eval, sharding.device_mesh(impl=cfg.env.impl)
     grid = meta_programs.meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)
     tasks_, reps = np.asarray(e.tasks, np.float64), int(e.repetitions)
     flat, keys = np.repeat(tasks_, reps), rollout.repetition_keys(e.seed, len(tasks_), reps).reshape(-1)

@@ -56,7 +56,7 @@ def run(cfg, run_dir, say=print) -> dict:
     x0 = np.asarray(kick_model.load_record(own)["params"], np.float32).copy()
     x0[kick_model.PARAM_NAMES.index("strength")] = p.start_strength
     env = kick_env.KickEnv(cfg.env, {"task_range": tuple(p.task_range)})
-    mesh = sharding.device_mesh()
+    mesh = sharding.device_mesh(impl=env.config.impl)
     found = {"main": _anchor(stage_dir, "main", p.target, x0, p.free_params, p, env, mesh, say)}
     for name in EXTREMES:  # from the main kick, every parameter free
         start = found["main"]["params"]
