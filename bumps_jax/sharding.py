@@ -48,6 +48,11 @@ def device_mesh(n_devices: int | None = None, impl: str | None = None) -> Mesh:
     n = (1 if one_gpu else len(devices)) if n_devices is None else int(n_devices)
     if not 1 <= n <= len(devices):
         raise ValueError(f"n_devices must be in [1, {len(devices)}] (the devices visible), got {n_devices!r}")
+    if one_gpu and jax.process_count() > 1:
+        raise ValueError(
+            f"{jax.process_count()} processes with env.impl 'warp': MJX's Warp physics runs on one GPU of "
+            "one process; run without --distributed, or with env.impl=jax"
+        )
     if one_gpu and n > 1:
         raise ValueError(
             f"n_devices {n} with env.impl 'warp': MJX's Warp physics runs on one GPU per process "

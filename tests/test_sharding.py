@@ -116,3 +116,6 @@ def test_warp_on_gpus_runs_on_one_gpu_and_refuses_more(monkeypatch):
     assert len(sharding.device_mesh(1, impl="warp")) == 1
     with pytest.raises(ValueError, match="n_devices 2 with env.impl 'warp'"):
         sharding.device_mesh(2, impl="warp")
+    monkeypatch.setattr(jax, "process_count", lambda: 2)  # --distributed: several processes
+    with pytest.raises(ValueError, match="2 processes with env.impl 'warp'"):
+        sharding.device_mesh(impl="warp")
