@@ -299,7 +299,8 @@ def speed_lines(bench: dict | None, scaling: dict | None, gae: dict | None = Non
         n = str(scaling["devices"])
         lines += [
             "",
-            f"Scale-out on {scaling['device']}: experts {scaling['experts_env_steps_per_s'][n]:,.0f} env-steps/s on "
+            f"Scale-out on {scaling['device']}, physics {physics_step(scaling)} (Warp runs on one GPU per process: "
+            f"README): experts {scaling['experts_env_steps_per_s'][n]:,.0f} env-steps/s on "
             f"{n} devices vs {scaling['experts_env_steps_per_s']['1']:,.0f} on one "
             f"({scaling['experts_env_steps_speedup']:.2f}x); filtering "
             f"{scaling['filter_rollouts_speedup']:.2f}x, at {scaling.get('workload', 1)} times the paper's work "

@@ -271,3 +271,12 @@ def test_the_speed_section_reads_the_gae_record_and_says_which_is_older():
     assert "projected 900 s -> 600 s" in text and "The tables above are older than it" in text
     assert "older than it" not in "\n".join(report.speed_lines({**bench, "date": gae["date"]}, None, gae))
     assert "unroll_gae" not in "\n".join(report.speed_lines(bench, None, None))
+
+
+def test_the_scale_out_line_names_its_physics():
+    bench = {**_common("paper"), "date": "2026-11-23T10:00:00+00:00", "experts_env_steps_per_s": 250_000.0}
+    scaling = {**_common("paper"), "env": {"physics_dt": 0.0025, "impl": "jax"}, "devices": 2, "workload": 8,
+               "experts_env_steps_per_s": {"1": 100_000.0, "2": 190_000.0}, "experts_env_steps_speedup": 1.9,
+               "filter_rollouts_speedup": 1.95}  # fmt: skip
+    text = "\n".join(report.speed_lines(bench, scaling))
+    assert "physics 2.5 ms, jax" in text and "190,000 env-steps/s on 2 devices vs 100,000 on one (1.90x)" in text
