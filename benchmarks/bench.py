@@ -10,8 +10,9 @@ On the config's own backend (`env.impl`) only:
 - Brax's `ppo.train` on one task (one expert's batch) and at the experts' total batch;
 - BC (meta-training) gradient steps/s of both meta-policies, each in its own program and both
   in one.
-With more than one device visible it also measures the experts and filtering on a mesh of one
-device and on a mesh of all of them (`bumps_jax.sharding`) and writes the scaling record;
+With more than one device the physics can use (Warp runs on one GPU per process:
+`sharding.device_mesh`) it also measures the experts and filtering on a mesh of one device and
+on a mesh of all of them and writes the scaling record;
 `--scale-workload K` runs those two on K times the preset's work (K copies of every expert,
 each its own seed; K times the filtering repetitions), for a lab that outgrows one device.
 
@@ -21,7 +22,7 @@ Results are written after each section, so a run cut short keeps what it measure
 
     python -m benchmarks.bench --preset paper                        # GPU: benchmarks/results/*.json
     python -m benchmarks.bench --preset tiny --out-dir runs/bench    # CPU smoke test
-    python -m benchmarks.bench --only scaling --scale-workload 2     # several GPUs, twice the work
+    python -m benchmarks.bench --only scaling --scale-workload 8 --set env.impl=jax   # several GPUs
 """
 
 from __future__ import annotations
