@@ -53,19 +53,19 @@ def versions() -> dict:
 def provenance(preset: str, wall_s: float, env: dict, command: str | None = None) -> dict:
     """The keys every results file carries: device, versions, date, command, preset, wall time, and
     the env config it ran under (`env`: physics_dt in s, the backend `impl`, noise, reward)."""
-    import jax  # noqa: PLC0415
+    from bumps_jax import kick_env, sharding  # noqa: PLC0415
 
-    from bumps_jax import kick_env  # noqa: PLC0415
-
+    resolved = kick_env.resolved(env)
     record = {
         "device": device_name(),
-        "n_devices": jax.device_count(),
+        # the devices its programs were split over (Warp physics uses one GPU: `sharding.device_mesh`)
+        "n_devices": sharding.device_mesh(impl=resolved.get("impl")).size,
         "versions": versions(),
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "command": command or command_line(),
         "preset": preset,
         "wall_s": round(float(wall_s), 3),
-        "env": kick_env.resolved(env),
+        "env": resolved,
     }
     if os.environ.get("XLA_FLAGS"):  # compiler flags change speed (and may change numbers): kept with them
         record["xla_flags"] = os.environ["XLA_FLAGS"]
