@@ -361,9 +361,11 @@ def main(argv=None) -> dict:
         if any(k.endswith("_speedup") for k in scaling):  # at least one ratio measured
             runio.write_json(out_dir / "scaling.json", {**scaling, **prov})
 
-    scale_out = len(sharding.device_mesh(impl=own).devices) > 1 and "scaling" not in args.skip
-    every = sharding.device_mesh(impl=own) if scale_out else one
-    if n_dev > 1 and not scale_out and "scaling" not in args.skip:
+    every = sharding.device_mesh(impl=own)  # every device the physics can use
+    scale_out = every.size > 1 and "scaling" not in args.skip
+    if not scale_out:
+        every = one
+    if n_dev > 1 and every.size == 1 and "scaling" not in args.skip:
         print(f"[bench] no scale-out: {n_dev} devices visible, but env.impl {own!r} runs on one (sharding.device_mesh)")
     k = args.scale_workload
     for name, fn, into in sections(cfg, SIZES[args.preset], args.backends, one, every, k):
