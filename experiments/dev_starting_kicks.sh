@@ -3,9 +3,11 @@
 # each ARM trains the paper preset's experts at a short budget (25 PPO updates each) and the
 # meta-policies (30,000 BC epochs) on development seeds (101), and scores the meta-policies
 # unfiltered on 110 development targets halfway between the meta-test tasks. Never the meta-test
-# seed or the held-out set. A part seed=<n> moves the four seeds together (default 101).
+# seed or the held-out set. A part seed=<n> moves the seeds together (default 101). A part
+# paper_budget trains at the paper preset's budget (625 PPO updates, 150,000 BC epochs) and adds
+# the filtering stage on the same development targets and seed.
 # Records land in runs/dev_<arm>/ (a finished stage is not rerun) and are copied to
-# experiments/results/dev_starting_kicks/<arm>_{experts,table1}_<device>.json.
+# experiments/results/dev_starting_kicks/<arm>_{experts,table1,table2}_<device>.json.
 #
 #   experiments/dev_starting_kicks.sh ARM [ARM ...]
 #   STAGES=train-experts experiments/dev_starting_kicks.sh ARM ...   (the experts only: their
@@ -13,19 +15,23 @@
 #   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
 #        | midpoint_weight=<w> | repetitions=<n> (noisy kicks per CMA-ES candidate) | env.<key>=<value>
 #        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
+#        | paper_budget (the preset's PPO and BC budgets, then filtering)
 #        | start=<anchor>[,spread] (every task starts from that prior anchor; spread: each at the strength
 #          where that kick rests nearest its target)
 set -euo pipefail
 tasks=$(python3 -c 'print("[" + ",".join(f"{7.05 + 0.1 * i:.2f}" for i in range(110)) + "]")')
 # The comparison's reference (arm per_task): every task from the best of its blended kick and the
 # prior's anchors, tuned on its own; each arm's parts change it.
-common=("meta.eval.tasks=$tasks" experts.ppo.total_env_steps=480000 experts.updates_per_chunk=25 meta.train.epochs=30000
+short_budget=(experts.ppo.total_env_steps=480000 experts.updates_per_chunk=25 meta.train.epochs=30000)
+common=("meta.eval.tasks=$tasks" "filter.tasks=$tasks"
         experts.tune.scheme=per_task experts.bc.per_task_strength=true experts.tune.anchor_starts=true
         experts.tune.start_leash=0 experts.tune.neighbour_leash=0 experts.tune.midpoint_weight=0
         experts.bc.common_start=main experts.bc.common_start_strength=false)
 for arm in "$@"; do
   seed=101
   sets=()
+  budget=("${short_budget[@]}")
+  stages=${STAGES:-train-experts meta-train}
   IFS=, read -ra parts <<< "$arm"
   for part in "${parts[@]}"; do
     case "$part" in
@@ -37,14 +43,15 @@ for arm in "$@"; do
       start=*) sets+=(experts.bc.per_task_strength=false "experts.bc.common_start=${part#start=}") ;;
       spread) sets+=(experts.bc.common_start_strength=true) ;;
       seed=*) seed=${part#seed=} ;;
+      paper_budget) budget=(); stages=${STAGES:-train-experts meta-train filter} ;;
       env.*) sets+=("$part") ;;  # an env setting as it is, e.g. env.warp_contacts=<n> for larger batches
       *) echo "unknown arm part: $part" >&2; exit 2 ;;
     esac
   done
-  seeds=(experts.eval.seed=$seed experts.tune.seed=$seed experts.seed=$seed meta.eval.seed=$seed)
+  seeds=(experts.eval.seed=$seed experts.tune.seed=$seed experts.seed=$seed meta.eval.seed=$seed filter.seed=$seed)
   run="runs/dev_${arm//[=,]/_}"
-  for stage in ${STAGES:-train-experts meta-train}; do
-    python -m bumps_jax "$stage" --preset paper --run-dir "$run" --set "${common[@]}" "${seeds[@]}" "${sets[@]}"
+  for stage in $stages; do
+    python -m bumps_jax "$stage" --preset paper --run-dir "$run" --set "${common[@]}" "${budget[@]}" "${seeds[@]}" "${sets[@]}"
   done
   # the device as the records' names give it: h100, h200, gpu or cpu
   device=$(python -c 'import json, sys; d = json.load(open(sys.argv[1]))["device"]
@@ -52,5 +59,7 @@ print(next((k.lower() for k in ("H100", "H200") if k in d), "cpu" if "cpu" in d.
   out=experiments/results/dev_starting_kicks
   mkdir -p "$out"
   cp "$run/experts/experts.json" "$out/${arm//[=,]/_}_experts_$device.json"
-  if [ -f "$run/meta/table1.json" ]; then cp "$run/meta/table1.json" "$out/${arm//[=,]/_}_table1_$device.json"; fi
+  for table in meta/table1 filter/table2; do
+    if [ -f "$run/$table.json" ]; then cp "$run/$table.json" "$out/${arm//[=,]/_}_${table#*/}_$device.json"; fi
+  done
 done
