@@ -142,10 +142,10 @@ def family_search(env, mesh, population: int, repetitions: int, sigma_init: floa
     return make_search(cost, population, repetitions, sigma_init, mesh, shape=(len(knots), kick_model.N_PARAMS))
 
 
-def run_search(search: Search, x0, targets, free, generations: int, seed: int, extra=None, say=print,
+def run_search(search: Search, x0, targets, free, generations: int, seed, extra=None, say=print,
                label: str = "cma-es", on_generation=None, leash=None, centre_fn=None,
                extra_fn=None) -> Result:  # fmt: skip
-    """Run T searches for `generations` generations from key(seed).
+    """Run T searches for `generations` generations from key(seed) (seed: an int or a JAX key).
 
     x0: (T, *search.shape) starts; targets: (T,) m; free: (T, *search.shape) bool, the parameters
     each search moves; extra: (T,) numbers handed to the cost (default 0); leash: (T,) each
@@ -169,7 +169,7 @@ def run_search(search: Search, x0, targets, free, generations: int, seed: int, e
         (x0, targets, scale, extra, leash), sharding.padded_size(n, search.mesh)
     )
     T = x0.shape[0]
-    key = jax.random.key(seed)
+    key = jax.random.key(seed) if isinstance(seed, int | np.integer) else seed
     key, init_key = jax.random.split(key)
     init = jax.vmap(lambda k: search.es.init(k, jnp.zeros(search.shape), search.es_params))
     carry = Carry(init(jax.random.split(init_key, T)), jnp.full(T, jnp.inf, jnp.float32), x0)
@@ -301,8 +301,14 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     (`kick_scoring.chain_cost`: two more episodes per episode). The keep-the-better rule compares
     the kicks' costs alone.
 
+    With tune_cfg.restarts = K > 1 the whole tuning runs K times from independent CMA-ES keys
+    (the first the one restarts = 1 uses), and the tuning keeps one of them whole: the run whose
+    tasks, each the better of its start and its tuned kick, cost least in the mean over tasks on
+    the same fresh episodes. Kicks are never mixed between runs, so a chain stays one chain.
+
     Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
-    "history": (generations, T) best cost per generation, "episodes": int}.
+    "history": (generations, T) best cost per generation, "restart": the run kept,
+    "restart_costs": (K,) each run's mean cost over tasks, "episodes": int}.
     """
     targets = np.asarray(targets, np.float32)
     starts = np.asarray(kick_model.clip_params(jnp.asarray(starts, jnp.float32)))
@@ -323,22 +329,49 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json, midpoint_weight)
     leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
     extra_fn = (lambda means: neighbour_partners(means, targets)) if midpoint_weight > 0 else None
-    result = run_search(search, starts, targets, np.ones_like(starts, bool), int(generations), int(tune_cfg.seed),
-                        say=say, label="tuning", leash=leash, centre_fn=centre_fn, extra_fn=extra_fn)  # fmt: skip
-    key = result.key
-    keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
-    pair = sharding.pad((jnp.stack([starts, result.mean], 1), jnp.asarray(targets)), sharding.padded_size(T, mesh))
-    costs = np.asarray(sharding.unpad(kick_scoring.cost_program(env, mesh, fitness_json)(pair[0], keys, pair[1]), T))
-    improved = costs[:, 1] < costs[:, 0]
+    kick_scoring.check_count("restarts", tune_cfg.restarts)
+    K = int(tune_cfg.restarts)
+    _check_pool(env, per_device * (K + 1) * E, "the tuning's fresh scoring (tasks x (restarts + 1) x eval_repetitions)")
+    results, seed = [], jax.random.key(int(tune_cfg.seed))
+    for k in range(K):
+        results.append(run_search(
+            search, starts, targets, np.ones_like(starts, bool), int(generations),
+            seed if k == 0 else jax.random.fold_in(seed, k), say=say,
+            label="tuning" if K == 1 else f"tuning run {k + 1}/{K}", leash=leash, centre_fn=centre_fn,
+            extra_fn=extra_fn,
+        ))  # fmt: skip
+    # The start and every run's tuned kicks on the same fresh episodes (common random numbers).
+    key = results[0].key
+    keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (K + 1, E) + key.shape)
+    kicks = jnp.stack([starts] + [r.mean for r in results], 1)  # (T, K + 1, 14)
+    padded = sharding.pad((kicks, jnp.asarray(targets)), sharding.padded_size(T, mesh))
+    score = kick_scoring.cost_program(env, mesh, fitness_json)
+    costs = np.asarray(sharding.unpad(score(padded[0], keys, padded[1]), T))
+    best, improved, run_costs = keep_best_run(costs)
     return {
-        "params": np.where(improved[:, None], result.mean, starts),
+        "params": np.where(improved[:, None], results[best].mean, starts),
         "start_cost": costs[:, 0],
-        "tuned_cost": costs[:, 1],
+        "tuned_cost": costs[:, best + 1],
         "improved": improved,
-        "history": result.history["best"],
+        "history": results[best].history["best"],
+        "restart": best,
+        "restart_costs": run_costs.tolist(),
         # every episode played: with the halfway kicks, three per candidate's episode
-        "episodes": int(T * (generations * P * R * (3 if midpoint_weight > 0 else 1) + 2 * E)),
+        "episodes": int(T * (K * generations * P * R * (3 if midpoint_weight > 0 else 1) + (K + 1) * E)),
     }
+
+
+def keep_best_run(costs) -> tuple[int, np.ndarray, np.ndarray]:
+    """Which tuning run to keep, from fresh costs (T, 1 + K): column 0 each task's start, column
+    1 + k its kick in run k. Each task of a run keeps the better of its start and its kick; the
+    run kept is the one whose kept kicks cost least in the mean over tasks (the first on a tie).
+    Returns (run, improved (T,) bool: the tasks that keep that run's kick, run_costs (K,))."""
+    costs = np.asarray(costs, np.float64)
+    if costs.ndim != 2 or costs.shape[1] < 2:
+        raise ValueError(f"need fresh costs of shape (tasks, 1 + runs), got {costs.shape}")
+    run_costs = np.minimum(costs[:, :1], costs[:, 1:]).mean(0)
+    run = int(np.argmin(run_costs))
+    return run, costs[:, run + 1] < costs[:, 0], run_costs
 
 
 def neighbours(targets) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

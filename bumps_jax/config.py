@@ -96,6 +96,9 @@ def _experts() -> ml_collections.ConfigDict:
     cfg.tune.repetitions = 8  # noisy kicks per candidate per generation
     cfg.tune.eval_repetitions = 32  # fresh kicks choosing between start and tuned
     cfg.tune.seed = 0
+    # "per_task" only: independent runs of the whole tuning (different CMA-ES keys); the one whose
+    # kicks cost least over all tasks on fresh episodes is kept whole. Each run costs a tuning.
+    cfg.tune.restarts = 1
     # Start each task from the best of its blended kick and the prior's three anchors.
     cfg.tune.anchor_starts = True
     # "per_task": one CMA-ES per task on its own kick. "family": one CMA-ES over a contextual
@@ -241,6 +244,7 @@ ADDED_KNOBS = {
     "experts.tune.start_leash": 0.0,
     "experts.tune.neighbour_leash": 0.0,
     "experts.tune.midpoint_weight": 0.0,
+    "experts.tune.restarts": 1,
     "experts.bc.common_start": "main",
     "experts.bc.common_start_strength": False,
     "experts.ppo.unroll_gae": False,

@@ -116,6 +116,8 @@ def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
         improved = out["improved"].tolist() if isinstance(out["improved"], np.ndarray) else out["improved"]
         info.update(tuned=True, wall_s=time.perf_counter() - t0, start_cost=out["start_cost"],
                     tuned_cost=out["tuned_cost"], improved=improved, history_best_cost=out["history"])  # fmt: skip
+        if "restart_costs" in out:  # the per-task scheme's runs and the one kept
+            info.update(restart=out["restart"], restart_costs=out["restart_costs"])
     info["episodes"] = int(episodes)  # every episode the starting kicks cost: choice of starts and tuning
     info["smoothness"] = smoothness(starts, targets)
     info["params"] = np.asarray(starts).tolist()

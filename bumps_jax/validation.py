@@ -87,10 +87,13 @@ def physics_capacity(cfg) -> None:
         return
     most = cfg.env.warp_contacts // kick_env.CONTACTS_PER_EPISODE
     tuning = len(cfg.experts.tasks) * cfg.experts.tune.population_size * cfg.experts.tune.repetitions
+    scoring = len(cfg.experts.tasks) * (cfg.experts.tune.restarts + 1) * cfg.experts.tune.eval_repetitions
     programs = {
         "experts (len(experts.tasks) x experts.ppo.num_envs)": len(cfg.experts.tasks) * cfg.experts.ppo.num_envs,
         "baseline (baseline.seeds x learning rates x baseline.ppo.num_envs)": baseline_runs(cfg.baseline),
         "experts tuning (len(experts.tasks) x experts.tune.population_size x experts.tune.repetitions)": tuning,
+        "experts tuning's fresh scoring (len(experts.tasks) x (experts.tune.restarts + 1) x "
+        "experts.tune.eval_repetitions)": scoring,
     }
     for name, n in programs.items():
         if n > most:
@@ -166,7 +169,9 @@ def experts(e, task_range, n_steps: int) -> None:
             "experts.bc.common_start and common_start_strength apply when every task starts from one kick: "
             "set experts.bc.per_task_strength to false"
         )
-    positive_ints(e.tune, "experts.tune.", ("repetitions", "eval_repetitions", "population_size"))
+    positive_ints(e.tune, "experts.tune.", ("repetitions", "eval_repetitions", "population_size", "restarts"))
+    if e.tune.restarts > 1 and e.tune.scheme == "family":
+        raise ValueError("experts.tune.restarts applies to the 'per_task' scheme only; with 'family' set it to 1")
     if isinstance(e.tune.generations, bool) or e.tune.generations < 0:
         raise ValueError(f"experts.tune.generations must be an integer >= 0, got {e.tune.generations!r}")
     if e.tune.population_size < 2:

@@ -160,6 +160,7 @@ TUNE = ml_collections.ConfigDict(
         "start_leash": 0.0,
         "neighbour_leash": 0.0,
         "midpoint_weight": 0.0,
+        "restarts": 1,
     }
 )
 
@@ -177,6 +178,66 @@ def test_tuning_for_tasks_rejects_bad_inputs_before_compiling(env):
     one = ml_collections.ConfigDict({**TUNE.to_dict(), "population_size": 1})
     with pytest.raises(ValueError, match="population_size"):
         cmaes.tune_for_tasks(env, [8.0, 12.0], starts, one, 1, 0.5, fitness=FITNESS)
+    none = ml_collections.ConfigDict({**TUNE.to_dict(), "restarts": 0})
+    with pytest.raises(ValueError, match="restarts must be a positive integer, got 0"):
+        cmaes.tune_for_tasks(env, [8.0, 12.0], starts, none, 1, 0.5, fitness=FITNESS)
+
+
+def test_the_run_kept_is_the_one_whose_kept_kicks_cost_least():
+    """Fresh costs of 3 tasks: the start, then 3 runs. Run 0 is best on task 0 alone, run 2 on
+    average; each task of a run keeps the better of start and kick, so run 1's one bad task (9.0)
+    costs it only its start's 2.0."""
+    costs = [[1.0, 0.2, 0.9, 0.5], [2.0, 3.0, 9.0, 1.5], [2.0, 2.5, 1.0, 1.5]]
+    run, improved, run_costs = cmaes.keep_best_run(costs)
+    np.testing.assert_allclose(run_costs, [(0.2 + 2.0 + 2.0) / 3, (0.9 + 2.0 + 1.0) / 3, (0.5 + 1.5 + 1.5) / 3])
+    assert run == 2 and improved.tolist() == [True, True, True]
+    run, improved, _ = cmaes.keep_best_run([[1.0, 0.5, 0.5], [1.0, 2.0, 2.0]])  # a tie keeps the first run
+    assert run == 0 and improved.tolist() == [True, False]
+    with pytest.raises(ValueError, match=r"\(tasks, 1 \+ runs\), got \(2, 1\)"):
+        cmaes.keep_best_run([[1.0], [2.0]])
+
+
+def test_restarts_run_the_tuning_from_independent_keys_and_keep_one_run_whole(env, monkeypatch):
+    """restarts = 3: three runs of the search (the first from the key restarts = 1 uses), then
+    the start and every run's kick scored on the same fresh episodes; the run kept is the one of
+    `keep_best_run`, whole. Stand-ins for the search and the scoring, so nothing compiles: run k
+    moves every task's kick by a known amount, and a kick's fresh cost is |lean - 14|."""
+    lean = kick_model.PARAM_NAMES.index("lean")
+    moves = {0: [+0.5, -1.0], 1: [+1.0, +1.0], 2: [-1.0, +0.5]}  # run -> each task's change of lean
+    keys = []
+
+    def search(*args, **kwargs):
+        return None
+
+    def run_search(search, x0, targets, free, generations, seed, **kwargs):
+        keys.append(np.asarray(jax.random.key_data(seed)))
+        mean = np.array(x0, np.float32)
+        mean[:, lean] += moves[len(keys) - 1]
+        hist = {name: np.zeros((generations, len(targets))) for name in cmaes.Stats._fields}
+        return cmaes.Result(mean, mean, np.zeros(len(targets)), hist, jax.random.key(7))
+
+    def cost_program(env, mesh, fitness_json):
+        def costs(params, fresh, targets):
+            assert fresh.shape[0] == params.shape[1]  # one row of fresh keys per kick scored
+            assert (np.asarray(jax.random.key_data(fresh)) == np.asarray(jax.random.key_data(fresh[:1]))).all()
+            return jnp.abs(params[..., lean] - 14.0)
+
+        return costs
+
+    monkeypatch.setattr(cmaes, "kick_search", search)
+    monkeypatch.setattr(cmaes, "run_search", run_search)
+    monkeypatch.setattr(cmaes.kick_scoring, "cost_program", cost_program)
+    starts = np.tile(kick_model.DEFAULT_PARAMS, (2, 1)).astype(np.float32)  # lean 13: cost 1 each
+    tune = ml_collections.ConfigDict({**TUNE.to_dict(), "restarts": 3, "seed": 5})
+    out = cmaes.tune_for_tasks(env, [8.0, 12.0], starts, tune, 2, 0.5, fitness=FITNESS, say=lambda m: None)
+    # run 0: tasks 0.5 | 2.0 -> kept 0.5, 1.0; run 1: 0.0, 0.0; run 2: 2.0, 0.5 -> kept 1.0, 0.5
+    np.testing.assert_allclose(out["restart_costs"], [0.75, 0.0, 0.75])
+    assert out["restart"] == 1 and out["improved"].tolist() == [True, True]
+    np.testing.assert_allclose(out["params"][:, lean], [14.0, 14.0])
+    np.testing.assert_allclose(out["start_cost"], [1.0, 1.0])
+    np.testing.assert_array_equal(keys[0], jax.random.key_data(jax.random.key(5)))  # run 0: restarts = 1's key
+    assert len({k.tobytes() for k in keys}) == 3  # independent keys
+    assert out["episodes"] == 2 * (3 * 2 * TUNE.population_size * TUNE.repetitions + 4 * TUNE.eval_repetitions)
 
 
 def test_best_starts_rejects_bad_inputs_before_compiling(env):
