@@ -83,6 +83,10 @@ def starting_kicks_lines(record: dict) -> list[str]:
         )
     if mid:
         lines.append(midpoints_line(mid))
+    runs = record.get("starting_kicks_tuning_runs")
+    if runs:
+        costs, n = ", ".join(f"{c:.3f}" for c in runs["fresh_costs"]), len(runs["fresh_costs"])
+        lines.append(f"Tuning runs' mean fresh cost: {costs}; kept run {runs['kept'] + 1} of {n}.")
     return [*lines, ""] if lines else []
 
 

@@ -52,6 +52,11 @@ def test_report_counts_the_experts_env_steps_and_shows_their_starting_kicks(tmp_
                                   "n_reps": 2, "per_task": []})  # fmt: skip
     assert "starting kicks (before PPO): accuracy 0.50 +- 0.10, error 1.25 +- 0.50 m (1.50 m over all tasks)." in md
     assert "1.50 scale units of `back_knee`, 7 -> 7.5 m." in md and midpoints in md
+    runs = {"kept": 1, "fresh_costs": [0.61, 0.4, 0.55]}  # `tune.restarts` = 3
+    assert "Tuning runs" not in md
+    md = tables.experts_markdown({**experts, "rel_error_mean": 0.03, "tasks_above_threshold": 2, "n_tasks": 2,
+                                  "n_reps": 2, "per_task": [], "starting_kicks_tuning_runs": runs})  # fmt: skip
+    assert "Tuning runs' mean fresh cost: 0.610, 0.400, 0.550; kept run 2 of 3." in md
     # A prior record that does not say how it was made leaves its share unknown, not zero.
     runio.write_json(tmp_path / "experts" / "experts.json",
                      {**experts, "env_steps_breakdown": {"prior": None, "tuning": 50, "ppo": 1000}})  # fmt: skip
