@@ -138,6 +138,8 @@ def env_steps_lines(experts: dict) -> list[str]:
         )
     if experts.get("starting_kicks_midpoints"):
         lines.append(tables.midpoints_line(experts["starting_kicks_midpoints"]))
+    if experts.get("starting_kicks_tuning_runs"):
+        lines.append(tables.tuning_runs_line(experts["starting_kicks_tuning_runs"]))
     return [*lines, ""]
 
 

@@ -83,11 +83,15 @@ def starting_kicks_lines(record: dict) -> list[str]:
         )
     if mid:
         lines.append(midpoints_line(mid))
-    runs = record.get("starting_kicks_tuning_runs")
-    if runs:
-        costs, n = ", ".join(f"{c:.3f}" for c in runs["fresh_costs"]), len(runs["fresh_costs"])
-        lines.append(f"Tuning runs' mean fresh cost: {costs}; kept run {runs['kept'] + 1} of {n}.")
+    if record.get("starting_kicks_tuning_runs"):
+        lines.append(tuning_runs_line(record["starting_kicks_tuning_runs"]))
     return [*lines, ""] if lines else []
+
+
+def tuning_runs_line(runs: dict) -> str:
+    """One sentence on an experts record's "starting_kicks_tuning_runs" (`tune.restarts` > 1)."""
+    costs, n = ", ".join(f"{c:.3f}" for c in runs["fresh_costs"]), len(runs["fresh_costs"])
+    return f"Tuning runs' mean fresh cost: {costs}; kept run {runs['kept'] + 1} of {n}."
 
 
 def midpoints_line(mid: dict) -> str:

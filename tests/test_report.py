@@ -57,6 +57,8 @@ def test_report_counts_the_experts_env_steps_and_shows_their_starting_kicks(tmp_
     md = tables.experts_markdown({**experts, "rel_error_mean": 0.03, "tasks_above_threshold": 2, "n_tasks": 2,
                                   "n_reps": 2, "per_task": [], "starting_kicks_tuning_runs": runs})  # fmt: skip
     assert "Tuning runs' mean fresh cost: 0.610, 0.400, 0.550; kept run 2 of 3." in md
+    runio.write_json(tmp_path / "experts" / "experts.json", {**experts, "starting_kicks_tuning_runs": runs})
+    assert "Tuning runs' mean fresh cost: 0.610, 0.400, 0.550; kept run 2 of 3." in report.build(tmp_path)
     # A prior record that does not say how it was made leaves its share unknown, not zero.
     runio.write_json(tmp_path / "experts" / "experts.json",
                      {**experts, "env_steps_breakdown": {"prior": None, "tuning": 50, "ppo": 1000}})  # fmt: skip
