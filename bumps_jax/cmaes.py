@@ -332,7 +332,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     kick_scoring.check_count("restarts", tune_cfg.restarts)
     K = int(tune_cfg.restarts)
     _check_pool(env, per_device * (K + 1) * E, "the tuning's fresh scoring (tasks x (restarts + 1) x eval_repetitions)")
-    results, seed = [], jax.random.key(int(tune_cfg.seed))
+    results, seed, t0 = [], jax.random.key(int(tune_cfg.seed)), [time.perf_counter()]
     for k in range(K):
         results.append(run_search(
             search, starts, targets, np.ones_like(starts, bool), int(generations),
@@ -340,6 +340,10 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
             label="tuning" if K == 1 else f"tuning run {k + 1}/{K}", leash=leash, centre_fn=centre_fn,
             extra_fn=extra_fn,
         ))  # fmt: skip
+        t0.append(time.perf_counter())
+        if k + 1 < K:  # the later runs compile nothing: each takes about as long as the last
+            took = t0[-1] - t0[-2]
+            say(f"tuning run {k + 1}/{K} done in {took:.0f} s; ETA of the other runs {(K - k - 1) * took:.0f} s")
     # The start and every run's tuned kicks on the same fresh episodes (common random numbers).
     key = results[0].key
     keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (K + 1, E) + key.shape)

@@ -229,7 +229,10 @@ def test_restarts_run_the_tuning_from_independent_keys_and_keep_one_run_whole(en
     monkeypatch.setattr(cmaes.kick_scoring, "cost_program", cost_program)
     starts = np.tile(kick_model.DEFAULT_PARAMS, (2, 1)).astype(np.float32)  # lean 13: cost 1 each
     tune = ml_collections.ConfigDict({**TUNE.to_dict(), "restarts": 3, "seed": 5})
-    out = cmaes.tune_for_tasks(env, [8.0, 12.0], starts, tune, 2, 0.5, fitness=FITNESS, say=lambda m: None)
+    said = []
+    out = cmaes.tune_for_tasks(env, [8.0, 12.0], starts, tune, 2, 0.5, fitness=FITNESS, say=said.append)
+    assert [line.split(" done")[0] for line in said] == ["tuning run 1/3", "tuning run 2/3"]  # with an ETA
+    assert all("ETA of the other runs" in line for line in said)
     # run 0: tasks 0.5 | 2.0 -> kept 0.5, 1.0; run 1: 0.0, 0.0; run 2: 2.0, 0.5 -> kept 1.0, 0.5
     np.testing.assert_allclose(out["restart_costs"], [0.75, 0.0, 0.75])
     assert out["restart"] == 1 and out["improved"].tolist() == [True, True]
