@@ -362,11 +362,12 @@ def main(argv=None) -> dict:
             runio.write_json(out_dir / "scaling.json", {**scaling, **prov})
 
     every = sharding.device_mesh(impl=own)  # every device the physics can use
-    scale_out = every.size > 1 and "scaling" not in args.skip
-    if not scale_out:
+    if "scaling" in args.skip or every.size == 1:
+        if n_dev > 1 and "scaling" not in args.skip:
+            print(f"[bench] no scale-out: {n_dev} devices visible, but env.impl {own!r} runs on one "
+                  "(sharding.device_mesh)")  # fmt: skip
         every = one
-    if n_dev > 1 and every.size == 1 and "scaling" not in args.skip:
-        print(f"[bench] no scale-out: {n_dev} devices visible, but env.impl {own!r} runs on one (sharding.device_mesh)")
+    scale_out = every.size > 1
     k = args.scale_workload
     for name, fn, into in sections(cfg, SIZES[args.preset], args.backends, one, every, k):
         source = name.removeprefix("scaling-")

@@ -326,23 +326,23 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     _check_pool(env, per_device * P * R, "the tuning (tasks x population x repetitions)")
     fitness_json = kick_scoring.fitness_json_of(fitness)
     midpoint_weight = float(tune_cfg.midpoint_weight)
-    search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json, midpoint_weight)
-    leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
-    extra_fn = (lambda means: neighbour_partners(means, targets)) if midpoint_weight > 0 else None
     kick_scoring.check_count("restarts", tune_cfg.restarts)
     K = int(tune_cfg.restarts)
     _check_pool(env, per_device * (K + 1) * E, "the tuning's fresh scoring (tasks x (restarts + 1) x eval_repetitions)")
-    results, seed, t0 = [], jax.random.key(int(tune_cfg.seed)), [time.perf_counter()]
+    search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json, midpoint_weight)
+    leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
+    extra_fn = (lambda means: neighbour_partners(means, targets)) if midpoint_weight > 0 else None
+    results, seed = [], jax.random.key(int(tune_cfg.seed))
     for k in range(K):
+        t0 = time.perf_counter()
         results.append(run_search(
             search, starts, targets, np.ones_like(starts, bool), int(generations),
             seed if k == 0 else jax.random.fold_in(seed, k), say=say,
             label="tuning" if K == 1 else f"tuning run {k + 1}/{K}", leash=leash, centre_fn=centre_fn,
             extra_fn=extra_fn,
         ))  # fmt: skip
-        t0.append(time.perf_counter())
         if k + 1 < K:  # the later runs compile nothing: each takes about as long as the last
-            took = t0[-1] - t0[-2]
+            took = time.perf_counter() - t0
             say(f"tuning run {k + 1}/{K} done in {took:.0f} s; ETA of the other runs {(K - k - 1) * took:.0f} s")
     # The start and every run's tuned kicks on the same fresh episodes (common random numbers).
     key = results[0].key
