@@ -6,7 +6,7 @@
 # seed or the held-out set. A part seed=<n> moves the seeds together (default 101). A part
 # paper_budget trains at the paper preset's budget (625 PPO updates, 150,000 BC epochs) and adds
 # the filtering stage on the same development targets and seed.
-# Records land in runs/dev_<arm>/ (a finished stage is not rerun) and are copied to
+# Records land in runs/dev_<arm>/ (a finished stage is not rerun) and are copied after each stage to
 # experiments/results/dev_starting_kicks/<arm>_{experts,table1,table2}_<device>.json.
 #
 #   experiments/dev_starting_kicks.sh ARM [ARM ...]
@@ -28,6 +28,20 @@ common=("meta.eval.tasks=$tasks" "filter.tasks=$tasks"
         experts.tune.scheme=per_task experts.bc.per_task_strength=true experts.tune.anchor_starts=true
         experts.tune.start_leash=0 experts.tune.neighbour_leash=0 experts.tune.midpoint_weight=0
         experts.bc.common_start=main experts.bc.common_start_strength=false)
+# Copy the arm's finished records (experts, table1, table2) out of its run directory; called after
+# every stage, so an arm stopped part way keeps the records of the stages it finished.
+copy_records() {
+  local run=$1 name=$2 device out=experiments/results/dev_starting_kicks
+  [ -f "$run/experts/experts.json" ] || return 0
+  # the device as the records' names give it: h100, h200, gpu or cpu
+  device=$(python -c 'import json, sys; d = json.load(open(sys.argv[1]))["device"]
+print(next((k.lower() for k in ("H100", "H200") if k in d), "cpu" if "cpu" in d.lower() else "gpu"))' "$run/experts/experts.json")
+  mkdir -p "$out"
+  cp "$run/experts/experts.json" "$out/${name}_experts_$device.json"
+  for table in meta/table1 filter/table2; do
+    if [ -f "$run/$table.json" ]; then cp "$run/$table.json" "$out/${name}_${table#*/}_$device.json"; fi
+  done
+}
 for arm in "$@"; do
   seed=101
   sets=()
@@ -50,17 +64,10 @@ for arm in "$@"; do
     esac
   done
   seeds=(experts.eval.seed=$seed experts.tune.seed=$seed experts.seed=$seed meta.eval.seed=$seed filter.seed=$seed)
-  run="runs/dev_${arm//[=,]/_}"
+  name=${arm//[=,]/_}
+  run="runs/dev_$name"
   for stage in $stages; do
     python -m bumps_jax "$stage" --preset paper --run-dir "$run" --set "${common[@]}" "${budget[@]}" "${seeds[@]}" "${sets[@]}"
-  done
-  # the device as the records' names give it: h100, h200, gpu or cpu
-  device=$(python -c 'import json, sys; d = json.load(open(sys.argv[1]))["device"]
-print(next((k.lower() for k in ("H100", "H200") if k in d), "cpu" if "cpu" in d.lower() else "gpu"))' "$run/experts/experts.json")
-  out=experiments/results/dev_starting_kicks
-  mkdir -p "$out"
-  cp "$run/experts/experts.json" "$out/${arm//[=,]/_}_experts_$device.json"
-  for table in meta/table1 filter/table2; do
-    if [ -f "$run/$table.json" ]; then cp "$run/$table.json" "$out/${arm//[=,]/_}_${table#*/}_$device.json"; fi
+    copy_records "$run" "$name"
   done
 done
