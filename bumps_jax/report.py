@@ -136,11 +136,7 @@ def env_steps_lines(experts: dict) -> list[str]:
             f"Starting kicks as a family: the largest jump between neighbouring tasks is {jump['jump']:.2f} scale "
             f"units of `{jump['param']}` between {jump['between_m'][0]:g} and {jump['between_m'][1]:g} m."
         )
-    if experts.get("starting_kicks_midpoints"):
-        lines.append(tables.midpoints_line(experts["starting_kicks_midpoints"]))
-    if experts.get("starting_kicks_tuning_runs"):
-        lines.append(tables.tuning_runs_line(experts["starting_kicks_tuning_runs"]))
-    return [*lines, ""]
+    return [*lines, *tables.family_lines(experts), ""]
 
 
 def physics_step(payload: dict | None) -> str:

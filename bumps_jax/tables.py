@@ -69,7 +69,6 @@ def starting_kicks_lines(record: dict) -> list[str]:
     """What the experts' PPO started from, scored as the experts are (an experts record's
     "starting_kicks"), and its jump between neighbouring tasks; nothing for older records."""
     kicks, jump = record.get("starting_kicks"), record.get("starting_kicks_smoothness")
-    mid = record.get("starting_kicks_midpoints")
     lines = []
     if kicks:
         lines.append(
@@ -81,11 +80,19 @@ def starting_kicks_lines(record: dict) -> list[str]:
             f"Largest jump between neighbouring tasks' starting kicks: {jump['jump']:.2f} scale units of "
             f"`{jump['param']}`, {jump['between_m'][0]:g} -> {jump['between_m'][1]:g} m."
         )
-    if mid:
-        lines.append(midpoints_line(mid))
+    lines += family_lines(record)
+    return [*lines, ""] if lines else []
+
+
+def family_lines(record: dict) -> list[str]:
+    """An experts record's sentences on the kicks halfway between neighbouring starting kicks and
+    on the tuning's runs (`tune.restarts` > 1), where it has them: for experts.md and the report."""
+    lines = []
+    if record.get("starting_kicks_midpoints"):
+        lines.append(midpoints_line(record["starting_kicks_midpoints"]))
     if record.get("starting_kicks_tuning_runs"):
         lines.append(tuning_runs_line(record["starting_kicks_tuning_runs"]))
-    return [*lines, ""] if lines else []
+    return lines
 
 
 def tuning_runs_line(runs: dict) -> str:
