@@ -17,7 +17,10 @@ beside CMA-ES's own state; the host loop between generations prints progress wit
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import hashlib
+import json
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -282,7 +285,7 @@ def _progress_writer(path: Path):
 
 
 def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init: float, *, fitness, mesh=None,
-                   say=print) -> dict:  # fmt: skip
+                   say=print, keep_dir=None) -> dict:  # fmt: skip
     """CMA-ES on every task's own kick at once: one search per target, every parameter free.
 
     targets: (T,) m; starts: (T, 14). tune_cfg: population_size, repetitions, eval_repetitions,
@@ -305,6 +308,10 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     (the first the one restarts = 1 uses), and the tuning keeps one of them whole: the run whose
     tasks, each the better of its start and its tuned kick, cost least in the mean over tasks on
     the same fresh episodes. Kicks are never mixed between runs, so a chain stays one chain.
+
+    keep_dir: where each finished run is kept (`tuning_run_<k>.json`, with a fingerprint of
+    everything it depends on): a rerun with the same inputs reads the runs it finds there instead
+    of running them again, and Ctrl-C stops between runs. None keeps nothing.
 
     Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
     "history": (generations, T) best cost per generation, "restart": the run kept,
@@ -332,18 +339,33 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json, midpoint_weight)
     leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
     extra_fn = (lambda means: neighbour_partners(means, targets)) if midpoint_weight > 0 else None
+    fingerprint = tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, fitness_json, mesh.size)
     results, seed = [], jax.random.key(int(tune_cfg.seed))
-    for k in range(K):
-        t0 = time.perf_counter()
-        results.append(run_search(
-            search, starts, targets, np.ones_like(starts, bool), int(generations),
-            seed if k == 0 else jax.random.fold_in(seed, k), say=say,
-            label="tuning" if K == 1 else f"tuning run {k + 1}/{K}", leash=leash, centre_fn=centre_fn,
-            extra_fn=extra_fn,
-        ))  # fmt: skip
-        if k + 1 < K:  # the later runs compile nothing: each takes about as long as the last
-            took = time.perf_counter() - t0
-            say(f"tuning run {k + 1}/{K} done in {took:.0f} s; ETA of the other runs {(K - k - 1) * took:.0f} s")
+    # With runs kept, Ctrl-C stops after the run in flight (its file written); without, as ever.
+    guard = contextlib.nullcontext() if keep_dir is None else runio.stop_on_interrupt(say, at="this tuning run")
+    with guard as stop:
+        for k in range(K):
+            label = "tuning" if K == 1 else f"tuning run {k + 1}/{K}"
+            path = None if keep_dir is None else Path(keep_dir) / f"tuning_run_{k + 1}.json"
+            kept = read_tuning_run(path, fingerprint)
+            if kept is not None:
+                say(f"{label}: read from {runio.shown(path)}")
+                results.append(kept)
+                continue
+            t0 = time.perf_counter()
+            result = run_search(
+                search, starts, targets, np.ones_like(starts, bool), int(generations),
+                seed if k == 0 else jax.random.fold_in(seed, k), say=say, label=label, leash=leash,
+                centre_fn=centre_fn, extra_fn=extra_fn,
+            )  # fmt: skip
+            results.append(result)
+            if path is not None:
+                write_tuning_run(path, fingerprint, result)
+            if k + 1 < K:  # the later runs compile nothing: each takes about as long as the last
+                took = time.perf_counter() - t0
+                say(f"{label} done in {took:.0f} s; ETA of the other runs {(K - k - 1) * took:.0f} s")
+            if stop is not None:
+                stop.check()
     # The start and every run's tuned kicks on the same fresh episodes (common random numbers).
     key = results[0].key
     keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (K + 1, E) + key.shape)
@@ -363,6 +385,55 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
         # every episode played: with the halfway kicks, three per candidate's episode
         "episodes": int(T * (K * generations * P * R * (3 if midpoint_weight > 0 else 1) + (K + 1) * E)),
     }
+
+
+def tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, fitness_json, devices) -> str:
+    """A hash of everything one tuning run's result depends on (not `restarts`: run k is the same
+    whatever the number of runs): the env, tasks, starts, search settings, cost and device count."""
+    keys = ("population_size", "repetitions", "seed", "start_leash", "neighbour_leash", "midpoint_weight")
+    payload = {
+        "env": kick_env.resolved(env.config),
+        "targets": np.asarray(targets, np.float32).tolist(),
+        "starts": hashlib.sha256(np.ascontiguousarray(starts, np.float32).tobytes()).hexdigest(),
+        "tune": {k: tune_cfg[k] for k in keys},
+        "generations": int(generations),
+        "sigma_init": float(sigma_init),
+        "fitness": fitness_json,
+        "devices": int(devices),
+    }
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def write_tuning_run(path: Path, fingerprint: str, result: Result) -> None:
+    """Keep one finished tuning run's `Result` under its fingerprint, written atomically."""
+    runio.write_json(path, {
+        "fingerprint": fingerprint,
+        "mean": np.asarray(result.mean).tolist(),
+        "best": np.asarray(result.best).tolist(),
+        "best_cost": np.asarray(result.best_cost).tolist(),
+        "history": {name: np.asarray(v).tolist() for name, v in result.history.items()},
+        "key": np.asarray(jax.random.key_data(result.key)).tolist(),
+    })  # fmt: skip
+
+
+def read_tuning_run(path: Path | None, fingerprint: str) -> Result | None:
+    """A run `write_tuning_run` kept at `path` under the same fingerprint, else None (no file, an
+    unreadable one, or another config's)."""
+    if path is None or not path.exists():
+        return None
+    try:
+        kept = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    if kept.get("fingerprint") != fingerprint:
+        return None
+
+    def floats(x):  # strict JSON wrote a non-finite number as null: it reads back as NaN
+        return np.array(x, dtype=float).astype(np.float32)
+
+    mean, best, best_cost = (floats(kept[f]) for f in ("mean", "best", "best_cost"))
+    history = {name: floats(v).reshape(-1, len(mean)) for name, v in kept["history"].items()}
+    return Result(mean, best, best_cost, history, jax.random.wrap_key_data(np.asarray(kept["key"], np.uint32)))
 
 
 def keep_best_run(costs) -> tuple[int, np.ndarray, np.ndarray]:

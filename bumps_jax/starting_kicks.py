@@ -8,8 +8,10 @@ experts are scored; `read_starting_kicks` reads them back from a run's starting_
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -74,7 +76,7 @@ def tune_env(cfg) -> kick_env.KickEnv:
     return _TUNE_ENVS[key]
 
 
-def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
+def starting_kicks(cfg, record: dict, say=print, keep_dir=None) -> tuple[np.ndarray, dict]:
     """The keyframe kick (T, 14) each expert clones, and a record of how it was made.
 
     Scheme "per_task": each task's `prior_kicks` start, then with `tune.generations` > 0 one
@@ -84,6 +86,9 @@ def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
     (`cmaes.tune_family`); each task's kick is the family's at its target. The record counts
     every episode the kicks cost (`episodes`) and the largest jump between neighbouring tasks'
     kicks (`smoothness`, `kick_model.largest_jump`).
+
+    keep_dir (scheme "per_task"): where the starts and each finished tuning run are kept, so that
+    a stopped tuning resumes at its next run (`cmaes.tune_for_tasks`); None keeps nothing.
     """
     from bumps_jax import cmaes  # noqa: PLC0415
 
@@ -99,7 +104,7 @@ def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
         starts = np.asarray(members(jnp.asarray(knot_params), jnp.asarray(knots), jnp.asarray(targets)))
         info.update(knots_m=knots.tolist(), knot_params=np.asarray(knot_params).tolist())
     else:
-        starts, start_info, episodes = prior_kicks(cfg, record, targets, env, say)
+        starts, start_info, episodes = kept_starts(cfg, record, targets, env, say, keep_dir)
     info.update(start_info)
     if e.tune.generations > 0:
         t0 = time.perf_counter()
@@ -110,7 +115,7 @@ def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
             info["knot_params"] = out["knot_params"].tolist()
         else:
             out = cmaes.tune_for_tasks(env, targets, starts, e.tune, e.tune.generations, e.tune.sigma_init,
-                                       **common)  # fmt: skip
+                                       keep_dir=keep_dir, **common)  # fmt: skip
         starts = out["params"]
         episodes += out["episodes"]
         improved = out["improved"].tolist() if isinstance(out["improved"], np.ndarray) else out["improved"]
@@ -122,6 +127,30 @@ def starting_kicks(cfg, record: dict, say=print) -> tuple[np.ndarray, dict]:
     info["smoothness"] = smoothness(starts, targets)
     info["params"] = np.asarray(starts).tolist()
     return np.asarray(starts, np.float32), info
+
+
+def kept_starts(cfg, record: dict, targets, env, say=print, keep_dir=None) -> tuple[np.ndarray, dict, int]:
+    """`prior_kicks` at `targets`, kept in keep_dir/starts.json under a fingerprint of the config
+    and prior they come from: a rerun reads them back bit for bit (scoring them again on a GPU
+    can pick other starts by a last bit, and the tuning runs kept from them would not match)."""
+    if keep_dir is None:
+        return prior_kicks(cfg, record, targets, env, say)
+    payload = {"env": kick_env.resolved(cfg.env), "experts": cfg.experts.to_dict(), "prior": cfg.prior.to_dict(),
+               "record": record, "targets": np.asarray(targets, np.float32).tolist()}  # fmt: skip
+    fingerprint = hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+    path = Path(keep_dir) / "starts.json"
+    if path.exists():
+        try:
+            kept = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            kept = {}
+        if kept.get("fingerprint") == fingerprint:
+            say(f"starting kicks' starts: read from {runio.shown(path)}")
+            return np.asarray(kept["starts"], np.float32), kept["info"], int(kept["episodes"])
+    starts, info, episodes = prior_kicks(cfg, record, targets, env, say)
+    runio.write_json(path, {"fingerprint": fingerprint, "starts": np.asarray(starts, np.float32).tolist(),
+                            "info": info, "episodes": int(episodes)})  # fmt: skip
+    return np.asarray(starts, np.float32), info, episodes
 
 
 def smoothness(kicks, targets) -> dict | None:

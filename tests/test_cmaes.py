@@ -197,50 +197,100 @@ def test_the_run_kept_is_the_one_whose_kept_kicks_cost_least():
         cmaes.keep_best_run([[1.0], [2.0]])
 
 
-def test_restarts_run_the_tuning_from_independent_keys_and_keep_one_run_whole(env, monkeypatch):
-    """restarts = 3: three runs of the search (the first from the key restarts = 1 uses), then
-    the start and every run's kick scored on the same fresh episodes; the run kept is the one of
-    `keep_best_run`, whole. Stand-ins for the search and the scoring, so nothing compiles: run k
-    moves every task's kick by a known amount, and a kick's fresh cost is |lean - 14|."""
-    lean = kick_model.PARAM_NAMES.index("lean")
-    moves = {0: [+0.5, -1.0], 1: [+1.0, +1.0], 2: [-1.0, +0.5]}  # run -> each task's change of lean
-    keys = []
+LEAN = kick_model.PARAM_NAMES.index("lean")
+MOVES = {0: [+0.5, -1.0], 1: [+1.0, +1.0], 2: [-1.0, +0.5]}  # run -> each task's change of lean
 
-    def search(*args, **kwargs):
-        return None
+
+def _stand_in_tuning(monkeypatch, during_run=None):
+    """Stand-ins for the search and the scoring, so nothing compiles: run k (told by its key)
+    moves every task's kick by MOVES[k], and a kick's fresh cost is |lean - 14|. Returns the list
+    of keys the runs were started from; during_run(k) is called inside run k."""
+    keys = []
 
     def run_search(search, x0, targets, free, generations, seed, **kwargs):
         keys.append(np.asarray(jax.random.key_data(seed)))
+        k = next(i for i in MOVES if (jax.random.key_data(_run_key(i)) == keys[-1]).all())
+        if during_run is not None:
+            during_run(k)
         mean = np.array(x0, np.float32)
-        mean[:, lean] += moves[len(keys) - 1]
-        hist = {name: np.zeros((generations, len(targets))) for name in cmaes.Stats._fields}
+        mean[:, LEAN] += MOVES[k]
+        hist = {name: np.full((generations, len(targets)), k, np.float32) for name in cmaes.Stats._fields}
         return cmaes.Result(mean, mean, np.zeros(len(targets)), hist, jax.random.key(7))
 
     def cost_program(env, mesh, fitness_json):
         def costs(params, fresh, targets):
             assert fresh.shape[0] == params.shape[1]  # one row of fresh keys per kick scored
             assert (np.asarray(jax.random.key_data(fresh)) == np.asarray(jax.random.key_data(fresh[:1]))).all()
-            return jnp.abs(params[..., lean] - 14.0)
+            return jnp.abs(params[..., LEAN] - 14.0)
 
         return costs
 
-    monkeypatch.setattr(cmaes, "kick_search", search)
+    monkeypatch.setattr(cmaes, "kick_search", lambda *args, **kwargs: None)
     monkeypatch.setattr(cmaes, "run_search", run_search)
     monkeypatch.setattr(cmaes.kick_scoring, "cost_program", cost_program)
-    starts = np.tile(kick_model.DEFAULT_PARAMS, (2, 1)).astype(np.float32)  # lean 13: cost 1 each
-    tune = ml_collections.ConfigDict({**TUNE.to_dict(), "restarts": 3, "seed": 5})
+    return keys
+
+
+def _run_key(k, seed=5):  # the key run k of a tuning with tune.seed = seed starts from
+    return jax.random.key(seed) if k == 0 else jax.random.fold_in(jax.random.key(seed), k)
+
+
+STARTS = np.tile(kick_model.DEFAULT_PARAMS, (2, 1)).astype(np.float32)  # lean 13: cost 1 each
+RESTARTS_3 = ml_collections.ConfigDict({**TUNE.to_dict(), "restarts": 3, "seed": 5})
+
+
+def test_restarts_run_the_tuning_from_independent_keys_and_keep_one_run_whole(env, monkeypatch):
+    """restarts = 3: three runs of the search (the first from the key restarts = 1 uses), then
+    the start and every run's kick scored on the same fresh episodes; the run kept is the one of
+    `keep_best_run`, whole."""
+    keys = _stand_in_tuning(monkeypatch)
     said = []
-    out = cmaes.tune_for_tasks(env, [8.0, 12.0], starts, tune, 2, 0.5, fitness=FITNESS, say=said.append)
+    out = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, fitness=FITNESS, say=said.append)
     assert [line.split(" done")[0] for line in said] == ["tuning run 1/3", "tuning run 2/3"]  # with an ETA
     assert all("ETA of the other runs" in line for line in said)
     # run 0: tasks 0.5 | 2.0 -> kept 0.5, 1.0; run 1: 0.0, 0.0; run 2: 2.0, 0.5 -> kept 1.0, 0.5
     np.testing.assert_allclose(out["restart_costs"], [0.75, 0.0, 0.75])
     assert out["restart"] == 1 and out["improved"].tolist() == [True, True]
-    np.testing.assert_allclose(out["params"][:, lean], [14.0, 14.0])
+    np.testing.assert_allclose(out["params"][:, LEAN], [14.0, 14.0])
     np.testing.assert_allclose(out["start_cost"], [1.0, 1.0])
     np.testing.assert_array_equal(keys[0], jax.random.key_data(jax.random.key(5)))  # run 0: restarts = 1's key
     assert len({k.tobytes() for k in keys}) == 3  # independent keys
     assert out["episodes"] == 2 * (3 * 2 * TUNE.population_size * TUNE.repetitions + 4 * TUNE.eval_repetitions)
+
+
+def test_a_stopped_tuning_resumes_at_its_next_run(env, monkeypatch, tmp_path):
+    """With keep_dir, each finished run is kept: Ctrl-C during run 1 stops the tuning once that
+    run is written; the rerun reads it and runs only runs 2 and 3, ending as an uninterrupted
+    tuning does. Runs kept from other starts are not read."""
+    import os  # noqa: PLC0415
+    import signal  # noqa: PLC0415
+
+    from bumps_jax import runio  # noqa: PLC0415
+
+    common = dict(fitness=FITNESS, say=lambda *a, **k: None)
+    _stand_in_tuning(monkeypatch)
+    whole = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, **common)
+
+    keys = _stand_in_tuning(monkeypatch, during_run=lambda k: k == 0 and os.kill(os.getpid(), signal.SIGINT))
+    with pytest.raises(runio.Interrupted):
+        cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, keep_dir=tmp_path, **common)
+    assert len(keys) == 1 and sorted(p.name for p in tmp_path.iterdir()) == ["tuning_run_1.json"]
+
+    keys = _stand_in_tuning(monkeypatch)
+    said = []
+    out = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, keep_dir=tmp_path,
+                               **{**common, "say": said.append})  # fmt: skip
+    assert [k.tobytes() for k in keys] == [np.asarray(jax.random.key_data(_run_key(k))).tobytes() for k in (1, 2)]
+    assert said[0].startswith("tuning run 1/3: read from")
+    for name in ("params", "start_cost", "tuned_cost", "improved", "history", "restart", "restart_costs"):
+        np.testing.assert_array_equal(out[name], whole[name])
+    assert len(list(tmp_path.iterdir())) == 3
+
+    keys = _stand_in_tuning(monkeypatch)  # other starts: every run again
+    other = STARTS.copy()
+    other[:, LEAN] += 0.25
+    cmaes.tune_for_tasks(env, [8.0, 12.0], other, RESTARTS_3, 2, 0.5, keep_dir=tmp_path, **common)
+    assert len(keys) == 3
 
 
 def test_best_starts_rejects_bad_inputs_before_compiling(env):

@@ -133,6 +133,29 @@ def test_family_starting_kicks_are_the_prior_family_between_knots():
     assert per_task_info["scheme"] == "per_task" and "knot_params" not in per_task_info
 
 
+def test_kept_starts_are_read_back_bit_for_bit_under_the_same_config(monkeypatch, tmp_path):
+    """keep_dir keeps the starts the tuning begins from: a rerun of the same config reads them
+    instead of choosing again (a GPU can choose otherwise by a last bit); another config chooses anew."""
+    made = []
+
+    def stand_in(cfg, record, targets, env, say=print):
+        made.append(cfg.experts.tune.eval_repetitions)
+        starts = np.tile(kick_model.DEFAULT_PARAMS, (len(targets), 1)).astype(np.float32) + len(made) / 3
+        return starts, {"chosen": ["blend"] * len(targets)}, 7 * len(made)
+
+    monkeypatch.setattr(starting_kicks, "prior_kicks", stand_in)
+    cfg, record, targets = pipeline_config(), kick_model.load_record(), np.asarray([8.0, 12.0], np.float32)
+    quiet = dict(say=lambda *a, **k: None)
+    first = starting_kicks.kept_starts(cfg, record, targets, None, keep_dir=tmp_path, **quiet)
+    again = starting_kicks.kept_starts(cfg, record, targets, None, keep_dir=tmp_path, **quiet)
+    assert len(made) == 1 and again[1:] == first[1:] == ({"chosen": ["blend", "blend"]}, 7)
+    np.testing.assert_array_equal(again[0], first[0])
+    other = pipeline_config(**{"experts.tune.eval_repetitions": 3})
+    third = starting_kicks.kept_starts(other, record, targets, None, keep_dir=tmp_path, **quiet)
+    assert made == [cfg.experts.tune.eval_repetitions, 3] and third[2] == 14
+    assert starting_kicks.kept_starts(other, record, targets, None, **quiet)[2] == 21  # nothing kept: chosen
+
+
 def test_a_prior_of_another_env_config_is_refused(tmp_path):
     record = json.loads(kick_model.ASSET.read_text())
     runio.write_json(tmp_path / "prior" / experts.PRIOR, record)

@@ -11,8 +11,10 @@ one would: every random number comes from the carried `TrainState.rng`.
 A task other than the kick (`cfg.task`, e.g. cheetah_vel) has no keyframe prior: its experts
 start from a fresh policy, and PPO trains them on their own targets.
 
-Writes run_dir/experts/: starting_kicks.json (the kick), checkpoints/ (while training; removed
-once the record is written), progress.csv, wall_time.json, final_params/, experts.json, experts.md.
+Writes run_dir/experts/: starting_kicks.json (the kick), tuning/ (the starts and each finished
+CMA-ES tuning run, so that a stopped tuning resumes at its next run) and checkpoints/ (while
+training; both removed once the record is written), progress.csv, wall_time.json, final_params/,
+experts.json, experts.md.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from bumps_jax.stages import prior as prior_stage
 
 OUTPUT = "experts.json"
 PRIOR = prior_stage.ASSET  # the record a prior stage writes, and the copy an experts run keeps
+TUNING = "tuning"  # the starting kicks' starts and finished tuning runs, until the record is written
 
 
 # -- the kick prior the experts start from ------------------------------------------------------
@@ -237,7 +240,7 @@ def initial_state(cfg, run_dir: Path, programs: Compiled, say=print):
     record = kick_model.load_record(path, env_cfg=cfg.env)
     if path == kick_model.ASSET:  # keep the prior this run started from: a rerun must not read a newer asset
         runio.write_text(stage_dir / PRIOR, path.read_text())
-    kicks, info = starting_kicks.starting_kicks(cfg, record, say)
+    kicks, info = starting_kicks.starting_kicks(cfg, record, say, keep_dir=stage_dir / TUNING)
     runio.write_json(stage_dir / "starting_kicks.json", {**info, "prior": str(path)})
     tasks = np.asarray(cfg.experts.tasks, np.float32)
     state, bc_losses = run_init(programs, task_rngs(cfg.experts.seed, len(tasks)), tasks, kicks)
@@ -358,5 +361,6 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     # The record and final_params hold everything later stages read: the training checkpoints
     # (most of a paper run directory's size) go.
     shutil.rmtree(stage_dir / "checkpoints", ignore_errors=True)
+    shutil.rmtree(stage_dir / TUNING, ignore_errors=True)
     say(tables.experts_markdown(record) if cfg.task == "kick" else tables.task_experts_markdown(record))
     return record
