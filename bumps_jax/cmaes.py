@@ -307,7 +307,9 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     With tune_cfg.restarts = K > 1 the whole tuning runs K times from independent CMA-ES keys
     (the first the one restarts = 1 uses), and the tuning keeps one of them whole: the run whose
     tasks, each the better of its start and its tuned kick, cost least in the mean over tasks on
-    the same fresh episodes. Kicks are never mixed between runs, so a chain stays one chain.
+    the same fresh episodes. Kicks are never mixed between runs, so a chain stays one chain. With
+    tune_cfg.keep = "task" (default "run") each task keeps instead the cheapest on those episodes
+    of its start and its kick in every run: runs are mixed, a task never worse than in any run.
 
     keep_dir: where each finished run is kept (`tuning_run_<k>.json`, with a fingerprint of
     everything it depends on): a rerun with the same inputs reads the runs it finds there instead
@@ -315,7 +317,9 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
 
     Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
     "history": (generations, T) best cost per generation, "restart": the run kept,
-    "restart_costs": (K,) each run's mean cost over tasks, "episodes": int}.
+    "restart_costs": (K,) each run's mean cost over tasks, "runs_kept": (T,) int, each task's kick
+    from run k (1..K) or its start (0), "episodes": int}; with keep "task" "restart" is None and
+    "history" the first run's.
     """
     targets = np.asarray(targets, np.float32)
     starts = np.asarray(kick_model.clip_params(jnp.asarray(starts, jnp.float32)))
@@ -335,6 +339,9 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     midpoint_weight = float(tune_cfg.midpoint_weight)
     kick_scoring.check_count("restarts", tune_cfg.restarts)
     K = int(tune_cfg.restarts)
+    keep = tune_cfg.get("keep", "run")
+    if keep not in ("run", "task"):
+        raise ValueError(f"tune keep must be 'run' or 'task', got {keep!r}")
     _check_pool(env, per_device * (K + 1) * E, "the tuning's fresh scoring (tasks x (restarts + 1) x eval_repetitions)")
     search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json, midpoint_weight)
     leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
@@ -374,14 +381,17 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     score = kick_scoring.cost_program(env, mesh, fitness_json)
     costs = np.asarray(sharding.unpad(score(padded[0], keys, padded[1]), T))
     best, improved, run_costs = keep_best_run(costs)
+    kept = np.where(improved, best + 1, 0) if keep == "run" else np.argmin(costs, 1)  # (T,) 0: the start
+    tasks = np.arange(T)
     return {
-        "params": np.where(improved[:, None], results[best].mean, starts),
+        "params": np.asarray(kicks)[tasks, kept],
         "start_cost": costs[:, 0],
-        "tuned_cost": costs[:, best + 1],
-        "improved": improved,
-        "history": results[best].history["best"],
-        "restart": best,
+        "tuned_cost": costs[:, best + 1] if keep == "run" else costs[:, 1:].min(1),  # the tuned kick kept or not
+        "improved": kept > 0,
+        "history": results[best if keep == "run" else 0].history["best"],
+        "restart": best if keep == "run" else None,
         "restart_costs": run_costs.tolist(),
+        "runs_kept": kept,
         # every episode played: with the halfway kicks, three per candidate's episode
         "episodes": int(T * (K * generations * P * R * (3 if midpoint_weight > 0 else 1) + (K + 1) * E)),
     }

@@ -99,6 +99,13 @@ def _experts() -> ml_collections.ConfigDict:
     # "per_task" only: independent runs of the whole tuning (different CMA-ES keys); the one whose
     # kicks cost least over all tasks on fresh episodes is kept whole. Each run costs a tuning.
     cfg.tune.restarts = 1
+    # With restarts > 1, what is kept: "run", the run above whole (one chain); "task", each task
+    # the cheapest on those fresh episodes of its start and its kick in every run (runs mixed).
+    cfg.tune.keep = "run"
+    # keep "task" only: generations of one more tuning from the mixed kicks (the same leashes, its
+    # own key), each task again keeping the better of the two; 0: none. It re-joins the chain
+    # where neighbouring tasks came from different runs.
+    cfg.tune.polish_generations = 0
     # Start each task from the best of its blended kick and the prior's three anchors.
     cfg.tune.anchor_starts = True
     # "per_task": one CMA-ES per task on its own kick. "family": one CMA-ES over a contextual
@@ -245,6 +252,8 @@ ADDED_KNOBS = {
     "experts.tune.neighbour_leash": 0.0,
     "experts.tune.midpoint_weight": 0.0,
     "experts.tune.restarts": 1,
+    "experts.tune.keep": "run",
+    "experts.tune.polish_generations": 0,
     "experts.bc.common_start": "main",
     "experts.bc.common_start_strength": False,
     "experts.ppo.unroll_gae": False,

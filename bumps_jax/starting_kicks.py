@@ -119,14 +119,45 @@ def starting_kicks(cfg, record: dict, say=print, keep_dir=None) -> tuple[np.ndar
         starts = out["params"]
         episodes += out["episodes"]
         improved = out["improved"].tolist() if isinstance(out["improved"], np.ndarray) else out["improved"]
-        info.update(tuned=True, wall_s=time.perf_counter() - t0, start_cost=out["start_cost"],
-                    tuned_cost=out["tuned_cost"], improved=improved, history_best_cost=out["history"])  # fmt: skip
-        if "restart_costs" in out:  # the per-task scheme's runs and the one kept
-            info.update(restart=out["restart"], restart_costs=out["restart_costs"])
+        info.update(tuned=True, start_cost=out["start_cost"], tuned_cost=out["tuned_cost"], improved=improved,
+                    history_best_cost=out["history"])  # fmt: skip
+        if "restart_costs" in out:  # the per-task scheme's runs and what was kept of them
+            info.update(restart=out["restart"], restart_costs=out["restart_costs"], keep=e.tune.keep,
+                        runs_kept=np.asarray(out["runs_kept"]).tolist())  # fmt: skip
+        if not family and e.tune.polish_generations > 0:
+            starts, info["polish"], polish_episodes = polish(env, targets, starts, cfg, keep_dir, say)
+            episodes += polish_episodes
+        info["wall_s"] = time.perf_counter() - t0
     info["episodes"] = int(episodes)  # every episode the starting kicks cost: choice of starts and tuning
     info["smoothness"] = smoothness(starts, targets)
     info["params"] = np.asarray(starts).tolist()
     return np.asarray(starts, np.float32), info
+
+
+def polish(env, targets, kicks, cfg, keep_dir=None, say=print) -> tuple[np.ndarray, dict, int]:
+    """`tune.polish_generations` of one more per-task tuning from `kicks` (T, 14), runs mixed by
+    `tune.keep` = "task": the same leashes, so the chain re-joins where neighbours came from
+    different runs; one run from its own key, each task keeping the better of its kick and the
+    polished one on fresh episodes. Returns (kicks, record, episodes)."""
+    import ml_collections  # noqa: PLC0415
+
+    from bumps_jax import cmaes  # noqa: PLC0415
+
+    tune = cfg.experts.tune
+    # its own CMA-ES key: the seed moved far past any run's (runs fold their index into tune.seed)
+    seed = int(tune.seed) + 1_000_003
+    one = ml_collections.ConfigDict({**tune.to_dict(), "restarts": 1, "keep": "run", "seed": seed})
+    out = cmaes.tune_for_tasks(env, targets, kicks, one, int(tune.polish_generations), float(tune.sigma_init),
+                               fitness=cfg.prior.fitness, say=say,
+                               keep_dir=None if keep_dir is None else Path(keep_dir) / "polish")  # fmt: skip
+    record = {
+        "generations": int(tune.polish_generations),
+        "start_cost": out["start_cost"],
+        "tuned_cost": out["tuned_cost"],
+        "improved": np.asarray(out["improved"]).tolist(),
+        "history_best_cost": out["history"],
+    }
+    return out["params"], record, out["episodes"]
 
 
 def kept_starts(cfg, record: dict, targets, env, say=print, keep_dir=None) -> tuple[np.ndarray, dict, int]:

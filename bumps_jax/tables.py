@@ -98,7 +98,14 @@ def family_lines(record: dict) -> list[str]:
 def tuning_runs_line(runs: dict) -> str:
     """One sentence on an experts record's "starting_kicks_tuning_runs" (`tune.restarts` > 1)."""
     costs, n = ", ".join(f"{c:.3f}" for c in runs["fresh_costs"]), len(runs["fresh_costs"])
-    return f"Tuning runs' mean fresh cost: {costs}; kept run {runs['kept'] + 1} of {n}."
+    if "runs_kept" not in runs:
+        return f"Tuning runs' mean fresh cost: {costs}; kept run {runs['kept'] + 1} of {n}."
+    counts = [runs["runs_kept"].count(k) for k in range(n + 1)]
+    kept = ", ".join(f"run {k} for {c}" for k, c in enumerate(counts) if k and c)
+    line = f"Tuning runs' mean fresh cost: {costs}; each task kept its cheapest kick: {kept}, its start for {counts[0]}"
+    if "polish_improved" in runs:
+        line += f"; the polish improved {runs['polish_improved']} of {len(runs['runs_kept'])}"
+    return line + "."
 
 
 def midpoints_line(mid: dict) -> str:

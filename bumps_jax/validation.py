@@ -16,6 +16,7 @@ from bumps_jax import kick_env, kick_model, ppo_config
 HELDOUT_MIN_TARGETS = 50
 
 TUNE_SCHEMES = ("per_task", "family")  # experts.tune.scheme
+TUNE_KEEPS = ("run", "task")  # experts.tune.keep
 SELECTIONS = ("fixed", "halving")  # filter.selection
 
 
@@ -172,6 +173,13 @@ def experts(e, task_range, n_steps: int) -> None:
     positive_ints(e.tune, "experts.tune.", ("repetitions", "eval_repetitions", "population_size", "restarts"))
     if e.tune.restarts > 1 and e.tune.scheme == "family":
         raise ValueError("experts.tune.restarts applies to the 'per_task' scheme only; with 'family' set it to 1")
+    if e.tune.keep not in TUNE_KEEPS:
+        raise ValueError(f"experts.tune.keep must be one of {TUNE_KEEPS}, got {e.tune.keep!r}")
+    polish = e.tune.polish_generations
+    if isinstance(polish, bool) or not isinstance(polish, int) or polish < 0:
+        raise ValueError(f"experts.tune.polish_generations must be an integer >= 0, got {polish!r}")
+    if polish > 0 and e.tune.keep != "task":
+        raise ValueError("experts.tune.polish_generations applies with experts.tune.keep='task'; set it to 0")
     if isinstance(e.tune.generations, bool) or e.tune.generations < 0:
         raise ValueError(f"experts.tune.generations must be an integer >= 0, got {e.tune.generations!r}")
     if e.tune.population_size < 2:

@@ -201,7 +201,7 @@ LEAN = kick_model.PARAM_NAMES.index("lean")
 MOVES = {0: [+0.5, -1.0], 1: [+1.0, +1.0], 2: [-1.0, +0.5]}  # run -> each task's change of lean
 
 
-def _stand_in_tuning(monkeypatch, during_run=None):
+def _stand_in_tuning(monkeypatch, during_run=None, moves=MOVES):
     """Stand-ins for the search and the scoring, so nothing compiles: run k (told by its key)
     moves every task's kick by MOVES[k], and a kick's fresh cost is |lean - 14|. Returns the list
     of keys the runs were started from; during_run(k) is called inside run k."""
@@ -209,11 +209,11 @@ def _stand_in_tuning(monkeypatch, during_run=None):
 
     def run_search(search, x0, targets, free, generations, seed, **kwargs):
         keys.append(np.asarray(jax.random.key_data(seed)))
-        k = next(i for i in MOVES if (jax.random.key_data(_run_key(i)) == keys[-1]).all())
+        k = next(i for i in moves if (jax.random.key_data(_run_key(i)) == keys[-1]).all())
         if during_run is not None:
             during_run(k)
         mean = np.array(x0, np.float32)
-        mean[:, LEAN] += MOVES[k]
+        mean[:, LEAN] += moves[k]
         hist = {name: np.full((generations, len(targets)), k, np.float32) for name in cmaes.Stats._fields}
         return cmaes.Result(mean, mean, np.zeros(len(targets)), hist, jax.random.key(7))
 
@@ -256,6 +256,65 @@ def test_restarts_run_the_tuning_from_independent_keys_and_keep_one_run_whole(en
     np.testing.assert_array_equal(keys[0], jax.random.key_data(jax.random.key(5)))  # run 0: restarts = 1's key
     assert len({k.tobytes() for k in keys}) == 3  # independent keys
     assert out["episodes"] == 2 * (3 * 2 * TUNE.population_size * TUNE.repetitions + 4 * TUNE.eval_repetitions)
+
+
+def test_keep_task_mixes_runs_each_task_its_cheapest_kick(env, monkeypatch):
+    """keep "task": each task keeps the cheapest of its start and its kick in every run (fresh cost
+    |lean - 14|, start 1.0): task 0 run 1's, task 1 run 3's, task 2 its start; keep "run" keeps one
+    run whole, each task the better of its start and that run's kick."""
+    moves = {0: [+1.0, -1.0, -1.5], 1: [+0.5, +0.5, -1.5], 2: [-1.0, +1.0, -1.5]}
+    _stand_in_tuning(monkeypatch, moves=moves)
+    starts = np.tile(kick_model.DEFAULT_PARAMS, (3, 1)).astype(np.float32)
+    targets, quiet = [8.0, 10.0, 12.0], dict(fitness=FITNESS, say=lambda *a, **k: None)
+    by_task = ml_collections.ConfigDict({**RESTARTS_3.to_dict(), "keep": "task"})
+    out = cmaes.tune_for_tasks(env, targets, starts, by_task, 2, 0.5, **quiet)
+    assert out["runs_kept"].tolist() == [1, 3, 0] and out["restart"] is None
+    np.testing.assert_allclose(out["params"][:, LEAN], [14.0, 14.0, 13.0])
+    np.testing.assert_allclose(out["tuned_cost"], [0.0, 0.0, 2.5])
+    assert out["improved"].tolist() == [True, True, False]
+    whole = cmaes.tune_for_tasks(env, targets, starts, RESTARTS_3, 2, 0.5, **quiet)
+    # run means of min(start, kick): run 0 (0, 1, 1), run 1 (0.5, 0.5, 1), run 2 (1, 0, 1): all three
+    # tie at 2/3, and a tie keeps the first run
+    assert whole["restart"] == 0 and whole["runs_kept"].tolist() == [1, 0, 0]
+    np.testing.assert_allclose(whole["params"][:, LEAN], [14.0, 13.0, 13.0])
+    with pytest.raises(ValueError, match="keep must be 'run' or 'task', got 'all'"):
+        cmaes.tune_for_tasks(env, targets, starts, ml_collections.ConfigDict({**TUNE.to_dict(), "keep": "all"}),
+                             2, 0.5, **quiet)  # fmt: skip
+    with pytest.raises(ValueError, match=r"experts.tune.keep must be one of \('run', 'task'\), got 'all'"):
+        config.make_config("tiny", {"experts.tune.keep": "all"})
+    with pytest.raises(ValueError, match="polish_generations applies with experts.tune.keep='task'"):
+        config.make_config("tiny", {"experts.tune.polish_generations": 5})
+    with pytest.raises(ValueError, match="polish_generations must be an integer >= 0, got -1"):
+        config.make_config("tiny", {"experts.tune.keep": "task", "experts.tune.polish_generations": -1})
+
+
+def test_the_polish_tunes_the_mixed_kicks_once_more_from_a_key_of_its_own(env, monkeypatch):
+    """`starting_kicks.polish`: one run of `polish_generations` from the mixed kicks, from a key
+    no tuning run uses, each task keeping the better of its kick and the polished one."""
+    from bumps_jax import starting_kicks  # noqa: PLC0415
+
+    seen = []
+
+    def run_search(search, x0, targets, free, generations, seed, **kwargs):
+        seen.append((generations, np.asarray(jax.random.key_data(seed))))
+        mean = np.array(x0, np.float32)
+        mean[:, LEAN] = 14.0 - 0.5 * (np.arange(len(x0)) == 1)  # task 1's polished kick worse than its own
+        hist = {name: np.zeros((generations, len(targets)), np.float32) for name in cmaes.Stats._fields}
+        return cmaes.Result(mean, mean, np.zeros(len(targets)), hist, jax.random.key(7))
+
+    _stand_in_tuning(monkeypatch)
+    monkeypatch.setattr(cmaes, "run_search", run_search)
+    cfg = config.make_config("tiny", {"experts.tune.keep": "task", "experts.tune.polish_generations": 3,
+                                      "experts.tune.restarts": 2, "experts.tune.seed": 5})  # fmt: skip
+    mixed = np.tile(kick_model.DEFAULT_PARAMS, (2, 1)).astype(np.float32)
+    mixed[:, LEAN] = [13.0, 14.0]  # fresh costs 1.0 and 0.0
+    kicks, record, episodes = starting_kicks.polish(env, [8.0, 12.0], mixed, cfg, say=lambda *a, **k: None)
+    assert [g for g, _ in seen] == [3] and record["generations"] == 3
+    assert all((seen[0][1] != np.asarray(jax.random.key_data(_run_key(k)))).any() for k in range(2))
+    np.testing.assert_allclose(kicks[:, LEAN], [14.0, 14.0])  # task 0 polished, task 1 kept its own
+    assert record["improved"] == [True, False]
+    tune = cfg.experts.tune
+    assert episodes == 2 * (3 * tune.population_size * tune.repetitions + 2 * tune.eval_repetitions)
 
 
 def test_a_stopped_tuning_resumes_at_its_next_run(env, monkeypatch, tmp_path):

@@ -57,6 +57,11 @@ def test_report_counts_the_experts_env_steps_and_shows_their_starting_kicks(tmp_
     md = tables.experts_markdown({**experts, "rel_error_mean": 0.03, "tasks_above_threshold": 2, "n_tasks": 2,
                                   "n_reps": 2, "per_task": [], "starting_kicks_tuning_runs": runs})  # fmt: skip
     assert "Tuning runs' mean fresh cost: 0.610, 0.400, 0.550; kept run 2 of 3." in md
+    mixed = {**runs, "kept": None, "runs_kept": [1, 3, 0, 3], "polish_improved": 2}  # `tune.keep` = "task"
+    assert tables.tuning_runs_line(mixed) == (
+        "Tuning runs' mean fresh cost: 0.610, 0.400, 0.550; each task kept its cheapest kick: run 1 for 1, "
+        "run 3 for 2, its start for 1; the polish improved 2 of 4."
+    )
     runio.write_json(tmp_path / "experts" / "experts.json", {**experts, "starting_kicks_tuning_runs": runs})
     assert "Tuning runs' mean fresh cost: 0.610, 0.400, 0.550; kept run 2 of 3." in report.build(tmp_path)
     # A prior record that does not say how it was made leaves its share unknown, not zero.

@@ -317,8 +317,12 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
         cfg, programs.env, kicks["params"]
     )
     record["starting_kicks_smoothness"] = starting_kicks.smoothness(kicks["params"], e.tasks)
-    if len(kicks.get("restart_costs", [])) > 1:  # `tune.restarts`: every run's fresh cost, and the run kept
+    if len(kicks.get("restart_costs", [])) > 1:  # `tune.restarts`: every run's fresh cost, and what was kept
         record["starting_kicks_tuning_runs"] = {"kept": kicks["restart"], "fresh_costs": kicks["restart_costs"]}
+        if kicks.get("keep") == "task":  # each task's run (0: its start), and the polish's tasks improved
+            record["starting_kicks_tuning_runs"]["runs_kept"] = kicks["runs_kept"]
+            if "polish" in kicks:
+                record["starting_kicks_tuning_runs"]["polish_improved"] = int(sum(kicks["polish"]["improved"]))
     record["env_steps_breakdown"] = env_steps_breakdown(cfg, stage_dir.parent, kicks, programs.env.n_steps,
                                                         record["env_steps"])  # fmt: skip
     known = [v for v in record["env_steps_breakdown"].values() if v is not None]
