@@ -318,7 +318,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
     "history": (generations, T) best cost per generation, "restart": the run kept,
     "restart_costs": (K,) each run's mean cost over tasks, "runs_kept": (T,) int, each task's kick
-    from run k (1..K) or its start (0), "episodes": int}; with keep "task" "restart" is None and
+    from run k (1..K) or its start (0), "run_seconds": (K,), "episodes": int}; with keep "task" "restart" is None and
     "history" the first run's.
     """
     targets = np.asarray(targets, np.float32)
@@ -347,7 +347,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
     extra_fn = (lambda means: neighbour_partners(means, targets)) if midpoint_weight > 0 else None
     fingerprint = tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, fitness_json, mesh.size)
-    results, seed = [], jax.random.key(int(tune_cfg.seed))
+    results, seconds, seed = [], [], jax.random.key(int(tune_cfg.seed))
     # With runs kept, Ctrl-C stops after the run in flight (its file written); without, as ever.
     guard = contextlib.nullcontext() if keep_dir is None else runio.stop_on_interrupt(say, at="this tuning run")
     with guard as stop:
@@ -357,7 +357,8 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
             kept = read_tuning_run(path, fingerprint)
             if kept is not None:
                 say(f"{label}: read from {runio.shown(path)}")
-                results.append(kept)
+                results.append(kept[0])
+                seconds.append(kept[1])
                 continue
             t0 = time.perf_counter()
             result = run_search(
@@ -366,10 +367,11 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
                 centre_fn=centre_fn, extra_fn=extra_fn,
             )  # fmt: skip
             results.append(result)
+            seconds.append(time.perf_counter() - t0)
             if path is not None:
-                write_tuning_run(path, fingerprint, result)
+                write_tuning_run(path, fingerprint, result, seconds[-1])
             if k + 1 < K:  # the later runs compile nothing: each takes about as long as the last
-                took = time.perf_counter() - t0
+                took = seconds[-1]
                 say(f"{label} done in {took:.0f} s; ETA of the other runs {(K - k - 1) * took:.0f} s")
             if stop is not None:
                 stop.check()
@@ -392,6 +394,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
         "restart": best if keep == "run" else None,
         "restart_costs": run_costs.tolist(),
         "runs_kept": kept,
+        "run_seconds": seconds,  # each run's time, the first's compile included, kept runs' as they took
         # every episode played: with the halfway kicks, three per candidate's episode
         "episodes": int(T * (K * generations * P * R * (3 if midpoint_weight > 0 else 1) + (K + 1) * E)),
     }
@@ -414,10 +417,12 @@ def tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, 
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def write_tuning_run(path: Path, fingerprint: str, result: Result) -> None:
-    """Keep one finished tuning run's `Result` under its fingerprint, written atomically."""
+def write_tuning_run(path: Path, fingerprint: str, result: Result, seconds: float) -> None:
+    """Keep one finished tuning run's `Result` and the seconds it took under its fingerprint,
+    written atomically."""
     runio.write_json(path, {
         "fingerprint": fingerprint,
+        "seconds": float(seconds),
         "mean": np.asarray(result.mean).tolist(),
         "best": np.asarray(result.best).tolist(),
         "best_cost": np.asarray(result.best_cost).tolist(),
@@ -426,9 +431,9 @@ def write_tuning_run(path: Path, fingerprint: str, result: Result) -> None:
     })  # fmt: skip
 
 
-def read_tuning_run(path: Path | None, fingerprint: str) -> Result | None:
-    """A run `write_tuning_run` kept at `path` under the same fingerprint, else None (no file, an
-    unreadable one, or another config's)."""
+def read_tuning_run(path: Path | None, fingerprint: str) -> tuple[Result, float] | None:
+    """(Result, seconds) of a run `write_tuning_run` kept at `path` under the same fingerprint,
+    else None (no file, an unreadable one, or another config's)."""
     if path is None or not path.exists():
         return None
     try:
@@ -443,7 +448,8 @@ def read_tuning_run(path: Path | None, fingerprint: str) -> Result | None:
 
     mean, best, best_cost = (floats(kept[f]) for f in ("mean", "best", "best_cost"))
     history = {name: floats(v).reshape(-1, len(mean)) for name, v in kept["history"].items()}
-    return Result(mean, best, best_cost, history, jax.random.wrap_key_data(np.asarray(kept["key"], np.uint32)))
+    key = jax.random.wrap_key_data(np.asarray(kept["key"], np.uint32))
+    return Result(mean, best, best_cost, history, key), float(kept["seconds"])
 
 
 def keep_best_run(costs) -> tuple[int, np.ndarray, np.ndarray]:

@@ -123,10 +123,11 @@ def starting_kicks(cfg, record: dict, say=print, keep_dir=None) -> tuple[np.ndar
                     history_best_cost=out["history"])  # fmt: skip
         if "restart_costs" in out:  # the per-task scheme's runs and what was kept of them
             info.update(restart=out["restart"], restart_costs=out["restart_costs"], keep=e.tune.keep,
-                        runs_kept=np.asarray(out["runs_kept"]).tolist())  # fmt: skip
+                        runs_kept=np.asarray(out["runs_kept"]).tolist(), run_seconds=out["run_seconds"])  # fmt: skip
         if not family and e.tune.polish_generations > 0:
             starts, info["polish"], polish_episodes = polish(env, targets, starts, cfg, keep_dir, say)
             episodes += polish_episodes
+        # this call's tuning time; with runs read back from keep_dir, `run_seconds` has each run's own
         info["wall_s"] = time.perf_counter() - t0
     info["episodes"] = int(episodes)  # every episode the starting kicks cost: choice of starts and tuning
     info["smoothness"] = smoothness(starts, targets)
@@ -157,6 +158,7 @@ def polish(env, targets, kicks, cfg, keep_dir=None, say=print) -> tuple[np.ndarr
         "tuned_cost": out["tuned_cost"],
         "improved": np.asarray(out["improved"]).tolist(),
         "history_best_cost": out["history"],
+        "seconds": out["run_seconds"][0],
     }
     return out["params"], record, out["episodes"]
 

@@ -1,6 +1,7 @@
 """The CMA-ES driver (bumps_jax.cmaes): a toy cost for its bookkeeping, then the kick searches."""
 
 import csv
+import json
 
 import jax
 import jax.numpy as jnp
@@ -341,6 +342,8 @@ def test_a_stopped_tuning_resumes_at_its_next_run(env, monkeypatch, tmp_path):
                                **{**common, "say": said.append})  # fmt: skip
     assert [k.tobytes() for k in keys] == [np.asarray(jax.random.key_data(_run_key(k))).tobytes() for k in (1, 2)]
     assert said[0].startswith("tuning run 1/3: read from")
+    first = json.loads((tmp_path / "tuning_run_1.json").read_text())["seconds"]
+    assert out["run_seconds"][0] == first and len(out["run_seconds"]) == 3  # run 1's time as it ran
     for name in ("params", "start_cost", "tuned_cost", "improved", "history", "restart", "restart_costs"):
         np.testing.assert_array_equal(out[name], whole[name])
     assert len(list(tmp_path.iterdir())) == 3

@@ -319,6 +319,8 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
     record["starting_kicks_smoothness"] = starting_kicks.smoothness(kicks["params"], e.tasks)
     if len(kicks.get("restart_costs", [])) > 1:  # `tune.restarts`: every run's fresh cost, and what was kept
         record["starting_kicks_tuning_runs"] = {"kept": kicks["restart"], "fresh_costs": kicks["restart_costs"]}
+        if "run_seconds" in kicks:  # each run's time, also of runs a resumed tuning read back
+            record["starting_kicks_tuning_runs"]["run_seconds"] = kicks["run_seconds"]
         if kicks.get("keep") == "task":  # each task's run (0: its start), and the polish's tasks improved
             record["starting_kicks_tuning_runs"]["runs_kept"] = kicks["runs_kept"]
             if "polish" in kicks:
