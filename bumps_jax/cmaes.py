@@ -20,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import hashlib
-import json
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -414,14 +413,13 @@ def tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, 
         "fitness": fitness_json,
         "devices": int(devices),
     }
-    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+    return runio.fingerprint(payload)
 
 
 def write_tuning_run(path: Path, fingerprint: str, result: Result, seconds: float) -> None:
     """Keep one finished tuning run's `Result` and the seconds it took under its fingerprint,
     written atomically."""
-    runio.write_json(path, {
-        "fingerprint": fingerprint,
+    runio.write_kept(path, fingerprint, {
         "seconds": float(seconds),
         "mean": np.asarray(result.mean).tolist(),
         "best": np.asarray(result.best).tolist(),
@@ -434,13 +432,8 @@ def write_tuning_run(path: Path, fingerprint: str, result: Result, seconds: floa
 def read_tuning_run(path: Path | None, fingerprint: str) -> tuple[Result, float] | None:
     """(Result, seconds) of a run `write_tuning_run` kept at `path` under the same fingerprint,
     else None (no file, an unreadable one, or another config's)."""
-    if path is None or not path.exists():
-        return None
-    try:
-        kept = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-    if kept.get("fingerprint") != fingerprint:
+    kept = runio.read_kept(path, fingerprint)
+    if kept is None:
         return None
 
     def floats(x):  # strict JSON wrote a non-finite number as null: it reads back as NaN

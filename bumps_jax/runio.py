@@ -176,6 +176,30 @@ def file_hash(path: str | os.PathLike) -> str:
     return h.hexdigest()[:16]
 
 
+def fingerprint(payload) -> str:
+    """sha256 of `payload` as sorted JSON (what is not JSON, as its str): the key under which an
+    intermediate result is kept (`write_kept`)."""
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def write_kept(path: str | os.PathLike, key: str, payload: dict) -> Path:
+    """Keep an intermediate result (`payload`) under its fingerprint `key`, written atomically:
+    `read_kept` gives it back to a rerun of the same inputs."""
+    return write_json(path, {**payload, "fingerprint": key})
+
+
+def read_kept(path: str | os.PathLike | None, key: str) -> dict | None:
+    """What `write_kept` kept at `path` under the fingerprint `key`, else None: no such file, an
+    unreadable one (a rerun makes it again), or one kept under another fingerprint."""
+    if path is None or not Path(path).is_file():
+        return None
+    try:
+        kept = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return kept if isinstance(kept, dict) and kept.get("fingerprint") == key else None
+
+
 def check_writable(directory: str | os.PathLike) -> Path:
     """Create `directory` and prove it writable, or ValueError naming it (before any long work)."""
     directory = Path(directory)

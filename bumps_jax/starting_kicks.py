@@ -8,7 +8,6 @@ experts are scored; `read_starting_kicks` reads them back from a run's starting_
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from pathlib import Path
@@ -171,19 +170,14 @@ def kept_starts(cfg, record: dict, targets, env, say=print, keep_dir=None) -> tu
         return prior_kicks(cfg, record, targets, env, say)
     payload = {"env": kick_env.resolved(cfg.env), "experts": cfg.experts.to_dict(), "prior": cfg.prior.to_dict(),
                "record": record, "targets": np.asarray(targets, np.float32).tolist()}  # fmt: skip
-    fingerprint = hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
-    path = Path(keep_dir) / "starts.json"
-    if path.exists():
-        try:
-            kept = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError):
-            kept = {}
-        if kept.get("fingerprint") == fingerprint:
-            say(f"starting kicks' starts: read from {runio.shown(path)}")
-            return np.asarray(kept["starts"], np.float32), kept["info"], int(kept["episodes"])
+    fingerprint, path = runio.fingerprint(payload), Path(keep_dir) / "starts.json"
+    kept = runio.read_kept(path, fingerprint)
+    if kept is not None:
+        say(f"starting kicks' starts: read from {runio.shown(path)}")
+        return np.asarray(kept["starts"], np.float32), kept["info"], int(kept["episodes"])
     starts, info, episodes = prior_kicks(cfg, record, targets, env, say)
-    runio.write_json(path, {"fingerprint": fingerprint, "starts": np.asarray(starts, np.float32).tolist(),
-                            "info": info, "episodes": int(episodes)})  # fmt: skip
+    runio.write_kept(path, fingerprint, {"starts": np.asarray(starts, np.float32).tolist(), "info": info,
+                                         "episodes": int(episodes)})  # fmt: skip
     return np.asarray(starts, np.float32), info, episodes
 
 

@@ -102,3 +102,16 @@ def test_a_record_keeps_the_compiler_flags_it_ran_under(monkeypatch):
     assert "xla_flags" not in runio.provenance("tiny", 1.0, env)
     monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_enable_command_buffer=FUSION,WHILE")
     assert runio.provenance("tiny", 1.0, env)["xla_flags"] == "--xla_gpu_enable_command_buffer=FUSION,WHILE"
+
+
+def test_a_kept_result_comes_back_only_under_its_own_fingerprint(tmp_path):
+    path = tmp_path / "kept" / "run.json"
+    key = runio.fingerprint({"b": [1, 2], "a": 0.5})
+    assert key == runio.fingerprint({"a": 0.5, "b": [1, 2]})  # the order of keys does not matter
+    assert runio.read_kept(path, key) is None  # nothing kept yet
+    runio.write_kept(path, key, {"seconds": 3.0})
+    assert runio.read_kept(path, key) == {"seconds": 3.0, "fingerprint": key}
+    assert runio.read_kept(path, runio.fingerprint({"a": 0.25, "b": [1, 2]})) is None  # other inputs
+    path.write_text('{"seconds": 3.0, "fingerprint": ')  # a file cut short: made again, not a crash
+    assert runio.read_kept(path, key) is None
+    assert runio.read_kept(None, key) is None  # nothing is kept where no folder is given
