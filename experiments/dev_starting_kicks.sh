@@ -7,7 +7,8 @@
 # paper_budget trains at the paper preset's budget (625 PPO updates, 150,000 BC epochs) and adds
 # the filtering stage on the same development targets and seed.
 # Records land in runs/dev_<arm>/ (a finished stage is not rerun) and are copied after each stage to
-# experiments/results/dev_starting_kicks/<arm>_{experts,table1,table2}_<device>.json.
+# experiments/results/dev_starting_kicks/<arm>_{experts,table1,table2}_<device>.json. An arm that
+# filtered ends with the targets it is judged by (`python -m experiments.family_targets`).
 #
 #   experiments/dev_starting_kicks.sh ARM [ARM ...]
 #   STAGES=train-experts experiments/dev_starting_kicks.sh ARM ...   (the experts only: their
@@ -71,4 +72,6 @@ for arm in "$@"; do
     python -m bumps_jax "$stage" --preset paper --run-dir "$run" --set "${common[@]}" "${budget[@]}" "${seeds[@]}" "${sets[@]}"
     copy_records "$run" "$name"
   done
+  # An arm that filtered: the targets it is judged by (docs/decisions.md), met or not.
+  if [[ " $stages " == *" filter "* ]]; then python -m experiments.family_targets --run-dir "$run" || true; fi
 done
