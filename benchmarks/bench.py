@@ -8,8 +8,8 @@ On the config's own backend (`env.impl`) only:
 - the experts again with GAE as a device loop of one iteration per step (Brax's way) against
   the unrolled GAE of the config (`experts.ppo.unroll_gae`);
 - Brax's `ppo.train` on one task (one expert's batch) and at the experts' total batch;
-- BC (meta-training) gradient steps/s of both meta-policies, each in its own program and both
-  in one.
+- BC (meta-training) gradient steps/s of both meta-policies, each in its own program, both in
+  one, and both stacked in one (every layer of both nets one batched matmul).
 With more than one device the physics can use (Warp runs on one GPU per process:
 `sharding.device_mesh`) it also measures the experts and filtering on a mesh of one device and
 on a mesh of all of them and writes the scaling record;
@@ -40,6 +40,7 @@ import numpy as np
 from benchmarks import scene_bench
 from bumps_jax import (
     bc,
+    bc_stacked,
     brax_compat,
     cli,
     config,
@@ -161,8 +162,9 @@ def bench_brax(cfg, epochs: int, all_tasks: bool = False) -> dict:
 
 def bench_bc(cfg, chunk: int) -> dict:
     """Gradient steps/s of the meta-policies' BC loop on a dataset of the experts' size, timed
-    over `chunk` epochs: each net in its own program, and both nets in one (`bc.make_joint_trainer`,
-    the same steps); both nets' full schedules projected from each."""
+    over `chunk` epochs: each net in its own program, both nets in one (`bc.make_joint_trainer`,
+    the same steps), and both stacked in one (`bc_stacked.make_stacked_trainer`, the same steps in
+    batched kernels); both nets' full schedules projected from each."""
     n_rows = len(cfg.experts.tasks) * kick_env.KickEnv(cfg.env).n_steps
     train_cfg = derived(cfg, {"meta.train.chunk": chunk}).meta.train
     epoch_steps = bc.steps_per_epoch(train_cfg, n_rows)
@@ -191,6 +193,13 @@ def bench_bc(cfg, chunk: int) -> dict:
     out["bc_joint_compile_s"] = first - wall
     out["bc_joint_last_loss"] = {name: float(np.asarray(v)[:, -1].mean()) for name, v in losses.items()}
     out["bc_joint_wall_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
+    # Both nets stacked in one program (`bc_stacked`): each layer of both one batched matmul.
+    init, step_chunk = bc_stacked.make_stacked_trainer(models, train_cfg, n_rows)
+    (_, losses), first, wall = timed(lambda s: step_chunk(s, obs, actions, keys), init(keys))
+    out["bc_stacked_steps_per_s"] = steps / wall
+    out["bc_stacked_compile_s"] = first - wall
+    out["bc_stacked_last_loss"] = {name: float(np.asarray(v)[:, -1].mean()) for name, v in losses.items()}
+    out["bc_stacked_wall_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
     return out
 
 
@@ -349,7 +358,7 @@ def main(argv=None) -> dict:
     training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": "jit", "backend": own, "backends": {}}
     training["projections"] = [
         "experts_ppo_projected_s", "experts_ppo_projected_s_gae_loop", "experts_ppo_projected_s_gae_unrolled",
-        "bc_wall_s", "bc_joint_wall_s",
+        "bc_wall_s", "bc_joint_wall_s", "bc_stacked_wall_s",
     ]  # fmt: skip
     scaling: dict = {"devices": n_dev, "sharding": "jit", "workload": args.scale_workload, "backend": own}
 

@@ -1,0 +1,202 @@
+"""Several meta-policies trained in one stacked program: the same optimisation as
+`bc.make_joint_trainer`, in fewer kernels a step.
+
+The BC loop is launch-bound: a step of a tiny net at batch 128 is some 70-80 small kernels run
+one after another, and two nets in one loop (`bc.make_joint_trainer`) run theirs one after the
+other too (docs/decisions.md, "Meta-policies and filtering"). Here every net is padded to the
+largest depth and width and the nets are stacked on a leading axis, so that each layer of every
+net is one batched matmul: a step costs the kernels of one net of the largest depth.
+
+The padding changes nothing but rounding. Width: a net's padded units have zero weights in and
+out, so their pre-activation is 0, tanh(0) = 0, and every padded weight's gradient is exactly 0;
+Adam then leaves it at 0 (its moments stay 0). Depth: a shallower net's extra hidden layers pass
+their input through unchanged (`jnp.where` on a per-net mask), so their weights get zero
+gradients too. Each net's loss is its own mean absolute error on the same batch, and the
+gradient of their sum with respect to one net's weights is that net's gradient alone.
+
+`make_stacked_trainer` has `bc.make_joint_trainer`'s interface and its states (each net's flax
+params and flattened Adam state): a chunk converts them to the stacked layout and back, so either
+trainer resumes the other's checkpoints.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from bumps_jax import bc
+
+
+def _shape_of(models: dict) -> tuple[int, int, int, tuple]:
+    """(largest depth, largest width, n_actions, obs_norm) of the nets, which must share the last two."""
+    actions = {m.n_actions for m in models.values()}
+    norms = {m.obs_norm for m in models.values()}
+    if len(actions) != 1 or len(norms) != 1:
+        raise ValueError("stacked nets must share n_actions and obs_norm")
+    return max(m.depth for m in models.values()), max(m.width for m in models.values()), actions.pop(), norms.pop()
+
+
+def stack_params(models: dict, params: dict) -> dict:
+    """{name: flax params of `bc.MetaPolicy`} -> the stacked layout: w0 (N, O, W), b0 (N, W), wh (N, D-1, W, W),
+    bh (N, D-1, W), wo (N, W, A), bo (N, A), zero where a net is narrower or shallower."""
+    depth, width, _, _ = _shape_of(models)
+
+    def one(model, p):
+        w, d = model.width, model.depth
+        obs_size, n_actions = p["Dense_0"]["kernel"].shape[0], p[f"Dense_{d}"]["kernel"].shape[1]
+        dtype = p["Dense_0"]["kernel"].dtype
+        out = {
+            "w0": jnp.zeros((obs_size, width), dtype).at[:, :w].set(p["Dense_0"]["kernel"]),
+            "b0": jnp.zeros((width,), dtype).at[:w].set(p["Dense_0"]["bias"]),
+            "wh": jnp.zeros((depth - 1, width, width), dtype),
+            "bh": jnp.zeros((depth - 1, width), dtype),
+            "wo": jnp.zeros((width, n_actions), dtype).at[:w].set(p[f"Dense_{d}"]["kernel"]),
+            "bo": p[f"Dense_{d}"]["bias"],
+        }
+        for layer in range(1, d):
+            out["wh"] = out["wh"].at[layer - 1, :w, :w].set(p[f"Dense_{layer}"]["kernel"])
+            out["bh"] = out["bh"].at[layer - 1, :w].set(p[f"Dense_{layer}"]["bias"])
+        return out
+
+    per_net = [one(model, params[name]) for name, model in models.items()]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *per_net)
+
+
+def unstack_params(models: dict, stacked: dict) -> dict:
+    """The inverse of `stack_params`: {name: flax params}."""
+    out = {}
+    for i, (name, model) in enumerate(models.items()):
+        w, d = model.width, model.depth
+        p = {"Dense_0": {"kernel": stacked["w0"][i, :, :w], "bias": stacked["b0"][i, :w]}}
+        for layer in range(1, d):
+            p[f"Dense_{layer}"] = {
+                "kernel": stacked["wh"][i, layer - 1, :w, :w],
+                "bias": stacked["bh"][i, layer - 1, :w],
+            }
+        p[f"Dense_{d}"] = {"kernel": stacked["wo"][i, :w], "bias": stacked["bo"][i]}
+        out[name] = p
+    return out
+
+
+def _ravel(tree) -> jax.Array:
+    """A pytree as one vector, leaves in `jax.tree.leaves` order: the vector `optax.flatten` keeps."""
+    return jnp.concatenate([jnp.reshape(leaf, -1) for leaf in jax.tree.leaves(tree)])
+
+
+def _unravel(template, flat) -> dict:
+    """`_ravel`'s inverse, shaped like `template`."""
+    leaves, treedef = jax.tree.flatten(template)
+    parts = jnp.split(flat, np.cumsum([leaf.size for leaf in leaves])[:-1])
+    return jax.tree.unflatten(treedef, [part.reshape(leaf.shape) for part, leaf in zip(parts, leaves, strict=True)])
+
+
+def stack_opt_states(models: dict, params: dict, opt_states: dict):
+    """Each net's `optax.flatten(optax.adam)` state -> the stacked params' state of the same kind:
+    a vector over a net's params (Adam's moments) is laid out as `stack_params` lays the params;
+    a scalar (the step count, the same for every net) is kept."""
+    names = list(models)
+
+    def leaf(*xs):
+        if xs[0].ndim == 0:
+            return xs[0]
+        trees = {name: _unravel(params[name], x) for name, x in zip(names, xs, strict=True)}
+        return _ravel(stack_params(models, trees))
+
+    return jax.tree.map(leaf, *(opt_states[name] for name in names))
+
+
+def unstack_opt_states(models: dict, stacked_params: dict, stacked_state) -> dict:
+    """The inverse of `stack_opt_states`: {name: that net's flattened Adam state}."""
+
+    def per_net(x) -> dict:  # one leaf of the stacked state -> {name: that net's leaf}
+        if x.ndim == 0:
+            return {name: x for name in models}
+        return {name: _ravel(t) for name, t in unstack_params(models, _unravel(stacked_params, x)).items()}
+
+    leaves, treedef = jax.tree.flatten(stacked_state)
+    split = [per_net(x) for x in leaves]
+    return {name: jax.tree.unflatten(treedef, [s[name] for s in split]) for name in models}
+
+
+def make_forward(models: dict):
+    """apply(stacked params, obs (B, O)) -> actions (N, B, A) of every net on the same observations."""
+    depth, _, _, obs_norm = _shape_of(models)
+    # active[n, l]: hidden layer l + 1 (after the first) is one of net n's own
+    active = jnp.asarray([[layer + 1 < m.depth for layer in range(depth - 1)] for m in models.values()])
+
+    def one(p, active, x):
+        h = jnp.tanh(x @ p["w0"] + p["b0"])
+        for layer in range(depth - 1):
+            h = jnp.where(active[layer], jnp.tanh(h @ p["wh"][layer] + p["bh"][layer]), h)
+        return h @ p["wo"] + p["bo"]
+
+    def apply(stacked, obs):
+        x = obs
+        if obs_norm is not None:
+            shift, scale = (jnp.asarray(v, obs.dtype) for v in obs_norm)
+            x = (x - shift) / scale
+        return jax.vmap(one, in_axes=(0, 0, None))(stacked, active, x)
+
+    return apply
+
+
+def make_stacked_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):
+    """`bc.make_joint_trainer`'s (init, chunk), with the nets stacked in one program: the same
+    initial params (flax's), batches, schedule and Adam, so each net ends where its own trainer
+    would up to float rounding. Both jitted."""
+    names = list(models)
+    epoch_steps = bc.steps_per_epoch(train_cfg, n_rows)
+    stacked_opt = optax.flatten(optax.adam(bc.lr_schedule(train_cfg, epoch_steps)))
+    forward = make_forward(models)
+    joint_init, _ = bc.make_joint_trainer(models, train_cfg, n_rows, obs_size)
+    batch_size, chunk_epochs = int(train_cfg.batch_size), int(train_cfg.chunk)
+
+    def loss_fn(stacked, obs, actions, weights):
+        per_row = jnp.mean(jnp.abs(forward(stacked, obs) - actions), axis=-1)  # (N, B)
+        per_net = jnp.sum(per_row * weights, axis=-1) / jnp.sum(weights)
+        return jnp.sum(per_net), per_net
+
+    def epoch(obs, actions, seed_key, carry, epoch_index):
+        n = obs.shape[0]
+        order = jax.random.permutation(jax.random.fold_in(seed_key, epoch_index), n)  # as `bc._epoch`
+        order = jnp.concatenate([order, jnp.zeros(epoch_steps * batch_size - n, order.dtype)])
+        slots = jnp.arange(epoch_steps * batch_size).reshape(epoch_steps, batch_size)
+
+        def step(carry, batch):
+            params, opt_state = carry
+            idx, slot = batch
+            weights = (slot < n).astype(obs.dtype)
+            (_, per_net), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, obs[idx], actions[idx], weights)
+            updates, opt_state = stacked_opt.update(grads, opt_state, params)
+            return (optax.apply_updates(params, updates), opt_state), per_net
+
+        return jax.lax.scan(step, carry, (order.reshape(epoch_steps, batch_size), slots))
+
+    def chunk_one(params: dict, opt_states: dict, seed_key, obs, actions, epochs):
+        stacked = stack_params(models, params)
+        carry = (stacked, stack_opt_states(models, params, opt_states))
+        (stacked, opt_state), losses = jax.lax.scan(functools.partial(epoch, obs, actions, seed_key), carry, epochs)
+        losses = losses.reshape(-1, len(names))  # (epochs x steps, N)
+        unstacked = unstack_params(models, stacked)
+        return unstacked, unstack_opt_states(models, stacked, opt_state), {n: losses[:, i] for i, n in enumerate(names)}
+
+    @jax.jit
+    def chunk(states: dict, obs, actions, seed_keys):
+        if obs.shape[0] != n_rows:
+            raise ValueError(f"the trainer was built for {n_rows} pairs, got {obs.shape[0]}")
+        step = states[names[0]].step
+        epochs = step // epoch_steps + jnp.arange(chunk_epochs, dtype=jnp.int32)
+        params = {name: states[name].params for name in names}
+        opt_states = {name: states[name].opt_state for name in names}
+        params, opt_states, losses = jax.vmap(chunk_one, in_axes=(0, 0, 0, None, None, None))(
+            params, opt_states, seed_keys, obs, actions, epochs
+        )
+        done = step + chunk_epochs * epoch_steps
+        return {name: bc.TrainState(params[name], opt_states[name], done) for name in names}, losses
+
+    # init is the joint trainer's: each net's flax params and flattened Adam state, as there
+    return joint_init, chunk

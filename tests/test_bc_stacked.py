@@ -1,0 +1,99 @@
+"""The stacked BC trainer (bumps_jax.bc_stacked): the joint trainer's optimisation in one stacked
+program, padding that changes nothing, and states either trainer resumes."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bumps_jax import bc, bc_stacked, config
+
+# Two nets unlike in depth and width, as the paper's 4x256 and 11x128 are.
+MODELS = {"wide": bc.MetaPolicy(depth=2, width=8), "deep": bc.MetaPolicy(depth=4, width=4)}
+
+
+def _train_cfg(**changes):
+    cfg = config.make_config("tiny").meta.train
+    cfg.unlock()
+    cfg.update({"learning_rate": 1e-2, "decay_every": 2, "epochs": 4, "chunk": 2, "batch_size": 128, "n_seeds": 2,
+                **changes})  # fmt: skip
+    cfg.lock()
+    return cfg
+
+
+def _data(n=300, obs_size=2, seed=2):
+    rng = np.random.default_rng(seed)
+    obs = jnp.asarray(rng.uniform(size=(n, obs_size)), jnp.float32)
+    return obs, jnp.asarray(rng.normal(size=(n, 22)), jnp.float32)
+
+
+def _assert_close(a, b, rtol=1e-5, atol=1e-6):
+    jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=rtol, atol=atol), a, b)
+
+
+def test_stacked_nets_end_where_the_joint_trainer_ends():
+    obs, actions = _data()
+    cfg = _train_cfg()
+    keys = bc.seed_keys(cfg)
+    init, chunk = bc.make_joint_trainer(MODELS, cfg, 300)
+    init_s, chunk_s = bc_stacked.make_stacked_trainer(MODELS, cfg, 300)
+    joint, stacked = init(keys), init_s(keys)
+    _assert_close(joint, stacked, rtol=0, atol=0)  # the same start: flax's initialisation
+    for _ in range(2):
+        joint, joint_losses = chunk(joint, obs, actions, keys)
+        stacked, stacked_losses = chunk_s(stacked, obs, actions, keys)
+    for name in MODELS:
+        assert int(stacked[name].step) == int(joint[name].step) == 12
+        np.testing.assert_allclose(stacked_losses[name], joint_losses[name], rtol=1e-5)
+        _assert_close(stacked[name].params, joint[name].params)
+        _assert_close(stacked[name].opt_state, joint[name].opt_state)  # Adam's moments laid out as the joint's
+    assert not np.allclose(stacked_losses["wide"], stacked_losses["deep"])  # two nets, not one twice
+
+
+def test_either_trainer_resumes_the_others_state():
+    obs, actions = _data()
+    cfg = _train_cfg()
+    keys = bc.seed_keys(cfg)
+    init, chunk = bc.make_joint_trainer(MODELS, cfg, 300)
+    _, chunk_s = bc_stacked.make_stacked_trainer(MODELS, cfg, 300)
+    both_joint = chunk(chunk(init(keys), obs, actions, keys)[0], obs, actions, keys)[0]
+    mixed = chunk(chunk_s(init(keys), obs, actions, keys)[0], obs, actions, keys)[0]
+    _assert_close(mixed, both_joint)
+
+
+def test_padding_gets_exactly_zero_gradients_and_stacking_round_trips():
+    """A narrower net's padded units and a shallower net's extra layers: zero gradient, so Adam
+    leaves them at zero; each net's outputs are its flax net's."""
+    obs, actions = _data(n=16)
+    params = {name: m.init(jax.random.key(i), obs[:1])["params"] for i, (name, m) in enumerate(MODELS.items())}
+    stacked = bc_stacked.stack_params(MODELS, params)
+    _assert_close(bc_stacked.unstack_params(MODELS, stacked), params, rtol=0, atol=0)
+    out = bc_stacked.make_forward(MODELS)(stacked, obs)
+    for i, (name, model) in enumerate(MODELS.items()):
+        np.testing.assert_allclose(out[i], model.apply({"params": params[name]}, obs), rtol=1e-6, atol=1e-6)
+    grads = jax.grad(lambda s: jnp.sum(jnp.abs(bc_stacked.make_forward(MODELS)(s, obs) - actions)))(stacked)
+    wide, deep = 0, 1
+    assert np.all(np.asarray(grads["wh"][wide, 1:]) == 0) and np.all(np.asarray(grads["bh"][wide, 1:]) == 0)
+    assert np.any(np.asarray(grads["wh"][wide, 0]) != 0)  # its own second layer learns
+    for key, cut in (("w0", np.s_[deep, :, 4:]), ("b0", np.s_[deep, 4:]), ("wh", np.s_[deep, :, 4:, :]),
+                     ("wh", np.s_[deep, :, :, 4:]), ("bh", np.s_[deep, :, 4:]), ("wo", np.s_[deep, 4:])):  # fmt: skip
+        assert np.all(np.asarray(grads[key][cut]) == 0), key
+
+
+def test_normalised_observations_and_mismatched_nets():
+    norm = ((0.5, 0.5, 0.5), (2.0, 2.0, 2.0))
+    models = {"a": bc.MetaPolicy(1, 4, obs_norm=norm), "b": bc.MetaPolicy(2, 3, obs_norm=norm)}
+    obs, actions = _data(n=200, obs_size=3)
+    cfg = _train_cfg(n_seeds=1)
+    keys = bc.seed_keys(cfg)
+    init, chunk = bc.make_joint_trainer(models, cfg, 200, obs_size=3)
+    init_s, chunk_s = bc_stacked.make_stacked_trainer(models, cfg, 200, obs_size=3)
+    stacked, stacked_losses = chunk_s(init_s(keys), obs, actions, keys)
+    joint, joint_losses = chunk(init(keys), obs, actions, keys)
+    for name in models:
+        np.testing.assert_allclose(stacked_losses[name], joint_losses[name], rtol=1e-4)
+        # MAE's gradient is the residual's sign: a residual at zero in one rounding and not the
+        # other moves a weight by a whole Adam step (here 1e-2 or less) in one of the two
+        _assert_close(stacked[name].params, joint[name].params, rtol=0, atol=1e-2)
+    with pytest.raises(ValueError, match="share n_actions and obs_norm"):
+        bc_stacked.make_stacked_trainer({"a": bc.MetaPolicy(1, 4), "b": bc.MetaPolicy(1, 4, n_actions=6)}, cfg, 200)
