@@ -193,13 +193,15 @@ def bench_bc(cfg, chunk: int) -> dict:
     out["bc_joint_compile_s"] = first - wall
     out["bc_joint_last_loss"] = {name: float(np.asarray(v)[:, -1].mean()) for name, v in losses.items()}
     out["bc_joint_wall_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
-    # Both nets stacked in one program (`bc_stacked`): each layer of both one batched matmul.
-    init, step_chunk = bc_stacked.make_stacked_trainer(models, train_cfg, n_rows)
-    (_, losses), first, wall = timed(lambda s: step_chunk(s, obs, actions, keys), init(keys))
-    out["bc_stacked_steps_per_s"] = steps / wall
-    out["bc_stacked_compile_s"] = first - wall
-    out["bc_stacked_last_loss"] = {name: float(np.asarray(v)[:, -1].mean()) for name, v in losses.items()}
-    out["bc_stacked_wall_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
+    # Both nets stacked in one program (`bc_stacked`): each layer of both one batched matmul, the
+    # gradient by `jax.grad` ("bc_stacked") or by the hand-written batched backward ("bc_stacked_batched").
+    for backward, key in (("autodiff", "bc_stacked"), ("batched", "bc_stacked_batched")):
+        init, step_chunk = bc_stacked.make_stacked_trainer(models, train_cfg, n_rows, backward=backward)
+        (_, losses), first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
+        out[f"{key}_steps_per_s"] = steps / wall
+        out[f"{key}_compile_s"] = first - wall
+        out[f"{key}_last_loss"] = {name: float(np.asarray(v)[:, -1].mean()) for name, v in losses.items()}
+        out[f"{key}_wall_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
     return out
 
 
@@ -358,7 +360,7 @@ def main(argv=None) -> dict:
     training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": "jit", "backend": own, "backends": {}}
     training["projections"] = [
         "experts_ppo_projected_s", "experts_ppo_projected_s_gae_loop", "experts_ppo_projected_s_gae_unrolled",
-        "bc_wall_s", "bc_joint_wall_s", "bc_stacked_wall_s",
+        "bc_wall_s", "bc_joint_wall_s", "bc_stacked_wall_s", "bc_stacked_batched_wall_s",
     ]  # fmt: skip
     scaling: dict = {"devices": n_dev, "sharding": "jit", "workload": args.scale_workload, "backend": own}
 

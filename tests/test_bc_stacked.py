@@ -97,3 +97,35 @@ def test_normalised_observations_and_mismatched_nets():
         _assert_close(stacked[name].params, joint[name].params, rtol=0, atol=1e-2)
     with pytest.raises(ValueError, match="share n_actions and obs_norm"):
         bc_stacked.make_stacked_trainer({"a": bc.MetaPolicy(1, 4), "b": bc.MetaPolicy(1, 4, n_actions=6)}, cfg, 200)
+
+
+@pytest.mark.parametrize("models", [MODELS, {"one": bc.MetaPolicy(1, 4), "two": bc.MetaPolicy(1, 6)}])
+def test_the_hand_written_backward_is_autodiffs_gradient(models):
+    """The batched backward pass: the same losses and gradients as `jax.grad`, padding included
+    (nets of one hidden layer too: no stacked layers at all)."""
+    obs, actions = _data(n=40)
+    weights = jnp.asarray(np.r_[np.ones(33), np.zeros(7)], jnp.float32)  # a last, partial batch
+    params = {name: m.init(jax.random.key(i), obs[:1])["params"] for i, (name, m) in enumerate(models.items())}
+    stacked = bc_stacked.stack_params(models, params)
+    auto = bc_stacked.make_loss_and_grads(models, "autodiff")(stacked, obs, actions, weights)
+    batched = bc_stacked.make_loss_and_grads(models, "batched")(stacked, obs, actions, weights)
+    _assert_close(batched, auto, rtol=1e-5, atol=1e-7)
+    for name, model in models.items():  # each net's loss is its flax net's MAE over the rows of weight 1
+        i = list(models).index(name)
+        want = bc.mae_loss(params[name], bc.policy_apply(model), obs, actions, weights)
+        np.testing.assert_allclose(batched[0][i], want, rtol=1e-6)
+    with pytest.raises(ValueError, match="backward must be 'autodiff' or 'batched', got 'manual'"):
+        bc_stacked.make_loss_and_grads(models, "manual")
+
+
+def test_the_batched_backward_trains_as_the_joint_trainer():
+    obs, actions = _data()
+    cfg = _train_cfg()
+    keys = bc.seed_keys(cfg)
+    init, chunk = bc.make_joint_trainer(MODELS, cfg, 300)
+    _, chunk_b = bc_stacked.make_stacked_trainer(MODELS, cfg, 300, backward="batched")
+    joint, joint_losses = chunk(init(keys), obs, actions, keys)
+    batched, batched_losses = chunk_b(init(keys), obs, actions, keys)
+    for name in MODELS:
+        np.testing.assert_allclose(batched_losses[name], joint_losses[name], rtol=1e-4)
+        _assert_close(batched[name].params, joint[name].params, rtol=0, atol=1e-2)  # MAE's sign: see above
