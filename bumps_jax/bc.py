@@ -98,13 +98,29 @@ def lr_schedule(train_cfg, epoch_steps: int = 1) -> optax.Schedule:
     )
 
 
-def mae_loss(params, apply_fn, obs, actions, weights=None) -> jax.Array:
-    """Mean absolute error () over the joints and the rows of obs (B, 2), actions (B, 22);
+def mae(out, actions, weights=None) -> jax.Array:
+    """Mean absolute error () of outputs against actions (B, A), over the joints and the rows;
     with weights (B,), the mean over the rows of weight 1."""
-    per_row = jnp.mean(jnp.abs(apply_fn(params, obs) - actions), axis=-1)
+    per_row = jnp.mean(jnp.abs(out - actions), axis=-1)
     if weights is None:
         return jnp.mean(per_row)
     return jnp.sum(per_row * weights) / jnp.sum(weights)
+
+
+def mae_loss(params, apply_fn, obs, actions, weights=None) -> jax.Array:
+    """`mae` of the policy's actions on obs (B, O)."""
+    return mae(apply_fn(params, obs), actions, weights)
+
+
+def epoch_batches(seed_key, epoch, n: int, epoch_steps: int, batch_size: int) -> tuple[jax.Array, jax.Array]:
+    """One epoch's batches: (row indices, slots), each (epoch_steps, batch_size), the rows shuffled
+    with key fold_in(seed_key, epoch). Static shapes: every batch takes batch_size slots; the last,
+    partial one's slots past the end (slot >= n) point at row 0 and carry weight 0, so its loss is
+    the mean over its own rows (as Keras computes it)."""
+    order = jax.random.permutation(jax.random.fold_in(seed_key, epoch), n)
+    order = jnp.concatenate([order, jnp.zeros(epoch_steps * batch_size - n, order.dtype)])
+    slots = jnp.arange(epoch_steps * batch_size).reshape(epoch_steps, batch_size)
+    return order.reshape(epoch_steps, batch_size), slots
 
 
 class TrainState(NamedTuple):
@@ -126,11 +142,6 @@ def _epoch(apply_fns, optimizers, batch_size, epoch_steps, obs, actions, seed_ke
     """One pass over the dataset, shuffled with key fold_in(seed_key, epoch), of every net of the
     dicts (name -> apply_fn / optimizer / SeedCarry) on the same batches: (carry, losses {name: (epoch_steps,)})."""
     n = obs.shape[0]
-    order = jax.random.permutation(jax.random.fold_in(seed_key, epoch), n)
-    # Static shapes: every batch takes batch_size slots; the last, partial one masks the
-    # slots past the end, so its loss is the mean over its own rows (as Keras computes it).
-    order = jnp.concatenate([order, jnp.zeros(epoch_steps * batch_size - n, order.dtype)])
-    slots = jnp.arange(epoch_steps * batch_size).reshape(epoch_steps, batch_size)
 
     def step(carry: dict, batch):
         idx, slot = batch
@@ -142,7 +153,7 @@ def _epoch(apply_fns, optimizers, batch_size, epoch_steps, obs, actions, seed_ke
             new[name], losses[name] = SeedCarry(optax.apply_updates(c.params, updates), opt_state), loss
         return new, losses
 
-    return jax.lax.scan(step, carry, (order.reshape(epoch_steps, batch_size), slots))
+    return jax.lax.scan(step, carry, epoch_batches(seed_key, epoch, n, epoch_steps, batch_size))
 
 
 def make_joint_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):

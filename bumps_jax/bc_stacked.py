@@ -158,17 +158,12 @@ def make_forward(models: dict):
     return apply
 
 
-def _mae_one(out, actions, weights):
-    """One net's loss: the mean absolute error of its rows of weight 1 (`bc.mae_loss`)."""
-    return jnp.sum(jnp.mean(jnp.abs(out - actions), axis=-1) * weights) / jnp.sum(weights)
-
-
 def _grads_one(p: dict, active, x, actions, weights) -> tuple[jax.Array, dict]:
     """One net's (loss, gradient) written out by hand: the backward pass of `_forward_one` and
-    `_mae_one`, with the stacked hidden layers' weight gradients as one batched matmul over the
+    `bc.mae`, with the stacked hidden layers' weight gradients as one batched matmul over the
     layers (and their bias gradients as one sum) instead of a matmul and a sum per layer."""
     out, hidden, outputs = _forward_one(p, active, x)
-    loss = _mae_one(out, actions, weights)
+    loss = bc.mae(out, actions, weights)
     # d|r|/dr = sign(r) (0 at 0, as jax.grad of jnp.abs), over A joints and the rows of weight 1
     d_out = jnp.sign(out - actions) * (weights / (out.shape[-1] * jnp.sum(weights)))[:, None]
     grads = {"wo": hidden[-1].T @ d_out, "bo": jnp.sum(d_out, axis=0)}
@@ -195,7 +190,7 @@ def make_loss_and_grads(models: dict, backward: str = "autodiff"):
         forward = make_forward(models)
 
         def total(stacked, obs, actions, weights):
-            per_net = jax.vmap(_mae_one, in_axes=(0, None, None))(forward(stacked, obs), actions, weights)
+            per_net = jax.vmap(bc.mae, in_axes=(0, None, None))(forward(stacked, obs), actions, weights)
             return jnp.sum(per_net), per_net
 
         def fn(stacked, obs, actions, weights):
@@ -227,9 +222,6 @@ def make_stacked_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2
 
     def epoch(obs, actions, seed_key, carry, epoch_index):
         n = obs.shape[0]
-        order = jax.random.permutation(jax.random.fold_in(seed_key, epoch_index), n)  # as `bc._epoch`
-        order = jnp.concatenate([order, jnp.zeros(epoch_steps * batch_size - n, order.dtype)])
-        slots = jnp.arange(epoch_steps * batch_size).reshape(epoch_steps, batch_size)
 
         def step(carry, batch):
             params, opt_state = carry
@@ -239,7 +231,7 @@ def make_stacked_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2
             updates, opt_state = stacked_opt.update(grads, opt_state, params)
             return (optax.apply_updates(params, updates), opt_state), per_net
 
-        return jax.lax.scan(step, carry, (order.reshape(epoch_steps, batch_size), slots))
+        return jax.lax.scan(step, carry, bc.epoch_batches(seed_key, epoch_index, n, epoch_steps, batch_size))
 
     def chunk_one(params: dict, opt_states: dict, seed_key, obs, actions, epochs):
         stacked = stack_params(models, params)

@@ -31,12 +31,17 @@ def _assert_close(a, b, rtol=1e-5, atol=1e-6):
     jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=rtol, atol=atol), a, b)
 
 
-def test_stacked_nets_end_where_the_joint_trainer_ends():
+def _setup(backward="autodiff"):
+    """(obs, actions, seed keys, the joint trainer's (init, chunk), the stacked trainer's (init, chunk))
+    of MODELS on 300 random pairs."""
     obs, actions = _data()
     cfg = _train_cfg()
-    keys = bc.seed_keys(cfg)
-    init, chunk = bc.make_joint_trainer(MODELS, cfg, 300)
-    init_s, chunk_s = bc_stacked.make_stacked_trainer(MODELS, cfg, 300)
+    joint = bc.make_joint_trainer(MODELS, cfg, 300)
+    return obs, actions, bc.seed_keys(cfg), joint, bc_stacked.make_stacked_trainer(MODELS, cfg, 300, backward=backward)
+
+
+def test_stacked_nets_end_where_the_joint_trainer_ends():
+    obs, actions, keys, (init, chunk), (init_s, chunk_s) = _setup()
     joint, stacked = init(keys), init_s(keys)
     _assert_close(joint, stacked, rtol=0, atol=0)  # the same start: flax's initialisation
     for _ in range(2):
@@ -51,11 +56,7 @@ def test_stacked_nets_end_where_the_joint_trainer_ends():
 
 
 def test_either_trainer_resumes_the_others_state():
-    obs, actions = _data()
-    cfg = _train_cfg()
-    keys = bc.seed_keys(cfg)
-    init, chunk = bc.make_joint_trainer(MODELS, cfg, 300)
-    _, chunk_s = bc_stacked.make_stacked_trainer(MODELS, cfg, 300)
+    obs, actions, keys, (init, chunk), (_, chunk_s) = _setup()
     both_joint = chunk(chunk(init(keys), obs, actions, keys)[0], obs, actions, keys)[0]
     mixed = chunk(chunk_s(init(keys), obs, actions, keys)[0], obs, actions, keys)[0]
     _assert_close(mixed, both_joint)
@@ -119,11 +120,7 @@ def test_the_hand_written_backward_is_autodiffs_gradient(models):
 
 
 def test_the_batched_backward_trains_as_the_joint_trainer():
-    obs, actions = _data()
-    cfg = _train_cfg()
-    keys = bc.seed_keys(cfg)
-    init, chunk = bc.make_joint_trainer(MODELS, cfg, 300)
-    _, chunk_b = bc_stacked.make_stacked_trainer(MODELS, cfg, 300, backward="batched")
+    obs, actions, keys, (init, chunk), (_, chunk_b) = _setup(backward="batched")
     joint, joint_losses = chunk(init(keys), obs, actions, keys)
     batched, batched_losses = chunk_b(init(keys), obs, actions, keys)
     for name in MODELS:
