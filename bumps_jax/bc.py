@@ -16,6 +16,7 @@ mean to a keyframe kick's (T, 22) joint targets (`kick_dataset`, `clone_kick`).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import time
 from pathlib import Path
@@ -242,49 +243,93 @@ def _progress_row(state: TrainState, losses: np.ndarray, epoch_steps: int, sched
 
 
 def train(model: MetaPolicy, data: Dataset, train_cfg, out_dir, say=print, max_chunks=None, trainer=None) -> TrainState:
-    """Train (or resume) one architecture on data (N pairs); returns the final TrainState, whose
-    `step` counts gradient steps (train_cfg.epochs x `steps_per_epoch`).
+    """Train (or resume) one architecture on data (N pairs): `train_nets` of one net, in out_dir.
+    trainer: `make_trainer`'s (init, chunk) of this net, to reuse its compiled programs."""
+    if trainer is not None:
+        trainer = _as_nets_trainer(*trainer)
+    return train_nets({"net": model}, data, train_cfg, {"net": out_dir}, say, max_chunks, trainer)["net"]
 
-    Writes out_dir/progress.csv and an orbax checkpoint in out_dir/checkpoints after every chunk.
-    A rerun resumes from the newest readable checkpoint and ends where an uninterrupted run would.
+
+def _as_nets_trainer(init, chunk):
+    """`make_trainer`'s (init, chunk) of one TrainState as a trainer of {"net": TrainState}."""
+
+    def init_nets(keys):
+        return {"net": init(keys)}
+
+    def chunk_nets(states, obs, actions, keys):
+        state, losses = chunk(states["net"], obs, actions, keys)
+        return {"net": state}, {"net": losses}
+
+    return init_nets, chunk_nets
+
+
+def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print, max_chunks=None,
+               trainer=None) -> dict:  # fmt: skip
+    """Train (or resume) every net of `models` (name -> MetaPolicy) on data (N pairs) in one loop;
+    returns {name: final TrainState}, whose `step` counts gradient steps (train_cfg.epochs x
+    `steps_per_epoch`).
+
+    trainer: (init, chunk) over dicts of nets (`make_joint_trainer`'s, the default, or
+    `bc_stacked.make_stacked_trainer`'s). After every chunk each net writes
+    out_dirs[name]/progress.csv and an orbax checkpoint in out_dirs[name]/checkpoints: one net's
+    files are those of a net trained alone. A rerun resumes from the newest step every net holds
+    readably and ends where an uninterrupted run would.
     max_chunks: stop after this many chunks in this call (tests of the resume path).
     """
     import orbax.checkpoint as ocp  # noqa: PLC0415
 
-    out_dir = Path(out_dir).resolve()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    init, chunk = trainer or make_trainer(model, train_cfg, len(data.obs), data.obs.shape[-1])
+    names = list(models)
+    out_dirs = {name: Path(out_dirs[name]).resolve() for name in names}
+    for d in out_dirs.values():
+        d.mkdir(parents=True, exist_ok=True)
+    init, chunk = trainer or make_joint_trainer(models, train_cfg, len(data.obs), data.obs.shape[-1])
     epoch_steps = steps_per_epoch(train_cfg, len(data.obs))
     total_steps = train_cfg.epochs * epoch_steps
     keys = seed_keys(train_cfg)
-    csv_path = out_dir / "progress.csv"
     schedule = lr_schedule(train_cfg, epoch_steps)
-    with runio.checkpoint_manager(out_dir / "checkpoints", KEEP_CHECKPOINTS) as manager:
+    with contextlib.ExitStack() as managers_open:
+        managers = {
+            name: managers_open.enter_context(
+                runio.checkpoint_manager(out_dirs[name] / "checkpoints", KEEP_CHECKPOINTS)
+            )
+            for name in names
+        }
         fresh = init(keys)
-        step, state = runio.restore_latest(manager, ocp.args.StandardRestore(fresh), say)
+        restore = {name: ocp.args.StandardRestore(fresh[name]) for name in names}
+        step, states = runio.restore_latest_common(managers, restore, say)
         if step is None:
-            state = fresh
+            states = fresh
         else:
-            say(f"  resumed from epoch {int(state.step) // epoch_steps} in {runio.shown(out_dir)}")
-        runio.trim_csv(csv_path, CSV_FIELDS, "step", int(state.step))
+            where = ", ".join(runio.shown(d) for d in out_dirs.values())
+            say(f"  resumed from epoch {int(states[names[0]].step) // epoch_steps} in {where}")
+        done = int(states[names[0]].step)
+        for name in names:
+            runio.trim_csv(out_dirs[name] / "progress.csv", CSV_FIELDS, "step", done)
         obs, actions = jnp.asarray(data.obs), jnp.asarray(data.actions)  # resident on the device
-        first, done_chunks, start = int(state.step), 0, time.perf_counter()
+        first, done_chunks, start = done, 0, time.perf_counter()
         with runio.stop_on_interrupt(say) as stop:
-            while int(state.step) < total_steps and (max_chunks is None or done_chunks < max_chunks):
+            while done < total_steps and (max_chunks is None or done_chunks < max_chunks):
                 t0 = time.perf_counter()
-                state, losses = chunk(state, obs, actions, keys)
-                row = _progress_row(state, np.asarray(losses), epoch_steps, schedule, time.perf_counter() - t0)
-                runio.append_csv(csv_path, CSV_FIELDS, [row])
-                manager.save(row["step"], args=ocp.args.StandardSave(state))
-                manager.wait_until_finished()
-                done_chunks += 1
-                eta = runio.eta(row["step"] - first, total_steps - first, time.perf_counter() - start)
-                say(
-                    f"  epoch {row['epoch']:7d}/{train_cfg.epochs}  lr {row['lr']:.2e}  loss {row['loss_mean']:.4f}"
-                    f"  (last {row['loss_last']:.4f})  {eta}"
-                )
+                states, losses = chunk(states, obs, actions, keys)
+                seconds = time.perf_counter() - t0
+                rows = {
+                    n: _progress_row(states[n], np.asarray(losses[n]), epoch_steps, schedule, seconds) for n in names
+                }
+                for name in names:
+                    runio.append_csv(out_dirs[name] / "progress.csv", CSV_FIELDS, [rows[name]])
+                    managers[name].save(rows[name]["step"], args=ocp.args.StandardSave(states[name]))
+                for manager in managers.values():
+                    manager.wait_until_finished()
+                done, done_chunks = rows[names[0]]["step"], done_chunks + 1
+                eta = runio.eta(done - first, total_steps - first, time.perf_counter() - start)
+                row = rows[names[0]]
+                if len(names) == 1:
+                    loss = f"loss {row['loss_mean']:.4f}  (last {row['loss_last']:.4f})"
+                else:
+                    loss = "loss " + ", ".join(f"{n} {rows[n]['loss_mean']:.4f}" for n in names)
+                say(f"  epoch {row['epoch']:7d}/{train_cfg.epochs}  lr {row['lr']:.2e}  {loss}  {eta}")
                 stop.check()
-    return state
+    return states
 
 
 def load_policy(

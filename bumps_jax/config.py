@@ -145,6 +145,11 @@ def _meta() -> ml_collections.ConfigDict:
     cfg = ml_collections.ConfigDict()
     # name -> (hidden layers, width): the paper's two meta-policies.
     cfg.nets = ml_collections.ConfigDict({"meta_4x256": (4, 256), "meta_11x128": (11, 128)})
+    # How the nets train, the same optimisation each way: "separate", each net its own loop, one
+    # after the other; "stacked", every net padded and stacked in one loop (`bc_stacked`: each
+    # layer of all nets one batched matmul); "stacked_batched", the same with the hand-written
+    # backward pass. Rounding differs between them, so a run made one way is not resumed another.
+    cfg.trainer = "separate"
     cfg.dataset = ml_collections.ConfigDict()
     cfg.dataset.repetitions = 1  # rollouts per expert; 1 records them noise-free (the paper)
     cfg.dataset.seed = 0
@@ -252,6 +257,7 @@ ADDED_KNOBS = {
     "experts.tune.neighbour_leash": 0.0,
     "experts.tune.midpoint_weight": 0.0,
     "experts.tune.restarts": 1,
+    "meta.trainer": "separate",
     "experts.tune.keep": "run",
     "experts.tune.polish_generations": 0,
     "experts.bc.common_start": "main",

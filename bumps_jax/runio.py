@@ -287,16 +287,36 @@ def restore_latest(manager, restore_args, say=print):
     A corrupt checkpoint (a truncated file, a broken _METADATA) is reported with its path and
     moved aside to `<step>.corrupt`, and the next older one is tried.
     """
-    for step in sorted(manager.all_steps(), reverse=True):
-        try:
-            return step, manager.restore(step, args=restore_args)
-        except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
-            path = Path(manager.directory) / str(step)
-            reason = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
-            say(f"checkpoint {path} is unreadable ({reason}); trying an older one")
-            shutil.move(str(path), str(path.with_name(f"{step}.corrupt")))
-            manager.reload()
-    return None, None
+    step, restored = restore_latest_common({"": manager}, {"": restore_args}, say)
+    return step, None if restored is None else restored[""]
+
+
+def restore_latest_common(managers: dict, restore_args: dict, say=print) -> tuple[int | None, dict | None]:
+    """(step, {name: restored}) from the newest step that every manager holds and that reads in all
+    of them, or (None, None). Several nets trained in one loop save one checkpoint each after a
+    chunk, so a kill between the saves leaves one net a chunk ahead: that newer step is deleted,
+    and the loop redoes it for all. A corrupt checkpoint is set aside as in `restore_latest`."""
+    while True:
+        common = set.intersection(*(set(m.all_steps()) for m in managers.values()))
+        if not common:
+            return None, None
+        step = max(common)
+        restored = {}
+        for name, manager in managers.items():
+            try:
+                restored[name] = manager.restore(step, args=restore_args[name])
+            except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
+                path = Path(manager.directory) / str(step)
+                reason = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
+                say(f"checkpoint {path} is unreadable ({reason}); trying an older one")
+                shutil.move(str(path), str(path.with_name(f"{step}.corrupt")))
+                manager.reload()
+                break
+        else:
+            for manager in managers.values():  # a net saved ahead of the others: redone with them
+                for later in [s for s in manager.all_steps() if s > step]:
+                    manager.delete(later)
+            return step, restored
 
 
 # -- long loops -------------------------------------------------------------------------------

@@ -18,6 +18,7 @@ HELDOUT_MIN_TARGETS = 50
 TUNE_SCHEMES = ("per_task", "family")  # experts.tune.scheme
 TUNE_KEEPS = ("run", "task")  # experts.tune.keep
 SELECTIONS = ("fixed", "halving")  # filter.selection
+META_TRAINERS = ("separate", "stacked", "stacked_batched")  # meta.trainer
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
@@ -222,6 +223,8 @@ def meta(m, task_range, prefix: str = "", unit: str = "m") -> None:
     positive_floats(m.train, f"{p}train.", ("learning_rate",))
     if not 0 < m.train.decay_rate <= 1:
         raise ValueError(f"{p}train.decay_rate must be in (0, 1], got {m.train.decay_rate!r}")
+    if m.trainer not in META_TRAINERS:
+        raise ValueError(f"{p}trainer must be one of {META_TRAINERS}, got {m.trainer!r}")
     positive_ints(m.dataset, f"{p}dataset.", ("repetitions",))
     positive_ints(m.eval, f"{p}eval.", ("repetitions",))
     targets(m.eval.tasks, task_range, f"{p}eval.tasks", unit)

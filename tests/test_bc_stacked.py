@@ -1,12 +1,16 @@
 """The stacked BC trainer (bumps_jax.bc_stacked): the joint trainer's optimisation in one stacked
 program, padding that changes nothing, and states either trainer resumes."""
 
+import csv
+import shutil
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from bumps_jax import bc, bc_stacked, config
+from bumps_jax.stages import meta as meta_stage
 
 # Two nets unlike in depth and width, as the paper's 4x256 and 11x128 are.
 MODELS = {"wide": bc.MetaPolicy(depth=2, width=8), "deep": bc.MetaPolicy(depth=4, width=4)}
@@ -126,3 +130,48 @@ def test_the_batched_backward_trains_as_the_joint_trainer():
     for name in MODELS:
         np.testing.assert_allclose(batched_losses[name], joint_losses[name], rtol=1e-4)
         _assert_close(batched[name].params, joint[name].params, rtol=0, atol=1e-2)  # MAE's sign: see above
+
+
+def _dataset(n=300):
+    obs, actions = _data(n=n)
+    return bc.Dataset(np.asarray(obs), np.asarray(actions), np.zeros(n, np.float32))
+
+
+def test_nets_trained_in_one_loop_keep_a_net_alone_files_and_resume(tmp_path):
+    """`bc.train_nets`: each net's progress.csv and checkpoints in its own folder, as a net trained
+    alone; a run stopped after one chunk resumes to the uninterrupted result, also when one net
+    saved a chunk more than the other before the kill; `load_policy` reads each net back."""
+    data, cfg = _dataset(), _train_cfg(epochs=6)
+    trainer = bc_stacked.make_stacked_trainer(MODELS, cfg, 300)
+    quiet = lambda *a, **k: None  # noqa: E731
+    dirs = {name: tmp_path / "whole" / name for name in MODELS}
+    whole = bc.train_nets(MODELS, data, cfg, dirs, say=quiet, trainer=trainer)
+    part = {name: tmp_path / "part" / name for name in MODELS}
+    bc.train_nets(MODELS, data, cfg, part, say=quiet, max_chunks=2, trainer=trainer)
+    newest = part["deep"] / "checkpoints" / "12"  # 2 chunks x 2 epochs x 3 steps
+    shutil.rmtree(newest)  # killed between the two nets' saves: "wide" is a chunk ahead
+    lines = []
+    resumed = bc.train_nets(MODELS, data, cfg, part, say=lines.append, trainer=trainer)
+    assert lines[0].startswith("  resumed from epoch 2 in") and "loss wide" in lines[1]
+    _assert_close(resumed, whole, rtol=0, atol=0)
+    for name, model in MODELS.items():
+        with open(part[name] / "progress.csv") as f:
+            assert [int(r["epoch"]) for r in csv.DictReader(f)] == [2, 4, 6]
+        _, params = bc.load_policy(part[name], model.depth, model.width, cfg)
+        _assert_close(params, whole[name].params, rtol=0, atol=0)
+
+
+def test_the_meta_stage_trains_stacked_when_told(env, tmp_path):
+    """`meta.trainer`: "stacked" trains the stage's nets in one loop to the losses of "separate";
+    an unknown value is one line naming it."""
+    data = _dataset(n=225)
+    losses = {}
+    for trainer in ("separate", "stacked"):
+        cfg = config.make_config("tiny", {"meta.trainer": trainer, "meta.train.epochs": 4, "meta.train.chunk": 2})
+        _, states, seconds = meta_stage.train(cfg, tmp_path / trainer, data, env, say=lambda *a, **k: None)
+        assert set(states) == set(seconds) == set(cfg.meta.nets) and all(int(s.step) == 8 for s in states.values())
+        with open(tmp_path / trainer / "meta_11x128" / "progress.csv") as f:
+            losses[trainer] = [float(r["loss_mean"]) for r in csv.DictReader(f)]
+    np.testing.assert_allclose(losses["stacked"], losses["separate"], rtol=1e-3)
+    with pytest.raises(ValueError, match=r"meta.trainer must be one of \('separate', 'stacked', 'stacked_batched'\)"):
+        config.make_config("tiny", {"meta.trainer": "fused"})

@@ -4,7 +4,8 @@
    times on its own task (the paper: once, with the noise off); each step's (observation,
    action) is kept, the observation's context being the expert's task. Saved as dataset.npz
    and reused when the stage resumes.
-2. Each net of `meta.nets` (`bc.MetaPolicy`) is trained on it (`bc.train`, resumable).
+2. Each net of `meta.nets` (`bc.MetaPolicy`) is trained on it, resumable: each in its own loop
+   (`bc.train`), or with `meta.trainer` "stacked" all in one (`bc.train_nets`, `bc_stacked`).
 3. Evaluation, unfiltered: every net on `meta.eval.tasks` x `meta.eval.repetitions` noisy kicks
    with context = target (`rollout.grid_fn`); the experts' row comes from their own record.
 
@@ -22,6 +23,7 @@ import numpy as np
 
 from bumps_jax import (
     bc,
+    bc_stacked,
     config,
     env_records,
     evaluate,
@@ -194,33 +196,51 @@ def evaluate_blocked(cfg, depth: int, width: int, params, obs_norm=None) -> dict
     return {k: np.stack([o[k] for o in out]) for k in out[0]}
 
 
-def train_and_evaluate(cfg, stage_dir: Path, name: str, data: bc.Dataset, env, grids: dict, say=print) -> dict:
-    """Train (or resume) one net of cfg.meta.nets and evaluate its seeds unfiltered: its row,
-    rows_per_seed, per_task and timings entries. grids: (depth, width) -> program, filled here."""
+def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict, dict, dict]:
+    """Train (or resume) every net of cfg.meta.nets into stage_dir/<net>, as `meta.trainer` says:
+    each in its own loop, or all stacked in one (`bc_stacked`). Returns ({net: bc.MetaPolicy},
+    {net: final bc.TrainState}, {net: train_wall_s}; stacked nets share one time)."""
     m = cfg.meta
-    depth, width = m.nets[name]
-    say(f"{name}: {depth} x {width}, {m.train.epochs} epochs, {m.train.n_seeds} seed(s)")
-    t0 = time.perf_counter()
     # Another task's states are normalised by the dataset's statistics (the kick's obs: as they are).
     obs_norm = None if cfg.task == "kick" else bc.obs_norm_of(data.obs)
-    model = bc.MetaPolicy(depth, width, env.action_size, obs_norm)
-    state = bc.train(model, data, m.train, stage_dir / name, say)
-    timing = {"train_wall_s": time.perf_counter() - t0}  # compiling and checkpoints included
+    names = net_names(m.nets)
+    models = {name: bc.MetaPolicy(*m.nets[name], env.action_size, obs_norm) for name in names}
+    for name in names:
+        say(f"{name}: {m.nets[name][0]} x {m.nets[name][1]}, {m.train.epochs} epochs, {m.train.n_seeds} seed(s)")
+    states, seconds = {}, {}
+    if m.trainer == "separate":
+        for name, model in models.items():
+            t0 = time.perf_counter()
+            states[name] = bc.train(model, data, m.train, stage_dir / name, say)
+            seconds[name] = time.perf_counter() - t0  # compiling and checkpoints included
+        return models, states, seconds
+    say(f"{', '.join(names)}: trained stacked in one loop ({m.trainer})")
+    t0 = time.perf_counter()
+    backward = "batched" if m.trainer == "stacked_batched" else "autodiff"
+    trainer = bc_stacked.make_stacked_trainer(models, m.train, len(data.obs), data.obs.shape[-1], backward)
+    states = bc.train_nets(models, data, m.train, {name: stage_dir / name for name in names}, say, trainer=trainer)
+    return models, states, dict.fromkeys(names, time.perf_counter() - t0)
+
+
+def evaluate_net(cfg, name: str, model: bc.MetaPolicy, state: bc.TrainState, env, grids: dict, say=print) -> dict:
+    """One trained net's seeds evaluated unfiltered: its row, rows_per_seed, per_task and eval time.
+    grids: (depth, width) -> program, filled here."""
+    m = cfg.meta
     t0 = time.perf_counter()
     if cfg.task != "kick":
-        metrics = evaluate_blocked(cfg, depth, width, state.params, obs_norm)
+        metrics = evaluate_blocked(cfg, model.depth, model.width, state.params, model.obs_norm)
     else:
-        if (depth, width) not in grids:  # one program per architecture: the policy depends on nothing else
-            grids[depth, width] = rollout.grid_fn(env, bc.policy_apply(model))
-        grid = grids[depth, width]
+        if (model.depth, model.width) not in grids:  # one program per architecture: the policy depends on nothing else
+            grids[model.depth, model.width] = rollout.grid_fn(env, bc.policy_apply(model))
+        grid = grids[model.depth, model.width]
         metrics = evaluate_unfiltered(grid, state.params, m.eval.tasks, m.eval.repetitions, m.eval.seed)
     summaries = [evaluate.summarise_tasks({k: v[s] for k, v in metrics.items()}) for s in range(m.train.n_seeds)]
-    timing["eval_wall_s"] = time.perf_counter() - t0
+    eval_wall_s = time.perf_counter() - t0
     row = {**evaluate.table_row(summaries[0]), "per_task": per_task_list(m.eval.tasks, summaries[0])}
     unit = env.UNIT
     kept = "no task" if row["error_mean_m"] is None else f"{row['error_mean_m']:.2f} {unit}"
     say(
-        f"{name}: evaluated in {timing['eval_wall_s']:.1f} s: accuracy {row['accuracy_mean']:.2f},"
+        f"{name}: evaluated in {eval_wall_s:.1f} s: accuracy {row['accuracy_mean']:.2f},"
         f" error {kept} over tasks with accuracy > {evaluate.ACCURACY_THRESHOLD},"
         f" {row['error_mean_all_m']:.2f} {unit} over all"
     )
@@ -231,7 +251,7 @@ def train_and_evaluate(cfg, stage_dir: Path, name: str, data: bc.Dataset, env, g
             "error_mean_m": summaries[0]["error_mean_m"].tolist(),
             "accuracy": summaries[0]["accuracy"].tolist(),
         },
-        "timings": timing,
+        "eval_wall_s": eval_wall_s,
     }
 
 
@@ -252,10 +272,12 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     if "starting_kicks" in experts_record:  # the experts' starting kicks, scored as the experts are
         rows["starting_kicks"], per_task["starting_kicks"] = experts_row(experts_record["starting_kicks"], record_path)
     rows_per_seed, timings, grids = {}, {}, {}
-    for name in net_names(cfg.meta.nets):
-        out = train_and_evaluate(cfg, stage_dir, name, data, env, grids, say)
-        rows[name], rows_per_seed[name] = out["row"], out["rows_per_seed"]
-        per_task[name], timings[name] = out["per_task"], out["timings"]
+    models, states, train_s = train(cfg, stage_dir, data, env, say)
+    for name, model in models.items():
+        out = evaluate_net(cfg, name, model, states[name], env, grids, say)
+        rows[name], rows_per_seed[name], per_task[name] = out["row"], out["rows_per_seed"], out["per_task"]
+        # stacked nets (the record's config.trainer) share one loop: each shows its whole time
+        timings[name] = {"train_wall_s": train_s[name], "eval_wall_s": out["eval_wall_s"]}
     payload = {
         "rows": rows,
         "rows_per_seed": rows_per_seed,
