@@ -31,7 +31,7 @@ import optax
 from bumps_jax import bc
 
 
-def _shape_of(models: dict) -> tuple[int, int, int, tuple]:
+def _shape_of(models: dict) -> tuple[int, int, int, tuple | None]:
     """(largest depth, largest width, n_actions, obs_norm) of the nets, which must share the last two."""
     actions = {m.n_actions for m in models.values()}
     norms = {m.obs_norm for m in models.values()}
