@@ -294,14 +294,15 @@ def restore_latest(manager, restore_args, say=print):
 def restore_latest_common(managers: dict, restore_args: dict, say=print) -> tuple[int | None, dict | None]:
     """(step, {name: restored}) from the newest step that every manager holds and that reads in all
     of them, or (None, None). Several nets trained in one loop save one checkpoint each after a
-    chunk, so a kill between the saves leaves one net a chunk ahead: that newer step is deleted,
-    and the loop redoes it for all. A corrupt checkpoint is set aside as in `restore_latest`."""
-    while True:
+    chunk, so a kill between the saves leaves a net a chunk ahead (or the only one with a first
+    checkpoint): its later steps are deleted, and the loop redoes them for all. A corrupt
+    checkpoint is set aside as in `restore_latest`."""
+    step, restored = None, None
+    while restored is None:
         common = set.intersection(*(set(m.all_steps()) for m in managers.values()))
         if not common:
-            return None, None
-        step = max(common)
-        restored = {}
+            break
+        step, restored = max(common), {}
         for name, manager in managers.items():
             try:
                 restored[name] = manager.restore(step, args=restore_args[name])
@@ -311,12 +312,12 @@ def restore_latest_common(managers: dict, restore_args: dict, say=print) -> tupl
                 say(f"checkpoint {path} is unreadable ({reason}); trying an older one")
                 shutil.move(str(path), str(path.with_name(f"{step}.corrupt")))
                 manager.reload()
+                step, restored = None, None
                 break
-        else:
-            for manager in managers.values():  # a net saved ahead of the others: redone with them
-                for later in [s for s in manager.all_steps() if s > step]:
-                    manager.delete(later)
-            return step, restored
+    for manager in managers.values():  # steps past the one restored: the loop saves them again
+        for later in [s for s in manager.all_steps() if step is None or s > step]:
+            manager.delete(later)
+    return step, restored
 
 
 # -- long loops -------------------------------------------------------------------------------

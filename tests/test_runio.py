@@ -115,3 +115,27 @@ def test_a_kept_result_comes_back_only_under_its_own_fingerprint(tmp_path):
     path.write_text('{"seconds": 3.0, "fingerprint": ')  # a file cut short: made again, not a crash
     assert runio.read_kept(path, key) is None
     assert runio.read_kept(None, key) is None  # nothing is kept where no folder is given
+
+
+def test_nets_resume_from_the_newest_step_all_hold_and_drop_the_steps_past_it(tmp_path):
+    """Several nets' checkpoints (`restore_latest_common`): a net a chunk ahead, or the only one with
+    a checkpoint at all, loses the steps past the common one, which the loop then saves again."""
+    import numpy as np  # noqa: PLC0415
+    import orbax.checkpoint as ocp  # noqa: PLC0415
+
+    def save(manager, step):
+        manager.save(step, args=ocp.args.StandardSave({"w": np.full(3, float(step))}))
+        manager.wait_until_finished()
+
+    args = {name: ocp.args.StandardRestore({"w": np.zeros(3)}) for name in ("a", "b")}
+    with runio.checkpoint_manager(tmp_path / "a", 3) as a, runio.checkpoint_manager(tmp_path / "b", 3) as b:
+        save(a, 1)  # killed before b saved its first chunk
+        assert runio.restore_latest_common({"a": a, "b": b}, args) == (None, None)
+        assert a.all_steps() == []
+        for step in (1, 2):
+            save(a, step)
+            save(b, step)
+        save(a, 3)  # killed between the two saves of chunk 3
+        step, restored = runio.restore_latest_common({"a": a, "b": b}, args)
+        assert step == 2 and list(restored["a"]["w"]) == list(restored["b"]["w"]) == [2.0] * 3
+        assert list(a.all_steps()) == [1, 2] and list(b.all_steps()) == [1, 2]
