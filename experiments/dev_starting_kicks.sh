@@ -16,7 +16,7 @@
 #   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
 #        | midpoint_weight=<w> | repetitions=<n> (noisy kicks per CMA-ES candidate) | restarts=<n> (runs of the
 #          whole tuning, the best kept) | keep=task (each task its cheapest run's kick)
-#        | polish_generations=<n> (one more tuning from keep=task's mixed kicks) | env.<key>=<value>
+#        | polish_generations=<n> (one more tuning from keep=task's mixed kicks) | env.<key>=<value> | meta.<key>=<value>
 #        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
 #        | paper_budget (the preset's PPO and BC budgets, then filtering)
 #        | start=<anchor>[,spread] (every task starts from that prior anchor; spread: each at the strength
@@ -61,7 +61,7 @@ for arm in "$@"; do
       spread) sets+=(experts.bc.common_start_strength=true) ;;
       seed=*) seed=${part#seed=} ;;
       paper_budget) budget=(); stages=${STAGES:-train-experts meta-train filter} ;;
-      env.*) sets+=("$part") ;;  # an env setting as it is, e.g. env.warp_contacts=<n> for larger batches
+      env.*|meta.*) sets+=("$part") ;;  # an env or meta setting as it is, e.g. env.warp_contacts=<n>, meta.trainer=stacked
       *) echo "unknown arm part: $part" >&2; exit 2 ;;
     esac
   done
