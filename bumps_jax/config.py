@@ -268,7 +268,11 @@ ADDED_KNOBS = {
 
 # Each preset: dotted overrides of the defaults (the paper's values).
 PRESETS: dict[str, dict] = {
-    "paper": {},
+    "paper": {
+        # Both meta-policies in one stacked loop with the hand-written backward: the same
+        # optimisation, 361 s against 404-411 s on one H100 (docs/decisions.md, meta.trainer).
+        "meta.trainer": "stacked_batched",
+    },
     "tiny": {
         "preset": "tiny",
         # Warp's contact pool sized to the tiny batches (on a CPU unused slots cost every step).
