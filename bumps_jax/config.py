@@ -106,6 +106,9 @@ def _experts() -> ml_collections.ConfigDict:
     # own key), each task again keeping the better of the two; 0: none. It re-joins the chain
     # where neighbouring tasks came from different runs.
     cfg.tune.polish_generations = 0
+    # keep "task" only: the polish's initial CMA-ES step (PARAM_SCALE units); 2.0 is the tuning's
+    # own sigma_init, the step the polish took before this knob existed.
+    cfg.tune.polish_sigma = 2.0
     # Start each task from the best of its blended kick and the prior's three anchors.
     cfg.tune.anchor_starts = True
     # "per_task": one CMA-ES per task on its own kick. "family": one CMA-ES over a contextual
@@ -260,6 +263,7 @@ ADDED_KNOBS = {
     "meta.trainer": "separate",
     "experts.tune.keep": "run",
     "experts.tune.polish_generations": 0,
+    "experts.tune.polish_sigma": 2.0,
     "experts.bc.common_start": "main",
     "experts.bc.common_start_strength": False,
     "experts.ppo.unroll_gae": False,

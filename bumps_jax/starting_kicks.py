@@ -136,10 +136,10 @@ def starting_kicks(cfg, record: dict, say=print, keep_dir=None) -> tuple[np.ndar
 
 def polish(env, targets, kicks, cfg, keep_dir=None, say=print) -> tuple[np.ndarray, dict, int]:
     """`tune.polish_generations` of one more per-task tuning from `kicks` (T, 14), runs mixed by
-    `tune.keep` = "task": the same leash weights (a start leash pulls toward the mixed kicks), so
-    the chain re-joins where neighbours came from different runs; one run from its own key, each
-    task keeping the better of its kick and the polished one on fresh episodes. Returns (kicks,
-    record, episodes)."""
+    `tune.keep` = "task", at the initial step `tune.polish_sigma`: the same leash weights (a start
+    leash pulls toward the mixed kicks), so the chain re-joins where neighbours came from different
+    runs; one run from its own key, each task keeping the better of its kick and the polished one
+    on fresh episodes. Returns (kicks, record, episodes)."""
     import ml_collections  # noqa: PLC0415
 
     from bumps_jax import cmaes  # noqa: PLC0415
@@ -148,11 +148,12 @@ def polish(env, targets, kicks, cfg, keep_dir=None, say=print) -> tuple[np.ndarr
     # its own CMA-ES key: the seed moved far past any run's (runs fold their index into tune.seed)
     seed = int(tune.seed) + 1_000_003
     one = ml_collections.ConfigDict({**tune.to_dict(), "restarts": 1, "keep": "run", "seed": seed})
-    out = cmaes.tune_for_tasks(env, targets, kicks, one, int(tune.polish_generations), float(tune.sigma_init),
+    out = cmaes.tune_for_tasks(env, targets, kicks, one, int(tune.polish_generations), float(tune.polish_sigma),
                                fitness=cfg.prior.fitness, say=say,
                                keep_dir=None if keep_dir is None else Path(keep_dir) / "polish")  # fmt: skip
     record = {
         "generations": int(tune.polish_generations),
+        "sigma": float(tune.polish_sigma),
         "start_cost": out["start_cost"],
         "tuned_cost": out["tuned_cost"],
         "improved": np.asarray(out["improved"]).tolist(),

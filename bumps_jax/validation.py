@@ -185,7 +185,7 @@ def experts(e, task_range, n_steps: int) -> None:
         raise ValueError(f"experts.tune.generations must be an integer >= 0, got {e.tune.generations!r}")
     if e.tune.population_size < 2:
         raise ValueError(f"experts.tune.population_size must be >= 2 for CMA-ES, got {e.tune.population_size}")
-    positive_floats(e.tune, "experts.tune.", ("sigma_init",))
+    positive_floats(e.tune, "experts.tune.", ("sigma_init", "polish_sigma"))
     if e.tune.scheme not in TUNE_SCHEMES:
         raise ValueError(f"experts.tune.scheme must be one of {TUNE_SCHEMES}, got {e.tune.scheme!r}")
     for name in ("start_leash", "neighbour_leash", "midpoint_weight"):

@@ -16,7 +16,7 @@
 #   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
 #        | midpoint_weight=<w> | repetitions=<n> (noisy kicks per CMA-ES candidate) | restarts=<n> (runs of the
 #          whole tuning, the best kept) | keep=task (each task its cheapest run's kick)
-#        | polish_generations=<n> (one more tuning from keep=task's mixed kicks) | env.<key>=<value> | meta.<key>=<value>
+#        | polish_generations=<n> (one more tuning from keep=task's mixed kicks) | polish_sigma=<s> (its initial step) | env.<key>=<value> | meta.<key>=<value>
 #        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
 #        | paper_budget (the preset's PPO and BC budgets, then filtering)
 #        | start=<anchor>[,spread] (every task starts from that prior anchor; spread: each at the strength
@@ -55,7 +55,7 @@ for arm in "$@"; do
       per_task) sets+=(experts.tune.scheme=per_task) ;;
       family) sets+=(experts.tune.scheme=family) ;;
       family12) sets+=(experts.tune.scheme=family experts.tune.knots=12) ;;
-      start_leash=*|neighbour_leash=*|midpoint_weight=*|generations=*|repetitions=*|restarts=*|keep=*|polish_generations=*) sets+=("experts.tune.$part") ;;
+      start_leash=*|neighbour_leash=*|midpoint_weight=*|generations=*|repetitions=*|restarts=*|keep=*|polish_generations=*|polish_sigma=*) sets+=("experts.tune.$part") ;;
       main_start) sets+=(experts.bc.per_task_strength=false) ;;
       start=*) sets+=(experts.bc.per_task_strength=false "experts.bc.common_start=${part#start=}") ;;
       spread) sets+=(experts.bc.common_start_strength=true) ;;

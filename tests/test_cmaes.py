@@ -287,6 +287,8 @@ def test_keep_task_mixes_runs_each_task_its_cheapest_kick(env, monkeypatch):
         config.make_config("tiny", {"experts.tune.polish_generations": 5})
     with pytest.raises(ValueError, match="polish_generations must be an integer >= 0, got -1"):
         config.make_config("tiny", {"experts.tune.keep": "task", "experts.tune.polish_generations": -1})
+    with pytest.raises(ValueError, match="experts.tune.polish_sigma must be > 0, got 0.0"):
+        config.make_config("tiny", {"experts.tune.keep": "task", "experts.tune.polish_sigma": 0.0})
 
 
 def test_the_polish_tunes_the_mixed_kicks_once_more_from_a_key_of_its_own(env, monkeypatch):
@@ -305,12 +307,16 @@ def test_the_polish_tunes_the_mixed_kicks_once_more_from_a_key_of_its_own(env, m
 
     _stand_in_tuning(monkeypatch)
     monkeypatch.setattr(cmaes, "run_search", run_search)
+    steps = []  # the initial CMA-ES step each search is made with
+    monkeypatch.setattr(cmaes, "kick_search", lambda env, mesh, pop, reps, sigma, *a, **k: steps.append(sigma))
     cfg = config.make_config("tiny", {"experts.tune.keep": "task", "experts.tune.polish_generations": 3,
+                                      "experts.tune.polish_sigma": 0.25,
                                       "experts.tune.restarts": 2, "experts.tune.seed": 5})  # fmt: skip
     mixed = np.tile(kick_model.DEFAULT_PARAMS, (2, 1)).astype(np.float32)
     mixed[:, LEAN] = [13.0, 14.0]  # fresh costs 1.0 and 0.0
     kicks, record, episodes = starting_kicks.polish(env, [8.0, 12.0], mixed, cfg, say=lambda *a, **k: None)
     assert [g for g, _ in seen] == [3] and record["generations"] == 3
+    assert steps == [0.25] and record["sigma"] == 0.25  # the polish's own step, not tune.sigma_init
     assert all((seen[0][1] != np.asarray(jax.random.key_data(_run_key(k)))).any() for k in range(2))
     np.testing.assert_allclose(kicks[:, LEAN], [14.0, 14.0])  # task 0 polished, task 1 kept its own
     assert record["improved"] == [True, False]
