@@ -26,7 +26,9 @@ KICK_SECTIONS = {
         # re-pinned when the paper's starting kicks became one chain from the long kick, each task's
         # copy at its own strength (2026-11-24)
         "experts": "52666479a8142d4d0b3bb3aaa618b4db495b15f6c5a023e9616bb106f79d82e5",
-        "meta": "b3cbdc5da8d75d3f3d733a551ce389880e93f61c2b330750bd0b66d84070b146",
+        # re-pinned when the paper preset's meta-policies began to train stacked, with the batched
+        # backward (`meta.trainer`, 2026-11-25): a paper run's meta stage made before retrains
+        "meta": "6d73862bf1f83bab736391a5cb2d80f8e09515b0bd4e82de452924dfb00b4ed2",
         "filter": "ab9e5ff5612b5c379ee36c36ee5c678ece58954c529f0017aab817c2269f29c9",
         "heldout": "3d00234a9a024e9b03d79264da1858dd0404759e5043654ec3c158bebcff9205",
         "baseline": "853e9de1255af4d4709ad6b988a5da7470cc7750e72ce0ea0479a003b50474e1",
