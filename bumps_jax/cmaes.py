@@ -309,6 +309,9 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     the same fresh episodes. Kicks are never mixed between runs, so a chain stays one chain. With
     tune_cfg.keep = "task" (default "run") each task keeps instead the cheapest on those episodes
     of its start and its kick in every run: runs are mixed, a task never worse than in any run.
+    With "chain" the tasks' choices among the same kicks are made together (`chain_choice`): the
+    fresh costs plus the neighbour leash between the chosen kicks, the tuning's own objective, so a
+    task takes a slightly dearer kick where the cheapest one would break the chain.
 
     keep_dir: where each finished run is kept (`tuning_run_<k>.json`, with a fingerprint of
     everything it depends on): a rerun with the same inputs reads the runs it finds there instead
@@ -317,8 +320,8 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
     "history": (generations, T) best cost per generation, "restart": the run kept,
     "restart_costs": (K,) each run's mean cost over tasks, "runs_kept": (T,) int, each task's kick
-    from run k (1..K) or its start (0), "run_seconds": (K,), "episodes": int}; with keep "task" "restart" is None and
-    "history" the first run's.
+    from run k (1..K) or its start (0), "run_seconds": (K,), "episodes": int}; with keep "task" or
+    "chain" "restart" is None and "history" the first run's.
     """
     targets = np.asarray(targets, np.float32)
     starts = np.asarray(kick_model.clip_params(jnp.asarray(starts, jnp.float32)))
@@ -339,8 +342,8 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     kick_scoring.check_count("restarts", tune_cfg.restarts)
     K = int(tune_cfg.restarts)
     keep = tune_cfg.get("keep", "run")
-    if keep not in ("run", "task"):
-        raise ValueError(f"tune keep must be 'run' or 'task', got {keep!r}")
+    if keep not in ("run", "task", "chain"):
+        raise ValueError(f"tune keep must be 'run', 'task' or 'chain', got {keep!r}")
     _check_pool(env, per_device * (K + 1) * E, "the tuning's fresh scoring (tasks x (restarts + 1) x eval_repetitions)")
     search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json, midpoint_weight)
     leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
@@ -382,7 +385,12 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     score = kick_scoring.cost_program(env, mesh, fitness_json)
     costs = np.asarray(sharding.unpad(score(padded[0], keys, padded[1]), T))
     best, improved, run_costs = keep_best_run(costs)
-    kept = np.where(improved, best + 1, 0) if keep == "run" else np.argmin(costs, 1)  # (T,) 0: the start
+    if keep == "run":
+        kept = np.where(improved, best + 1, 0)  # (T,) 0: the start
+    elif keep == "task":
+        kept = np.argmin(costs, 1)
+    else:  # "chain": the choices that cost least with the neighbour leash between them
+        kept = chain_choice(costs, np.asarray(kicks), targets, float(tune_cfg.neighbour_leash))
     tasks = np.arange(T)
     return {
         "params": np.asarray(kicks)[tasks, kept],
@@ -456,6 +464,47 @@ def keep_best_run(costs) -> tuple[int, np.ndarray, np.ndarray]:
     run_costs = np.minimum(costs[:, :1], costs[:, 1:]).mean(0)
     run = int(np.argmin(run_costs))
     return run, costs[:, run + 1] < costs[:, 0], run_costs
+
+
+def chain_choice(costs, kicks, targets, leash: float) -> np.ndarray:
+    """Each task's kick among its candidates, chosen together: (T,) indices into the candidates
+    that minimise the sum over tasks of the fresh cost (costs (T, C)) plus `leash` times the
+    neighbour leash of the tuning (`tuning_leash`: the mean over parameters of the squared distance,
+    in PARAM_SCALE units, of a task's kick from the midpoint of its neighbours' in the order of
+    `targets` (T,); the first and last task's one neighbour counts twice). kicks: (T, C, 14).
+    Exact, by dynamic programming over pairs of neighbouring choices (T * C**3 terms); leash 0 is
+    each task's cheapest."""
+    costs, kicks = np.asarray(costs, np.float64), np.asarray(kicks, np.float64)
+    T, C = costs.shape
+    if kicks.shape != (T, C, kick_model.N_PARAMS) or np.shape(targets) != (T,):
+        raise ValueError(f"need costs (T, C), kicks (T, C, {kick_model.N_PARAMS}) and targets (T,), "
+                         f"got {costs.shape}, {kicks.shape} and {np.shape(targets)}")  # fmt: skip
+    if leash == 0.0 or T == 1:
+        return np.argmin(costs, 1)
+    order = np.argsort(np.asarray(targets), kind="stable")
+    z = kicks[order] / np.asarray(kick_model.PARAM_SCALE, np.float64)  # (T, C, 14) in scale units
+    cost = costs[order]
+
+    def away(kick, lower, upper):  # broadcasting (..., 14) -> (...): the leash of `kick`
+        return np.mean((kick - 0.5 * (lower + upper)) ** 2, -1)
+
+    # value[a, b]: least total of tasks 0..t with task t-1 at choice a and task t at b, the leash of
+    # every task before t counted (task t's waits for task t+1).
+    value = cost[0][:, None] + cost[1][None, :] + leash * away(z[0][:, None], z[1][None, :], z[1][None, :])
+    back = []
+    for t in range(2, T):
+        # total[a, b, c]: tasks t-2, t-1, t at a, b, c; task t-1's leash is now known
+        total = value[:, :, None] + leash * away(z[t - 1][None, :, None], z[t - 2][:, None, None], z[t][None, None, :])
+        back.append(np.argmin(total, 0))  # (b, c) -> best a
+        value = np.min(total, 0) + cost[t][None, :]
+    value = value + leash * away(z[T - 1][None, :], z[T - 2][:, None], z[T - 2][:, None])  # the last task's leash
+    a, b = np.unravel_index(np.argmin(value), value.shape)
+    chosen = [b, a]
+    for best_a in reversed(back):
+        chosen.append(best_a[chosen[-1], chosen[-2]])
+    kept = np.empty(T, int)
+    kept[order] = chosen[::-1]
+    return kept
 
 
 def neighbours(targets) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -100,13 +100,14 @@ def _experts() -> ml_collections.ConfigDict:
     # kicks cost least over all tasks on fresh episodes is kept whole. Each run costs a tuning.
     cfg.tune.restarts = 1
     # With restarts > 1, what is kept: "run", the run above whole (one chain); "task", each task
-    # the cheapest on those fresh episodes of its start and its kick in every run (runs mixed).
+    # the cheapest on those fresh episodes of its start and its kick in every run (runs mixed);
+    # "chain", the same kicks chosen together: fresh costs plus the neighbour leash between them.
     cfg.tune.keep = "run"
-    # keep "task" only: generations of one more tuning from the mixed kicks (the same leashes, its
+    # keep "task" or "chain" only: generations of one more tuning from the mixed kicks (the same leashes, its
     # own key), each task again keeping the better of the two; 0: none. It re-joins the chain
     # where neighbouring tasks came from different runs.
     cfg.tune.polish_generations = 0
-    # keep "task" only: the polish's initial CMA-ES step (PARAM_SCALE units); 2.0 is the tuning's
+    # keep "task" or "chain" only: the polish's initial CMA-ES step (PARAM_SCALE units); 2.0 is the tuning's
     # own sigma_init, the step the polish took before this knob existed.
     cfg.tune.polish_sigma = 2.0
     # Start each task from the best of its blended kick and the prior's three anchors.

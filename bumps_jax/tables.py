@@ -102,7 +102,8 @@ def tuning_runs_line(runs: dict) -> str:
         return f"Tuning runs' mean fresh cost: {costs}; kept run {runs['kept'] + 1} of {n}."
     counts = [runs["runs_kept"].count(k) for k in range(n + 1)]
     kept = ", ".join(f"run {k} for {c}" for k, c in enumerate(counts) if k and c)
-    line = f"Tuning runs' mean fresh cost: {costs}; each task kept its cheapest kick: {kept}, its start for {counts[0]}"
+    how = "kicks chosen together with the neighbour leash" if runs.get("keep") == "chain" else "cheapest kick"
+    line = f"Tuning runs' mean fresh cost: {costs}; each task kept its {how}: {kept}, its start for {counts[0]}"
     if "polish_improved" in runs:
         line += f"; the polish improved {runs['polish_improved']} of {len(runs['runs_kept'])}"
     return line + "."

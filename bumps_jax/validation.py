@@ -16,7 +16,7 @@ from bumps_jax import kick_env, kick_model, ppo_config
 HELDOUT_MIN_TARGETS = 50
 
 TUNE_SCHEMES = ("per_task", "family")  # experts.tune.scheme
-TUNE_KEEPS = ("run", "task")  # experts.tune.keep
+TUNE_KEEPS = ("run", "task", "chain")  # experts.tune.keep
 SELECTIONS = ("fixed", "halving")  # filter.selection
 META_TRAINERS = ("separate", "stacked", "stacked_batched")  # meta.trainer
 
@@ -179,8 +179,10 @@ def experts(e, task_range, n_steps: int) -> None:
     polish = e.tune.polish_generations
     if isinstance(polish, bool) or not isinstance(polish, int) or polish < 0:
         raise ValueError(f"experts.tune.polish_generations must be an integer >= 0, got {polish!r}")
-    if polish > 0 and e.tune.keep != "task":
-        raise ValueError("experts.tune.polish_generations applies with experts.tune.keep='task'; set it to 0")
+    if polish > 0 and e.tune.keep == "run":
+        raise ValueError(
+            "experts.tune.polish_generations applies with experts.tune.keep 'task' or 'chain'; set it to 0"
+        )
     if isinstance(e.tune.generations, bool) or e.tune.generations < 0:
         raise ValueError(f"experts.tune.generations must be an integer >= 0, got {e.tune.generations!r}")
     if e.tune.population_size < 2:

@@ -278,17 +278,71 @@ def test_keep_task_mixes_runs_each_task_its_cheapest_kick(env, monkeypatch):
     # tie at 2/3, and a tie keeps the first run
     assert whole["restart"] == 0 and whole["runs_kept"].tolist() == [1, 0, 0]
     np.testing.assert_allclose(whole["params"][:, LEAN], [14.0, 13.0, 13.0])
-    with pytest.raises(ValueError, match="keep must be 'run' or 'task', got 'all'"):
+    with pytest.raises(ValueError, match="keep must be 'run', 'task' or 'chain', got 'all'"):
         cmaes.tune_for_tasks(env, targets, starts, ml_collections.ConfigDict({**TUNE.to_dict(), "keep": "all"}),
                              2, 0.5, **quiet)  # fmt: skip
-    with pytest.raises(ValueError, match=r"experts.tune.keep must be one of \('run', 'task'\), got 'all'"):
+    with pytest.raises(ValueError, match=r"experts.tune.keep must be one of \('run', 'task', 'chain'\), got 'all'"):
         config.make_config("tiny", {"experts.tune.keep": "all"})
-    with pytest.raises(ValueError, match="polish_generations applies with experts.tune.keep='task'"):
+    with pytest.raises(ValueError, match="polish_generations applies with experts.tune.keep 'task' or 'chain'"):
         config.make_config("tiny", {"experts.tune.polish_generations": 5})
     with pytest.raises(ValueError, match="polish_generations must be an integer >= 0, got -1"):
         config.make_config("tiny", {"experts.tune.keep": "task", "experts.tune.polish_generations": -1})
     with pytest.raises(ValueError, match="experts.tune.polish_sigma must be > 0, got 0.0"):
         config.make_config("tiny", {"experts.tune.keep": "task", "experts.tune.polish_sigma": 0.0})
+
+
+def _brute_force_chain(costs, kicks, targets, leash):
+    """The chain objective of every assignment (C ** T of them), its least one."""
+    import itertools  # noqa: PLC0415
+
+    order = np.argsort(targets)
+    z = kicks / kick_model.PARAM_SCALE
+    best, best_total = None, np.inf
+    for choice in itertools.product(range(costs.shape[1]), repeat=len(targets)):
+        x = z[np.arange(len(targets)), choice]
+        total = costs[np.arange(len(targets)), choice].sum()
+        for rank, t in enumerate(order):
+            lower = order[max(rank - 1, 0)] if rank > 0 else order[1]
+            upper = order[rank + 1] if rank + 1 < len(order) else order[rank - 1]
+            total += leash * np.mean((x[t] - 0.5 * (x[lower] + x[upper])) ** 2)
+        if total < best_total - 1e-12:
+            best, best_total = np.array(choice), total
+    return best
+
+
+def test_the_chain_choice_is_the_least_cost_of_every_assignment():
+    """`chain_choice` against brute force: fresh costs plus the neighbour leash of the chosen kicks
+    (the tuning's own), tasks given out of target order; leash 0 is each task's cheapest."""
+    rng = np.random.default_rng(3)
+    for T, C, leash in ((2, 3, 1.0), (4, 3, 0.5), (5, 4, 2.0), (6, 2, 1.0)):
+        targets = rng.permutation(np.arange(T) * 0.5 + 7.0)
+        costs = rng.uniform(0.3, 0.8, (T, C))
+        kicks = kick_model.DEFAULT_PARAMS + rng.normal(size=(T, C, kick_model.N_PARAMS)) * kick_model.PARAM_SCALE
+        kept = cmaes.chain_choice(costs, kicks, targets, leash)
+        np.testing.assert_array_equal(kept, _brute_force_chain(costs, kicks, targets, leash))
+        np.testing.assert_array_equal(cmaes.chain_choice(costs, kicks, targets, 0.0), np.argmin(costs, 1))
+    with pytest.raises(ValueError, match=r"need costs \(T, C\), kicks \(T, C, 14\) and targets \(T,\)"):
+        cmaes.chain_choice(np.ones((3, 2)), np.ones((3, 2, 13)), [7.0, 7.5, 8.0], 1.0)
+
+
+def test_keep_chain_takes_a_dearer_kick_where_the_cheapest_breaks_the_chain(env, monkeypatch):
+    """keep "chain" in the tuning (fresh cost |lean - 14|, start lean 13): the middle task's
+    cheapest kick (run 2's, lean 14, cost 0) sits 0.8 from its neighbours' (lean 13.2 in every run),
+    which at neighbour leash 10 costs 10 x 3 x 0.8**2 / 14 = 1.37 over the three tasks' leashes;
+    the chain takes its run-1 kick (lean 13.25, cost 0.75) instead, keep "task" the cheapest."""
+    moves = {0: [+0.2, +0.25, +0.2], 1: [+0.2, +1.0, +0.2], 2: [+0.2, +0.25, +0.2]}  # from lean 13
+    _stand_in_tuning(monkeypatch, moves=moves)
+    starts = np.tile(kick_model.DEFAULT_PARAMS, (3, 1)).astype(np.float32)
+    targets, quiet = [8.0, 10.0, 12.0], dict(fitness=FITNESS, say=lambda *a, **k: None)
+
+    def tune(keep):
+        cfg = ml_collections.ConfigDict({**RESTARTS_3.to_dict(), "neighbour_leash": 10.0, "keep": keep})
+        return cmaes.tune_for_tasks(env, targets, starts, cfg, 2, 0.5, **quiet)
+
+    by_task, chain = tune("task"), tune("chain")
+    assert by_task["runs_kept"][1] == 2 and chain["runs_kept"][1] == 1 and chain["restart"] is None
+    np.testing.assert_allclose(chain["params"][:, LEAN], [13.2, 13.25, 13.2], rtol=1e-6)
+    np.testing.assert_allclose(by_task["params"][1, LEAN], 14.0)
 
 
 def test_the_polish_tunes_the_mixed_kicks_once_more_from_a_key_of_its_own(env, monkeypatch):

@@ -62,6 +62,11 @@ def test_report_counts_the_experts_env_steps_and_shows_their_starting_kicks(tmp_
         "Tuning runs' mean fresh cost: 0.610, 0.400, 0.550; each task kept its cheapest kick: run 1 for 1, "
         "run 3 for 2, its start for 1; the polish improved 2 of 4."
     )
+    chained = {**runs, "kept": None, "runs_kept": [1, 1, 0, 3], "keep": "chain"}  # `tune.keep` = "chain"
+    assert tables.tuning_runs_line(chained) == (
+        "Tuning runs' mean fresh cost: 0.610, 0.400, 0.550; each task kept its kicks chosen together with the "
+        "neighbour leash: run 1 for 2, run 3 for 1, its start for 1."
+    )
     runio.write_json(tmp_path / "experts" / "experts.json", {**experts, "starting_kicks_tuning_runs": runs})
     assert "Tuning runs' mean fresh cost: 0.610, 0.400, 0.550; kept run 2 of 3." in report.build(tmp_path)
     # A prior record that does not say how it was made leaves its share unknown, not zero.

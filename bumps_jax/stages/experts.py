@@ -321,8 +321,9 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
         record["starting_kicks_tuning_runs"] = {"kept": kicks["restart"], "fresh_costs": kicks["restart_costs"]}
         if "run_seconds" in kicks:  # each run's time, also of runs a resumed tuning read back
             record["starting_kicks_tuning_runs"]["run_seconds"] = kicks["run_seconds"]
-        if kicks.get("keep") == "task":  # each task's run (0: its start), and the polish's tasks improved
+        if kicks.get("keep") in ("task", "chain"):  # each task's run (0: its start), the polish's tasks improved
             record["starting_kicks_tuning_runs"]["runs_kept"] = kicks["runs_kept"]
+            record["starting_kicks_tuning_runs"]["keep"] = kicks["keep"]
             if "polish" in kicks:
                 record["starting_kicks_tuning_runs"]["polish_improved"] = int(sum(kicks["polish"]["improved"]))
     record["env_steps_breakdown"] = env_steps_breakdown(cfg, stage_dir.parent, kicks, programs.env.n_steps,
