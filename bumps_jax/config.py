@@ -103,12 +103,12 @@ def _experts() -> ml_collections.ConfigDict:
     # the cheapest on those fresh episodes of its start and its kick in every run (runs mixed);
     # "chain", the same kicks chosen together: fresh costs plus the neighbour leash between them.
     cfg.tune.keep = "run"
-    # keep "task" or "chain" only: generations of one more tuning from the mixed kicks (the same leashes, its
-    # own key), each task again keeping the better of the two; 0: none. It re-joins the chain
-    # where neighbouring tasks came from different runs.
+    # keep "task" or "chain" only: generations of one more tuning from the mixed kicks (the same
+    # leashes, its own key), each task again keeping the better of the two; 0: none. It re-joins
+    # the chain where neighbouring tasks came from different runs.
     cfg.tune.polish_generations = 0
-    # keep "task" or "chain" only: the polish's initial CMA-ES step (PARAM_SCALE units); 2.0 is the tuning's
-    # own sigma_init, the step the polish took before this knob existed.
+    # keep "task" or "chain" only: the polish's initial CMA-ES step (PARAM_SCALE units); 2.0 is
+    # the tuning's own sigma_init, the step the polish took before this knob existed.
     cfg.tune.polish_sigma = 2.0
     # Start each task from the best of its blended kick and the prior's three anchors.
     cfg.tune.anchor_starts = True

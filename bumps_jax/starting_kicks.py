@@ -136,10 +136,10 @@ def starting_kicks(cfg, record: dict, say=print, keep_dir=None) -> tuple[np.ndar
 
 def polish(env, targets, kicks, cfg, keep_dir=None, say=print) -> tuple[np.ndarray, dict, int]:
     """`tune.polish_generations` of one more per-task tuning from `kicks` (T, 14), runs mixed by
-    `tune.keep` = "task" or "chain", at the initial step `tune.polish_sigma`: the same leash weights (a start
-    leash pulls toward the mixed kicks), so the chain re-joins where neighbours came from different
-    runs; one run from its own key, each task keeping the better of its kick and the polished one
-    on fresh episodes. Returns (kicks, record, episodes)."""
+    `tune.keep` = "task" or "chain", at the initial step `tune.polish_sigma`: the same leash
+    weights (a start leash pulls toward the mixed kicks), so the chain re-joins where neighbours
+    came from different runs; one run from its own key, each task keeping the better of its kick
+    and the polished one on fresh episodes. Returns (kicks, record, episodes)."""
     import ml_collections  # noqa: PLC0415
 
     from bumps_jax import cmaes  # noqa: PLC0415
