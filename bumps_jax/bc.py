@@ -244,23 +244,8 @@ def _progress_row(state: TrainState, losses: np.ndarray, epoch_steps: int, sched
 
 def train(model: MetaPolicy, data: Dataset, train_cfg, out_dir, say=print, max_chunks=None, trainer=None) -> TrainState:
     """Train (or resume) one architecture on data (N pairs): `train_nets` of one net, in out_dir.
-    trainer: `make_trainer`'s (init, chunk) of this net, to reuse its compiled programs."""
-    if trainer is not None:
-        trainer = _as_nets_trainer(*trainer)
+    trainer: `make_joint_trainer({"net": model}, ...)`'s (init, chunk), to reuse its compiled programs."""
     return train_nets({"net": model}, data, train_cfg, {"net": out_dir}, say, max_chunks, trainer)["net"]
-
-
-def _as_nets_trainer(init, chunk):
-    """`make_trainer`'s (init, chunk) of one TrainState as a trainer of {"net": TrainState}."""
-
-    def init_nets(keys):
-        return {"net": init(keys)}
-
-    def chunk_nets(states, obs, actions, keys):
-        state, losses = chunk(states["net"], obs, actions, keys)
-        return {"net": state}, {"net": losses}
-
-    return init_nets, chunk_nets
 
 
 def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print, max_chunks=None,

@@ -25,8 +25,8 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
+from jax.flatten_util import ravel_pytree
 
 from bumps_jax import bc
 
@@ -83,15 +83,13 @@ def unstack_params(models: dict, stacked: dict) -> dict:
 
 
 def _ravel(tree) -> jax.Array:
-    """A pytree as one vector, leaves in `jax.tree.leaves` order: the vector `optax.flatten` keeps."""
-    return jnp.concatenate([jnp.reshape(leaf, -1) for leaf in jax.tree.leaves(tree)])
+    """A pytree as one vector: the vector `optax.flatten` keeps (it ravels with `ravel_pytree` too)."""
+    return ravel_pytree(tree)[0]
 
 
 def _unravel(template, flat) -> dict:
     """`_ravel`'s inverse, shaped like `template`."""
-    leaves, treedef = jax.tree.flatten(template)
-    parts = jnp.split(flat, np.cumsum([leaf.size for leaf in leaves])[:-1])
-    return jax.tree.unflatten(treedef, [part.reshape(leaf.shape) for part, leaf in zip(parts, leaves, strict=True)])
+    return ravel_pytree(template)[1](flat)
 
 
 def stack_opt_states(models: dict, params: dict, opt_states: dict):

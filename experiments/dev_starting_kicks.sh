@@ -76,9 +76,9 @@ for arm in "$@"; do
     copy_records "$run" "$name"
     if [[ $stage == train-experts && ${EARLY_VERDICT:-0} == 1 && " $stages " == *" filter "* ]]; then
       # exit 1: a target already missed (the experts'); 2: the nets' targets not yet measured
-      status=0; python -m experiments.family_targets --run-dir "$run" > /dev/null || status=$?
+      status=0; verdict=$(python -m experiments.family_targets --run-dir "$run") || status=$?
       if [ $status = 1 ]; then
-        python -m experiments.family_targets --run-dir "$run" || true
+        echo "$verdict"
         echo "$arm: the experts miss their target; meta and filtering not run (EARLY_VERDICT=1)"
         continue 2
       fi

@@ -21,9 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-DEV_RECORDS = ROOT / "experiments" / "results" / "dev_starting_kicks"
-NETS = ("meta_4x256", "meta_11x128")
+from experiments.family_targets import DEV_RECORDS, NETS, ROOT
 
 
 class Arm(NamedTuple):

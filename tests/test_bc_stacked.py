@@ -162,16 +162,17 @@ def test_nets_trained_in_one_loop_keep_a_net_alone_files_and_resume(tmp_path):
 
 
 def test_the_meta_stage_trains_stacked_when_told(env, tmp_path):
-    """`meta.trainer`: "stacked" trains the stage's nets in one loop to the losses of "separate";
-    an unknown value is one line naming it."""
+    """`meta.trainer`: "stacked" and "stacked_batched" (the paper preset's) train the stage's nets
+    in one loop to the losses of "separate"; an unknown value is one line naming it."""
     data = _dataset(n=225)
     losses = {}
-    for trainer in ("separate", "stacked"):
+    for trainer in ("separate", "stacked", "stacked_batched"):
         cfg = config.make_config("tiny", {"meta.trainer": trainer, "meta.train.epochs": 4, "meta.train.chunk": 2})
         _, states, seconds = meta_stage.train(cfg, tmp_path / trainer, data, env, say=lambda *a, **k: None)
         assert set(states) == set(seconds) == set(cfg.meta.nets) and all(int(s.step) == 8 for s in states.values())
         with open(tmp_path / trainer / "meta_11x128" / "progress.csv") as f:
             losses[trainer] = [float(r["loss_mean"]) for r in csv.DictReader(f)]
     np.testing.assert_allclose(losses["stacked"], losses["separate"], rtol=1e-3)
+    np.testing.assert_allclose(losses["stacked_batched"], losses["separate"], rtol=1e-3)
     with pytest.raises(ValueError, match=r"meta.trainer must be one of \('separate', 'stacked', 'stacked_batched'\)"):
         config.make_config("tiny", {"meta.trainer": "fused"})

@@ -137,7 +137,7 @@ def test_resume_equals_uninterrupted(tmp_path):
     data = _table_dataset((8.0, 12.0))
     cfg = _train_cfg(epochs=40, chunk=10, n_seeds=2)
     model = bc.MetaPolicy(depth=1, width=8)
-    trainer = bc.make_trainer(model, cfg, len(data.obs))  # 150 pairs: 2 steps per epoch
+    trainer = bc.make_joint_trainer({"net": model}, cfg, len(data.obs))  # 150 pairs: 2 steps per epoch
     whole = bc.train(model, data, cfg, tmp_path / "a", say=quiet, trainer=trainer)
     part = bc.train(model, data, cfg, tmp_path / "b", say=quiet, max_chunks=2, trainer=trainer)
     assert int(part.step) == 2 * 20
@@ -162,7 +162,7 @@ def test_resume_falls_back_past_a_corrupt_checkpoint(tmp_path):
     data = _table_dataset((8.0, 12.0))
     cfg = _train_cfg(epochs=30, chunk=10)
     model = bc.MetaPolicy(depth=1, width=8)
-    trainer = bc.make_trainer(model, cfg, len(data.obs))
+    trainer = bc.make_joint_trainer({"net": model}, cfg, len(data.obs))
     whole = bc.train(model, data, cfg, tmp_path / "a", say=quiet, trainer=trainer)
     bc.train(model, data, cfg, tmp_path / "b", say=quiet, max_chunks=2, trainer=trainer)
     newest = tmp_path / "b" / "checkpoints" / "40"  # 2 chunks x 10 epochs x 2 steps
