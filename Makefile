@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # tiny: CPU-sized, minutes; paper: the paper's budgets, for a GPU.
 PRESET ?= tiny
 
-.PHONY: install test lint demo reproduce report baseline render video publish bench-scene kick-prior train-experts bench meta-train filter clean
+.PHONY: install test lint demo reproduce report baseline render video publish bench-scene kick-prior train-experts bench bench-scaling meta-train filter clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -71,10 +71,16 @@ train-experts: $(STAMP)
 	$(PY) -m bumps_jax train-experts --preset $(PRESET)
 
 # Every speed side by side on this device: physics, env, experts vs Brax PPO, BC, filtering.
-# PRESET=paper (a GPU) writes benchmarks/results/training.json, and with more than one GPU
-# visible also scaling.json (one GPU vs all); the tiny preset is a CPU smoke test in runs/bench.
+# PRESET=paper (a GPU) writes benchmarks/results/training.json; the tiny preset is a CPU smoke
+# test in runs/bench.
 bench: $(STAMP)
 	$(PY) -m benchmarks.bench --preset $(PRESET) $(if $(filter paper,$(PRESET)),,--out-dir runs/bench)
+
+# The same work on one GPU and on DEVICES of them, one process per GPU (Warp's way):
+# benchmarks/results/scaling.json with PRESET=paper; the tiny preset runs on the CPU into runs/bench.
+DEVICES ?= 2
+bench-scaling: $(STAMP)
+	$(PY) -m benchmarks.scaling --preset $(PRESET) --devices $(DEVICES) $(if $(filter paper,$(PRESET)),,--out-dir runs/bench)
 
 # Behaviour cloning of the experts (runs/$(PRESET)/experts) into the two meta-policies.
 meta-train: $(STAMP)

@@ -10,11 +10,7 @@ On the config's own backend (`env.impl`) only:
 - Brax's `ppo.train` on one task (one expert's batch) and at the experts' total batch;
 - BC (meta-training) gradient steps/s of both meta-policies, each in its own program, both in
   one, and both stacked in one (every layer of both nets one batched matmul).
-With more than one device the physics can use (Warp runs on one GPU per process:
-`sharding.device_mesh`) it also measures the experts and filtering on a mesh of one device and
-on a mesh of all of them and writes the scaling record;
-`--scale-workload K` runs those two on K times the preset's work (K copies of every expert,
-each its own seed; K times the filtering repetitions), for a lab that outgrows one device.
+Several devices: `benchmarks/scaling.py` measures the same work on one GPU and on several.
 
 Every time is a program's second call (its first compiles); compile times are reported apart.
 Wall times of whole stages computed from a measured rate are listed under `projections`.
@@ -22,7 +18,6 @@ Results are written after each section, so a run cut short keeps what it measure
 
     python -m benchmarks.bench --preset paper                        # GPU: benchmarks/results/*.json
     python -m benchmarks.bench --preset tiny --out-dir runs/bench    # CPU smoke test
-    python -m benchmarks.bench --only scaling --scale-workload 8 --set env.impl=jax   # several GPUs
 """
 
 from __future__ import annotations
@@ -30,8 +25,9 @@ from __future__ import annotations
 import argparse
 import copy
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -62,6 +58,14 @@ SIZES = {
 # Ten of our updates' worth of env steps per Brax training epoch, so that each epoch's own
 # timing is long enough to mean something.
 UPDATES_PER_BRAX_EPOCH = 10
+
+
+class Work(NamedTuple):
+    """A measured piece of work: `run()` does it once (its first call compiles)."""
+
+    run: Callable[[], Any]
+    amount: int  # what one call does: env steps (experts) or rollouts (filtering)
+    detail: dict  # its sizes, for the record
 
 
 def timed(fn, *args):
@@ -110,17 +114,27 @@ def expert_config(cfg, updates: int, workload: int = 1):
     })  # fmt: skip
 
 
-def bench_experts(cfg, updates: int, mesh, workload: int = 1) -> dict:
-    """One chunk of PPO updates of every task at once; aggregate env-steps/s over real tasks."""
+def experts_work(cfg, updates: int, mesh, workload: int = 1, seed: int | None = None):
+    """The work of one chunk of the experts (amount: env steps): `run()` trains `updates` PPO
+    updates of every task at once (K = `workload` copies of each, seeds from `seed`, default the
+    config's); the same state goes in at every call, so each call does the same work."""
     cut = expert_config(cfg, updates, workload)
     programs = experts.compile_programs(cut, mesh=mesh)
     tasks = np.asarray(cut.experts.tasks, np.float32)
     n = len(tasks)
     record = kick_model.load_record(kick_model.ASSET)  # the starting kicks are a workload here, whatever the env
     kicks, _ = starting_kicks.starting_kicks(cut, record)
-    state, _ = experts.run_init(programs, experts.task_rngs(cut.experts.seed, n), tasks, kicks)
-    _, first, wall = timed(lambda s: experts.run_chunk(programs, s, tasks), state)
-    steps = n * updates * programs.trainer.steps_per_update
+    seed = cut.experts.seed if seed is None else seed
+    state, _ = experts.run_init(programs, experts.task_rngs(seed, n), tasks, kicks)
+    run = lambda: experts.run_chunk(programs, state, tasks)  # noqa: E731
+    return Work(run, n * updates * programs.trainer.steps_per_update, {"n_tasks": n})
+
+
+def bench_experts(cfg, updates: int, mesh, workload: int = 1) -> dict:
+    """One chunk of PPO updates of every task at once; aggregate env-steps/s over real tasks."""
+    run, steps, detail = experts_work(cfg, updates, mesh, workload)
+    _, first, wall = timed(run)
+    n = detail["n_tasks"]
     full = cfg.experts.ppo.total_env_steps * n
     return {
         "n_tasks": n,
@@ -224,9 +238,11 @@ def kick_family_policy(env: kick_env.KickEnv):
     return apply
 
 
-def bench_filter(cfg, step: float, reps: int, mesh, workload: int = 1) -> dict:
-    """The high-sample-rate variant end to end (selection over the fine context grid, then the
-    fresh evaluation of each test task), with the prior's kick family as the contextual policy: rollouts/s."""
+def filter_work(cfg, step: float, reps: int, mesh, workload: int = 1, seed: int = 0):
+    """The work of the high-sample-rate variant (amount: rollouts): `run()` is it end to end (selection
+    over the fine context grid with `reps` x `workload` rollouts per context, then the fresh
+    evaluation of each test task), with the prior's kick family as the contextual policy; `seed`
+    picks its noise."""
     f = cfg.filter
     reps *= workload
     env = kick_env.KickEnv(cfg.env)
@@ -236,20 +252,25 @@ def bench_filter(cfg, step: float, reps: int, mesh, workload: int = 1) -> dict:
     grid = rollout.grid_fn(env, kick_family_policy(env), mesh)
     tasks = np.asarray(f.tasks)
     contexts = filtering.candidate_contexts(tasks, filtering.context_grid(*f.context_range, step))
-    sel_key, eval_key = filtering.noise_keys(0)
+    sel_key, eval_key = filtering.noise_keys(seed)
 
-    def run(_):
+    def run():
         sel = filtering.filter_policy(grid, params, contexts, tasks, f.width, reps, sel_key,
                                       task_range=cfg.env.task_range, block=f.block, multiple=mesh.size)  # fmt: skip
         chosen = sel.contexts[sel.chosen]
         return filtering.evaluate_chosen(grid, params, chosen, tasks, f.eval_repetitions, eval_key, f.block, mesh.size)
 
-    _, first, wall = timed(run, None)
-    rollouts = len(contexts) * reps + len(tasks) * f.eval_repetitions
+    return Work(run, len(contexts) * reps + len(tasks) * f.eval_repetitions, {"filter_contexts": len(contexts)})
+
+
+def bench_filter(cfg, step: float, reps: int, mesh, workload: int = 1) -> dict:
+    """The high-sample-rate variant end to end (`filter_work`): rollouts/s."""
+    run, rollouts, detail = filter_work(cfg, step, reps, mesh, workload)
+    _, first, wall = timed(run)
     return {
         "n_devices": mesh.size,
         "workload": workload,
-        "filter_contexts": len(contexts),
+        **detail,
         "filter_rollouts": rollouts,
         "filter_rollouts_per_s": rollouts / wall,
         "filter_high_sample_wall_s": wall,
@@ -264,21 +285,10 @@ def parse_args(argv=None):
     parser.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
                         help="config overrides, e.g. env.physics_dt=0.005")  # fmt: skip
     parser.add_argument("--out-dir", default="benchmarks/results")
-    parser.add_argument(
-        "--skip", nargs="*", default=(), choices=("scene", "experts", "gae", "brax", "bc", "filter", "scaling")
-    )
+    parser.add_argument("--skip", nargs="*", default=(), choices=("scene", "experts", "gae", "brax", "bc", "filter"))
     parser.add_argument("--backends", nargs="+", default=list(kick_env.IMPLS), choices=kick_env.IMPLS,
                         help="physics backends measured side by side (the config's own is measured last)")  # fmt: skip
-    parser.add_argument("--only", nargs="*", default=(), choices=("scaling",), help="run only the scale-out sections")
-    parser.add_argument(
-        "--scale-workload",
-        type=int,
-        default=1,
-        help="the scale-out sections run K times the preset's work, on one device and on all",
-    )
     args = parser.parse_args(argv)
-    if args.scale_workload < 1:
-        parser.error(f"--scale-workload must be a positive integer, got {args.scale_workload}")
     try:
         cfg = config.make_config(args.preset, cli.parse_overrides(args.set))
         runio.check_writable(args.out_dir)
@@ -287,17 +297,10 @@ def parse_args(argv=None):
     return args, cfg
 
 
-def sections(cfg, size: dict, backends, one, every, k: int) -> list:
+def sections(cfg, size: dict, backends, one) -> list:
     """(name, measurement, where its result goes) in the order they run: a backend's sections
-    go into `backends.<impl>`, the others into the record's top level. A scaling section's
-    measurement is a pair: on one device and on `every` device, at `k` times the preset's work.
-
-    The config's own backend (`env.impl`) runs last, with Brax, BC and the scale-out sections.
-    Each scale-out measurement follows its one-device run (a run cut short keeps whole ratios);
-    the experts' one comes last, as the program most likely to fail to compile. A scale-out
-    section at the preset's own workload reuses the one-device value just measured; at a larger
-    workload it measures one device itself, then all.
-    """
+    go into `backends.<impl>`, the others into the record's top level. The config's own backend
+    (`env.impl`) runs last, with the GAE variants, Brax and BC."""
     own = cfg.env.impl
     batch = len(cfg.experts.tasks) * cfg.experts.ppo.num_envs
     out = []
@@ -309,12 +312,6 @@ def sections(cfg, size: dict, backends, one, every, k: int) -> list:
             ("scene", lambda c=b_cfg: bench_scene(c, batch), impl),
         ]
 
-    def experts_on(mesh, workload=1):
-        return lambda: bench_experts(cfg, size["bench_updates"], mesh, workload)
-
-    def filter_on(mesh, workload=1):
-        return lambda: bench_filter(cfg, size["filter_step"], size["filter_reps"], mesh, workload)
-
     def experts_gae(unroll: bool):
         """The experts' rate with GAE unrolled or as a loop, keys suffixed `_gae_unrolled` / `_gae_loop`."""
         part = bench_experts(derived(cfg, {"experts.ppo.unroll_gae": unroll}), size["bench_updates"], one)
@@ -324,11 +321,9 @@ def sections(cfg, size: dict, backends, one, every, k: int) -> list:
     return out + [
         ("gae", lambda: experts_gae(False), None),
         ("gae", lambda: experts_gae(True), None),
-        ("scaling-filter", (filter_on(one, k), filter_on(every, k)), "filter_rollouts_per_s"),
         ("brax", lambda: bench_brax(cfg, size["brax_epochs"]), None),
         ("brax", lambda: bench_brax(cfg, size["brax_epochs"], all_tasks=True), None),
         ("bc", lambda: bench_bc(cfg, size["bc_chunk"]), None),
-        ("scaling-experts", (experts_on(one, k), experts_on(every, k)), "experts_env_steps_per_s"),
     ]
 
 
@@ -354,54 +349,25 @@ def main(argv=None) -> dict:
     out_dir = Path(args.out_dir)
     start = time.perf_counter()
     one = sharding.device_mesh(1)
-    n_dev = len(jax.devices())
     own = cfg.env.impl
-    # Every program splits its batch with `jax.jit` over a mesh (`sharding.over_batch`).
-    training: dict = {"n_devices_used": 1, "devices_visible": n_dev, "sharding": "jit", "backend": own, "backends": {}}
+    # Every program splits its batch with `jax.jit` over a mesh (`sharding.over_batch`), here of one device.
+    training: dict = {"n_devices_used": 1, "devices_visible": len(jax.devices()), "sharding": "jit", "backend": own,
+                      "backends": {}}  # fmt: skip
     training["projections"] = [
         "experts_ppo_projected_s", "experts_ppo_projected_s_gae_loop", "experts_ppo_projected_s_gae_unrolled",
         "bc_wall_s", "bc_joint_wall_s", "bc_stacked_wall_s", "bc_stacked_batched_wall_s",
     ]  # fmt: skip
-    scaling: dict = {"devices": n_dev, "sharding": "jit", "workload": args.scale_workload, "backend": own}
-
-    def save(section: str) -> None:
-        print(f"[bench] {section} done at {time.perf_counter() - start:.0f} s", flush=True)
-        prov = runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env)
-        if "scaling" not in args.only:  # a scale-out-only run leaves the one-device record alone
-            runio.write_json(out_dir / "training.json", {**training, **prov})
-        if any(k.endswith("_speedup") for k in scaling):  # at least one ratio measured
-            runio.write_json(out_dir / "scaling.json", {**scaling, **prov})
-
-    every = sharding.device_mesh(impl=own)  # every device the physics can use
-    if "scaling" in args.skip or every.size == 1:
-        if n_dev > 1 and "scaling" not in args.skip:
-            print(f"[bench] no scale-out: {n_dev} devices visible, but env.impl {own!r} runs on one "
-                  "(sharding.device_mesh)")  # fmt: skip
-        every = one
-    scale_out = every.size > 1
-    k = args.scale_workload
-    for name, fn, into in sections(cfg, SIZES[args.preset], args.backends, one, every, k):
-        source = name.removeprefix("scaling-")
-        if name in args.skip or (name == source and "scaling" in args.only):
+    for name, fn, into in sections(cfg, SIZES[args.preset], args.backends, one):
+        if name in args.skip:
             continue
-        if name != source and (not scale_out or (k == 1 and source in args.skip)):
-            continue
-        if into is None or into in kick_env.IMPLS:
-            part = fn()
-            part.pop("n_devices", None)
-            (training["backends"].setdefault(into, {}) if into else training).update(part)
-        else:  # the same measurement on one device and on every device
-            own_rates = training["backends"].get(own, {})
-            alone = own_rates[into] if k == 1 and into in own_rates else fn[0]()[into]
-            part = fn[1]()
-            scaling[into] = {"1": alone, str(n_dev): part[into]}  # {n_devices: value}
-            scaling[into.replace("_per_s", "_speedup")] = part[into] / alone
-            if source == "experts":  # the results contract's name for the headline ratio
-                scaling["experts_speedup"] = part[into] / alone
-            scaling[f"{source}_workload_detail"] = {kk: v for kk, v in part.items() if not isinstance(v, list)}
-        print({kk: v for kk, v in part.items() if not isinstance(v, list)}, flush=True)
+        part = fn()
+        part.pop("n_devices", None)
+        (training["backends"].setdefault(into, {}) if into else training).update(part)
+        print({k: v for k, v in part.items() if not isinstance(v, list)}, flush=True)
         ratios(training, own)
-        save(f"{name} ({into})" if into in kick_env.IMPLS else name)
+        print(f"[bench] {name}{f' ({into})' if into else ''} done at {time.perf_counter() - start:.0f} s", flush=True)
+        prov = runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env)
+        runio.write_json(out_dir / "training.json", {**training, **prov})  # after each section: a cut run keeps it
     return training
 
 

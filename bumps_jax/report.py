@@ -295,10 +295,12 @@ def speed_lines(bench: dict | None, scaling: dict | None, gae: dict | None = Non
     lines += [f"| {name} | {fmt.format(v)} |" for name, v, fmt in rows if v is not None]
     if scaling:
         n = str(scaling["devices"])
+        # one process per device (Warp's way) or one process with a mesh of all (a record without a layout)
+        how = "one process per device" if scaling.get("layout") == "processes" else "one process, a mesh of all"
         lines += [
             "",
-            f"Scale-out on {scaling['device']}, physics {physics_step(scaling)} (Warp runs on one GPU per process: "
-            f"README): experts {scaling['experts_env_steps_per_s'][n]:,.0f} env-steps/s on "
+            f"Scale-out on {scaling['device']}, physics {physics_step(scaling)}, {how} "
+            f"(`benchmarks/scaling.py`): experts {scaling['experts_env_steps_per_s'][n]:,.0f} env-steps/s on "
             f"{n} devices vs {scaling['experts_env_steps_per_s']['1']:,.0f} on one "
             f"({scaling['experts_env_steps_speedup']:.2f}x); filtering "
             f"{scaling['filter_rollouts_speedup']:.2f}x, at {scaling.get('workload', 1)} times the paper's work "

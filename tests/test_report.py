@@ -297,3 +297,5 @@ def test_the_scale_out_line_names_its_physics():
                "filter_rollouts_speedup": 1.95}  # fmt: skip
     text = "\n".join(report.speed_lines(bench, scaling))
     assert "physics 2.5 ms, jax" in text and "190,000 env-steps/s on 2 devices vs 100,000 on one (1.90x)" in text
+    assert "one process, a mesh of all" in text
+    assert "one process per device" in "\n".join(report.speed_lines(bench, {**scaling, "layout": "processes"}))

@@ -1,0 +1,219 @@
+"""Scale-out: the same work on one GPU and on N, side by side in one run.
+
+The work is the pipeline's two batched programs at the preset's sizes (`bench.SIZES`): a chunk
+of PPO updates of every expert (env-steps/s) and the high-sample-rate filtering variant end to
+end (rollouts/s). N devices do N times the preset's work: N copies of every expert, each copy
+its own seeds, and N times the filtering's selection rollouts, their noise drawn afresh. One
+GPU does all of it in one program; N GPUs share it in one of two layouts:
+
+- `processes` (the default): N processes, each with one GPU visible and one copy of the work.
+  MJX's Warp physics runs on one GPU per process (`sharding.device_mesh`), so this is how
+  Warp scales: independent runs side by side, as the experts of two seeds or two development
+  arms are run on a two-GPU host.
+- `mesh`: one process splitting the N copies over a mesh of N devices (`sharding.over_batch`),
+  for MJX-JAX physics (`--set env.impl=jax`) or several CPU devices.
+
+Each measuring process compiles its program with a first call, waits until every process of
+its phase has, and then times a second call; a phase's rate is its total work over the span
+from the first start to the last end, so N processes count only while they all run.
+
+    python -m benchmarks.scaling --preset paper --devices 2          # benchmarks/results/scaling.json
+    python -m benchmarks.scaling --preset tiny --out-dir runs/bench  # CPU smoke test
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from benchmarks import bench
+from bumps_jax import cli, config, runio
+
+# What each phase measures, the rate's key, and the name of the amount in `bench.Work`.
+WORKS = {"experts": "experts_env_steps_per_s", "filter": "filter_rollouts_per_s"}
+LAYOUTS = ("processes", "mesh")
+# Seconds a worker may take to build and compile its program, and to run it once timed.
+COMPILE_TIMEOUT_S = 1200.0
+POLL_S = 0.05
+
+
+def parse_args(argv=None):
+    """(args, pipeline config), every argument checked before any process starts."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", choices=tuple(bench.SIZES), default="paper")
+    parser.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="config overrides, e.g. env.impl=jax")  # fmt: skip
+    parser.add_argument("--devices", type=int, default=2, help="N: the devices the work is spread over")
+    parser.add_argument("--layout", choices=LAYOUTS, default="processes",
+                        help="one process per device, or one process with a mesh of N devices")  # fmt: skip
+    parser.add_argument("--updates", type=int, default=None,
+                        help="PPO updates in the timed chunk (default: the bench's for the preset)")  # fmt: skip
+    parser.add_argument("--skip", nargs="*", default=(), choices=tuple(WORKS))
+    parser.add_argument("--out-dir", default="benchmarks/results")
+    # A worker: one measuring process (started by this module, not by hand).
+    parser.add_argument("--worker", choices=tuple(WORKS), help=argparse.SUPPRESS)
+    parser.add_argument("--worker-dir", help=argparse.SUPPRESS)
+    parser.add_argument("--worker-index", type=int, default=0, help=argparse.SUPPRESS)
+    parser.add_argument("--worker-devices", type=int, default=1, help=argparse.SUPPRESS)
+    parser.add_argument("--worker-copies", type=int, default=1, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.devices < 2:
+        parser.error(f"--devices must be at least 2 (the scale-out of one device is itself), got {args.devices}")
+    if args.updates is not None and args.updates < 1:
+        parser.error(f"--updates must be a positive integer, got {args.updates}")
+    try:
+        cfg = config.make_config(args.preset, cli.parse_overrides(args.set))
+        if args.worker is None:
+            runio.check_writable(args.out_dir)
+    except ValueError as err:
+        parser.error(str(err))
+    return args, cfg
+
+
+def layout_of(layout: str, m: int, n: int) -> list[dict]:
+    """The processes of a phase doing `n` copies of the preset's work on `m` devices (1 or n):
+    each one's visible GPU (None: the host's as they are), the devices its mesh spans and the
+    copies it does."""
+    if m == 1:
+        return [{"gpu": "0", "devices": 1, "copies": n}]
+    if layout == "processes":
+        return [{"gpu": str(i), "devices": 1, "copies": 1} for i in range(m)]
+    return [{"gpu": None, "devices": m, "copies": n}]
+
+
+def combine(results: list[dict]) -> dict:
+    """One phase's measurement from its processes' records ({start, end, amount, compile_s}):
+    the total amount over the span from the first start to the last end."""
+    span = max(r["end"] for r in results) - min(r["start"] for r in results)
+    amount = sum(r["amount"] for r in results)
+    return {
+        "rate": amount / span,
+        "amount": amount,
+        "span_s": span,
+        # how long the processes ran together: the slowest's time over the span
+        "overlap": min(r["end"] for r in results) - max(r["start"] for r in results),
+        "processes": [{k: r[k] for k in ("amount", "wall_s", "compile_s", "gpu", "device")} for r in results],
+    }
+
+
+def worker_env(gpu: str | None) -> dict:
+    """The environment of a measuring process: one GPU visible (`gpu`), or all."""
+    env = dict(os.environ)
+    if gpu is not None:
+        env["CUDA_VISIBLE_DEVICES"] = gpu
+    return env
+
+
+def run_phase(args, work: str, m: int, folder: Path) -> dict:
+    """Start the processes of one phase, let them time their work together, and combine."""
+    folder.mkdir(parents=True)
+    base = [sys.executable, "-m", "benchmarks.scaling", "--preset", args.preset, "--worker", work,
+            "--worker-dir", str(folder), "--devices", str(args.devices)]  # fmt: skip
+    for group in args.set:
+        base += ["--set", *group]
+    if args.updates is not None:
+        base += ["--updates", str(args.updates)]
+    procs = []
+    for i, p in enumerate(layout_of(args.layout, m, args.devices)):
+        log = open(folder / f"log.{i}", "w")  # noqa: SIM115 (closed with its process below)
+        own = ["--worker-index", str(i), "--worker-devices", str(p["devices"]), "--worker-copies", str(p["copies"])]
+        cmd = [*base, *own]
+        procs.append((subprocess.Popen(cmd, env=worker_env(p["gpu"]), stdout=log, stderr=subprocess.STDOUT), log))
+    try:
+        wait_for(procs, [folder / f"ready.{i}" for i in range(len(procs))], folder, COMPILE_TIMEOUT_S)
+        (folder / "go").touch()
+        wait_for(procs, [folder / f"result.{i}.json" for i in range(len(procs))], folder, COMPILE_TIMEOUT_S)
+    finally:
+        for proc, log in procs:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+            log.close()
+    return combine([json.loads((folder / f"result.{i}.json").read_text()) for i in range(len(procs))])
+
+
+def wait_for(procs, files: list[Path], folder: Path, timeout: float) -> None:
+    """Until every file exists; ValueError with a process's last line if one fails or time runs out."""
+    deadline = time.monotonic() + timeout
+    while not all(f.exists() for f in files):
+        for i, (proc, _) in enumerate(procs):
+            if proc.poll() not in (None, 0) or (proc.poll() == 0 and not files[i].exists()):
+                lines = (folder / f"log.{i}").read_text().strip().splitlines() or ["(no output)"]
+                raise ValueError(f"measuring process {i} failed (exit {proc.poll()}): {lines[-1]}")
+        if time.monotonic() > deadline:
+            raise ValueError(f"measuring processes did not finish within {timeout:.0f} s: see {folder}")
+        time.sleep(POLL_S)
+
+
+def worker(args, cfg) -> None:
+    """One measuring process: build and compile its work, say it is ready, wait for the phase to
+    start, time one call, and write what it did."""
+    import jax  # noqa: PLC0415 (a worker's devices are set by its environment, before jax starts)
+
+    from bumps_jax import sharding  # noqa: PLC0415
+
+    folder, i = Path(args.worker_dir), args.worker_index
+    mesh = sharding.device_mesh(args.worker_devices, impl=cfg.env.impl)
+    size = bench.SIZES[args.preset]
+    seed = 1000 * i  # each process its own noise (the copies within one program are seeded apart already)
+    if args.worker == "experts":
+        work = bench.experts_work(cfg, args.updates or size["bench_updates"], mesh, args.worker_copies,
+                                  seed=cfg.experts.seed + seed)  # fmt: skip
+    else:
+        work = bench.filter_work(cfg, size["filter_step"], size["filter_reps"], mesh, args.worker_copies, seed=seed)
+    t0 = time.perf_counter()
+    jax.block_until_ready(work.run())
+    first = time.perf_counter() - t0
+    (folder / f"ready.{i}").touch()
+    while not (folder / "go").exists():
+        time.sleep(POLL_S)
+    start = time.time()
+    jax.block_until_ready(work.run())
+    end = time.time()
+    record = {"start": start, "end": end, "wall_s": end - start, "compile_s": first - (end - start),
+              "amount": work.amount, "detail": work.detail, "gpu": os.environ.get("CUDA_VISIBLE_DEVICES"),
+              "device": runio.device_name(), "provenance": runio.provenance(cfg.preset, 0.0, cfg.env)}  # fmt: skip
+    runio.write_json(folder / f"result.{i}.json", record)
+
+
+def main(argv=None) -> dict | None:
+    args, cfg = parse_args(argv)
+    if args.worker:
+        return worker(args, cfg)
+    n, start = args.devices, time.perf_counter()
+    works = [w for w in WORKS if w not in args.skip]
+    size = bench.SIZES[args.preset]
+    sizes = {**size, "bench_updates": args.updates or size["bench_updates"]}
+    record: dict = {"devices": n, "layout": args.layout, "workload": n, "backend": cfg.env.impl, "sizes": sizes,
+                    "phases": {}}  # fmt: skip
+    with tempfile.TemporaryDirectory(prefix="scaling-") as tmp:
+        for k, work in enumerate(works):
+            key = WORKS[work]
+            for m in (1, n):
+                part = f"{2 * k + (m > 1) + 1}/{2 * len(works)}"
+                print(f"[scaling] {part}: {work} on {m} device(s), {n} times the preset's work, "
+                      f"{time.perf_counter() - start:.0f} s in", flush=True)  # fmt: skip
+                phase = run_phase(args, work, m, Path(tmp) / f"{work}.{m}")
+                record["phases"].setdefault(work, {})[str(m)] = {kk: v for kk, v in phase.items() if kk != "rate"}
+                record.setdefault(key, {})[str(m)] = phase["rate"]
+                print(f"[scaling] {key} on {m}: {phase['rate']:,.0f}", flush=True)
+            record[key.replace("_per_s", "_speedup")] = record[key][str(n)] / record[key]["1"]
+            if work == "experts":  # the results contract's name for the headline ratio
+                record["experts_speedup"] = record["experts_env_steps_speedup"]
+            prov = json.loads((Path(tmp) / f"{work}.{n}" / "result.0.json").read_text())["provenance"]
+            prov.update(n_devices=n, command=runio.command_line(), wall_s=round(time.perf_counter() - start, 3))
+            runio.write_json(Path(args.out_dir) / "scaling.json", {**record, **prov})  # after each work
+    return record
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except ValueError as err:
+        sys.exit(f"error: {err}")

@@ -1,0 +1,77 @@
+"""The scale-out benchmark (benchmarks/scaling.py): its layouts, how a phase's rate is combined,
+its argument checks, and a failing measuring process reported in one line."""
+
+import subprocess
+import sys
+
+import pytest
+
+from benchmarks import scaling
+
+
+@pytest.mark.parametrize("layout", scaling.LAYOUTS)
+def test_one_device_and_n_devices_do_the_same_work(layout):
+    one = scaling.layout_of(layout, 1, 3)
+    every = scaling.layout_of(layout, 3, 3)
+    assert sum(p["copies"] for p in one) == sum(p["copies"] for p in every) == 3
+    assert one == [{"gpu": "0", "devices": 1, "copies": 3}]
+    if layout == "processes":  # one GPU visible to each process, one copy each
+        assert [p["gpu"] for p in every] == ["0", "1", "2"] and {p["devices"] for p in every} == {1}
+    else:  # one process, a mesh over all three
+        assert every == [{"gpu": None, "devices": 3, "copies": 3}]
+
+
+def test_a_phase_counts_its_work_over_the_span_of_all_its_processes():
+    parts = [
+        {"start": 10.0, "end": 14.0, "amount": 400, "wall_s": 4.0, "compile_s": 30.0, "gpu": "0", "device": "d"},
+        {"start": 10.5, "end": 15.0, "amount": 400, "wall_s": 4.5, "compile_s": 31.0, "gpu": "1", "device": "d"},
+    ]
+    out = scaling.combine(parts)
+    assert out["amount"] == 800 and out["span_s"] == pytest.approx(5.0)
+    assert out["rate"] == pytest.approx(160.0)  # not 400 / 4 + 400 / 4.5: the processes did not start together
+    assert out["overlap"] == pytest.approx(3.5)
+    assert [p["gpu"] for p in out["processes"]] == ["0", "1"]
+
+
+def test_each_process_sees_only_its_gpu(monkeypatch):
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0,1")
+    assert scaling.worker_env("1")["CUDA_VISIBLE_DEVICES"] == "1"
+    assert scaling.worker_env(None)["CUDA_VISIBLE_DEVICES"] == "0,1"
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--devices", "1"], "--devices must be at least 2"),
+        (["--updates", "0"], "--updates must be a positive integer"),
+        (["--set", "env.impl=bullet"], "env.impl must be one of"),
+        (["--layout", "ring"], "invalid choice: 'ring'"),
+    ],
+)
+def test_bad_arguments_stop_before_any_process_starts(argv, message, capsys, tmp_path):
+    with pytest.raises(SystemExit):
+        scaling.parse_args([*argv, "--out-dir", str(tmp_path)])
+    assert message in capsys.readouterr().err
+
+
+def test_a_failing_process_is_reported_with_its_last_line(tmp_path):
+    log = open(tmp_path / "log.0", "w")  # noqa: SIM115
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "import sys; print('warming up'); sys.exit('error: n_devices must be in [1, 1]')"],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    proc.wait()
+    log.close()
+    with pytest.raises(ValueError, match=r"process 0 failed \(exit 1\): error: n_devices must be in \[1, 1\]"):
+        scaling.wait_for([(proc, log)], [tmp_path / "ready.0"], tmp_path, timeout=5.0)
+
+
+def test_a_process_that_never_gets_ready_times_out(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        with pytest.raises(ValueError, match="did not finish within 0 s"):
+            scaling.wait_for([(proc, None)], [tmp_path / "ready.0"], tmp_path, timeout=0.2)
+    finally:
+        proc.kill()
+        proc.wait()
