@@ -2,22 +2,26 @@
 
 The work is the pipeline's two batched programs at the preset's sizes (`bench.SIZES`): a chunk
 of PPO updates of every expert (env-steps/s) and the high-sample-rate filtering variant end to
-end (rollouts/s). N devices do N times the preset's work: N copies of every expert, each copy
-its own seeds, and N times the filtering's selection rollouts, their noise drawn afresh. One
-GPU does all of it in one program; N GPUs share it in one of two layouts:
+end (rollouts/s). With K copies per device (`--copies`, several values measured in turn), N
+devices do N x K times the preset's work: N x K copies of every expert, each copy its own
+seeds, and N x K times the filtering's selection rollouts, their noise drawn afresh. One GPU
+does all of it in one program; N GPUs share it in one of two layouts:
 
-- `processes` (the default): N processes, each with one GPU visible and one copy of the work.
+- `processes` (the default): N processes, each with one GPU visible and K copies of the work.
   MJX's Warp physics runs on one GPU per process (`sharding.device_mesh`), so this is how
   Warp scales: independent runs side by side, as the experts of two seeds or two development
   arms are run on a two-GPU host.
-- `mesh`: one process splitting the N copies over a mesh of N devices (`sharding.over_batch`),
+- `mesh`: one process splitting the N x K copies over a mesh of N devices (`sharding.over_batch`),
   for MJX-JAX physics (`--set env.impl=jax`) or several CPU devices.
 
 Each measuring process compiles its program with a first call, waits until every process of
 its phase has, and then times a second call; a phase's rate is its total work over the span
-from the first start to the last end, so N processes count only while they all run.
+from the first start to the last end, so N processes count only while they all run. A GPU
+that one copy does not fill gains from more (the physics' rate grows with the batch up to
+tens of thousands of episodes), so the ratio depends on K: the record keeps every K measured,
+its top-level rates being the largest K's.
 
-    python -m benchmarks.scaling --preset paper --devices 2          # benchmarks/results/scaling.json
+    python -m benchmarks.scaling --preset paper --devices 2 --copies 1 4  # benchmarks/results/scaling.json
     python -m benchmarks.scaling --preset tiny --out-dir runs/bench  # CPU smoke test
 """
 
@@ -52,6 +56,8 @@ def parse_args(argv=None):
     parser.add_argument("--devices", type=int, default=2, help="N: the devices the work is spread over")
     parser.add_argument("--layout", choices=LAYOUTS, default="processes",
                         help="one process per device, or one process with a mesh of N devices")  # fmt: skip
+    parser.add_argument("--copies", type=int, nargs="+", default=[1],
+                        help="K: copies of the preset's work per device, each value measured in turn")  # fmt: skip
     parser.add_argument("--updates", type=int, default=None,
                         help="PPO updates in the timed chunk (default: the bench's for the preset)")  # fmt: skip
     parser.add_argument("--skip", nargs="*", default=(), choices=tuple(WORKS))
@@ -65,6 +71,8 @@ def parse_args(argv=None):
     args = parser.parse_args(argv)
     if args.devices < 2:
         parser.error(f"--devices must be at least 2 (the scale-out of one device is itself), got {args.devices}")
+    if any(k < 1 for k in args.copies):
+        parser.error(f"--copies must be positive integers, got {args.copies}")
     if args.updates is not None and args.updates < 1:
         parser.error(f"--updates must be a positive integer, got {args.updates}")
     try:
@@ -76,15 +84,15 @@ def parse_args(argv=None):
     return args, cfg
 
 
-def layout_of(layout: str, m: int, n: int) -> list[dict]:
-    """The processes of a phase doing `n` copies of the preset's work on `m` devices (1 or n):
-    each one's visible GPU (None: the host's as they are), the devices its mesh spans and the
-    copies it does."""
+def layout_of(layout: str, m: int, n: int, k: int = 1) -> list[dict]:
+    """The processes of a phase doing `n` x `k` copies of the preset's work on `m` devices (1 or
+    n): each one's visible GPU (None: the host's as they are), the devices its mesh spans and
+    the copies it does."""
     if m == 1:
-        return [{"gpu": "0", "devices": 1, "copies": n}]
+        return [{"gpu": "0", "devices": 1, "copies": n * k}]
     if layout == "processes":
-        return [{"gpu": str(i), "devices": 1, "copies": 1} for i in range(m)]
-    return [{"gpu": None, "devices": m, "copies": n}]
+        return [{"gpu": str(i), "devices": 1, "copies": k} for i in range(m)]
+    return [{"gpu": None, "devices": m, "copies": n * k}]
 
 
 def combine(results: list[dict]) -> dict:
@@ -110,7 +118,7 @@ def worker_env(gpu: str | None) -> dict:
     return env
 
 
-def run_phase(args, work: str, m: int, folder: Path) -> dict:
+def run_phase(args, work: str, m: int, k: int, folder: Path) -> dict:
     """Start the processes of one phase, let them time their work together, and combine."""
     folder.mkdir(parents=True)
     base = [sys.executable, "-m", "benchmarks.scaling", "--preset", args.preset, "--worker", work,
@@ -120,7 +128,7 @@ def run_phase(args, work: str, m: int, folder: Path) -> dict:
     if args.updates is not None:
         base += ["--updates", str(args.updates)]
     procs = []
-    for i, p in enumerate(layout_of(args.layout, m, args.devices)):
+    for i, p in enumerate(layout_of(args.layout, m, args.devices, k)):
         log = open(folder / f"log.{i}", "w")  # noqa: SIM115 (closed with its process below)
         own = ["--worker-index", str(i), "--worker-devices", str(p["devices"]), "--worker-copies", str(p["copies"])]
         cmd = [*base, *own]
@@ -182,6 +190,20 @@ def worker(args, cfg) -> None:
     runio.write_json(folder / f"result.{i}.json", record)
 
 
+def measure(args, work: str, k: int, folder: Path, say) -> dict:
+    """One work at `k` copies per device, on one device and on all: rates, ratio and phases."""
+    n, key = args.devices, WORKS[work]
+    out: dict = {"copies_per_device": k, "workload": n * k, key: {}, "phases": {}}
+    for m in (1, n):
+        say(f"{work} on {m} device(s), {n * k} times the preset's work")
+        phase = run_phase(args, work, m, k, folder / f"{work}.{k}.{m}")
+        out["phases"][str(m)] = {kk: v for kk, v in phase.items() if kk != "rate"}
+        out[key][str(m)] = phase["rate"]
+        say(f"{key} on {m}: {phase['rate']:,.0f}")
+    out[key.replace("_per_s", "_speedup")] = out[key][str(n)] / out[key]["1"]
+    return out
+
+
 def main(argv=None) -> dict | None:
     args, cfg = parse_args(argv)
     if args.worker:
@@ -190,26 +212,31 @@ def main(argv=None) -> dict | None:
     works = [w for w in WORKS if w not in args.skip]
     size = bench.SIZES[args.preset]
     sizes = {**size, "bench_updates": args.updates or size["bench_updates"]}
-    record: dict = {"devices": n, "layout": args.layout, "workload": n, "backend": cfg.env.impl, "sizes": sizes,
-                    "phases": {}}  # fmt: skip
+    record: dict = {"devices": n, "layout": args.layout, "backend": cfg.env.impl, "sizes": sizes, "by_copies": []}
+    steps = [(k, w) for k in sorted(args.copies) for w in works]
+    done = 0
+
+    def say(line: str) -> None:
+        print(f"[scaling] {done}/{len(steps)} measured, {time.perf_counter() - start:.0f} s in: {line}", flush=True)
+
     with tempfile.TemporaryDirectory(prefix="scaling-") as tmp:
-        for k, work in enumerate(works):
-            key = WORKS[work]
-            for m in (1, n):
-                part = f"{2 * k + (m > 1) + 1}/{2 * len(works)}"
-                print(f"[scaling] {part}: {work} on {m} device(s), {n} times the preset's work, "
-                      f"{time.perf_counter() - start:.0f} s in", flush=True)  # fmt: skip
-                phase = run_phase(args, work, m, Path(tmp) / f"{work}.{m}")
-                record["phases"].setdefault(work, {})[str(m)] = {kk: v for kk, v in phase.items() if kk != "rate"}
-                record.setdefault(key, {})[str(m)] = phase["rate"]
-                print(f"[scaling] {key} on {m}: {phase['rate']:,.0f}", flush=True)
-            record[key.replace("_per_s", "_speedup")] = record[key][str(n)] / record[key]["1"]
-            if work == "experts":  # the results contract's name for the headline ratio
-                record["experts_speedup"] = record["experts_env_steps_speedup"]
-            prov = json.loads((Path(tmp) / f"{work}.{n}" / "result.0.json").read_text())["provenance"]
+        for k, work in steps:
+            part = measure(args, work, k, Path(tmp), say)
+            done += 1
+            entry = next((e for e in record["by_copies"] if e["copies_per_device"] == k), None)
+            if entry is None:
+                record["by_copies"].append(entry := {"copies_per_device": k, "workload": n * k, "phases": {}})
+            entry["phases"][work] = part.pop("phases")
+            entry.update(part)
+            # the top level: the largest K measured so far (K ascends, so the last entry)
+            top = {**record, **{kk: v for kk, v in entry.items() if kk != "phases"}}
+            if "experts_env_steps_speedup" in top:  # the results contract's name for the headline ratio
+                top["experts_speedup"] = top["experts_env_steps_speedup"]
+            result = Path(tmp) / f"{work}.{k}.{n}" / "result.0.json"
+            prov = json.loads(result.read_text())["provenance"]
             prov.update(n_devices=n, command=runio.command_line(), wall_s=round(time.perf_counter() - start, 3))
-            runio.write_json(Path(args.out_dir) / "scaling.json", {**record, **prov})  # after each work
-    return record
+            runio.write_json(Path(args.out_dir) / "scaling.json", {**top, **prov})  # after each measurement
+    return top
 
 
 if __name__ == "__main__":

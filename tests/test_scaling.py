@@ -10,15 +10,16 @@ from benchmarks import scaling
 
 
 @pytest.mark.parametrize("layout", scaling.LAYOUTS)
-def test_one_device_and_n_devices_do_the_same_work(layout):
-    one = scaling.layout_of(layout, 1, 3)
-    every = scaling.layout_of(layout, 3, 3)
-    assert sum(p["copies"] for p in one) == sum(p["copies"] for p in every) == 3
-    assert one == [{"gpu": "0", "devices": 1, "copies": 3}]
-    if layout == "processes":  # one GPU visible to each process, one copy each
+@pytest.mark.parametrize("k", [1, 4])
+def test_one_device_and_n_devices_do_the_same_work(layout, k):
+    one = scaling.layout_of(layout, 1, 3, k)
+    every = scaling.layout_of(layout, 3, 3, k)
+    assert sum(p["copies"] for p in one) == sum(p["copies"] for p in every) == 3 * k
+    assert one == [{"gpu": "0", "devices": 1, "copies": 3 * k}]
+    if layout == "processes":  # one GPU visible to each process, k copies each
         assert [p["gpu"] for p in every] == ["0", "1", "2"] and {p["devices"] for p in every} == {1}
     else:  # one process, a mesh over all three
-        assert every == [{"gpu": None, "devices": 3, "copies": 3}]
+        assert every == [{"gpu": None, "devices": 3, "copies": 3 * k}]
 
 
 def test_a_phase_counts_its_work_over_the_span_of_all_its_processes():
@@ -44,6 +45,7 @@ def test_each_process_sees_only_its_gpu(monkeypatch):
     [
         (["--devices", "1"], "--devices must be at least 2"),
         (["--updates", "0"], "--updates must be a positive integer"),
+        (["--copies", "1", "0"], "--copies must be positive integers, got [1, 0]"),
         (["--set", "env.impl=bullet"], "env.impl must be one of"),
         (["--layout", "ring"], "invalid choice: 'ring'"),
     ],
