@@ -204,6 +204,14 @@ def measure(args, work: str, k: int, folder: Path, say) -> dict:
     return out
 
 
+def eta_s(spent: float, steps: list[tuple[int, str]], done: int) -> float:
+    """Seconds left after `done` of `steps` ((K, work) pairs) took `spent`: each measurement
+    counted at the mean cost of those done per copy, times its K (too long where compiles, which
+    do not grow with K, dominate)."""
+    weight = [k for k, _ in steps]
+    return spent * sum(weight[done:]) / max(sum(weight[:done]), 1)
+
+
 def main(argv=None) -> dict | None:
     args, cfg = parse_args(argv)
     if args.worker:
@@ -217,7 +225,9 @@ def main(argv=None) -> dict | None:
     done = 0
 
     def say(line: str) -> None:
-        print(f"[scaling] {done}/{len(steps)} measured, {time.perf_counter() - start:.0f} s in: {line}", flush=True)
+        spent = time.perf_counter() - start
+        eta = f", ETA {eta_s(spent, steps, done):.0f} s" if done else ""
+        print(f"[scaling] {done}/{len(steps)} measured, {spent:.0f} s in{eta}: {line}", flush=True)
 
     with tempfile.TemporaryDirectory(prefix="scaling-") as tmp:
         for k, work in steps:

@@ -77,3 +77,9 @@ def test_a_process_that_never_gets_ready_times_out(tmp_path):
     finally:
         proc.kill()
         proc.wait()
+
+
+def test_the_eta_counts_what_is_left_by_its_copies():
+    steps = [(1, "experts"), (1, "filter"), (4, "experts"), (4, "filter")]
+    assert scaling.eta_s(100.0, steps, 2) == pytest.approx(400.0)  # 2 copies' worth took 100 s, 8 left
+    assert scaling.eta_s(100.0, steps, 4) == 0.0
