@@ -147,16 +147,27 @@ def run_phase(args, work: str, m: int, k: int, folder: Path) -> dict:
 
 
 def wait_for(procs, files: list[Path], folder: Path, timeout: float) -> None:
-    """Until every file exists; ValueError with a process's last line if one fails or time runs out."""
+    """Until every file exists; ValueError with a process's last line if one fails or time runs
+    out (the phase's folder is temporary, so the line is all that is left of its log)."""
     deadline = time.monotonic() + timeout
     while not all(f.exists() for f in files):
         for i, (proc, _) in enumerate(procs):
             if proc.poll() not in (None, 0) or (proc.poll() == 0 and not files[i].exists()):
-                lines = (folder / f"log.{i}").read_text().strip().splitlines() or ["(no output)"]
-                raise ValueError(f"measuring process {i} failed (exit {proc.poll()}): {lines[-1]}")
+                raise ValueError(f"measuring process {i} failed (exit {proc.poll()}): {last_line(folder, i)}")
         if time.monotonic() > deadline:
-            raise ValueError(f"measuring processes did not finish within {timeout:.0f} s: see {folder}")
+            late = [i for i, f in enumerate(files) if not f.exists()]
+            raise ValueError(
+                f"measuring process {late[0]} did not finish within {timeout:.0f} s; its last line: "
+                f"{last_line(folder, late[0])}"
+            )
         time.sleep(POLL_S)
+
+
+def last_line(folder: Path, i: int) -> str:
+    """The last line process `i` of a phase printed."""
+    log = folder / f"log.{i}"
+    lines = log.read_text().strip().splitlines() if log.exists() else []
+    return lines[-1] if lines else "(no output)"
 
 
 def worker(args, cfg) -> None:
@@ -254,3 +265,5 @@ if __name__ == "__main__":
         main()
     except ValueError as err:
         sys.exit(f"error: {err}")
+    except KeyboardInterrupt:  # the measuring processes are stopped with their phase (run_phase)
+        sys.exit("interrupted: scaling.json holds the measurements finished so far")

@@ -72,7 +72,7 @@ def test_a_failing_process_is_reported_with_its_last_line(tmp_path):
 def test_a_process_that_never_gets_ready_times_out(tmp_path):
     proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
     try:
-        with pytest.raises(ValueError, match="did not finish within 0 s"):
+        with pytest.raises(ValueError, match=r"process 0 did not finish within 0 s; its last line: \(no output\)"):
             scaling.wait_for([(proc, None)], [tmp_path / "ready.0"], tmp_path, timeout=0.2)
     finally:
         proc.kill()
