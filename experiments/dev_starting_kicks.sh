@@ -13,6 +13,8 @@
 #   experiments/dev_starting_kicks.sh ARM [ARM ...]
 #   STAGES=train-experts experiments/dev_starting_kicks.sh ARM ...   (the experts only: their
 #        starting kicks' scores, before any net is trained)
+#   GPUS=2 experiments/dev_starting_kicks.sh ARM ARM ...   (the arms side by side, one GPU each: MJX's
+#        Warp runs on one GPU per process; each arm's output in runs/dev_<arm>.log)
 #   EARLY_VERDICT=1 experiments/dev_starting_kicks.sh ARM ...   (a paper_budget arm whose experts
 #        already miss their target stops there: the verdict is "missed" whatever the nets do, and
 #        the meta and filtering stages' GPU time, about 8 minutes, is saved)
@@ -47,6 +49,24 @@ print(next((k.lower() for k in ("H100", "H200") if k in d), "cpu" if "cpu" in d.
     if [ -f "$run/$table.json" ]; then cp "$run/$table.json" "$out/${name}_${table#*/}_$device.json"; fi
   done
 }
+gpus=${GPUS:-1}
+if ! [[ $gpus =~ ^[1-9][0-9]*$ ]]; then echo "GPUS must be a positive integer, got '$gpus'" >&2; exit 2; fi
+if (( gpus > 1 && $# > 1 )); then
+  # Each GPU takes the next arm when its last one ends; every arm is this script run alone.
+  mkdir -p runs
+  pids=() failed=0 i=0
+  for arm in "$@"; do
+    gpu=$(( i % gpus ))
+    if (( i >= gpus )); then wait "${pids[$gpu]}" || failed=1; fi
+    echo "arm $arm on GPU $gpu: runs/dev_${arm//[=,]/_}.log"
+    CUDA_VISIBLE_DEVICES=$gpu GPUS=1 "$0" "$arm" > "runs/dev_${arm//[=,]/_}.log" 2>&1 &
+    pids[$gpu]=$!
+    i=$(( i + 1 ))
+  done
+  for pid in "${pids[@]}"; do wait "$pid" || failed=1; done
+  for arm in "$@"; do tail -n 3 "runs/dev_${arm//[=,]/_}.log"; done
+  exit $failed
+fi
 for arm in "$@"; do
   seed=101
   sets=()

@@ -1,0 +1,32 @@
+"""The development script's dispatch of arms over GPUs (experiments/dev_starting_kicks.sh, GPUS=n):
+each arm a run of the script alone, one GPU each, round robin; a failing arm fails the whole."""
+
+import os
+import subprocess
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[1] / "experiments" / "dev_starting_kicks.sh"
+
+
+def run(tmp_path, *arms, gpus="2"):
+    env = {**os.environ, "GPUS": gpus}
+    return subprocess.run([str(SCRIPT), *arms], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+
+
+def test_arms_go_round_robin_over_the_gpus_each_with_its_own_log(tmp_path):
+    out = run(tmp_path, "bogus_a", "bogus_b", "bogus_c")
+    assert out.returncode == 1  # every arm failed (an unknown part), so the whole fails
+    lines = [line for line in out.stdout.splitlines() if line.startswith("arm ")]
+    assert lines == [
+        "arm bogus_a on GPU 0: runs/dev_bogus_a.log",
+        "arm bogus_b on GPU 1: runs/dev_bogus_b.log",
+        "arm bogus_c on GPU 0: runs/dev_bogus_c.log",
+    ]
+    for arm in ("bogus_a", "bogus_b", "bogus_c"):
+        assert (tmp_path / "runs" / f"dev_{arm}.log").read_text().strip() == f"unknown arm part: {arm}"
+
+
+def test_a_bad_gpu_count_stops_before_any_arm(tmp_path):
+    out = run(tmp_path, "bogus_a", "bogus_b", gpus="two")
+    assert out.returncode == 2 and "GPUS must be a positive integer, got 'two'" in out.stderr
+    assert not (tmp_path / "runs").exists()
