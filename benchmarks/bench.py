@@ -174,11 +174,17 @@ def bench_brax(cfg, epochs: int, all_tasks: bool = False) -> dict:
     return out
 
 
-def bench_bc(cfg, chunk: int) -> dict:
+# The BC loops the bench can time: each net in its own program (the meta stage's "separate"),
+# both in one (`bc.make_joint_trainer`), and both stacked (`bc_stacked`, the stage's "stacked"
+# and "stacked_batched").
+BC_TRAINERS = ("separate", "joint", "stacked", "stacked_batched")
+
+
+def bench_bc(cfg, chunk: int, trainers=BC_TRAINERS) -> dict:
     """Gradient steps/s of the meta-policies' BC loop on a dataset of the experts' size, timed
-    over `chunk` epochs: each net in its own program, both nets in one (`bc.make_joint_trainer`,
-    the same steps), and both stacked in one (`bc_stacked.make_stacked_trainer`, the same steps in
-    batched kernels); both nets' full schedules projected from each."""
+    over `chunk` epochs, for each of `trainers` (`BC_TRAINERS`): each net in its own program, both
+    nets in one (the same steps), and both stacked in one (the same steps in batched kernels);
+    both nets' full schedules projected from each."""
     n_rows = len(cfg.experts.tasks) * kick_env.KickEnv(cfg.env).n_steps
     train_cfg = derived(cfg, {"meta.train.chunk": chunk}).meta.train
     epoch_steps = bc.steps_per_epoch(train_cfg, n_rows)
@@ -189,30 +195,36 @@ def bench_bc(cfg, chunk: int) -> dict:
     models = {name: bc.MetaPolicy(depth, width) for name, (depth, width) in cfg.meta.nets.items()}
     steps = chunk * epoch_steps * train_cfg.n_seeds  # per net
     out: dict = {"bc_steps_per_epoch": epoch_steps}
-    total, last = 0.0, {}
-    for name, model in models.items():
-        init, step_chunk = bc.make_trainer(model, train_cfg, n_rows)
-        (_, loss), first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
-        out[f"bc_steps_per_s_{name}"] = steps / wall
-        out[f"bc_compile_s_{name}"] = first - wall
-        last[name] = float(np.asarray(loss)[:, -1].mean())
-        total += train_cfg.epochs * epoch_steps / (steps / wall)
-    out["bc_steps_per_s"] = min(out[f"bc_steps_per_s_{name}"] for name in models)
-    out["bc_last_loss"] = last
-    # Both nets' full schedules (train.epochs passes each), one after the other, at the measured rates.
-    out["bc_wall_s"] = total
-    init, step_chunk = bc.make_joint_trainer(models, train_cfg, n_rows)
-    (_, losses), first, wall = timed(lambda s: step_chunk(s, obs, actions, keys), init(keys))
-    out["bc_joint_steps_per_s"] = steps / wall  # gradient steps of each net per second, both nets at once
-    out["bc_joint_compile_s"] = first - wall
-    out["bc_joint_last_loss"] = {name: float(np.asarray(v)[:, -1].mean()) for name, v in losses.items()}
-    out["bc_joint_wall_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
-    # Both nets stacked in one program (`bc_stacked`): each layer of both one batched matmul, the
-    # gradient by `jax.grad` ("bc_stacked") or by the hand-written batched backward ("bc_stacked_batched").
-    for backward, key in (("autodiff", "bc_stacked"), ("batched", "bc_stacked_batched")):
-        init, step_chunk = bc_stacked.make_stacked_trainer(models, train_cfg, n_rows, backward=backward)
+    if "separate" in trainers:
+        total, last = 0.0, {}
+        for name, model in models.items():
+            init, step_chunk = bc.make_trainer(model, train_cfg, n_rows)
+            (_, loss), first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
+            out[f"bc_steps_per_s_{name}"] = steps / wall
+            out[f"bc_compile_s_{name}"] = first - wall
+            last[name] = float(np.asarray(loss)[:, -1].mean())
+            total += train_cfg.epochs * epoch_steps / (steps / wall)
+        out["bc_steps_per_s"] = min(out[f"bc_steps_per_s_{name}"] for name in models)
+        out["bc_last_loss"] = last
+        # Both nets' full schedules (train.epochs passes each), one after the other, at the measured rates.
+        out["bc_wall_s"] = total
+    # Both nets in one program: "bc_joint" one loop of both nets' steps; "bc_stacked" every layer of
+    # both one batched matmul, the gradient by `jax.grad`; "bc_stacked_batched" the same with the
+    # hand-written batched backward.
+    makers = {
+        "joint": ("bc_joint", lambda: bc.make_joint_trainer(models, train_cfg, n_rows)),
+        "stacked": ("bc_stacked", lambda: bc_stacked.make_stacked_trainer(models, train_cfg, n_rows)),
+        "stacked_batched": (
+            "bc_stacked_batched",
+            lambda: bc_stacked.make_stacked_trainer(models, train_cfg, n_rows, backward="batched"),
+        ),
+    }
+    for trainer, (key, make) in makers.items():
+        if trainer not in trainers:
+            continue
+        init, step_chunk = make()
         (_, losses), first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
-        out[f"{key}_steps_per_s"] = steps / wall
+        out[f"{key}_steps_per_s"] = steps / wall  # gradient steps of each net per second, both nets at once
         out[f"{key}_compile_s"] = first - wall
         out[f"{key}_last_loss"] = {name: float(np.asarray(v)[:, -1].mean()) for name, v in losses.items()}
         out[f"{key}_wall_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
@@ -286,6 +298,8 @@ def parse_args(argv=None):
                         help="config overrides, e.g. env.physics_dt=0.005")  # fmt: skip
     parser.add_argument("--out-dir", default="benchmarks/results")
     parser.add_argument("--skip", nargs="*", default=(), choices=("scene", "experts", "gae", "brax", "bc", "filter"))
+    parser.add_argument("--bc-trainers", nargs="+", default=list(BC_TRAINERS), choices=BC_TRAINERS,
+                        help="the BC loops timed (default: all)")  # fmt: skip
     parser.add_argument("--backends", nargs="+", default=list(kick_env.IMPLS), choices=kick_env.IMPLS,
                         help="physics backends measured side by side (the config's own is measured last)")  # fmt: skip
     args = parser.parse_args(argv)
@@ -297,7 +311,7 @@ def parse_args(argv=None):
     return args, cfg
 
 
-def sections(cfg, size: dict, backends, one) -> list:
+def sections(cfg, size: dict, backends, one, bc_trainers=BC_TRAINERS) -> list:
     """(name, measurement, where its result goes) in the order they run: a backend's sections
     go into `backends.<impl>`, the others into the record's top level. The config's own backend
     (`env.impl`) runs last, with the GAE variants, Brax and BC."""
@@ -323,7 +337,7 @@ def sections(cfg, size: dict, backends, one) -> list:
         ("gae", lambda: experts_gae(True), None),
         ("brax", lambda: bench_brax(cfg, size["brax_epochs"]), None),
         ("brax", lambda: bench_brax(cfg, size["brax_epochs"], all_tasks=True), None),
-        ("bc", lambda: bench_bc(cfg, size["bc_chunk"]), None),
+        ("bc", lambda: bench_bc(cfg, size["bc_chunk"], bc_trainers), None),
     ]
 
 
@@ -357,7 +371,7 @@ def main(argv=None) -> dict:
         "experts_ppo_projected_s", "experts_ppo_projected_s_gae_loop", "experts_ppo_projected_s_gae_unrolled",
         "bc_wall_s", "bc_joint_wall_s", "bc_stacked_wall_s", "bc_stacked_batched_wall_s",
     ]  # fmt: skip
-    for name, fn, into in sections(cfg, SIZES[args.preset], args.backends, one):
+    for name, fn, into in sections(cfg, SIZES[args.preset], args.backends, one, args.bc_trainers):
         if name in args.skip:
             continue
         part = fn()
