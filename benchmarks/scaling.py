@@ -223,6 +223,22 @@ def eta_s(spent: float, steps: list[tuple[int, str]], done: int) -> float:
     return spent * sum(weight[done:]) / max(sum(weight[:done]), 1)
 
 
+def add_measurement(record: dict, work: str, part: dict) -> dict:
+    """File one measurement (`measure`'s output for `work`) under its K in record["by_copies"], in
+    place, and return the record's top level: the entry of the K measured last (K ascends), with
+    the results contract's `experts_speedup` where the experts were measured at that K."""
+    k = part["copies_per_device"]
+    entry = next((e for e in record["by_copies"] if e["copies_per_device"] == k), None)
+    if entry is None:
+        record["by_copies"].append(entry := {"copies_per_device": k, "workload": part["workload"], "phases": {}})
+    entry["phases"][work] = part["phases"]
+    entry.update({key: v for key, v in part.items() if key != "phases"})
+    top = {**record, **{key: v for key, v in entry.items() if key != "phases"}}
+    if "experts_env_steps_speedup" in top:
+        top["experts_speedup"] = top["experts_env_steps_speedup"]
+    return top
+
+
 def main(argv=None) -> dict | None:
     args, cfg = parse_args(argv)
     if args.worker:
@@ -232,7 +248,7 @@ def main(argv=None) -> dict | None:
     size = bench.SIZES[args.preset]
     sizes = {**size, "bench_updates": args.updates or size["bench_updates"]}
     record: dict = {"devices": n, "layout": args.layout, "backend": cfg.env.impl, "sizes": sizes, "by_copies": []}
-    steps = [(k, w) for k in sorted(args.copies) for w in works]
+    steps = [(k, w) for k in sorted(set(args.copies)) for w in works]
     done = 0
 
     def say(line: str) -> None:
@@ -244,15 +260,7 @@ def main(argv=None) -> dict | None:
         for k, work in steps:
             part = measure(args, work, k, Path(tmp), say)
             done += 1
-            entry = next((e for e in record["by_copies"] if e["copies_per_device"] == k), None)
-            if entry is None:
-                record["by_copies"].append(entry := {"copies_per_device": k, "workload": n * k, "phases": {}})
-            entry["phases"][work] = part.pop("phases")
-            entry.update(part)
-            # the top level: the largest K measured so far (K ascends, so the last entry)
-            top = {**record, **{kk: v for kk, v in entry.items() if kk != "phases"}}
-            if "experts_env_steps_speedup" in top:  # the results contract's name for the headline ratio
-                top["experts_speedup"] = top["experts_env_steps_speedup"]
+            top = add_measurement(record, work, part)
             result = Path(tmp) / f"{work}.{k}.{n}" / "result.0.json"
             prov = json.loads(result.read_text())["provenance"]
             prov.update(n_devices=n, command=runio.command_line(), wall_s=round(time.perf_counter() - start, 3))

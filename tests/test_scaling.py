@@ -83,3 +83,21 @@ def test_the_eta_counts_what_is_left_by_its_copies():
     steps = [(1, "experts"), (1, "filter"), (4, "experts"), (4, "filter")]
     assert scaling.eta_s(100.0, steps, 2) == pytest.approx(400.0)  # 2 copies' worth took 100 s, 8 left
     assert scaling.eta_s(100.0, steps, 4) == 0.0
+
+
+def _part(work: str, k: int, one: float, two: float) -> dict:
+    key = scaling.WORKS[work]
+    return {"copies_per_device": k, "workload": 2 * k, key: {"1": one, "2": two},
+            key.replace("_per_s", "_speedup"): two / one, "phases": {"1": {}, "2": {}}}  # fmt: skip
+
+
+def test_the_record_keeps_every_k_and_its_top_level_is_the_largest_measured():
+    record = {"devices": 2, "by_copies": []}
+    scaling.add_measurement(record, "experts", _part("experts", 1, 100.0, 155.0))
+    top = scaling.add_measurement(record, "filter", _part("filter", 1, 10.0, 19.0))
+    assert top["experts_speedup"] == pytest.approx(1.55) and top["filter_rollouts_speedup"] == pytest.approx(1.9)
+    top = scaling.add_measurement(record, "experts", _part("experts", 4, 300.0, 570.0))
+    assert [e["copies_per_device"] for e in record["by_copies"]] == [1, 4]
+    assert top["workload"] == 8 and top["experts_env_steps_per_s"] == {"1": 300.0, "2": 570.0}
+    assert top["experts_speedup"] == pytest.approx(1.9) and "filter_rollouts_per_s" not in top  # not yet at K = 4
+    assert set(record["by_copies"][0]["phases"]) == {"experts", "filter"} and "phases" not in top
