@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# The BC section of the bench (`benchmarks/bench.py --bc-trainers ...`) under each of several XLA
+# flag sets, one process per set (XLA reads its flags when it starts). Each set's record goes to
+# OUT/<set>.json with the flags it ran under (`xla_flags`, as every record made with XLA_FLAGS set);
+# a set XLA refuses is reported and skipped. The BC loop is launch-bound (docs/decisions.md, BC):
+# the sets are ways to run its small kernels with fewer launches or side by side.
+#
+#   benchmarks/bc_flags.sh [OUT] [TRAINER ...]    (default OUT: runs/bc_flags; trainers: joint stacked_batched)
+#   PRESET=tiny benchmarks/bc_flags.sh runs/bc_flags_cpu   (a CPU smoke test of the script)
+set -uo pipefail
+out=${1:-runs/bc_flags}
+shift || true
+trainers=("$@")
+[ ${#trainers[@]} -gt 0 ] || trainers=(joint stacked_batched)
+buffers="--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL"
+declare -A sets=(
+  [none]=""
+  [graphs_concurrent]="$buffers --xla_gpu_graph_enable_concurrent_region=true"
+  [graphs_concurrent_mode]="$buffers --xla_gpu_command_buffer_scheduling_mode=CONCURRENT"
+  [triton_gemm]="--xla_gpu_triton_gemm_any=true"
+  [graphs_concurrent_triton]="$buffers --xla_gpu_graph_enable_concurrent_region=true --xla_gpu_triton_gemm_any=true"
+)
+mkdir -p "$out"
+for name in none graphs_concurrent graphs_concurrent_mode triton_gemm graphs_concurrent_triton; do
+  echo "== $name: ${sets[$name]:-no flags}"
+  if XLA_FLAGS="${sets[$name]}" python -m benchmarks.bench --preset "${PRESET:-paper}" --backends warp \
+      --skip scene experts gae brax filter --bc-trainers "${trainers[@]}" --out-dir "$out/$name" > "$out/$name.log" 2>&1; then
+    mv "$out/$name/training.json" "$out/$name.json" && rmdir "$out/$name"
+    python -c 'import json, sys; d = json.load(open(sys.argv[1]))
+print("  " + ", ".join(f"{k}: {v:.0f} s" for k, v in d.items() if k.startswith("bc_") and k.endswith("wall_s")))' "$out/$name.json"
+  else
+    echo "  failed: $(tail -n 1 "$out/$name.log")"
+  fi
+done
