@@ -39,7 +39,7 @@ from pathlib import Path
 from benchmarks import bench
 from bumps_jax import cli, config, runio
 
-# What each phase measures, the rate's key, and the name of the amount in `bench.Work`.
+# Each measured work and the record's key of its rate (`bench.Work.amount` per second).
 WORKS = {"experts": "experts_env_steps_per_s", "filter": "filter_rollouts_per_s"}
 LAYOUTS = ("processes", "mesh")
 # Seconds a worker may take to build and compile its program, and to run it once timed.
@@ -104,7 +104,7 @@ def combine(results: list[dict]) -> dict:
         "rate": amount / span,
         "amount": amount,
         "span_s": span,
-        # how long the processes ran together: the slowest's time over the span
+        # seconds during which every process was timing (the last start to the first end)
         "overlap": min(r["end"] for r in results) - max(r["start"] for r in results),
         "processes": [{k: r[k] for k in ("amount", "wall_s", "compile_s", "gpu", "device")} for r in results],
     }
@@ -190,7 +190,10 @@ def worker(args, cfg) -> None:
     jax.block_until_ready(work.run())
     first = time.perf_counter() - t0
     (folder / f"ready.{i}").touch()
+    deadline = time.monotonic() + COMPILE_TIMEOUT_S  # a launcher gone for good does not leave us waiting
     while not (folder / "go").exists():
+        if time.monotonic() > deadline:
+            raise ValueError(f"no start signal within {COMPILE_TIMEOUT_S:.0f} s")
         time.sleep(POLL_S)
     start = time.time()
     jax.block_until_ready(work.run())
