@@ -306,6 +306,15 @@ def speed_lines(bench: dict | None, scaling: dict | None, gae: dict | None = Non
             f"{scaling['filter_rollouts_speedup']:.2f}x, at {scaling.get('workload', 1)} times the paper's work "
             "(copies of every expert; filtering repetitions), measured on one device and on all in one run.",
         ]
+        others = [e for e in scaling.get("by_copies", []) if e["workload"] != scaling.get("workload")]
+        if others:  # the same run at other workloads: the ratio depends on how full one device is
+            nan = float("nan")
+            parts = [
+                f"{e['workload']} times, experts {e.get('experts_env_steps_speedup', nan):.2f}x, "
+                f"filtering {e.get('filter_rollouts_speedup', nan):.2f}x"
+                for e in others
+            ]
+            lines[-1] += f" The same run at other workloads: {'; '.join(parts)}."
     if gae and gae.get("experts_gae_unrolled_vs_loop"):
         lines += [
             "",

@@ -299,3 +299,7 @@ def test_the_scale_out_line_names_its_physics():
     assert "physics 2.5 ms, jax" in text and "190,000 env-steps/s on 2 devices vs 100,000 on one (1.90x)" in text
     assert "one process, a mesh of all" in text
     assert "one process per device" in "\n".join(report.speed_lines(bench, {**scaling, "layout": "processes"}))
+    runs = [{"workload": 2, "experts_env_steps_speedup": 1.55, "filter_rollouts_speedup": 1.94},
+            {"workload": 8, "experts_env_steps_speedup": 1.9, "filter_rollouts_speedup": 1.95}]  # fmt: skip
+    text = "\n".join(report.speed_lines(bench, {**scaling, "by_copies": runs}))
+    assert "The same run at other workloads: 2 times, experts 1.55x, filtering 1.94x." in text
