@@ -149,7 +149,7 @@ def pipeline_stages(command: str, chosen) -> tuple[str, ...]:
 
 def dispatch(args) -> None:
     """Run one parsed command; ValueError for every user mistake."""
-    from bumps_jax import config, pipeline  # noqa: PLC0415
+    from bumps_jax import config, pipeline, runio  # noqa: PLC0415
 
     known = (PIPELINES[args.command][1],) if args.command in PIPELINES else ("tiny", "paper")
     if args.preset not in known:
@@ -161,7 +161,8 @@ def dispatch(args) -> None:
     cfg = config.make_config(args.preset, task_overrides(overrides))
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, cfg.task)
     if section:
-        pipeline.run_stage(section, cfg, run_dir, force=args.force)
+        with runio.run_lock(run_dir):  # one command at a time writes stages into a run directory
+            pipeline.run_stage(section, cfg, run_dir, force=args.force)
     elif args.command in PIPELINES:
         stages = pipeline_stages(args.command, args.stages)
         if args.stages is not None:  # a named stage the task lacks is a mistake, not one to skip
@@ -169,7 +170,8 @@ def dispatch(args) -> None:
 
             for name in stages:
                 tasks.check_stage(cfg.task, name)
-        pipeline.run_pipeline(stages, cfg, run_dir, force=args.force)
+        with runio.run_lock(run_dir):
+            pipeline.run_pipeline(stages, cfg, run_dir, force=args.force)
     else:
         from bumps_jax import commands  # noqa: PLC0415
 

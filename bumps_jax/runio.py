@@ -213,6 +213,32 @@ def check_writable(directory: str | os.PathLike) -> Path:
     return directory
 
 
+@contextlib.contextmanager
+def run_lock(run_dir: str | os.PathLike):
+    """Hold run_dir/.lock while a command writes stages into `run_dir`: two processes in one run
+    directory would interleave its checkpoints and `pipeline.json`. ValueError at once, naming
+    the holder's process id, if another process holds it; the lock goes with the process that
+    holds it, however that process ends."""
+    import fcntl  # noqa: PLC0415 (POSIX only, as the rest of the tooling)
+
+    run_dir = check_writable(run_dir)
+    fd = os.open(run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise ValueError(
+                f"run directory {shown(run_dir)} is in use by another process (pid {holder}): run one command "
+                "at a time in it, or give this one its own --run-dir"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield run_dir
+    finally:
+        os.close(fd)  # releases the lock
+
+
 def save_figure(fig, path: str | os.PathLike) -> Path:
     """Save a matplotlib figure as PNG (tight layout, 120 dpi) and close it."""
     import matplotlib.pyplot as plt  # noqa: PLC0415

@@ -139,3 +139,21 @@ def test_nets_resume_from_the_newest_step_all_hold_and_drop_the_steps_past_it(tm
         step, restored = runio.restore_latest_common({"a": a, "b": b}, args)
         assert step == 2 and list(restored["a"]["w"]) == list(restored["b"]["w"]) == [2.0] * 3
         assert list(a.all_steps()) == [1, 2] and list(b.all_steps()) == [1, 2]
+
+
+def test_a_run_directory_in_use_by_another_process_is_refused_in_one_line(tmp_path):
+    hold = (
+        "import sys, time; from bumps_jax import runio\n"
+        "with runio.run_lock(sys.argv[1]):\n print('held', flush=True); time.sleep(60)"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", hold, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "held"
+        with pytest.raises(ValueError, match=rf"in use by another process \(pid {proc.pid}\): run one command"):
+            with runio.run_lock(tmp_path):
+                pass
+    finally:
+        proc.kill()
+        proc.wait()
+    with runio.run_lock(tmp_path) as run_dir:  # a killed holder leaves the directory free
+        assert (run_dir / ".lock").read_text().strip() == str(os.getpid())
