@@ -17,6 +17,7 @@ parses arguments or touches the process environment.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -160,8 +161,11 @@ def dispatch(args) -> None:
         overrides = {"task": args.task, **overrides}
     cfg = config.make_config(args.preset, task_overrides(overrides))
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, cfg.task)
+    # One command at a time writes stages into a run directory; with --distributed every host runs
+    # the same command into the same directory, by design.
+    lock = contextlib.nullcontext() if args.distributed else runio.run_lock(run_dir)
     if section:
-        with runio.run_lock(run_dir):  # one command at a time writes stages into a run directory
+        with lock:
             pipeline.run_stage(section, cfg, run_dir, force=args.force)
     elif args.command in PIPELINES:
         stages = pipeline_stages(args.command, args.stages)
@@ -170,7 +174,7 @@ def dispatch(args) -> None:
 
             for name in stages:
                 tasks.check_stage(cfg.task, name)
-        with runio.run_lock(run_dir):
+        with lock:
             pipeline.run_pipeline(stages, cfg, run_dir, force=args.force)
     else:
         from bumps_jax import commands  # noqa: PLC0415
