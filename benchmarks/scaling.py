@@ -71,6 +71,8 @@ def parse_args(argv=None):
     args = parser.parse_args(argv)
     if args.devices < 2:
         parser.error(f"--devices must be at least 2 (the scale-out of one device is itself), got {args.devices}")
+    if set(args.skip) >= set(WORKS):
+        parser.error(f"--skip leaves nothing to measure: it names every work ({', '.join(WORKS)})")
     if any(k < 1 for k in args.copies):
         parser.error(f"--copies must be positive integers, got {args.copies}")
     if args.updates is not None and args.updates < 1:
@@ -96,7 +98,7 @@ def layout_of(layout: str, m: int, n: int, k: int = 1) -> list[dict]:
 
 
 def combine(results: list[dict]) -> dict:
-    """One phase's measurement from its processes' records ({start, end, amount, compile_s}):
+    """One phase's measurement from its processes' records (`worker`'s: start, end, amount, ...):
     the total amount over the span from the first start to the last end."""
     span = max(r["end"] for r in results) - min(r["start"] for r in results)
     amount = sum(r["amount"] for r in results)
@@ -106,7 +108,10 @@ def combine(results: list[dict]) -> dict:
         "span_s": span,
         # seconds during which every process was timing (the last start to the first end)
         "overlap": min(r["end"] for r in results) - max(r["start"] for r in results),
-        "processes": [{k: r[k] for k in ("amount", "wall_s", "compile_s", "gpu", "device")} for r in results],
+        "processes": [
+            {**{k: r[k] for k in ("amount", "wall_s", "compile_s", "gpu")}, "device": r["provenance"]["device"]}
+            for r in results
+        ],
     }
 
 
@@ -200,7 +205,7 @@ def worker(args, cfg) -> None:
     end = time.time()
     record = {"start": start, "end": end, "wall_s": end - start, "compile_s": first - (end - start),
               "amount": work.amount, "detail": work.detail, "gpu": os.environ.get("CUDA_VISIBLE_DEVICES"),
-              "device": runio.device_name(), "provenance": runio.provenance(cfg.preset, 0.0, cfg.env)}  # fmt: skip
+              "provenance": runio.provenance(cfg.preset, 0.0, cfg.env)}  # fmt: skip
     runio.write_json(folder / f"result.{i}.json", record)
 
 

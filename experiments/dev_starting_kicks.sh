@@ -20,8 +20,9 @@
 #        the meta and filtering stages' GPU time, about 8 minutes, is saved)
 #   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
 #        | midpoint_weight=<w> | repetitions=<n> (noisy kicks per CMA-ES candidate) | restarts=<n> (runs of the
-#          whole tuning, the best kept) | keep=task (each task its cheapest run's kick)
-#        | polish_generations=<n> (one more tuning from keep=task's mixed kicks) | polish_sigma=<s> (its initial step) | env.<key>=<value> | meta.<key>=<value>
+#          whole tuning, the best kept) | keep=task (each task its cheapest run's kick) | keep=chain (the runs'
+#          kicks chosen together with the neighbour leash) | polish_generations=<n> (one more tuning
+#          from the mixed kicks) | polish_sigma=<s> (its initial step) | env.<key>=<value> | meta.<key>=<value>
 #        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
 #        | paper_budget (the preset's PPO and BC budgets, then filtering)
 #        | start=<anchor>[,spread] (every task starts from that prior anchor; spread: each at the strength
@@ -49,6 +50,8 @@ print(next((k.lower() for k in ("H100", "H200") if k in d), "cpu" if "cpu" in d.
     if [ -f "$run/$table.json" ]; then cp "$run/$table.json" "$out/${name}_${table#*/}_$device.json"; fi
   done
 }
+# An arm's name in file names: its parts with '=' and ',' as '_'.
+arm_name() { echo "${1//[=,]/_}"; }
 gpus=${GPUS:-1}
 if ! [[ $gpus =~ ^[1-9][0-9]*$ ]]; then echo "GPUS must be a positive integer, got '$gpus'" >&2; exit 2; fi
 if (( gpus > 1 && $# > 1 )); then
@@ -58,13 +61,14 @@ if (( gpus > 1 && $# > 1 )); then
   for arm in "$@"; do
     gpu=$(( i % gpus ))
     if (( i >= gpus )); then wait "${pids[$gpu]}" || failed=1; fi
-    echo "arm $arm on GPU $gpu: runs/dev_${arm//[=,]/_}.log"
-    CUDA_VISIBLE_DEVICES=$gpu GPUS=1 "$0" "$arm" > "runs/dev_${arm//[=,]/_}.log" 2>&1 &
+    log="runs/dev_$(arm_name "$arm").log"
+    echo "arm $arm on GPU $gpu: $log"
+    CUDA_VISIBLE_DEVICES=$gpu GPUS=1 "$0" "$arm" > "$log" 2>&1 &
     pids[$gpu]=$!
     i=$(( i + 1 ))
   done
   for pid in "${pids[@]}"; do wait "$pid" || failed=1; done
-  for arm in "$@"; do tail -n 3 "runs/dev_${arm//[=,]/_}.log"; done
+  for arm in "$@"; do tail -n 3 "runs/dev_$(arm_name "$arm").log"; done
   exit $failed
 fi
 for arm in "$@"; do
@@ -89,7 +93,7 @@ for arm in "$@"; do
     esac
   done
   seeds=(experts.eval.seed=$seed experts.tune.seed=$seed experts.seed=$seed meta.eval.seed=$seed filter.seed=$seed)
-  name=${arm//[=,]/_}
+  name=$(arm_name "$arm")
   run="runs/dev_$name"
   for stage in $stages; do
     python -m bumps_jax "$stage" --preset paper --run-dir "$run" --set "${common[@]}" "${budget[@]}" "${seeds[@]}" "${sets[@]}"

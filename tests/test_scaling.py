@@ -24,9 +24,11 @@ def test_one_device_and_n_devices_do_the_same_work(layout, k):
 
 def test_a_phase_counts_its_work_over_the_span_of_all_its_processes():
     parts = [
-        {"start": 10.0, "end": 14.0, "amount": 400, "wall_s": 4.0, "compile_s": 30.0, "gpu": "0", "device": "d"},
-        {"start": 10.5, "end": 15.0, "amount": 400, "wall_s": 4.5, "compile_s": 31.0, "gpu": "1", "device": "d"},
-    ]
+        {"start": 10.0, "end": 14.0, "amount": 400, "wall_s": 4.0, "compile_s": 30.0, "gpu": "0",
+         "provenance": {"device": "d"}},
+        {"start": 10.5, "end": 15.0, "amount": 400, "wall_s": 4.5, "compile_s": 31.0, "gpu": "1",
+         "provenance": {"device": "d"}},
+    ]  # fmt: skip
     out = scaling.combine(parts)
     assert out["amount"] == 800 and out["span_s"] == pytest.approx(5.0)
     assert out["rate"] == pytest.approx(160.0)  # not 400 / 4 + 400 / 4.5: the processes did not start together
@@ -46,6 +48,7 @@ def test_each_process_sees_only_its_gpu(monkeypatch):
         (["--devices", "1"], "--devices must be at least 2"),
         (["--updates", "0"], "--updates must be a positive integer"),
         (["--copies", "1", "0"], "--copies must be positive integers, got [1, 0]"),
+        (["--skip", "experts", "filter"], "--skip leaves nothing to measure"),
         (["--set", "env.impl=bullet"], "env.impl must be one of"),
         (["--layout", "ring"], "invalid choice: 'ring'"),
     ],
