@@ -35,7 +35,9 @@ short_budget=(experts.ppo.total_env_steps=480000 experts.updates_per_chunk=25 me
 common=("meta.eval.tasks=$tasks" "filter.tasks=$tasks"
         experts.tune.scheme=per_task experts.bc.per_task_strength=true experts.tune.anchor_starts=true
         experts.tune.start_leash=0 experts.tune.neighbour_leash=0 experts.tune.midpoint_weight=0
-        experts.bc.common_start=main experts.bc.common_start_strength=false)
+        experts.bc.common_start=main experts.bc.common_start_strength=false
+        experts.tune.restarts=1 experts.tune.keep=run experts.tune.polish_generations=0
+        experts.tune.polish_sigma=2.0)
 # Copy the arm's finished records (experts, table1, table2) out of its run directory; called after
 # every stage, so an arm stopped part way keeps the records of the stages it finished.
 copy_records() {
