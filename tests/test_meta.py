@@ -358,6 +358,8 @@ def test_meta_stage_writes_table1(stage_run):
         assert set(saved["timings"][net]) == {"train_wall_s", "eval_wall_s"}
         with open(stage_run["dir"] / "meta" / net / "progress.csv") as f:
             assert [int(r["epoch"]) for r in csv.DictReader(f)] == [2, 4]
+        # two chunks wrote two checkpoints; the finished stage keeps the newest (the trained net)
+        assert len([p for p in (stage_run["dir"] / "meta" / net / "checkpoints").iterdir() if p.name.isdigit()]) == 1
     assert (stage_run["dir"] / "meta" / "table1.md").read_text() == tables.table1_markdown(saved["rows"])
 
 

@@ -9,7 +9,8 @@
 3. Evaluation, unfiltered: every net on `meta.eval.tasks` x `meta.eval.repetitions` noisy kicks
    with context = target (`rollout.grid_fn`); the experts' row comes from their own record.
 
-Writes run_dir/meta/: dataset.npz, <net>/progress.csv, <net>/checkpoints/, table1.json, table1.md.
+Writes run_dir/meta/: dataset.npz, <net>/progress.csv, <net>/checkpoints/ (only the newest once
+table1.json is written), table1.json, table1.md.
 """
 
 from __future__ import annotations
@@ -293,6 +294,10 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         payload.update(task=cfg.task, unit=env.UNIT, obs_size=int(data.obs.shape[-1]), n_actions=env.action_size,
                        obs_shift=list(shift), obs_scale=list(scale))  # fmt: skip
     runio.write_json(stage_dir / OUTPUT, payload)
+    # From here on each net is read from its newest checkpoint (the trained policy): the older
+    # ones go, as the experts' and the baseline's do once their records are written.
+    for name in models:
+        runio.keep_newest_checkpoint(stage_dir / name / "checkpoints")
     markdown = tables.table1_markdown(rows) if cfg.task == "kick" else tables.task_table1_markdown(rows, env.UNIT)
     runio.write_text(stage_dir / "table1.md", markdown)
     return runio.json_safe(payload)
