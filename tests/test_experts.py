@@ -256,6 +256,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
     assert not any("behaviour cloning" in s for s in said)  # cloning came from the checkpoint
     record = json.loads((tmp_path / "split" / "experts" / "starting_kicks.json").read_text())
     assert record["tuned"] and np.asarray(record["params"]).shape == (2, kick_model.N_PARAMS)
+    assert record["prior"] == "assets/kick_prior.json"  # as the checkout names it, not the machine's folder
     _same_trees(whole["state"], resumed["state"])
     # The interrupted run tuned on the whole run's inputs, bit for bit; the resumed one did not tune.
     assert len(tuned) >= 4 and tuned[len(tuned) // 2 :] == tuned[: len(tuned) // 2], tuned

@@ -241,7 +241,7 @@ def initial_state(cfg, run_dir: Path, programs: Compiled, say=print):
     if path == kick_model.ASSET:  # keep the prior this run started from: a rerun must not read a newer asset
         runio.write_text(stage_dir / PRIOR, path.read_text())
     kicks, info = starting_kicks.starting_kicks(cfg, record, say, keep_dir=stage_dir / TUNING)
-    runio.write_json(stage_dir / "starting_kicks.json", {**info, "prior": str(path)})
+    runio.write_json(stage_dir / "starting_kicks.json", {**info, "prior": runio.shown(path)})
     tasks = np.asarray(cfg.experts.tasks, np.float32)
     state, bc_losses = run_init(programs, task_rngs(cfg.experts.seed, len(tasks)), tasks, kicks)
     say(f"behaviour cloning: final mse per task {np.asarray(bc_losses[:, -1]).round(6).tolist()} rad^2")
