@@ -82,7 +82,7 @@ def test_a_neighbour_leash_pulls_tasks_into_a_chain():
     with pytest.raises(ValueError, match="experts.tune.neighbour_leash must be a number >= 0, got -0.5"):
         config.make_config("tiny", {"experts.tune.neighbour_leash": -0.5})
     with pytest.raises(ValueError, match="neighbour_leash applies to the 'per_task' scheme only"):
-        config.make_config("paper", {"experts.tune.scheme": "family"})
+        config.make_config("tiny", {"experts.tune.scheme": "family", "experts.tune.neighbour_leash": 1.0})
 
 
 def test_each_task_meets_its_neighbours_in_target_order():

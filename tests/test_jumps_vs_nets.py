@@ -42,6 +42,6 @@ def test_spearman_ranks():
 
 def test_too_few_arms_is_one_line(capsys):
     with pytest.raises(SystemExit) as stop:
-        jv.main(["--device", "h200"])
+        jv.main(["--device", "a100"])
     assert stop.value.code == 2
-    assert "0 arm(s) with experts and table1 records of device 'h200'" in capsys.readouterr().err
+    assert "0 arm(s) with experts and table1 records of device 'a100'" in capsys.readouterr().err

@@ -25,7 +25,8 @@ KICK_SECTIONS = {
         "prior": "e38b970f96217601c6ed4c31aff219830db04d78627ad7239a92aca0fb1dfadc",
         # re-pinned when the paper's starting kicks became one chain from the long kick, each task's
         # copy at its own strength (2026-11-24)
-        "experts": "52666479a8142d4d0b3bb3aaa618b4db495b15f6c5a023e9616bb106f79d82e5",
+        # and again when its tuning became four runs kept as a chain with a polish (2026-11-26)
+        "experts": "274b8aa4f2e13270f8f4cca43eb69628c983760a639444f2ff8031ace4c2af1a",
         # re-pinned when the paper preset's meta-policies began to train stacked, with the batched
         # backward (`meta.trainer`, 2026-11-25): a paper run's meta stage made before retrains
         "meta": "6d73862bf1f83bab736391a5cb2d80f8e09515b0bd4e82de452924dfb00b4ed2",
