@@ -235,8 +235,8 @@ def _dev() -> ml_collections.ConfigDict:
 
 
 def default_config() -> ml_collections.ConfigDict:
-    """The whole tree at its defaults (unlocked): the paper's values, on which `PRESETS["paper"]`
-    sets the few knobs that differ for the paper run on a GPU only (a CPU preset keeps these)."""
+    """The whole tree at its defaults (unlocked): the paper's values. `PRESETS["paper"]` changes
+    the few knobs that only pay on a GPU; the tiny preset, for a CPU, keeps their defaults."""
     cfg = ml_collections.ConfigDict()
     cfg.preset = "paper"
     # The contextual task every stage runs: "kick" (the paper's) or "cheetah_vel" (its sections:
@@ -279,10 +279,10 @@ PRESETS: dict[str, dict] = {
         # optimisation, 361 s against 404-411 s on one H100 (docs/decisions.md, meta.trainer).
         "meta.trainer": "stacked_batched",
         # Four independent tunings of the starting kicks, each task's kick chosen among them with
-        # the neighbour leash, then a 20-generation polish at a step of 0.25: on development seeds
-        # 102 and 103 at the paper budget, experts 0.33 m and unfiltered nets 0.44-0.45 / 0.36 m
-        # against 0.38-0.43 / 0.42-0.48 m for one run kept whole (docs/decisions.md, tune.restarts).
-        # The tuning costs about 4 x 50 s more on one H100; on a CPU (tiny) one run stays.
+        # the neighbour leash, then a 20-generation polish at a step of 0.25. On development seeds
+        # 102 and 103 at the paper budget: experts 0.33 m, unfiltered 4x256 0.44-0.45 m and 11x128
+        # 0.36 m, where seed 102's other tunings gave 0.35-0.43, 0.49-0.65 and 0.42-0.48 m
+        # (docs/decisions.md, tune.restarts). The experts stage takes about 935 s instead of 762.
         "experts.tune.restarts": 4,
         "experts.tune.keep": "chain",
         "experts.tune.polish_generations": 20,
