@@ -172,8 +172,6 @@ def experts(e, task_range, n_steps: int) -> None:
             "set experts.bc.per_task_strength to false"
         )
     positive_ints(e.tune, "experts.tune.", ("repetitions", "eval_repetitions", "population_size", "restarts"))
-    if e.tune.restarts > 1 and e.tune.scheme == "family":
-        raise ValueError("experts.tune.restarts applies to the 'per_task' scheme only; with 'family' set it to 1")
     if e.tune.keep not in TUNE_KEEPS:
         raise ValueError(f"experts.tune.keep must be one of {TUNE_KEEPS}, got {e.tune.keep!r}")
     polish = e.tune.polish_generations
@@ -194,8 +192,13 @@ def experts(e, task_range, n_steps: int) -> None:
         weight = e.tune[name]
         if isinstance(weight, bool) or not isinstance(weight, int | float) or not weight >= 0:
             raise ValueError(f"experts.tune.{name} must be a number >= 0, got {weight!r}")
-        if weight > 0 and e.tune.scheme == "family":
-            raise ValueError(f"experts.tune.{name} applies to the 'per_task' scheme only; with 'family' set it to 0")
+    if e.tune.scheme == "family":
+        # The per-task knobs, each at the value that turns it off: all named in one line, so that
+        # switching a preset that uses several of them (the paper's) takes one try.
+        neutral = {"restarts": 1, "polish_generations": 0, "start_leash": 0, "neighbour_leash": 0, "midpoint_weight": 0}
+        on = [f"experts.tune.{k}={v}" for k, v in neutral.items() if e.tune[k] != v]
+        if on:
+            raise ValueError(f"experts.tune.scheme 'family' has no per-task tuning knobs: set {', '.join(on)}")
     if isinstance(e.tune.knots, bool) or e.tune.knots < 2:
         raise ValueError(f"experts.tune.knots must be an integer >= 2, got {e.tune.knots!r}")
     if e.tune.scheme == "family" and len(set(e.tasks)) < 2:

@@ -81,8 +81,12 @@ def test_a_neighbour_leash_pulls_tasks_into_a_chain():
     np.testing.assert_array_equal(result.mean[:, 1:], x0[:, 1:])
     with pytest.raises(ValueError, match="experts.tune.neighbour_leash must be a number >= 0, got -0.5"):
         config.make_config("tiny", {"experts.tune.neighbour_leash": -0.5})
-    with pytest.raises(ValueError, match="neighbour_leash applies to the 'per_task' scheme only"):
+    with pytest.raises(ValueError, match=r"'family' has no per-task tuning knobs: set experts.tune.neighbour_leash=0$"):
         config.make_config("tiny", {"experts.tune.scheme": "family", "experts.tune.neighbour_leash": 1.0})
+    # the paper preset uses three of the per-task knobs: all are named at once
+    expected = "set experts.tune.restarts=1, experts.tune.polish_generations=0, experts.tune.neighbour_leash=0$"
+    with pytest.raises(ValueError, match=expected):
+        config.make_config("paper", {"experts.tune.scheme": "family"})
 
 
 def test_each_task_meets_its_neighbours_in_target_order():
