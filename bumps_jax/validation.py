@@ -193,10 +193,14 @@ def experts(e, task_range, n_steps: int) -> None:
         if isinstance(weight, bool) or not isinstance(weight, int | float) or not weight >= 0:
             raise ValueError(f"experts.tune.{name} must be a number >= 0, got {weight!r}")
     if e.tune.scheme == "family":
-        # The per-task knobs, each at the value that turns it off: all named in one line, so that
-        # switching a preset that uses several of them (the paper's) takes one try.
-        neutral = {"restarts": 1, "polish_generations": 0, "start_leash": 0, "neighbour_leash": 0, "midpoint_weight": 0}
-        on = [f"experts.tune.{k}={v}" for k, v in neutral.items() if e.tune[k] != v]
+        # The per-task knobs that are on, each named with the value that turns it off (the value
+        # the code behaved as before the knob existed): all in one line, so that switching a
+        # preset that uses several of them (the paper's) takes one try.
+        from bumps_jax.config import ADDED_KNOBS  # noqa: PLC0415 (config imports this module)
+
+        per_task = ("restarts", "polish_generations", "start_leash", "neighbour_leash", "midpoint_weight")
+        off = {k: ADDED_KNOBS[f"experts.tune.{k}"] for k in per_task}
+        on = [f"experts.tune.{k}={v:g}" for k, v in off.items() if e.tune[k] != v]
         if on:
             raise ValueError(f"experts.tune.scheme 'family' has no per-task tuning knobs: set {', '.join(on)}")
     if isinstance(e.tune.knots, bool) or e.tune.knots < 2:
