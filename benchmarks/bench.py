@@ -16,7 +16,8 @@ Every time is a program's second call (its first compiles); compile times are re
 Wall times of whole stages computed from a measured rate are listed under `projections`.
 Results are written after each section, so a run cut short keeps what it measured.
 
-    python -m benchmarks.bench --preset paper                        # GPU: benchmarks/results/*.json
+    python -m benchmarks.bench --preset paper                        # GPU: benchmarks/results/training.json
+    python -m benchmarks.bench --skip scene experts brax bc filter --record experts_gae   # some sections, own record
     python -m benchmarks.bench --preset tiny --out-dir runs/bench    # CPU smoke test
 """
 
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import re
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -297,12 +299,17 @@ def parse_args(argv=None):
     parser.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
                         help="config overrides, e.g. env.physics_dt=0.005")  # fmt: skip
     parser.add_argument("--out-dir", default="benchmarks/results")
+    parser.add_argument("--record", default="training",
+                        help="the record's file name in --out-dir, without .json: a bench of some sections "
+                             "(--skip) keeps its own record, e.g. --record experts_gae")  # fmt: skip
     parser.add_argument("--skip", nargs="*", default=(), choices=("scene", "experts", "gae", "brax", "bc", "filter"))
     parser.add_argument("--bc-trainers", nargs="+", default=list(BC_TRAINERS), choices=BC_TRAINERS,
                         help="the BC loops timed (default: all)")  # fmt: skip
     parser.add_argument("--backends", nargs="+", default=list(kick_env.IMPLS), choices=kick_env.IMPLS,
                         help="physics backends measured side by side (the config's own is measured last)")  # fmt: skip
     args = parser.parse_args(argv)
+    if not re.fullmatch(r"[A-Za-z0-9_.-]+", args.record) or args.record.endswith(".json"):
+        parser.error(f"--record {args.record!r}: a file name without folders or .json (letters, digits, '_', '.', '-')")
     try:
         cfg = config.make_config(args.preset, cli.parse_overrides(args.set))
         runio.check_writable(args.out_dir)
@@ -381,7 +388,8 @@ def main(argv=None) -> dict:
         ratios(training, own)
         print(f"[bench] {name}{f' ({into})' if into else ''} done at {time.perf_counter() - start:.0f} s", flush=True)
         prov = runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env)
-        runio.write_json(out_dir / "training.json", {**training, **prov})  # after each section: a cut run keeps it
+        # Written after each section: a run cut short keeps what it measured.
+        runio.write_json(out_dir / f"{args.record}.json", {**training, **prov})
     return training
 
 

@@ -27,3 +27,20 @@ def test_the_scaled_experts_workload_gets_a_contact_pool_to_match():
     assert len(cut.experts.tasks) == 8 * len(paper.experts.tasks)
     assert cut.env.warp_contacts == 8 * paper.env.warp_contacts
     assert bench.expert_config(paper, updates=1).env.warp_contacts == paper.env.warp_contacts
+
+
+def test_a_bench_of_some_sections_writes_its_own_record_and_refuses_a_path_for_a_name(tmp_path, capsys):
+    import json
+
+    from benchmarks import bench
+
+    skip = ["--skip", "experts", "gae", "brax", "filter", "scene"]
+    bench.main(["--preset", "tiny", "--backends", "jax", *skip, "--bc-trainers", "joint",
+                "--out-dir", str(tmp_path), "--record", "bc_probe"])  # fmt: skip
+    assert [p.name for p in tmp_path.iterdir()] == ["bc_probe.json"]  # not training.json
+    record = json.loads((tmp_path / "bc_probe.json").read_text())
+    assert record["bc_joint_steps_per_s"] > 0 and record["preset"] == "tiny"
+    for bad in ("../training", "bc.json", "a/b"):
+        with pytest.raises(SystemExit):
+            bench.parse_args(["--record", bad, "--out-dir", str(tmp_path)])
+        assert f"--record {bad!r}" in capsys.readouterr().err
