@@ -24,8 +24,8 @@ mkdir -p "$out"
 for name in none graphs_concurrent graphs_concurrent_mode triton_gemm graphs_concurrent_triton; do
   echo "== $name: ${sets[$name]:-no flags}"
   if XLA_FLAGS="${sets[$name]}" python -m benchmarks.bench --preset "${PRESET:-paper}" --backends warp \
-      --skip scene experts gae brax filter --bc-trainers "${trainers[@]}" --out-dir "$out/$name" > "$out/$name.log" 2>&1; then
-    mv "$out/$name/training.json" "$out/$name.json" && rmdir "$out/$name"
+      --skip scene experts gae brax filter --bc-trainers "${trainers[@]}" --out-dir "$out" --record "$name" \
+      > "$out/$name.log" 2>&1; then
     python -c 'import json, sys; d = json.load(open(sys.argv[1]))
 print("  " + ", ".join(f"{k}: {v:.0f} s" for k, v in d.items() if k.startswith("bc_") and k.endswith("wall_s")))' "$out/$name.json"
   else
