@@ -291,7 +291,7 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
         for name in names:
             runio.trim_csv(out_dirs[name] / "progress.csv", CSV_FIELDS, "step", done)
         obs, actions = jnp.asarray(data.obs), jnp.asarray(data.actions)  # resident on the device
-        first, done_chunks, start = done, 0, time.perf_counter()
+        done_chunks, pace = 0, runio.Clock(total_steps)
         with runio.stop_on_interrupt(say) as stop:
             while done < total_steps and (max_chunks is None or done_chunks < max_chunks):
                 t0 = time.perf_counter()
@@ -306,7 +306,7 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
                 for manager in managers.values():
                     manager.wait_until_finished()
                 done, done_chunks = rows[names[0]]["step"], done_chunks + 1
-                eta = runio.eta(done - first, total_steps - first, time.perf_counter() - start)
+                eta = pace.tick(done)
                 row = rows[names[0]]
                 if len(names) == 1:
                     loss = f"loss {row['loss_mean']:.4f}  (last {row['loss_last']:.4f})"

@@ -180,7 +180,7 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
     carry = jax.tree.map(lambda x: x.astype(x.dtype), carry)
     x0, targets, scale, leash = sharding.place((x0, targets, scale, leash), search.mesh)
     centre, extra = x0, sharding.place(extra, search.mesh)
-    history, clock = [], _Clock(generations)
+    history, pace = [], runio.Clock(generations)
 
     def follow(fn, carry):  # fn of every search's current CMA-ES mean params, padded and placed
         means = x0[:n] + scale[:n] * carry.es.mean[:n].reshape(x0[:n].shape)
@@ -207,27 +207,12 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
             on_generation(gen, stats)
         say(f"{label} gen {gen + 1}/{generations}  best cost {stats.best.mean():.3f} (worst search "
             f"{stats.best.max():.3f})  population mean {stats.mean.mean():.3f}  valid {stats.valid.mean():.2f}  "
-            f"{clock.tick(gen)}")  # fmt: skip
+            f"{pace.tick(gen + 1)}")  # fmt: skip
     es, best_cost, best = sharding.unpad(tuple(carry), n)
     mean = kick_model.clip_params(x0[:n] + scale[:n] * es.mean.reshape(x0[:n].shape))
     names = Stats._fields
     hist = {k: np.asarray([getattr(s, k) for s in history]).reshape(generations, n) for k in names}
     return Result(np.asarray(mean), np.asarray(best), np.asarray(best_cost), hist, key)
-
-
-class _Clock:
-    """Elapsed time and an ETA from the generations after the first (which includes compiling)."""
-
-    def __init__(self, total: int):
-        self.total, self.t0, self.t1 = total, time.perf_counter(), None
-
-    def tick(self, gen: int) -> str:
-        now = time.perf_counter()
-        if gen == 0:
-            self.t1 = now
-            return f"{now - self.t0:.0f} s (compile included)"
-        eta = (now - self.t1) / gen * (self.total - 1 - gen)
-        return f"{now - self.t0:.0f} s, ETA {eta:.0f} s"
 
 
 # -- what the stages call ------------------------------------------------------------------------

@@ -349,12 +349,30 @@ def restore_latest_common(managers: dict, restore_args: dict, say=print) -> tupl
 # -- long loops -------------------------------------------------------------------------------
 
 
-def eta(done: int, total: int, elapsed_s: float) -> str:
-    """'12.3 s, ETA 45 s' after `done` of `total` units of work took `elapsed_s`."""
-    if done <= 0:
-        return f"{elapsed_s:.1f} s"
-    left = elapsed_s / done * max(total - done, 0)
-    return f"{elapsed_s:.1f} s, ETA {left:.0f} s" if left < 120 else f"{elapsed_s:.1f} s, ETA {left / 60:.1f} min"
+def _seconds(s: float) -> str:
+    return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min"
+
+
+class Clock:
+    """The time part of a long loop's progress line: seconds since `since` (default: the clock's
+    start) and an ETA from the loop's own pace. The first tick says it includes compiling (a loop's
+    first chunk compiles its program); from the second on, the ETA comes from the chunks after the
+    first, so neither the compile nor any work before the loop (a stage's setup, say) inflates it.
+    total: the units of work the loop ends at (`tick` is given the units done so far)."""
+
+    def __init__(self, total: int, since: float | None = None):
+        self.total, self.since, self.mark = total, time.perf_counter() if since is None else since, None
+
+    def tick(self, done: int) -> str:
+        now = time.perf_counter()
+        elapsed = f"{now - self.since:.1f} s"
+        if self.mark is None:
+            self.mark = (done, now)
+            return f"{elapsed} (compile included)"
+        (d0, t0), left = self.mark, max(self.total - done, 0)
+        if done <= d0:
+            return elapsed
+        return f"{elapsed}, ETA {_seconds((now - t0) / (done - d0) * left)}"
 
 
 class _StopFlag:
@@ -441,7 +459,7 @@ def train_in_chunks(stage_dir: Path, loop: ChunkedTraining, total: int, keep: in
         clock = {"0": time.perf_counter() - start}
         write_json(clock_path, clock)
         progress.unlink(missing_ok=True)
-    first, chunks = loop.updates(state), 0
+    chunks, pace = 0, Clock(total, since=start)
     with stop_on_interrupt(say) as stop:
         while loop.updates(state) < total and (max_chunks is None or chunks < max_chunks):
             before = loop.updates(state)
@@ -454,7 +472,7 @@ def train_in_chunks(stage_dir: Path, loop: ChunkedTraining, total: int, keep: in
             clock[str(update)] = previous + time.perf_counter() - start
             write_json(clock_path, clock)
             chunks += 1
-            say(loop.line(metrics, update, eta(update - first, total - first, time.perf_counter() - start)), flush=True)
+            say(loop.line(metrics, update, pace.tick(update)), flush=True)
             stop.check()
     manager.close()
     call_s = time.perf_counter() - start

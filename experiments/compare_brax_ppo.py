@@ -355,17 +355,15 @@ def _stack(trees):
 
 class Progress:
     """Progress lines with an ETA, counting updates: ours' (every seed in one program) count once,
-    Brax's once per seed, so `total` is n_updates x (1 + seeds). Compiling makes the first ETA long."""
+    Brax's once per seed, so `total` is n_updates x (1 + seeds). Each Brax seed compiles again, so
+    the ETA runs long while Brax's seeds remain."""
 
     def __init__(self, total_updates: int, say=print):
-        self.total, self.done, self.say, self.start = total_updates, 0, say, time.perf_counter()
+        self.total, self.done, self.say, self.pace = total_updates, 0, say, runio.Clock(total_updates)
 
     def __call__(self, updates: int, text: str) -> None:
         self.done += updates
-        elapsed = time.perf_counter() - self.start
-        self.say(
-            f"  {text}  [{self.done}/{self.total} updates, {runio.eta(self.done, self.total, elapsed)}]", flush=True
-        )
+        self.say(f"  {text}  [{self.done}/{self.total} updates, {self.pace.tick(self.done)}]", flush=True)
 
 
 def run_ours_cheetah(cfg, env: TimeLimited, seeds, eval_every: int, progress: Progress) -> dict:

@@ -157,3 +157,27 @@ def test_a_run_directory_in_use_by_another_process_is_refused_in_one_line(tmp_pa
         proc.wait()
     with runio.run_lock(tmp_path) as run_dir:  # a killed holder leaves the directory free
         assert (run_dir / ".lock").read_text().strip() == str(os.getpid())
+
+
+def test_the_progress_clock_takes_its_eta_from_the_chunks_after_the_first(monkeypatch):
+    """A stage that spent 300 s before its loop (a tuning), then a first chunk of 25 updates that
+    compiled (40 s), then chunks of 25 updates in 25 s each: the ETA is 1 s an update, not the
+    13.6 s an update of everything so far."""
+    now = [0.0]
+    monkeypatch.setattr(runio.time, "perf_counter", lambda: now[0])
+    start = now[0]
+    now[0] = 300.0
+    pace = runio.Clock(100, since=start)
+    now[0] += 40.0
+    assert pace.tick(25) == "340.0 s (compile included)"
+    now[0] += 25.0
+    assert pace.tick(50) == "365.0 s, ETA 50 s"
+    now[0] += 25.0
+    assert pace.tick(75) == "390.0 s, ETA 25 s"
+    now[0] += 25.0
+    assert pace.tick(100) == "415.0 s, ETA 0 s"
+    long = runio.Clock(10_000)
+    now[0] += 1.0
+    long.tick(1)
+    now[0] += 1.0
+    assert long.tick(2).endswith("ETA 166.6 min")  # minutes past two of them
