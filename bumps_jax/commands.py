@@ -37,6 +37,15 @@ def publish(cfg, run_dir: Path, args) -> None:
     from bumps_jax import pipeline, tasks  # noqa: PLC0415
     from bumps_jax import publish as publish_mod  # noqa: PLC0415
 
+    # A run with a stage unfinished would leave that stage's committed record from an older run
+    # beside the new ones (and the report would set them side by side): refused, naming them.
+    missing = pipeline.unfinished(run_dir, tasks.STAGES[cfg.task])
+    if missing:
+        records = ", ".join(f"{m}/{pipeline.stage_module(m).OUTPUT}" for m in missing)
+        raise ValueError(
+            f"not published: {runio.shown(run_dir)} has not finished {', '.join(missing)} (no {records}); "
+            "rerun the same reproduce to finish it"
+        )
     if cfg.task != "kick":
         for path in publish_mod.publish_task(run_dir, cfg.task):
             print(f"wrote {path}")

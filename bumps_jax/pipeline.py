@@ -53,6 +53,11 @@ def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]
     return wanted, status
 
 
+def unfinished(run_dir: Path, stages) -> list[str]:
+    """The stages of `stages` whose record `run_dir` lacks (never run, or stopped before the end)."""
+    return [name for name in stages if not (Path(run_dir) / name / stage_module(name).OUTPUT).exists()]
+
+
 def run_stage(name: str, cfg, run_dir: Path, force: bool = False, say=print) -> dict:
     """Run (or resume, or reuse) one stage; returns its record. With `force`, a stage whose
     outputs were made otherwise is wiped with every stage after it, and recomputed."""

@@ -241,3 +241,22 @@ def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, stages, 
     assert "calls that were killed" in report.pipeline_lines(record, {"experts": 1000.0, "meta": 5000.0})[1]
     # A stage the record does not count (run by its own command) is not compared.
     assert not any("calls that were killed" in line for line in report.pipeline_lines(record, {"baseline": 5000.0}))
+
+
+def test_publishing_refuses_a_run_with_a_stage_unfinished(tmp_path, stages):
+    """A run stopped before its last stage is not published: the committed record of that stage
+    would stay from an older run beside the new ones, and the report would set them side by side."""
+    from bumps_jax import commands, tasks
+
+    log, modules = stages
+    for name in tasks.STAGES["kick"]:
+        modules.setdefault(name, fake_stage(name, log))
+    for name in ("prior", "experts", "meta", "filter", "heldout"):
+        pipeline.run_stage(name, cfg(), tmp_path)
+    (tmp_path / "baseline").mkdir()  # started, stopped before its record
+    assert pipeline.unfinished(tmp_path, tasks.STAGES["kick"]) == ["baseline"]
+    with pytest.raises(ValueError, match=r"not published: .* has not finished baseline \(no baseline/out.json\)"):
+        commands.publish(cfg(), tmp_path, None)
+    assert not (tmp_path / "report.md").exists()
+    pipeline.run_stage("baseline", cfg(), tmp_path)
+    assert pipeline.unfinished(tmp_path, tasks.STAGES["kick"]) == []
