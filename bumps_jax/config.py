@@ -254,24 +254,6 @@ def default_config() -> ml_collections.ConfigDict:
     return cfg
 
 
-# Knobs added to the tree after runs were made, each at the value that behaves as the code did
-# before it: a stage manifest without the knob is the same run where the knob has that value
-# (pipeline.check_manifest); at any other value, a preset's default included, the stage is stale.
-ADDED_KNOBS = {
-    "experts.tune.start_leash": 0.0,
-    "experts.tune.neighbour_leash": 0.0,
-    "experts.tune.midpoint_weight": 0.0,
-    "experts.tune.restarts": 1,
-    "meta.trainer": "separate",
-    "experts.tune.keep": "run",
-    "experts.tune.polish_generations": 0,
-    "experts.tune.polish_sigma": 2.0,
-    "experts.bc.common_start": "main",
-    "experts.bc.common_start_strength": False,
-    "experts.ppo.unroll_gae": False,
-    "baseline.ppo.unroll_gae": False,
-}
-
 # Each preset: dotted overrides of the defaults (the paper's values).
 PRESETS: dict[str, dict] = {
     "paper": {

@@ -23,7 +23,7 @@ import shutil
 import time
 from pathlib import Path
 
-from bumps_jax import config, runio, tasks
+from bumps_jax import added_knobs, config, runio, tasks
 
 MANIFEST = "stage.json"  # each stage directory's manifest
 
@@ -192,7 +192,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
     or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
     StaleRunError naming the differing keys and the two ways on. A config key the manifest lacks
     counts as the same where `wanted` has it at the value that behaves as the code did before the
-    key existed (`config.ADDED_KNOBS`), so runs made before a knob resume; set otherwise, the
+    key existed (`added_knobs.ADDED_KNOBS`), so runs made before a knob resume; set otherwise, the
     stage is stale (whatever the preset's default).
     """
     from bumps_jax import env_records  # noqa: PLC0415
@@ -231,14 +231,14 @@ def write_manifest(stage_dir: Path, wanted: dict) -> Path:
 
 def _added_at_its_old_behaviour(key: str, have: dict, wanted: dict) -> bool:
     """Is dotted `key` ("config. ...") missing from the manifest `have` and, in `wanted`, at the
-    value `config.ADDED_KNOBS` gives for it?"""
+    value `added_knobs.ADDED_KNOBS` gives for it?"""
     from bumps_jax.env_records import MISSING, lookup  # noqa: PLC0415
 
     path = key.removeprefix("config.")
-    if not key.startswith("config.") or path not in config.ADDED_KNOBS:
+    if not key.startswith("config.") or path not in added_knobs.ADDED_KNOBS:
         return False
     missing = lookup(have.get("config", {}), path) == MISSING
-    return missing and lookup(wanted["config"], path) == config.ADDED_KNOBS[path]
+    return missing and lookup(wanted["config"], path) == added_knobs.ADDED_KNOBS[path]
 
 
 def _hashes(inputs: dict) -> dict:

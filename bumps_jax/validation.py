@@ -11,6 +11,7 @@ import ml_collections
 import numpy as np
 
 from bumps_jax import kick_env, kick_model, ppo_config
+from bumps_jax.added_knobs import ADDED_KNOBS
 
 # The paper preset's held-out set must hold at least this many targets.
 HELDOUT_MIN_TARGETS = 50
@@ -196,8 +197,6 @@ def experts(e, task_range, n_steps: int) -> None:
         # The per-task knobs that are on, each named with the value that turns it off (the value
         # the code behaved as before the knob existed): all in one line, so that switching a
         # preset that uses several of them (the paper's) takes one try.
-        from bumps_jax.config import ADDED_KNOBS  # noqa: PLC0415 (config imports this module)
-
         per_task = ("restarts", "polish_generations", "start_leash", "neighbour_leash", "midpoint_weight")
         off = {k: ADDED_KNOBS[f"experts.tune.{k}"] for k in per_task}
         on = [f"experts.tune.{k}={v:g}" for k, v in off.items() if e.tune[k] != v]

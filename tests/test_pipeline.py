@@ -68,7 +68,7 @@ def test_a_rerun_with_other_overrides_is_refused_naming_the_keys(tmp_path, stage
 
 def test_a_knob_added_later_at_its_default_keeps_an_older_run(tmp_path, stages):
     """A manifest written before a config key existed: the run resumes where the key is at the
-    value that behaves as before it (config.ADDED_KNOBS), and is refused where it is set otherwise,
+    value that behaves as before it (added_knobs.ADDED_KNOBS), and is refused where it is set otherwise,
     even at a preset's default (the paper's neighbour leash is 1, the code before it had none)."""
     log, _ = stages
     pipeline.run_stage("experts", cfg(), tmp_path)

@@ -6,12 +6,12 @@ import json
 
 import pytest
 
-from bumps_jax import config, pipeline, tasks
+from bumps_jax import added_knobs, config, pipeline, tasks
 
 # sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the
 # task switch existed: a change here makes every kick run made before it refuse to resume. The
 # experts' and baseline's pins were retaken with `ppo.unroll_gae` = True (2026-11-24): both stages
-# of older runs now refuse to resume unless run with the knob at False (`config.ADDED_KNOBS`).
+# of older runs now refuse to resume unless run with the knob at False (`added_knobs.ADDED_KNOBS`).
 KICK_SECTIONS = {
     "tiny": {
         "prior": "7129f2c0c8a5fbc223648451c94ff60aa6c7cd5fb1e7dfdb2cefd1160c757983",
@@ -40,8 +40,8 @@ KICK_SECTIONS = {
 # Keys added to a kick section after the pin, at their default: a manifest without them still
 # resumes (`pipeline.check_manifest`, tests/test_pipeline.py), so the pin is taken without them.
 ADDED_LATER = {
-    stage: tuple(tuple(key.split(".")) for key in config.ADDED_KNOBS if key.startswith(f"{stage}."))
-    for stage in {key.split(".")[0] for key in config.ADDED_KNOBS}
+    stage: tuple(tuple(key.split(".")) for key in added_knobs.ADDED_KNOBS if key.startswith(f"{stage}."))
+    for stage in {key.split(".")[0] for key in added_knobs.ADDED_KNOBS}
 }
 
 
@@ -57,7 +57,7 @@ def pinned_part(section: dict, stage: str) -> dict:
         node = section
         for key in parents:
             node = node[key]
-        if node[leaf] == config.ADDED_KNOBS[".".join((*parents, leaf))]:
+        if node[leaf] == added_knobs.ADDED_KNOBS[".".join((*parents, leaf))]:
             del node[leaf]
     return section
 
