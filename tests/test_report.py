@@ -303,3 +303,27 @@ def test_the_scale_out_line_names_its_physics():
             {"workload": 8, "experts_env_steps_speedup": 1.9, "filter_rollouts_speedup": 1.95}]  # fmt: skip
     text = "\n".join(report.speed_lines(bench, {**scaling, "by_copies": runs}))
     assert "The same run at other workloads: 2 times, experts 1.55x, filtering 1.94x." in text
+
+
+def test_readme_findings_are_the_committed_records(tmp_path):
+    """README's findings are exactly what `publish` generates from results/*.json, and they come
+    from the records: another run's numbers give other sentences; a missing record drops its own."""
+    import shutil
+
+    readme = (ROOT / "README.md").read_text()
+    start = readme.index(readme_table.FINDINGS_BEGIN)
+    end = readme.index(readme_table.FINDINGS_END) + len(readme_table.FINDINGS_END)
+    assert readme[start:end] == readme_table.findings_block(ROOT)
+    assert len(readme_table.findings(ROOT)) == 6
+    shutil.copytree(ROOT / "results", tmp_path / "results")
+    path = tmp_path / "results" / "table1.json"
+    table1 = json.loads(path.read_text())
+    table1["rows"]["meta_4x256"]["error_mean_all_m"] = 0.777
+    table1["rows"]["meta_4x256"]["per_task"][0]["error_mean_m"] = 2.5
+    path.write_text(json.dumps(table1))
+    (tmp_path / "results" / "baseline.json").unlink()
+    lines = readme_table.findings(tmp_path)
+    unfiltered = next(line for line in lines if line.startswith("- Unfiltered"))
+    assert ": 0.78 / " in unfiltered and "not all within the paper's 0.72 / 0.68 m" in unfiltered
+    assert "worst meta-test task 2.50 / " in unfiltered
+    assert len(lines) == 5 and not any(line.startswith("- Baseline") for line in lines)
