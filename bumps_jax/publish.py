@@ -114,4 +114,6 @@ def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list
             written.append(dest)
     if task == "cheetah_vel" and (root / cheetah_table.DOC).exists():
         written.append(cheetah_table.write(root))  # our rows beside the published results
+    if task == "cheetah_vel" and (root / "README.md").exists():
+        written.append(cheetah_table.write_readme(root))
     return written

@@ -276,6 +276,28 @@ def test_cheetah_rows_are_the_records_and_replace_only_their_block(tmp_path):
 def test_committed_cheetah_rows_are_the_committed_records():
     text = Path(cheetah_table.DOC).read_text()
     assert cheetah_table.block() in text
+    # README's sentences on the run are generated from the same records, each number its record's.
+    readme = (ROOT / "README.md").read_text()
+    assert cheetah_table.readme_block(ROOT) in readme
+    lines = cheetah_table.readme_lines(ROOT)
+    baseline = json.loads((ROOT / "results" / "cheetah_vel" / "baseline.json").read_text())
+    assert len(lines) == 3 and f"errs {baseline['error_mean_m']:.2f} m/s" in lines[2]
+
+
+def test_readme_cheetah_sentences_follow_their_records(tmp_path):
+    import shutil
+
+    shutil.copytree(ROOT / "results" / "cheetah_vel", tmp_path / "results" / "cheetah_vel")
+    path = tmp_path / "results" / "cheetah_vel" / "baseline.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "error_mean_m": 0.777}))
+    (tmp_path / "README.md").write_text(f"a\n{cheetah_table.README_BEGIN}\nold\n{cheetah_table.README_END}\nb\n")
+    cheetah_table.write_readme(tmp_path)
+    text = (tmp_path / "README.md").read_text()
+    assert "errs 0.78 m/s" in text and "old" not in text and text.startswith("a\n") and text.endswith("b\n")
+    (tmp_path / "results" / "cheetah_vel" / "pipeline.json").unlink()
+    assert not any("stage time" in line for line in cheetah_table.readme_lines(tmp_path))
+    shutil.rmtree(tmp_path / "results")
+    assert "No HalfCheetah-Vel run is published yet" in cheetah_table.readme_block(tmp_path)
 
 
 def test_the_speed_section_reads_the_gae_record_and_says_which_is_older():
