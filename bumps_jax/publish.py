@@ -112,8 +112,9 @@ def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list
             dest.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(run_dir / rel, dest)
             written.append(dest)
-    if task == "cheetah_vel" and (root / cheetah_table.DOC).exists():
-        written.append(cheetah_table.write(root))  # our rows beside the published results
-    if task == "cheetah_vel" and (root / "README.md").exists():
-        written.append(cheetah_table.write_readme(root))
+    if task == "cheetah_vel":
+        if (root / cheetah_table.DOC).exists():
+            written.append(cheetah_table.write(root))  # our rows beside the published results
+        if (root / "README.md").exists():
+            written.append(cheetah_table.write_readme(root))
     return written

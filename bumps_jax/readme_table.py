@@ -116,10 +116,7 @@ def findings(root: str | Path = ".") -> list[str]:
                    + (f"; env steps per expert: {cost}." if cost else "."))  # fmt: skip
     jump, mid = (e or {}).get("starting_kicks_smoothness"), (e or {}).get("starting_kicks_midpoints")
     if jump and mid:
-        out.append(f"- One family: the largest jump between neighbouring starting kicks is {jump['jump']:.2f} scale "
-                   f"units (`{jump['param']}`, {jump['between_m'][0]:g} -> {jump['between_m'][1]:g} m); the kicks "
-                   f"halfway between neighbours err {mid['error_mean_all_m']:.2f} m, {mid['targets_above_2m']} of "
-                   f"{mid['n_tasks']} above 2 m.")  # fmt: skip
+        out.append(f"- One family. {tables.jump_line(jump)} {tables.midpoints_line(mid)}")
     nets = [n for n in ("meta_4x256", "meta_11x128") if n in rows1]
     if nets:
         paper = [tables.PAPER_TABLE1[n][2] for n in nets]

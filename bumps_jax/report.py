@@ -132,10 +132,7 @@ def env_steps_lines(experts: dict) -> list[str]:
              f"(PPO {n * parts['ppo']:,})."]  # fmt: skip
     jump = experts.get("starting_kicks_smoothness")
     if jump:
-        lines.append(
-            f"Starting kicks as a family: the largest jump between neighbouring tasks is {jump['jump']:.2f} scale "
-            f"units of `{jump['param']}` between {jump['between_m'][0]:g} and {jump['between_m'][1]:g} m."
-        )
+        lines.append(tables.jump_line(jump))
     return [*lines, *tables.family_lines(experts), ""]
 
 

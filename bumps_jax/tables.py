@@ -76,12 +76,17 @@ def starting_kicks_lines(record: dict) -> list[str]:
             f"{pm(kicks['error_mean_m'], kicks['error_std_m'])} m ({num(kicks['error_mean_all_m'])} m over all tasks)."
         )
     if jump:
-        lines.append(
-            f"Largest jump between neighbouring tasks' starting kicks: {jump['jump']:.2f} scale units of "
-            f"`{jump['param']}`, {jump['between_m'][0]:g} -> {jump['between_m'][1]:g} m."
-        )
+        lines.append(jump_line(jump))
     lines += family_lines(record)
     return [*lines, ""] if lines else []
+
+
+def jump_line(jump: dict) -> str:
+    """One sentence on an experts record's "starting_kicks_smoothness" (`kick_model.largest_jump`)."""
+    return (
+        f"Largest jump between neighbouring tasks' starting kicks: {jump['jump']:.2f} scale units of "
+        f"`{jump['param']}`, {jump['between_m'][0]:g} -> {jump['between_m'][1]:g} m."
+    )
 
 
 def family_lines(record: dict) -> list[str]:

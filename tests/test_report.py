@@ -44,7 +44,7 @@ def test_report_counts_the_experts_env_steps_and_shows_their_starting_kicks(tmp_
     assert "| starting kicks (before PPO) | 0.50 +- 0.10 | - | 1.25 +- 0.50 | - | 1.50 |" in text
     assert "share of the kick prior 300, starting-kick tuning 50, PPO 1,000; 1,350 in all." in text
     assert "All 2 experts: 2,700 (PPO 2,000)." in text
-    assert "1.50 scale units of `back_knee` between 7 and 7.5 m" in text
+    assert "neighbouring tasks' starting kicks: 1.50 scale units of `back_knee`, 7 -> 7.5 m." in text
     midpoints = "mixed 50/50): error 1.50 m over 1 midpoints, 0 above 2 m, the worst 1.50 m at 7.25 m."
     assert midpoints in text
     # experts.md says the same under the experts' row.
