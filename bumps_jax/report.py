@@ -244,10 +244,46 @@ def baseline_lines(baseline: dict | None, experts: dict | None, filtered: dict |
     return [*lines, ""]
 
 
-def speed_lines(bench: dict | None, scaling: dict | None, gae: dict | None = None) -> list[str]:
+def scale_out_line(scaling: dict) -> str:
+    """One sentence for one `benchmarks/scaling.py` record: the experts' and the filtering's ratio
+    of N devices to one at its main workload (a phase the run did not finish: "not measured"),
+    then its other workloads."""
+    n = str(scaling["devices"])
+    nan = float("nan")
+    # one process per device (Warp's way) or one process with a mesh of all (a record without a layout)
+    how = "one process per device" if scaling.get("layout") == "processes" else "one process, a mesh of all"
+    filtering = (f"filtering {scaling['filter_rollouts_speedup']:.2f}x" if "filter_rollouts_speedup" in scaling
+                 else "filtering not measured in this run")  # fmt: skip
+    line = (
+        f"Scale-out on {scaling['device']}, {scaling['date'][:10]}, physics {physics_step(scaling)}, {how} "
+        f"(`{scaling['command']}`): experts {scaling['experts_env_steps_per_s'][n]:,.0f} env-steps/s on "
+        f"{n} devices vs {scaling['experts_env_steps_per_s']['1']:,.0f} on one "
+        f"({scaling['experts_env_steps_speedup']:.2f}x); {filtering}, at {scaling.get('workload', 1)} times the "
+        "paper's work (copies of every expert; filtering repetitions), measured on one device and on all in one run."
+    )
+    others = [e for e in scaling.get("by_copies", []) if e["workload"] != scaling.get("workload")]
+    if others:  # the same run at other workloads: the ratio depends on how full one device is
+        parts = [
+            f"{e['workload']} times, experts {e.get('experts_env_steps_speedup', nan):.2f}x, "
+            f"filtering {e.get('filter_rollouts_speedup', nan):.2f}x"
+            for e in others
+        ]
+        line += f" The same run at other workloads: {'; '.join(parts)}."
+    return line
+
+
+def scaling_records(root: Path) -> list[dict]:
+    """The committed scale-out records: benchmarks/results/scaling.json, then any other run's
+    scaling.json in a folder of its own under benchmarks/results/ (`scaling.py --out-dir`)."""
+    paths = [root / SCALING, *sorted((root / SCALING).parent.glob("*/scaling.json"))]
+    return [json.loads(p.read_text()) for p in paths if p.exists()]
+
+
+def speed_lines(bench: dict | None, scalings: list[dict] = (), gae: dict | None = None) -> list[str]:
     """The speed section from `make bench`'s record: one column per physics backend measured
-    (a record from before the backends were measured side by side: one column); with `gae`, the
-    bench's record of the experts' PPO with GAE as a loop and unrolled (`ppo.unroll_gae`)."""
+    (a record from before the backends were measured side by side: one column); a sentence per
+    scale-out record (`benchmarks/scaling.py`); with `gae`, the bench's record of the experts' PPO
+    with GAE as a loop and unrolled (`ppo.unroll_gae`)."""
     if not bench:
         return []
     per = bench.get("backends") or {bench.get("env", {}).get("impl", "backend not recorded"): bench}
@@ -290,28 +326,8 @@ def speed_lines(bench: dict | None, scaling: dict | None, gae: dict | None = Non
         ("BC, both nets in one loop (s, projected)", g("bc_joint_wall_s", g("bc_joint_wall_projected_s")), "{:.0f}"),
     ]  # fmt: skip
     lines += [f"| {name} | {fmt.format(v)} |" for name, v, fmt in rows if v is not None]
-    if scaling:
-        n = str(scaling["devices"])
-        # one process per device (Warp's way) or one process with a mesh of all (a record without a layout)
-        how = "one process per device" if scaling.get("layout") == "processes" else "one process, a mesh of all"
-        lines += [
-            "",
-            f"Scale-out on {scaling['device']}, physics {physics_step(scaling)}, {how} "
-            f"(`benchmarks/scaling.py`): experts {scaling['experts_env_steps_per_s'][n]:,.0f} env-steps/s on "
-            f"{n} devices vs {scaling['experts_env_steps_per_s']['1']:,.0f} on one "
-            f"({scaling['experts_env_steps_speedup']:.2f}x); filtering "
-            f"{scaling['filter_rollouts_speedup']:.2f}x, at {scaling.get('workload', 1)} times the paper's work "
-            "(copies of every expert; filtering repetitions), measured on one device and on all in one run.",
-        ]
-        others = [e for e in scaling.get("by_copies", []) if e["workload"] != scaling.get("workload")]
-        if others:  # the same run at other workloads: the ratio depends on how full one device is
-            nan = float("nan")
-            parts = [
-                f"{e['workload']} times, experts {e.get('experts_env_steps_speedup', nan):.2f}x, "
-                f"filtering {e.get('filter_rollouts_speedup', nan):.2f}x"
-                for e in others
-            ]
-            lines[-1] += f" The same run at other workloads: {'; '.join(parts)}."
+    for scaling in scalings or ():
+        lines += ["", scale_out_line(scaling)]
     if gae and gae.get("experts_gae_unrolled_vs_loop"):
         lines += [
             "",
@@ -368,7 +384,7 @@ def write_committed(root: str | Path = ".") -> Path:
     path = root / "docs" / "results.md"
     path.parent.mkdir(parents=True, exist_ok=True)
     note = provenance_note(root, load(root, COMMITTED["pipeline"]))
-    speed = speed_lines(load(root, BENCH), load(root, SCALING), load(root, GAE))
+    speed = speed_lines(load(root, BENCH), scaling_records(root), load(root, GAE))
     head, _, rest = text.partition("\n\n")
     body = rest.replace("](docs/", "](")  # figures sit beside the report
     path.write_text(head + "\n\n" + note + body + ("\n" + "\n".join(speed) + "\n" if speed else ""))

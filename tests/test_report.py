@@ -305,25 +305,29 @@ def test_the_speed_section_reads_the_gae_record_and_says_which_is_older():
     gae = {**_common("paper"), "date": "2026-11-24T10:00:00+00:00", "experts_env_steps_per_s_gae_loop": 300_000.0,
            "experts_env_steps_per_s_gae_unrolled": 450_000.0, "experts_gae_unrolled_vs_loop": 1.5,
            "experts_ppo_projected_s_gae_loop": 900.0, "experts_ppo_projected_s_gae_unrolled": 600.0}  # fmt: skip
-    text = "\n".join(report.speed_lines(bench, None, gae))
+    text = "\n".join(report.speed_lines(bench, [], gae))
     assert "300,000 env-steps/s as a device loop, 450,000 unrolled (1.50x)" in text
     assert "projected 900 s -> 600 s" in text and "The tables above are older than it" in text
     assert "older than it" not in "\n".join(report.speed_lines({**bench, "date": gae["date"]}, None, gae))
-    assert "unroll_gae" not in "\n".join(report.speed_lines(bench, None, None))
+    assert "unroll_gae" not in "\n".join(report.speed_lines(bench, [], None))
 
 
 def test_the_scale_out_line_names_its_physics():
     bench = {**_common("paper"), "date": "2026-11-23T10:00:00+00:00", "experts_env_steps_per_s": 250_000.0}
     scaling = {**_common("paper"), "env": {"physics_dt": 0.0025, "impl": "jax"}, "devices": 2, "workload": 8,
                "experts_env_steps_per_s": {"1": 100_000.0, "2": 190_000.0}, "experts_env_steps_speedup": 1.9,
-               "filter_rollouts_speedup": 1.95}  # fmt: skip
-    text = "\n".join(report.speed_lines(bench, scaling))
+               "filter_rollouts_speedup": 1.95, "command": "python benchmarks/scaling.py --devices 2"}  # fmt: skip
+    text = "\n".join(report.speed_lines(bench, [scaling]))
     assert "physics 2.5 ms, jax" in text and "190,000 env-steps/s on 2 devices vs 100,000 on one (1.90x)" in text
-    assert "one process, a mesh of all" in text
-    assert "one process per device" in "\n".join(report.speed_lines(bench, {**scaling, "layout": "processes"}))
+    assert "one process, a mesh of all" in text and "filtering 1.95x" in text
+    assert "one process per device" in "\n".join(report.speed_lines(bench, [{**scaling, "layout": "processes"}]))
+    # a run cut off before its filtering half says so, and each record gets its own sentence
+    cut = {k: v for k, v in scaling.items() if k != "filter_rollouts_speedup"}
+    text = "\n".join(report.speed_lines(bench, [scaling, {**cut, "workload": 32}]))
+    assert text.count("Scale-out on") == 2 and "filtering not measured in this run, at 32 times" in text
     runs = [{"workload": 2, "experts_env_steps_speedup": 1.55, "filter_rollouts_speedup": 1.94},
             {"workload": 8, "experts_env_steps_speedup": 1.9, "filter_rollouts_speedup": 1.95}]  # fmt: skip
-    text = "\n".join(report.speed_lines(bench, {**scaling, "by_copies": runs}))
+    text = "\n".join(report.speed_lines(bench, [{**scaling, "by_copies": runs}]))
     assert "The same run at other workloads: 2 times, experts 1.55x, filtering 1.94x." in text
 
 
