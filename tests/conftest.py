@@ -45,16 +45,17 @@ def expert_programs(env):
 SLOWEST_FIRST = (
     "test_meta.py",
     "test_experts.py",
-    "test_cmaes.py",
     "test_sharding.py",
     "test_engines.py",
-    "test_cheetah_pipeline.py",
+    "test_cmaes.py",
     "test_baseline.py",
+    "test_compare_brax_ppo.py",
+    "test_cheetah_pipeline.py",
+    "test_bc_stacked.py",
     "test_ppo.py",
     "test_filtering.py",
-    "test_compare_brax_ppo.py",
-    "test_kick_env.py",
     "test_cheetah_env.py",
+    "test_kick_env.py",
 )
 
 
