@@ -12,6 +12,7 @@ ADDED_KNOBS = {
     "experts.tune.midpoint_weight": 0.0,
     "experts.tune.restarts": 1,
     "meta.trainer": "separate",
+    "meta.inputs": "unit",
     "experts.tune.keep": "run",
     "experts.tune.polish_generations": 0,
     "experts.tune.polish_sigma": 2.0,

@@ -49,7 +49,8 @@ class MetaPolicy(nn.Module):
     """MLP: obs (..., O) -> actions (..., n_actions) (kick: (2,) -> 22 joint targets); `depth` tanh
     layers of `width`, linear output. With `obs_norm` ((O,) shift, (O,) scale, fixed numbers
     from the dataset: `obs_norm_of`), the net sees (obs - shift) / scale: a closed-loop task's
-    states are not in [0, 1] as the kick's (phase, context) are. None: obs as it is (the kick)."""
+    states are not in [0, 1] as the kick's (phase, context) are; the kick's under `meta.inputs =
+    "raw"`: `kick_raw_inputs`. None: obs as it is (the kick's by default)."""
 
     depth: int
     width: int
@@ -65,6 +66,17 @@ class MetaPolicy(nn.Module):
         for _ in range(self.depth):
             x = nn.tanh(nn.Dense(self.width)(x))
         return nn.Dense(self.n_actions)(x)
+
+
+def kick_raw_inputs(n_steps: int, task_range, obs_size: int = 2) -> tuple:
+    """`MetaPolicy.obs_norm` under which a kick net reads the paper's unscaled inputs (time step,
+    target m) from the env's (phase = step / n_steps, (target - lo) / (hi - lo)): (obs - shift) /
+    scale with shift (0, -lo / (hi - lo)) and scale (1 / n_steps, 1 / (hi - lo)); any further
+    observations (proprioception) as they are."""
+    lo, hi = (float(v) for v in task_range)
+    shift = (0.0, -lo / (hi - lo)) + (0.0,) * (obs_size - 2)
+    scale = (1.0 / n_steps, 1.0 / (hi - lo)) + (1.0,) * (obs_size - 2)
+    return shift, scale
 
 
 def obs_norm_of(obs: np.ndarray, floor: float = 1e-2) -> tuple:

@@ -74,14 +74,16 @@ def video(cfg, run_dir: Path, args) -> None:
     import jax  # noqa: PLC0415
 
     from bumps_jax import bc, kick_env, render  # noqa: PLC0415
+    from bumps_jax.stages import meta as meta_stage  # noqa: PLC0415
 
     table2 = runio.read_json(run_dir / "filter" / "table2.json", "run the filter stage first")
+    obs_norm = meta_stage.obs_norm_of_record(runio.read_json(run_dir / "meta" / meta_stage.OUTPUT))
     out = Path(args.out) if args.out else run_dir / "filtered_kicks.gif"
     runio.check_writable(out.parent)
     tasks, chosen = np.asarray(table2["tasks"]), np.asarray(table2["chosen_contexts"]["filtered_4x256"])
     picks = sorted({int(np.argmin(np.abs(tasks - t))) for t in (8.0, 12.0, 16.0)})
     depth, width = cfg.meta.nets["meta_4x256"]
-    apply_fn, params = bc.load_policy(run_dir / "meta" / "meta_4x256", depth, width, cfg.meta.train)
+    apply_fn, params = bc.load_policy(run_dir / "meta" / "meta_4x256", depth, width, cfg.meta.train, obs_norm=obs_norm)
     params = jax.tree.map(lambda a: a[cfg.filter.net_seed], params)
     env = kick_env.KickEnv(cfg.env)
     path = render.kick_gif(out, env, apply_fn, params, chosen[picks], tasks[picks])
@@ -159,7 +161,7 @@ def kick(cfg, run_dir: Path, args) -> None:
         from bumps_jax import bc, render  # noqa: PLC0415
 
         entry = shipped.manifest["nets"][args.net]
-        apply_fn = bc.policy_apply(bc.MetaPolicy(entry["depth"], entry["width"]))
+        apply_fn = bc.policy_apply(bc.MetaPolicy(entry["depth"], entry["width"], obs_norm=policies.net_obs_norm(entry)))
         env = kick_env.KickEnv(env_cfg)
         path = render.kick_gif(args.gif, env, apply_fn, shipped.nets[args.net], [out.context], [target], args.seed)
         print(f"wrote {path}")

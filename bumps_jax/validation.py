@@ -20,6 +20,7 @@ TUNE_SCHEMES = ("per_task", "family")  # experts.tune.scheme
 TUNE_KEEPS = ("run", "task", "chain")  # experts.tune.keep
 SELECTIONS = ("fixed", "halving")  # filter.selection
 META_TRAINERS = ("separate", "stacked", "stacked_batched")  # meta.trainer
+META_INPUTS = ("unit", "raw")  # meta.inputs
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
@@ -233,6 +234,8 @@ def meta(m, task_range, prefix: str = "", unit: str = "m") -> None:
         raise ValueError(f"{p}train.decay_rate must be in (0, 1], got {m.train.decay_rate!r}")
     if m.trainer not in META_TRAINERS:
         raise ValueError(f"{p}trainer must be one of {META_TRAINERS}, got {m.trainer!r}")
+    if m.get("inputs", "unit") not in META_INPUTS:
+        raise ValueError(f"{p}inputs must be one of {META_INPUTS}, got {m.inputs!r}")
     positive_ints(m.dataset, f"{p}dataset.", ("repetitions",))
     positive_ints(m.eval, f"{p}eval.", ("repetitions",))
     targets(m.eval.tasks, task_range, f"{p}eval.tasks", unit)

@@ -14,7 +14,22 @@ import pytest
 import stand_ins
 from rollout_memo import RolloutMemo
 
-from bumps_jax import bc, cli, config, evaluate, filtering, kick_env, pipeline, policies, publish, report, runio, tables
+from bumps_jax import (
+    bc,
+    cli,
+    config,
+    evaluate,
+    filtering,
+    kick_env,
+    kick_model,
+    meta_programs,
+    pipeline,
+    policies,
+    publish,
+    report,
+    runio,
+    tables,
+)
 from bumps_jax.stages import experts as experts_stage
 from bumps_jax.stages import filter as filter_stage
 from bumps_jax.stages import heldout
@@ -627,3 +642,58 @@ def _leaves(d, prefix=""):
             yield from _leaves(v, f"{prefix}{k}.")
         else:
             yield f"{prefix}{k}", v
+
+
+# -- the paper's unscaled inputs (`meta.inputs = "raw"`) --------------------------------------
+
+
+def test_raw_inputs_show_the_net_the_time_step_and_the_target_in_metres(env):
+    obs, _ = bc.kick_dataset(env, 12.3, kick_model.load_record()["params"])
+    shift, scale = bc.kick_raw_inputs(env.n_steps, env.config.task_range)
+    raw = (np.asarray(obs) - np.asarray(shift)) / np.asarray(scale)
+    np.testing.assert_allclose(raw[:, 0], np.arange(env.n_steps), atol=1e-4)
+    np.testing.assert_allclose(raw[:, 1], 12.3, atol=1e-4)
+    # The net with the map in front equals the same weights fed the unscaled numbers.
+    mapped, plain = bc.MetaPolicy(2, 8, obs_norm=(shift, scale)), bc.MetaPolicy(2, 8)
+    params = plain.init(jax.random.key(0), jnp.zeros((1, 2)))["params"]
+    np.testing.assert_allclose(
+        bc.policy_apply(mapped)(params, obs), bc.policy_apply(plain)(params, jnp.asarray(raw)), rtol=1e-5, atol=1e-5
+    )
+    # With proprioception the further observations pass as they are.
+    shift, scale = bc.kick_raw_inputs(75, (7.0, 18.0), obs_size=5)
+    assert shift[2:] == (0.0, 0.0, 0.0) and scale[2:] == (1.0, 1.0, 1.0)
+
+
+def test_the_meta_stage_takes_raw_inputs_only_when_told(env):
+    data = bc.Dataset(obs=np.zeros((4, 2), np.float32), actions=np.zeros((4, 22), np.float32),
+                      task=np.zeros(4, np.float32))  # fmt: skip
+    assert meta_stage.net_obs_norm(config.make_config("tiny"), env, data) is None
+    raw = meta_stage.net_obs_norm(config.make_config("tiny", {"meta.inputs": "raw"}), env, data)
+    assert raw == bc.kick_raw_inputs(env.n_steps, env.config.task_range)
+    assert meta_stage.obs_norm_of_record({"obs_shift": list(raw[0]), "obs_scale": list(raw[1])}) == raw
+    with pytest.raises(ValueError, match=re.escape("meta.inputs must be one of ('unit', 'raw'), got 'scaled'")):
+        config.make_config("tiny", {"meta.inputs": "scaled"})
+
+
+def test_shipped_nets_carry_their_input_map_to_kick(stage_run, tmp_path, monkeypatch):
+    """A run whose nets read raw inputs ships the map with each net, and `kick` builds them with it."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(stage_run["dir"], run_dir)
+    table1 = json.loads((run_dir / "meta" / meta_stage.OUTPUT).read_text())
+    shift, scale = bc.kick_raw_inputs(75, stage_run["cfg"].env.task_range)
+    table1.update(obs_shift=list(shift), obs_scale=list(scale))
+    (run_dir / "meta" / meta_stage.OUTPUT).write_text(json.dumps(table1))
+    monkeypatch.setattr(experts_stage, "load_family", lambda c, d: stage_run["family"])
+    policies.write(stage_run["cfg"], run_dir, tmp_path / "shipped")
+    shipped = policies.load(tmp_path / "shipped", stage_run["cfg"].env)
+    assert all(policies.net_obs_norm(entry) == (shift, scale) for entry in shipped.manifest["nets"].values())
+    built = []
+
+    def meta_grid(env_cfg, depth, width, mesh, task="kick", obs_norm=None):
+        built.append(obs_norm)
+        raise RuntimeError("built")
+
+    monkeypatch.setattr(meta_programs, "meta_grid", meta_grid)
+    with pytest.raises(RuntimeError, match="built"):
+        policies.filtered_kicks(shipped, "meta_4x256", 12.0, 2, stage_run["cfg"].env)
+    assert built == [(shift, scale)]

@@ -163,6 +163,17 @@ def dataset(cfg, run_dir: Path, say=print) -> bc.Dataset:
     return data
 
 
+def net_obs_norm(cfg, env, data: bc.Dataset) -> tuple | None:
+    """The nets' `bc.MetaPolicy.obs_norm`: another task's states normalised by the dataset's
+    statistics; the kick's (phase, context) as they are, or with `meta.inputs = "raw"` mapped to
+    the paper's unscaled (time step, target m)."""
+    if cfg.task != "kick":
+        return bc.obs_norm_of(data.obs)
+    if cfg.meta.get("inputs", "unit") == "raw":
+        return bc.kick_raw_inputs(env.n_steps, env.config.task_range, int(data.obs.shape[-1]))
+    return None
+
+
 def obs_norm_of_record(table1: dict) -> tuple | None:
     """The meta-policies' `bc.MetaPolicy.obs_norm` from the stage's record (None: the kick's)."""
     if "obs_shift" not in table1:
@@ -202,8 +213,7 @@ def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict,
     each in its own loop, or all stacked in one (`bc_stacked`). Returns ({net: bc.MetaPolicy},
     {net: final bc.TrainState}, {net: train_wall_s}; stacked nets share one time)."""
     m = cfg.meta
-    # Another task's states are normalised by the dataset's statistics (the kick's obs: as they are).
-    obs_norm = None if cfg.task == "kick" else bc.obs_norm_of(data.obs)
+    obs_norm = net_obs_norm(cfg, env, data)
     names = net_names(m.nets)
     models = {name: bc.MetaPolicy(*m.nets[name], env.action_size, obs_norm) for name in names}
     for name in names:
@@ -231,9 +241,10 @@ def evaluate_net(cfg, name: str, model: bc.MetaPolicy, state: bc.TrainState, env
     if cfg.task != "kick":
         metrics = evaluate_blocked(cfg, model.depth, model.width, state.params, model.obs_norm)
     else:
-        if (model.depth, model.width) not in grids:  # one program per architecture: the policy depends on nothing else
-            grids[model.depth, model.width] = rollout.grid_fn(env, bc.policy_apply(model))
-        grid = grids[model.depth, model.width]
+        key = (model.depth, model.width, model.obs_norm)  # one program per architecture and inputs
+        if key not in grids:
+            grids[key] = rollout.grid_fn(env, bc.policy_apply(model))
+        grid = grids[key]
         metrics = evaluate_unfiltered(grid, state.params, m.eval.tasks, m.eval.repetitions, m.eval.seed)
     summaries = [evaluate.summarise_tasks({k: v[s] for k, v in metrics.items()}) for s in range(m.train.n_seeds)]
     eval_wall_s = time.perf_counter() - t0
@@ -290,9 +301,10 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         **runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)),
     }
     if cfg.task != "kick":
-        shift, scale = bc.obs_norm_of(data.obs)
-        payload.update(task=cfg.task, unit=env.UNIT, obs_size=int(data.obs.shape[-1]), n_actions=env.action_size,
-                       obs_shift=list(shift), obs_scale=list(scale))  # fmt: skip
+        payload.update(task=cfg.task, unit=env.UNIT, obs_size=int(data.obs.shape[-1]), n_actions=env.action_size)
+    obs_norm = net_obs_norm(cfg, env, data)
+    if obs_norm is not None:  # what the filter and held-out stages, and the shipped policies, build the nets with
+        payload.update(obs_shift=list(obs_norm[0]), obs_scale=list(obs_norm[1]))
     runio.write_json(stage_dir / OUTPUT, payload)
     # From here on each net is read from its newest checkpoint (the trained policy): the older
     # ones go, as the experts' and the baseline's do once their records are written.
