@@ -190,7 +190,8 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
 
     Returns "new" (nothing there yet), "same" (its outputs belong to this config and inputs: reuse
     or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
-    StaleRunError naming the differing keys and the two ways on. A config key the manifest lacks
+    StaleRunError naming the differing keys and the two ways on. Warp's buffer sizes
+    (`env.warp_contacts`, `env.warp_constraints_per_world`) are not compared. A config key the manifest lacks
     counts as the same where `wanted` has it at the value that behaves as the code did before the
     key existed (`added_knobs.ADDED_KNOBS`), so runs made before a knob resume; set otherwise, the
     stage is stale (whatever the preset's default).
@@ -212,7 +213,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
             {"config": have.get("config", {}), "inputs": _hashes(have.get("inputs", {}))},
             {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
         )
-        diff = [key for key in diff if not _added_at_its_old_behaviour(key, have, wanted)]
+        diff = [key for key in diff if not _added_at_its_old_behaviour(key, have, wanted) and not _capacity(key)]
         if not diff:
             return "same"
     if force:
@@ -239,6 +240,15 @@ def _added_at_its_old_behaviour(key: str, have: dict, wanted: dict) -> bool:
         return False
     missing = lookup(have.get("config", {}), path) == MISSING
     return missing and lookup(wanted["config"], path) == added_knobs.ADDED_KNOBS[path]
+
+
+def _capacity(key: str) -> bool:
+    """Is dotted `key` one of Warp's buffer sizes (`env_records.CAPACITY_KEYS`)? They change no
+    physics, so a run resumes under another size (a smaller GPU, a larger batch); too small a
+    buffer is refused before any work, or its episodes are marked invalid, never silently wrong."""
+    from bumps_jax.env_records import CAPACITY_KEYS  # noqa: PLC0415
+
+    return any(key == f"config.env.{k}" for k in CAPACITY_KEYS)
 
 
 def _hashes(inputs: dict) -> dict:

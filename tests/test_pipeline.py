@@ -90,6 +90,19 @@ def test_a_knob_added_later_at_its_default_keeps_an_older_run(tmp_path, stages):
         pipeline.run_stage("experts", cfg(), tmp_path)
 
 
+def test_a_run_resumes_under_other_warp_buffer_sizes(tmp_path, stages):
+    """Warp's buffer sizes change no physics: a stage made under one pool size is up to date
+    under another (a smaller GPU, a larger batch); a physics key still makes it stale."""
+    log, _ = stages
+    pipeline.run_stage("experts", cfg(), tmp_path)
+    pool = cfg().env.warp_contacts
+    bigger = cfg(**{"env.warp_contacts": 2 * pool, "env.warp_constraints_per_world": 96})
+    pipeline.run_stage("experts", bigger, tmp_path)
+    assert log == ["experts"]
+    with pytest.raises(pipeline.StaleRunError, match="env.physics_dt"):
+        pipeline.run_stage("experts", cfg(**{"env.warp_contacts": 2 * pool, "env.physics_dt": 0.005}), tmp_path)
+
+
 def test_publishing_checks_every_stage_the_run_holds_against_the_config(tmp_path, stages):
     """`publish` first checks the run's stages against the config it names (`check_current`):
     stages the run lacks are skipped; one made with another config stops it, naming the key."""
