@@ -18,6 +18,9 @@
 #   EARLY_VERDICT=1 experiments/dev_starting_kicks.sh ARM ...   (a paper_budget arm whose experts
 #        already miss their target stops there: the verdict is "missed" whatever the nets do, and
 #        the meta and filtering stages' GPU time, about 8 minutes, is saved)
+#   FROM=ARM experiments/dev_starting_kicks.sh ARM2 ...   (ARM2 starts from ARM's finished experts, copied
+#        once into its own run directory: for arms that differ from ARM only in meta.* settings, e.g.
+#        FROM=<arm> ... <arm>,meta.inputs=raw; any other difference and the experts stage refuses them as stale)
 #   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
 #        | midpoint_weight=<w> | repetitions=<n> (noisy kicks per CMA-ES candidate) | restarts=<n> (runs of the
 #          whole tuning, the best kept) | keep=task (each task its cheapest run's kick) | keep=chain (the runs'
@@ -97,6 +100,11 @@ for arm in "$@"; do
   seeds=(experts.eval.seed=$seed experts.tune.seed=$seed experts.seed=$seed meta.eval.seed=$seed filter.seed=$seed)
   name=$(arm_name "$arm")
   run="runs/dev_$name"
+  if [ -n "${FROM:-}" ] && [ ! -d "$run/experts" ]; then
+    src="runs/dev_$(arm_name "$FROM")/experts"
+    if [ ! -f "$src/experts.json" ]; then echo "FROM=$FROM: no finished experts in $src" >&2; exit 2; fi
+    mkdir -p "$run" && cp -r "$src" "$run/experts"
+  fi
   for stage in $stages; do
     python -m bumps_jax "$stage" --preset paper --run-dir "$run" --set "${common[@]}" "${budget[@]}" "${seeds[@]}" "${sets[@]}"
     copy_records "$run" "$name"

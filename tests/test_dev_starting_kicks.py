@@ -30,3 +30,28 @@ def test_a_bad_gpu_count_stops_before_any_arm(tmp_path):
     out = run(tmp_path, "bogus_a", "bogus_b", gpus="two")
     assert out.returncode == 2 and "GPUS must be a positive integer, got 'two'" in out.stderr
     assert not (tmp_path / "runs").exists()
+
+
+def test_an_arm_from_another_starts_from_its_experts(tmp_path):
+    """FROM=ARM copies ARM's finished experts into the new arm's run directory once, before its
+    stages run (a stand-in `python` records the stage commands instead of training)."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "python").write_text('#!/usr/bin/env bash\necho "$@" >> "$CALLS"\n')
+    (bin_dir / "python").chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}", "CALLS": str(tmp_path / "calls")}
+    source = tmp_path / "runs" / "dev_per_task" / "experts"
+    source.mkdir(parents=True)
+    (source / "experts.json").write_text('{"device": "cpu"}')
+    arm = "per_task,meta.inputs=raw"
+    out = subprocess.run([str(SCRIPT), arm], cwd=tmp_path, env={**env, "FROM": "per_task"}, capture_output=True,
+                         text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    copied = tmp_path / "runs" / "dev_per_task_meta.inputs_raw" / "experts" / "experts.json"
+    assert copied.read_text() == '{"device": "cpu"}'
+    stages = [line.split()[2] for line in (tmp_path / "calls").read_text().splitlines() if "--run-dir" in line]
+    assert stages == ["train-experts", "meta-train"]
+    assert "meta.inputs=raw" in (tmp_path / "calls").read_text()
+    missing = subprocess.run([str(SCRIPT), "family,meta.inputs=raw"], cwd=tmp_path, env={**env, "FROM": "family"},
+                             capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert missing.returncode == 2 and "FROM=family: no finished experts in runs/dev_family/experts" in missing.stderr
