@@ -276,7 +276,7 @@ def scaling_records(root: Path) -> list[dict]:
     """The committed scale-out records: benchmarks/results/scaling.json, then any other run's
     scaling.json in a folder of its own under benchmarks/results/ (`scaling.py --out-dir`)."""
     paths = [root / SCALING, *sorted((root / SCALING).parent.glob("*/scaling.json"))]
-    return [json.loads(p.read_text()) for p in paths if p.exists()]
+    return [record for path in paths if (record := load(root, path)) is not None]
 
 
 def speed_lines(bench: dict | None, scalings: list[dict] = (), gae: dict | None = None) -> list[str]:

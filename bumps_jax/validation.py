@@ -68,7 +68,7 @@ def cheetah_vel(c, prefix: str) -> None:
     positive_ints(e.eval, f"{prefix}experts.eval.", ("repetitions",))
     ppo_section(e.ppo, f"{prefix}experts.ppo.", n_steps, task_range)
     chunk_divides(e, f"{prefix}experts.", int(e.ppo.total_env_steps // (e.ppo.num_envs * n_steps)))
-    meta(c.meta, task_range, prefix, unit)
+    meta(c.meta, task_range, prefix, unit, task="cheetah_vel")
     filtering(c.filter, task_range, prefix, unit)
     if c.filter.net_seed >= c.meta.train.n_seeds:
         raise ValueError(f"{prefix}filter.net_seed {c.filter.net_seed} names no network: "
@@ -224,7 +224,7 @@ def chunk_divides(section, prefix: str, total: int) -> None:
         )
 
 
-def meta(m, task_range, prefix: str = "", unit: str = "m") -> None:
+def meta(m, task_range, prefix: str = "", unit: str = "m", task: str = "kick") -> None:
     p = f"{prefix}meta."
     positive_ints(m.train, f"{p}train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every"))
     if m.train.epochs % m.train.chunk:
@@ -234,8 +234,11 @@ def meta(m, task_range, prefix: str = "", unit: str = "m") -> None:
         raise ValueError(f"{p}train.decay_rate must be in (0, 1], got {m.train.decay_rate!r}")
     if m.trainer not in META_TRAINERS:
         raise ValueError(f"{p}trainer must be one of {META_TRAINERS}, got {m.trainer!r}")
-    if m.get("inputs", "unit") not in META_INPUTS:
+    if m.inputs not in META_INPUTS:
         raise ValueError(f"{p}inputs must be one of {META_INPUTS}, got {m.inputs!r}")
+    if task != "kick" and m.inputs != "unit":  # another task's nets read its states normalised by the dataset
+        raise ValueError(f"{p}inputs {m.inputs!r} is the kick's (time step, target m); this task's nets read "
+                         "its states normalised by the dataset: leave it at 'unit'")  # fmt: skip
     positive_ints(m.dataset, f"{p}dataset.", ("repetitions",))
     positive_ints(m.eval, f"{p}eval.", ("repetitions",))
     targets(m.eval.tasks, task_range, f"{p}eval.tasks", unit)

@@ -673,6 +673,9 @@ def test_the_meta_stage_takes_raw_inputs_only_when_told(env):
     assert meta_stage.obs_norm_of_record({"obs_shift": list(raw[0]), "obs_scale": list(raw[1])}) == raw
     with pytest.raises(ValueError, match=re.escape("meta.inputs must be one of ('unit', 'raw'), got 'scaled'")):
         config.make_config("tiny", {"meta.inputs": "scaled"})
+    # Another task's nets read its states normalised by the dataset: "raw" there is refused, not ignored.
+    with pytest.raises(ValueError, match=re.escape("cheetah_vel.meta.inputs 'raw' is the kick's")):
+        config.make_config("tiny", {"task": "cheetah_vel", "cheetah_vel.meta.inputs": "raw"})
 
 
 def test_shipped_nets_carry_their_input_map_to_kick(stage_run, tmp_path, monkeypatch):

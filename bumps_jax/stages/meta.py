@@ -169,7 +169,7 @@ def net_obs_norm(cfg, env, data: bc.Dataset) -> tuple | None:
     the paper's unscaled (time step, target m)."""
     if cfg.task != "kick":
         return bc.obs_norm_of(data.obs)
-    if cfg.meta.get("inputs", "unit") == "raw":
+    if cfg.meta.inputs == "raw":
         return bc.kick_raw_inputs(env.n_steps, env.config.task_range, int(data.obs.shape[-1]))
     return None
 
@@ -302,7 +302,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     }
     if cfg.task != "kick":
         payload.update(task=cfg.task, unit=env.UNIT, obs_size=int(data.obs.shape[-1]), n_actions=env.action_size)
-    obs_norm = net_obs_norm(cfg, env, data)
+    obs_norm = next(iter(models.values())).obs_norm  # every net's: `net_obs_norm`
     if obs_norm is not None:  # what the filter and held-out stages, and the shipped policies, build the nets with
         payload.update(obs_shift=list(obs_norm[0]), obs_scale=list(obs_norm[1]))
     runio.write_json(stage_dir / OUTPUT, payload)
