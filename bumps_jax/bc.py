@@ -50,7 +50,8 @@ class MetaPolicy(nn.Module):
     layers of `width`, linear output. With `obs_norm` ((O,) shift, (O,) scale, fixed numbers
     from the dataset: `obs_norm_of`), the net sees (obs - shift) / scale: a closed-loop task's
     states are not in [0, 1] as the kick's (phase, context) are; the kick's under `meta.inputs =
-    "raw"`: `kick_raw_inputs`. None: obs as it is (the kick's by default)."""
+    "raw"`: `kick_raw_inputs`; "centred": `kick_centred_inputs`. None: obs as it is (the kick's by
+    default)."""
 
     depth: int
     width: int
@@ -77,6 +78,12 @@ def kick_raw_inputs(n_steps: int, task_range, obs_size: int = 2) -> tuple:
     shift = (0.0, -lo / (hi - lo)) + (0.0,) * (obs_size - 2)
     scale = (1.0 / n_steps, 1.0 / (hi - lo)) + (1.0,) * (obs_size - 2)
     return shift, scale
+
+
+def kick_centred_inputs(obs_size: int = 2) -> tuple:
+    """`MetaPolicy.obs_norm` under which a kick net reads (phase, normalised context) moved from
+    [0, 1] to [-1, 1] (zero-centred, as tanh layers train best on); further observations as they are."""
+    return (0.5, 0.5) + (0.0,) * (obs_size - 2), (0.5, 0.5) + (1.0,) * (obs_size - 2)
 
 
 def obs_norm_of(obs: np.ndarray, floor: float = 1e-2) -> tuple:

@@ -155,10 +155,11 @@ def _meta() -> ml_collections.ConfigDict:
     # backward pass. Rounding differs between them, so a run made one way is not resumed another.
     cfg.trainer = "separate"
     # What the kick's nets read: "unit", (phase = step / steps, (target - 7) / 11), both in [0, 1];
-    # "raw", the paper's unscaled (time step, target in m). Either way the dataset and the env's
-    # observations stay (phase, normalised context): "raw" is a fixed affine map in front of the
-    # first layer (`bc.kick_raw_inputs`), recorded with the nets. Another task ignores it (its
-    # states are normalised by the dataset's statistics).
+    # "raw", the paper's unscaled (time step, target in m); "centred", both moved to [-1, 1]. Either
+    # way the dataset and the env's observations stay (phase, normalised context): "raw" and
+    # "centred" are a fixed affine map in front of the first layer (`bc.kick_raw_inputs`,
+    # `bc.kick_centred_inputs`), recorded with the nets. Another task takes only "unit"
+    # (its states are normalised by the dataset's statistics).
     cfg.inputs = "unit"
     cfg.dataset = ml_collections.ConfigDict()
     cfg.dataset.repetitions = 1  # rollouts per expert; 1 records them noise-free (the paper)

@@ -20,7 +20,7 @@ TUNE_SCHEMES = ("per_task", "family")  # experts.tune.scheme
 TUNE_KEEPS = ("run", "task", "chain")  # experts.tune.keep
 SELECTIONS = ("fixed", "halving")  # filter.selection
 META_TRAINERS = ("separate", "stacked", "stacked_batched")  # meta.trainer
-META_INPUTS = ("unit", "raw")  # meta.inputs
+META_INPUTS = ("unit", "raw", "centred")  # meta.inputs
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
@@ -237,7 +237,7 @@ def meta(m, task_range, prefix: str = "", unit: str = "m", task: str = "kick") -
     if m.inputs not in META_INPUTS:
         raise ValueError(f"{p}inputs must be one of {META_INPUTS}, got {m.inputs!r}")
     if task != "kick" and m.inputs != "unit":  # another task's nets read its states normalised by the dataset
-        raise ValueError(f"{p}inputs {m.inputs!r} is the kick's (time step, target m); this task's nets read "
+        raise ValueError(f"{p}inputs {m.inputs!r} is for the kick's (time step, target); this task's nets read "
                          "its states normalised by the dataset: leave it at 'unit'")  # fmt: skip
     positive_ints(m.dataset, f"{p}dataset.", ("repetitions",))
     positive_ints(m.eval, f"{p}eval.", ("repetitions",))

@@ -28,6 +28,8 @@
 #          from the mixed kicks) | polish_sigma=<s> (its initial step) | env.<key>=<value> | meta.<key>=<value>
 #        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
 #        | paper_budget (the preset's PPO and BC budgets, then filtering)
+#        | ppo_updates=<n> (the experts' PPO cut to n updates: with paper_budget, nets cloned at the full
+#          BC budget from experts that are their starting kicks, for arms that differ in meta.* only)
 #        | start=<anchor>[,spread] (every task starts from that prior anchor; spread: each at the strength
 #          where that kick rests nearest its target)
 set -euo pipefail
@@ -93,6 +95,8 @@ for arm in "$@"; do
       spread) sets+=(experts.bc.common_start_strength=true) ;;
       seed=*) seed=${part#seed=} ;;
       paper_budget) budget=(); stages=${STAGES:-train-experts meta-train filter} ;;
+      ppo_updates=*) n=${part#ppo_updates=}  # the experts' PPO cut to n updates in one chunk
+        sets+=("experts.ppo.total_env_steps=$(( n * 256 * 75 ))" "experts.updates_per_chunk=$n") ;;
       env.*|meta.*) sets+=("$part") ;;  # an env or meta setting as it is, e.g. env.warp_contacts=<n>, meta.trainer=stacked
       *) echo "unknown arm part: $part" >&2; exit 2 ;;
     esac

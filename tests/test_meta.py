@@ -671,10 +671,14 @@ def test_the_meta_stage_takes_raw_inputs_only_when_told(env):
     raw = meta_stage.net_obs_norm(config.make_config("tiny", {"meta.inputs": "raw"}), env, data)
     assert raw == bc.kick_raw_inputs(env.n_steps, env.config.task_range)
     assert meta_stage.obs_norm_of_record({"obs_shift": list(raw[0]), "obs_scale": list(raw[1])}) == raw
-    with pytest.raises(ValueError, match=re.escape("meta.inputs must be one of ('unit', 'raw'), got 'scaled'")):
+    centred = meta_stage.net_obs_norm(config.make_config("tiny", {"meta.inputs": "centred"}), env, data)
+    corners = (np.array([[0.0, 0.0], [1.0, 1.0]]) - np.asarray(centred[0])) / np.asarray(centred[1])
+    np.testing.assert_allclose(corners, [[-1.0, -1.0], [1.0, 1.0]])  # [0, 1] -> [-1, 1]
+    bad = "meta.inputs must be one of ('unit', 'raw', 'centred'), got 'scaled'"
+    with pytest.raises(ValueError, match=re.escape(bad)):
         config.make_config("tiny", {"meta.inputs": "scaled"})
     # Another task's nets read its states normalised by the dataset: "raw" there is refused, not ignored.
-    with pytest.raises(ValueError, match=re.escape("cheetah_vel.meta.inputs 'raw' is the kick's")):
+    with pytest.raises(ValueError, match=re.escape("cheetah_vel.meta.inputs 'raw' is for the kick's")):
         config.make_config("tiny", {"task": "cheetah_vel", "cheetah_vel.meta.inputs": "raw"})
 
 

@@ -166,11 +166,13 @@ def dataset(cfg, run_dir: Path, say=print) -> bc.Dataset:
 def net_obs_norm(cfg, env, data: bc.Dataset) -> tuple | None:
     """The nets' `bc.MetaPolicy.obs_norm`: another task's states normalised by the dataset's
     statistics; the kick's (phase, context) as they are, or with `meta.inputs = "raw"` mapped to
-    the paper's unscaled (time step, target m)."""
+    the paper's unscaled (time step, target m), with "centred" to [-1, 1]."""
     if cfg.task != "kick":
         return bc.obs_norm_of(data.obs)
     if cfg.meta.inputs == "raw":
         return bc.kick_raw_inputs(env.n_steps, env.config.task_range, int(data.obs.shape[-1]))
+    if cfg.meta.inputs == "centred":
+        return bc.kick_centred_inputs(int(data.obs.shape[-1]))
     return None
 
 
