@@ -5,8 +5,9 @@
 # update (on seeds 102 and 103 the preset's 625 updates moved the experts by 0.01-0.02 m), then
 # the nets cloned at the paper's BC budget once per input map from those same experts, and each
 # filtered, all on the 110 development targets. Seeds and input maps run side by side (separate
-# processes sharing the visible GPU); each arm's output in runs/dev_<arm>.log, its records in
-# experiments/results/dev_starting_kicks/.
+# processes sharing the visible GPU: their kernels overlap only under CUDA MPS, started beforehand
+# with `nvidia-cuda-mps-control -d`; without it they take turns); each arm's output in
+# runs/dev_<arm>.log, its records in experiments/results/dev_starting_kicks/.
 #
 #   experiments/dev_meta_inputs.sh SEED [SEED ...]
 #   PRIOR=runs/paper experiments/dev_meta_inputs.sh 102 103   (each arm starts from that run's
