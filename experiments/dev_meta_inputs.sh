@@ -2,7 +2,8 @@
 # The development comparison of what the meta-policies read (`meta.inputs`: unit, raw, centred;
 # docs/decisions.md, "meta.inputs"), through experiments/dev_starting_kicks.sh's arms. For each
 # development SEED: the paper preset's experts (the keep=chain starting kicks) with PPO cut to one
-# update (on seeds 102 and 103 the preset's 625 updates moved the experts by 0.01-0.02 m), then
+# update (a cheaper, weaker proxy: on seeds 102 and 103 they err 0.44-0.48 m, their starting kicks
+# 0.34 m, the preset's experts after 625 updates about 0.33 m), then
 # the nets cloned at the paper's BC budget once per input map from those same experts, and each
 # filtered, all on the 110 development targets. Seeds and input maps run side by side (separate
 # processes sharing the visible GPU: their kernels overlap only under CUDA MPS, started beforehand
