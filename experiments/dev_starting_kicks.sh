@@ -29,7 +29,8 @@
 #        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
 #        | paper_budget (the preset's PPO and BC budgets, then filtering)
 #        | ppo_updates=<n> (the experts' PPO cut to n updates: with paper_budget, nets cloned at the full
-#          BC budget from experts that are their starting kicks, for arms that differ in meta.* only)
+#          BC budget from cheap experts, for arms that differ in meta.* only; one update leaves them
+#          about 0.1 m worse than their starting kicks)
 #        | start=<anchor>[,spread] (every task starts from that prior anchor; spread: each at the strength
 #          where that kick rests nearest its target)
 set -euo pipefail
@@ -95,7 +96,8 @@ for arm in "$@"; do
       spread) sets+=(experts.bc.common_start_strength=true) ;;
       seed=*) seed=${part#seed=} ;;
       paper_budget) budget=(); stages=${STAGES:-train-experts meta-train filter} ;;
-      ppo_updates=*) n=${part#ppo_updates=}  # the experts' PPO cut to n updates in one chunk
+      ppo_updates=*) n=${part#ppo_updates=}  # n updates of the paper preset's 256 episodes x 75 steps, one chunk
+        if ! [[ $n =~ ^[1-9][0-9]*$ ]]; then echo "ppo_updates must be a positive integer, got '$n'" >&2; exit 2; fi
         sets+=("experts.ppo.total_env_steps=$(( n * 256 * 75 ))" "experts.updates_per_chunk=$n") ;;
       env.*|meta.*) sets+=("$part") ;;  # an env or meta setting as it is, e.g. env.warp_contacts=<n>, meta.trainer=stacked
       *) echo "unknown arm part: $part" >&2; exit 2 ;;

@@ -90,3 +90,6 @@ def test_the_inputs_comparison_clones_every_map_from_one_seeds_experts(tmp_path)
     assert len(trained) == 4 and sum(f"--run-dir {ref} " in line for line in trained) == 2
     bad = subprocess.run([str(script), "1o2"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "SEED must be a non-negative integer, got '1o2'" in bad.stderr
+    bad = subprocess.run([str(SCRIPT), "per_task,ppo_updates=0"], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=60)  # fmt: skip
+    assert bad.returncode == 2 and "ppo_updates must be a positive integer, got '0'" in bad.stderr
