@@ -644,7 +644,7 @@ def _leaves(d, prefix=""):
             yield f"{prefix}{k}", v
 
 
-# -- the paper's unscaled inputs (`meta.inputs = "raw"`) --------------------------------------
+# -- the kick nets' input maps (`meta.inputs = "raw"`, `"centred"`) ------------------------------
 
 
 def test_raw_inputs_show_the_net_the_time_step_and_the_target_in_metres(env):
