@@ -5,6 +5,8 @@ For each physics backend (`--backends`, default MJX-JAX and MuJoCo Warp), at the
 - aggregate PPO env-steps/s of all experts in one vmapped program;
 - filtering rollouts/s and the wall time of the high-sample-rate variant (1091 contexts).
 On the config's own backend (`env.impl`) only:
+- a generation of the experts' tuning (every task's CMA-ES at once) as one run plays it, and
+  the `tune.restarts` runs' searches in one batch instead (its Warp pool that many times larger);
 - the experts again with GAE as a device loop of one iteration per step (Brax's way) against
   the unrolled GAE of the config (`experts.ppo.unroll_gae`);
 - Brax's `ppo.train` on one task (one expert's batch) and at the experts' total batch;
@@ -17,7 +19,7 @@ Wall times of whole stages computed from a measured rate are listed under `proje
 Results are written after each section, so a run cut short keeps what it measured.
 
     python -m benchmarks.bench --preset paper                        # GPU: benchmarks/results/training.json
-    python -m benchmarks.bench --skip scene experts brax bc filter --record experts_gae   # some sections, own record
+    python -m benchmarks.bench --skip scene experts brax bc filter tuning --record experts_gae  # own record
     python -m benchmarks.bench --preset tiny --out-dir runs/bench    # CPU smoke test
 """
 
@@ -41,10 +43,12 @@ from bumps_jax import (
     bc_stacked,
     brax_compat,
     cli,
+    cmaes,
     config,
     filtering,
     kick_env,
     kick_model,
+    kick_scoring,
     rollout,
     runio,
     sharding,
@@ -54,9 +58,24 @@ from bumps_jax.stages import experts
 
 # What each preset measures: the paper's sizes on a GPU; CPU-sized for a smoke test.
 SIZES = {
-    "paper": {"bench_updates": 2, "brax_epochs": 4, "bc_chunk": 1000, "filter_step": 0.01, "filter_reps": 10},
-    "tiny": {"bench_updates": 1, "brax_epochs": 2, "bc_chunk": 20, "filter_step": 2.0, "filter_reps": 1},
+    "paper": {
+        "bench_updates": 2,
+        "brax_epochs": 4,
+        "bc_chunk": 1000,
+        "filter_step": 0.01,
+        "filter_reps": 10,
+        "tuning_generations": 5,
+    },
+    "tiny": {
+        "bench_updates": 1,
+        "brax_epochs": 2,
+        "bc_chunk": 20,
+        "filter_step": 2.0,
+        "filter_reps": 1,
+        "tuning_generations": 1,
+    },
 }
+SECTIONS = ("scene", "experts", "gae", "brax", "bc", "filter", "tuning")  # what --skip can leave out
 # Ten of our updates' worth of env steps per Brax training epoch, so that each epoch's own
 # timing is long enough to mean something.
 UPDATES_PER_BRAX_EPOCH = 10
@@ -147,6 +166,55 @@ def bench_experts(cfg, updates: int, mesh, workload: int = 1) -> dict:
         # The preset's whole PPO budget at this rate (BC, tuning and host work between chunks aside).
         "experts_ppo_projected_s": full / (steps / wall),
     }
+
+
+def per_run_centre(centre_fn, runs: int, tasks: int):
+    """`run_search`'s centre_fn for `runs` tuning runs batched as runs x tasks searches: each
+    run's block of `tasks` means is one chain, its centres `centre_fn` of that block alone."""
+    if centre_fn is None:
+        return None
+    return lambda means: jax.vmap(centre_fn)(means.reshape(runs, tasks, -1)).reshape(runs * tasks, -1)
+
+
+def tuning_projection(cfg, generation_s: float, batched_generation_s: float, runs: int) -> dict:
+    """The tuning's `tune.generations` for `runs` runs, one run after another at `generation_s` a
+    generation against all in one batch at `batched_generation_s` (polish and fresh scoring aside)."""
+    generations = int(cfg.experts.tune.generations)
+    return {
+        "tuning_runs": runs,
+        "tuning_projected_s": runs * generations * generation_s,
+        "tuning_batched_projected_s": generations * batched_generation_s,
+        "tuning_batched_vs_sequential": runs * generation_s / batched_generation_s,
+    }
+
+
+def bench_tuning(cfg, mesh, generations: int) -> dict:
+    """Seconds per generation of the experts' tuning (the preset's population, repetitions and
+    leashes; every task from the prior's kick): the tasks of one run, then the `tune.restarts` runs'
+    tasks in one batch (at least two runs), each chain leashed within its own run."""
+    e = cfg.experts
+    runs = max(int(e.tune.restarts), 2)
+    targets = np.asarray(e.tasks, np.float32)
+    starts = np.tile(np.asarray(kick_model.load_record(kick_model.ASSET)["params"], np.float32), (len(targets), 1))
+    fitness_json = kick_scoring.fitness_json_of(cfg.prior.fitness)
+    leash, centre_fn = cmaes.tuning_leash(starts, targets, float(e.tune.start_leash), float(e.tune.neighbour_leash))
+    out = {}
+    for label, k in (("", 1), ("_batched", runs)):
+        env = kick_env.KickEnv(derived(cfg, {"env.warp_contacts": cfg.env.warp_contacts * k}).env)
+        search = cmaes.kick_search(env, mesh, int(e.tune.population_size), int(e.tune.repetitions),
+                                   float(e.tune.sigma_init), fitness_json)  # fmt: skip
+        x0 = np.tile(starts, (k, 1))
+
+        def run(search=search, x0=x0, k=k):
+            return cmaes.run_search(search, x0, np.tile(targets, k), np.ones_like(x0, bool), generations, 0,
+                                    say=lambda *a, **kw: None, leash=leash,
+                                    centre_fn=per_run_centre(centre_fn, k, len(targets)))  # fmt: skip
+
+        _, first, wall = timed(run)
+        out[f"tuning_generation_s{label}"] = wall / generations
+        out[f"tuning_compile_s{label}"] = first - wall
+        out[f"tuning_episodes_per_call{label}"] = k * len(targets) * e.tune.population_size * e.tune.repetitions
+    return out | tuning_projection(cfg, out["tuning_generation_s"], out["tuning_generation_s_batched"], runs)
 
 
 def bench_brax(cfg, epochs: int, all_tasks: bool = False) -> dict:
@@ -302,7 +370,7 @@ def parse_args(argv=None):
     parser.add_argument("--record", default="training",
                         help="the record's file name in --out-dir, without .json: a bench of some sections "
                              "(--skip) keeps its own record, e.g. --record experts_gae")  # fmt: skip
-    parser.add_argument("--skip", nargs="*", default=(), choices=("scene", "experts", "gae", "brax", "bc", "filter"))
+    parser.add_argument("--skip", nargs="*", default=(), choices=SECTIONS)
     parser.add_argument("--bc-trainers", nargs="+", default=list(BC_TRAINERS), choices=BC_TRAINERS,
                         help="the BC loops timed (default: all)")  # fmt: skip
     parser.add_argument("--backends", nargs="+", default=list(kick_env.IMPLS), choices=kick_env.IMPLS,
@@ -340,6 +408,7 @@ def sections(cfg, size: dict, backends, one, bc_trainers=BC_TRAINERS) -> list:
         return {f"{key}{suffix}": value for key, value in part.items() if key.startswith("experts_")}
 
     return out + [
+        ("tuning", lambda: bench_tuning(cfg, one, size["tuning_generations"]), None),
         ("gae", lambda: experts_gae(False), None),
         ("gae", lambda: experts_gae(True), None),
         ("brax", lambda: bench_brax(cfg, size["brax_epochs"]), None),
@@ -377,6 +446,7 @@ def main(argv=None) -> dict:
     training["projections"] = [
         "experts_ppo_projected_s", "experts_ppo_projected_s_gae_loop", "experts_ppo_projected_s_gae_unrolled",
         "bc_wall_s", "bc_joint_wall_s", "bc_stacked_wall_s", "bc_stacked_batched_wall_s",
+        "tuning_projected_s", "tuning_batched_projected_s",
     ]  # fmt: skip
     for name, fn, into in sections(cfg, SIZES[args.preset], args.backends, one, args.bc_trainers):
         if name in args.skip:
