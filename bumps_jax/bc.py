@@ -86,6 +86,19 @@ def kick_centred_inputs(obs_size: int = 2) -> tuple:
     return (0.5, 0.5) + (0.0,) * (obs_size - 2), (0.5, 0.5) + (1.0,) * (obs_size - 2)
 
 
+def obs_norm_of_record(record: dict) -> tuple | None:
+    """A `MetaPolicy.obs_norm` from a record's `obs_norm_fields`: the stage's table1.json or a
+    shipped net's entry in policies.json (None: the kick's inputs as they are)."""
+    if "obs_shift" not in record:
+        return None
+    return tuple(map(float, record["obs_shift"])), tuple(map(float, record["obs_scale"]))
+
+
+def obs_norm_fields(obs_norm: tuple | None) -> dict:
+    """The record keys of a `MetaPolicy.obs_norm` (none for None), as `obs_norm_of_record` reads them."""
+    return {} if obs_norm is None else {"obs_shift": list(obs_norm[0]), "obs_scale": list(obs_norm[1])}
+
+
 def obs_norm_of(obs: np.ndarray, floor: float = 1e-2) -> tuple:
     """(shift, scale) of a dataset's observations (N, O) as `MetaPolicy.obs_norm` takes them:
     per-number mean and standard deviation (at least `floor`), as tuples of floats."""

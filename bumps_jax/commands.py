@@ -77,7 +77,7 @@ def video(cfg, run_dir: Path, args) -> None:
     from bumps_jax.stages import meta as meta_stage  # noqa: PLC0415
 
     table2 = runio.read_json(run_dir / "filter" / "table2.json", "run the filter stage first")
-    obs_norm = meta_stage.obs_norm_of_record(runio.read_json(run_dir / "meta" / meta_stage.OUTPUT))
+    obs_norm = meta_stage.run_obs_norm(run_dir)
     out = Path(args.out) if args.out else run_dir / "filtered_kicks.gif"
     runio.check_writable(out.parent)
     tasks, chosen = np.asarray(table2["tasks"]), np.asarray(table2["chosen_contexts"]["filtered_4x256"])
@@ -161,7 +161,8 @@ def kick(cfg, run_dir: Path, args) -> None:
         from bumps_jax import bc, render  # noqa: PLC0415
 
         entry = shipped.manifest["nets"][args.net]
-        apply_fn = bc.policy_apply(bc.MetaPolicy(entry["depth"], entry["width"], obs_norm=policies.net_obs_norm(entry)))
+        model = bc.MetaPolicy(entry["depth"], entry["width"], obs_norm=bc.obs_norm_of_record(entry))
+        apply_fn = bc.policy_apply(model)
         env = kick_env.KickEnv(env_cfg)
         path = render.kick_gif(args.gif, env, apply_fn, shipped.nets[args.net], [out.context], [target], args.seed)
         print(f"wrote {path}")

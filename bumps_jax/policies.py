@@ -64,7 +64,7 @@ def write(cfg, run_dir: str | Path, dest: str | Path) -> list[Path]:
         env_records.check_same_env(record.get("env"), env, f"the {what} record of {run_dir}")
     runio.check_writable(dest)
     train_cfg = ml_collections.ConfigDict(table1["config"]["train"])
-    obs_norm = meta_stage.obs_norm_of_record(table1)
+    obs_norm = bc.obs_norm_of_record(table1)
     net_seed = int(table2["config"]["net_seed"])
     written, nets = [], {}
     for net in meta_stage.NETS:
@@ -73,8 +73,7 @@ def write(cfg, run_dir: str | Path, dest: str | Path) -> list[Path]:
         path = dest / f"{net}.msgpack"
         path.write_bytes(_serialize(jax.tree.map(lambda a: a[net_seed], params)))
         nets[net] = {"depth": int(depth), "width": int(width), "file": path.name}
-        if obs_norm is not None:  # the fixed map in front of the first layer (`bc.MetaPolicy.obs_norm`)
-            nets[net].update(obs_shift=list(obs_norm[0]), obs_scale=list(obs_norm[1]))
+        nets[net].update(bc.obs_norm_fields(obs_norm))  # the fixed map in front of the first layer
         written.append(path)
     family = experts_stage.load_family(cfg, run_dir)
     path = dest / "experts.msgpack"
@@ -160,13 +159,6 @@ def load(directory: str | Path = ASSET_DIR, env_cfg=None) -> Shipped:
     return Shipped(manifest, nets, read(manifest["experts"]["file"]))
 
 
-def net_obs_norm(entry: dict) -> tuple | None:
-    """A shipped net's `bc.MetaPolicy.obs_norm` from its entry in policies.json (None: none)."""
-    if "obs_shift" not in entry:
-        return None
-    return tuple(map(float, entry["obs_shift"])), tuple(map(float, entry["obs_scale"]))
-
-
 class Kicks(NamedTuple):
     """What `filtered_kicks` found and measured."""
 
@@ -183,7 +175,7 @@ def filtered_kicks(
 ) -> Kicks:
     """Filter a context for `target` (m) as the run did (its grid and width; `selection_repetitions`
     noisy kicks per candidate), then `n_kicks` fresh noisy kicks at the chosen context."""
-    from bumps_jax import meta_programs, sharding  # noqa: PLC0415
+    from bumps_jax import bc, meta_programs, sharding  # noqa: PLC0415
 
     f = shipped.manifest["filter"]
     task_range = tuple(env_cfg.task_range)
@@ -193,7 +185,8 @@ def filtered_kicks(
     contexts = contexts[np.abs(contexts - targets[0]) <= f["width"] + 1e-6]
     entry = shipped.manifest["nets"][net]
     mesh = sharding.device_mesh(impl=env_cfg.impl)
-    program = meta_programs.meta_grid(env_cfg, entry["depth"], entry["width"], mesh, obs_norm=net_obs_norm(entry))
+    obs_norm = bc.obs_norm_of_record(entry)  # the net's fixed input map, shipped with it (None: none)
+    program = meta_programs.meta_grid(env_cfg, entry["depth"], entry["width"], mesh, obs_norm=obs_norm)
     params = jax.tree.map(lambda a: np.asarray(a)[None], shipped.nets[net])
     sel_key, eval_key = filtering.noise_keys(seed)
     block = int(n_kicks)  # one compiled program serves the selection and the kicks

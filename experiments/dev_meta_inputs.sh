@@ -23,25 +23,27 @@ for seed in "$@"; do
 done
 if [ -n "${PRIOR:-}" ] && [ ! -f "$PRIOR/prior/kick_prior.json" ]; then echo "PRIOR=$PRIOR: no finished prior in $PRIOR/prior" >&2; exit 2; fi
 mkdir -p runs
+# An arm's run directory, as dev_starting_kicks.sh names it (its parts with '=' and ',' as '_').
+run_of() { echo "runs/dev_${1//[=,]/_}"; }
 # One seed: the reference arm (unit) trains the experts, then every input map clones from them.
 one_seed() {
   local ref="$base,seed=$1" arm pids=() failed=0
   for arm in "$ref" "${maps[@]/#/$ref,meta.inputs=}"; do
-    if [ -n "${PRIOR:-}" ] && [ ! -d "runs/dev_${arm//[=,]/_}/prior" ]; then
-      mkdir -p "runs/dev_${arm//[=,]/_}" && cp -r "$PRIOR/prior" "runs/dev_${arm//[=,]/_}/prior"
+    if [ -n "${PRIOR:-}" ] && [ ! -d "$(run_of "$arm")/prior" ]; then
+      mkdir -p "$(run_of "$arm")" && cp -r "$PRIOR/prior" "$(run_of "$arm")/prior"
     fi
   done
-  STAGES=train-experts "$here/dev_starting_kicks.sh" "$ref" > "runs/dev_${ref//[=,]/_}.log" 2>&1 || return 1
-  "$here/dev_starting_kicks.sh" "$ref" >> "runs/dev_${ref//[=,]/_}.log" 2>&1 & pids+=($!)
+  STAGES=train-experts "$here/dev_starting_kicks.sh" "$ref" > "$(run_of "$ref").log" 2>&1 || return 1
+  "$here/dev_starting_kicks.sh" "$ref" >> "$(run_of "$ref").log" 2>&1 & pids+=($!)
   for arm in "${maps[@]/#/$ref,meta.inputs=}"; do
-    FROM="$ref" "$here/dev_starting_kicks.sh" "$arm" > "runs/dev_${arm//[=,]/_}.log" 2>&1 & pids+=($!)
+    FROM="$ref" "$here/dev_starting_kicks.sh" "$arm" > "$(run_of "$arm").log" 2>&1 & pids+=($!)
   done
   for pid in "${pids[@]}"; do wait "$pid" || failed=1; done
   return $failed
 }
 pids=() failed=0
 for seed in "$@"; do
-  echo "seed $seed: runs/dev_${base//[=,]/_}_seed_${seed}{,_meta.inputs_raw,_meta.inputs_centred}.log"
+  echo "seed $seed: $(run_of "$base,seed=$seed"){,_meta.inputs_raw,_meta.inputs_centred}.log"
   one_seed "$seed" & pids+=($!)
 done
 for pid in "${pids[@]}"; do wait "$pid" || failed=1; done

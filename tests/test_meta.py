@@ -670,7 +670,7 @@ def test_the_meta_stage_takes_raw_inputs_only_when_told(env):
     assert meta_stage.net_obs_norm(config.make_config("tiny"), env, data) is None
     raw = meta_stage.net_obs_norm(config.make_config("tiny", {"meta.inputs": "raw"}), env, data)
     assert raw == bc.kick_raw_inputs(env.n_steps, env.config.task_range)
-    assert meta_stage.obs_norm_of_record({"obs_shift": list(raw[0]), "obs_scale": list(raw[1])}) == raw
+    assert bc.obs_norm_of_record({"obs_shift": list(raw[0]), "obs_scale": list(raw[1])}) == raw
     centred = meta_stage.net_obs_norm(config.make_config("tiny", {"meta.inputs": "centred"}), env, data)
     corners = (np.array([[0.0, 0.0], [1.0, 1.0]]) - np.asarray(centred[0])) / np.asarray(centred[1])
     np.testing.assert_allclose(corners, [[-1.0, -1.0], [1.0, 1.0]])  # [0, 1] -> [-1, 1]
@@ -693,7 +693,7 @@ def test_shipped_nets_carry_their_input_map_to_kick(stage_run, tmp_path, monkeyp
     monkeypatch.setattr(experts_stage, "load_family", lambda c, d: stage_run["family"])
     policies.write(stage_run["cfg"], run_dir, tmp_path / "shipped")
     shipped = policies.load(tmp_path / "shipped", stage_run["cfg"].env)
-    assert all(policies.net_obs_norm(entry) == (shift, scale) for entry in shipped.manifest["nets"].values())
+    assert all(bc.obs_norm_of_record(entry) == (shift, scale) for entry in shipped.manifest["nets"].values())
     built = []
 
     def meta_grid(env_cfg, depth, width, mesh, task="kick", obs_norm=None):

@@ -95,7 +95,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     selections, evals, rows, timings = {}, {}, {}, {}
     env = meta_programs.stage_env(cfg.env, cfg.task)
     unit, sizes = env.UNIT, (env.context_observation_size, env.action_size)
-    obs_norm = meta_stage.obs_norm_of_record(runio.read_json(run_dir / "meta" / meta_stage.OUTPUT))
+    obs_norm = meta_stage.run_obs_norm(run_dir)
     for net in meta_stage.NETS:
         depth, width = cfg.meta.nets[net]
         _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train, *sizes, obs_norm)

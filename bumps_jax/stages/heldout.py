@@ -153,7 +153,7 @@ def meta_variants(cfg, run_dir: Path, net: str, targets, contexts, noise_keys, m
     sel_key, eval_key = noise_keys
     depth, width = cfg.meta.nets[net]
     # The nets' input normalisation as the meta stage trained them (None: the kick's (phase, target) as they are).
-    obs_norm = meta_stage.obs_norm_of_record(runio.read_json(run_dir / "meta" / meta_stage.OUTPUT))
+    obs_norm = meta_stage.run_obs_norm(run_dir)
     _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train, obs_norm=obs_norm)
     params = jax.tree.map(lambda a: a[f.net_seed : f.net_seed + 1], params)
     grid = meta_programs.meta_grid(cfg.env, depth, width, mesh, obs_norm=obs_norm)

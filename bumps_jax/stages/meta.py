@@ -176,11 +176,9 @@ def net_obs_norm(cfg, env, data: bc.Dataset) -> tuple | None:
     return None
 
 
-def obs_norm_of_record(table1: dict) -> tuple | None:
-    """The meta-policies' `bc.MetaPolicy.obs_norm` from the stage's record (None: the kick's)."""
-    if "obs_shift" not in table1:
-        return None
-    return tuple(map(float, table1["obs_shift"])), tuple(map(float, table1["obs_scale"]))
+def run_obs_norm(run_dir: Path) -> tuple | None:
+    """The nets' `bc.MetaPolicy.obs_norm` as a run's meta stage trained them (its table1.json)."""
+    return bc.obs_norm_of_record(runio.read_json(Path(run_dir) / "meta" / OUTPUT))
 
 
 # -- training and Table 1 -----------------------------------------------------------------------
@@ -304,9 +302,8 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     }
     if cfg.task != "kick":
         payload.update(task=cfg.task, unit=env.UNIT, obs_size=int(data.obs.shape[-1]), n_actions=env.action_size)
-    obs_norm = next(iter(models.values())).obs_norm  # every net's: `net_obs_norm`
-    if obs_norm is not None:  # what the filter and held-out stages, and the shipped policies, build the nets with
-        payload.update(obs_shift=list(obs_norm[0]), obs_scale=list(obs_norm[1]))
+    # every net's `net_obs_norm`: what the filter and held-out stages, and the shipped policies, build the nets with
+    payload.update(bc.obs_norm_fields(next(iter(models.values())).obs_norm))
     runio.write_json(stage_dir / OUTPUT, payload)
     # From here on each net is read from its newest checkpoint (the trained policy): the older
     # ones go, as the experts' and the baseline's do once their records are written.
