@@ -168,14 +168,6 @@ def bench_experts(cfg, updates: int, mesh, workload: int = 1) -> dict:
     }
 
 
-def per_run_centre(centre_fn, runs: int, tasks: int):
-    """`run_search`'s centre_fn for `runs` tuning runs batched as runs x tasks searches: each
-    run's block of `tasks` means is one chain, its centres `centre_fn` of that block alone."""
-    if centre_fn is None:
-        return None
-    return lambda means: jax.vmap(centre_fn)(means.reshape(runs, tasks, -1)).reshape(runs * tasks, -1)
-
-
 def tuning_projection(cfg, generation_s: float, batched_generation_s: float, runs: int) -> dict:
     """The tuning's `tune.generations` for `runs` runs, one run after another at `generation_s` a
     generation against all in one batch at `batched_generation_s` (polish and fresh scoring aside)."""
@@ -206,9 +198,10 @@ def bench_tuning(cfg, mesh, generations: int) -> dict:
         x0 = np.tile(starts, (k, 1))
 
         def run(search=search, x0=x0, k=k):
-            return cmaes.run_search(search, x0, np.tile(targets, k), np.ones_like(x0, bool), generations, 0,
+            seeds = list(range(k)) if k > 1 else 0  # each run its own key, as the tuning batches them
+            return cmaes.run_search(search, x0, np.tile(targets, k), np.ones_like(x0, bool), generations, seeds,
                                     say=lambda *a, **kw: None, leash=leash,
-                                    centre_fn=per_run_centre(centre_fn, k, len(targets)))  # fmt: skip
+                                    centre_fn=cmaes.per_run(centre_fn, k, len(targets)))  # fmt: skip
 
         _, first, wall = timed(run)
         out[f"tuning_generation_s{label}"] = wall / generations

@@ -11,6 +11,7 @@ ADDED_KNOBS = {
     "experts.tune.neighbour_leash": 0.0,
     "experts.tune.midpoint_weight": 0.0,
     "experts.tune.restarts": 1,
+    "experts.tune.batch_restarts": False,
     "meta.trainer": "separate",
     "meta.inputs": "unit",
     "experts.tune.keep": "run",

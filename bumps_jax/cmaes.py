@@ -149,6 +149,11 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
                extra_fn=None) -> Result:  # fmt: skip
     """Run T searches for `generations` generations from key(seed) (seed: an int or a JAX key).
 
+    seed may also be a list of K seeds: the searches are then K runs of T / K searches each (run
+    k the k-th block), and run k draws its keys from seed k exactly as it would alone, so a batch
+    of runs plays the random numbers of the runs one after another; `Result.key` is then (K,), the
+    runs' keys (`split_runs`).
+
     x0: (T, *search.shape) starts; targets: (T,) m; free: (T, *search.shape) bool, the parameters
     each search moves; extra: (T,) numbers handed to the cost (default 0); leash: (T,) each
     search's cost per squared scale unit from its centre (`make_search`; default 0).
@@ -171,10 +176,20 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
         (x0, targets, scale, extra, leash), sharding.padded_size(n, search.mesh)
     )
     T = x0.shape[0]
-    key = jax.random.key(seed) if isinstance(seed, int | np.integer) else seed
-    key, init_key = jax.random.split(key)
+    seeds = list(seed) if isinstance(seed, list | tuple) else [seed]
+    runs = len(seeds)
+    if runs == 0 or n % runs:
+        raise ValueError(f"{n} searches do not split into {runs} runs of equal size")
+    key = jnp.stack([jax.random.key(s) if isinstance(s, int | np.integer) else s for s in seeds])
+
+    def draw(key):  # each run's next key, and one key per search from each run's own stream
+        pair = jax.vmap(jax.random.split)(key)
+        per_search = jax.vmap(lambda k: jax.random.split(k, n // runs))(pair[:, 1]).reshape(n)
+        return pair[:, 0], sharding.pad(per_search, T)
+
+    key, init_keys = draw(key)
     init = jax.vmap(lambda k: search.es.init(k, jnp.zeros(search.shape), search.es_params))
-    carry = Carry(init(jax.random.split(init_key, T)), jnp.full(T, jnp.inf, jnp.float32), x0)
+    carry = Carry(init(init_keys), jnp.full(T, jnp.inf, jnp.float32), x0)
     # CMA-ES starts some fields weakly typed and returns them strongly typed: fix the types now
     # so that the generation program compiles once, not twice.
     carry = jax.tree.map(lambda x: x.astype(x.dtype), carry)
@@ -187,14 +202,13 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
         return sharding.place(sharding.pad(jnp.asarray(fn(means), jnp.float32), T), search.mesh)
 
     for gen in range(generations):
-        key, gen_key = jax.random.split(key)
+        key, gen_keys = draw(key)
         if centre_fn is not None:
             centre = follow(centre_fn, carry)
         if extra_fn is not None:
             extra = follow(extra_fn, carry)
         carry, stats = search.step(
-            *sharding.place((carry, jax.random.split(gen_key, T)), search.mesh), x0, targets, scale, extra, leash,
-            centre,
+            *sharding.place((carry, gen_keys), search.mesh), x0, targets, scale, extra, leash, centre,
         )  # fmt: skip
         stats = Stats(*(np.asarray(s) for s in sharding.unpad(tuple(stats), n)))
         if stats.overflow.max() > 0:  # dropped contacts: every cost of this generation is wrong
@@ -212,7 +226,36 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
     mean = kick_model.clip_params(x0[:n] + scale[:n] * es.mean.reshape(x0[:n].shape))
     names = Stats._fields
     hist = {k: np.asarray([getattr(s, k) for s in history]).reshape(generations, n) for k in names}
-    return Result(np.asarray(mean), np.asarray(best), np.asarray(best_cost), hist, key)
+    return Result(np.asarray(mean), np.asarray(best), np.asarray(best_cost), hist,
+                  key if isinstance(seed, list | tuple) else key[0])  # fmt: skip
+
+
+def split_runs(result: Result, runs: int) -> list[Result]:
+    """The `runs` runs of one `run_search` over a list of `runs` seeds, each its own Result as if
+    it had run alone (its block of searches, its history, its key)."""
+    if result.key.shape != (runs,):
+        raise ValueError(f"a result of {result.key.shape} keys is not {runs} runs")
+    n = len(result.mean) // runs
+    block = [slice(k * n, (k + 1) * n) for k in range(runs)]
+    out = []
+    for k, b in enumerate(block):
+        history = {field: h[:, b] for field, h in result.history.items()}
+        out.append(Result(result.mean[b], result.best[b], result.best_cost[b], history, result.key[k]))
+    return out
+
+
+def per_run(fn, runs: int, searches: int):
+    """`run_search`'s centre_fn or extra_fn `fn` (of one run's means (searches, ...)) for `runs`
+    runs batched as runs x searches: each run's block of means is its own chain, `fn` of that
+    block alone. None stays None."""
+    if fn is None or runs == 1:
+        return fn
+
+    def batched(means):
+        out = jax.vmap(fn)(means.reshape(runs, searches, *means.shape[1:]))
+        return out.reshape(runs * searches, *out.shape[2:])
+
+    return batched
 
 
 # -- what the stages call ------------------------------------------------------------------------
@@ -298,14 +341,20 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     fresh costs plus the neighbour leash between the chosen kicks, the tuning's own objective, so a
     task takes a slightly dearer kick where the cheapest one would break the chain.
 
+    With tune_cfg.batch_restarts the runs play as one batch of K x T searches (each physics call K
+    runs' episodes: `env`'s contact pool must hold them), each run from its own key as alone
+    (`run_search`), so batching changes the schedule, not the runs; off, one run after another.
+
     keep_dir: where each finished run is kept (`tuning_run_<k>.json`, with a fingerprint of
     everything it depends on): a rerun with the same inputs reads the runs it finds there instead
-    of running them again, and Ctrl-C stops between runs. None keeps nothing.
+    of running them again (batched or not), and Ctrl-C stops between runs (batches). None keeps
+    nothing.
 
     Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
     "history": (generations, T) best cost per generation, "restart": the run kept,
     "restart_costs": (K,) each run's mean cost over tasks, "runs_kept": (T,) int, each task's kick
-    from run k (1..K) or its start (0), "run_seconds": (K,), "episodes": int}; with keep "task" or
+    from run k (1..K) or its start (0), "run_seconds": (K,) (a batch's time shared evenly by its
+    runs), "episodes": int}; with keep "task" or
     "chain" "restart" is None and "history" the first run's.
     """
     targets = np.asarray(targets, np.float32)
@@ -334,34 +383,50 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
     extra_fn = (lambda means: neighbour_partners(means, targets)) if midpoint_weight > 0 else None
     fingerprint = tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, fitness_json, mesh.size)
-    results, seconds, seed = [], [], jax.random.key(int(tune_cfg.seed))
-    # With runs kept, Ctrl-C stops after the run in flight (its file written); without, as ever.
+    seed = jax.random.key(int(tune_cfg.seed))
+    seeds = [seed if k == 0 else jax.random.fold_in(seed, k) for k in range(K)]  # run k's own key
+
+    def tune(runs: list[int], label: str) -> list[tuple[Result, float]]:  # the runs `runs` as one batch
+        m, t0 = len(runs), time.perf_counter()
+        result = run_search(
+            search, np.tile(starts, (m, 1)), np.tile(targets, m), np.ones((m * T, kick_model.N_PARAMS), bool),
+            int(generations), [seeds[k] for k in runs] if m > 1 else seeds[runs[0]], say=say, label=label,
+            leash=leash, centre_fn=per_run(centre_fn, m, T), extra_fn=per_run(extra_fn, m, T),
+        )  # fmt: skip
+        took = (time.perf_counter() - t0) / m  # a batch's time, shared evenly by its runs
+        return [(r, took) for r in (split_runs(result, m) if m > 1 else [result])]
+
+    paths = [None if keep_dir is None else Path(keep_dir) / f"tuning_run_{k + 1}.json" for k in range(K)]
+    done: dict[int, tuple[Result, float]] = {}
+    for k, path in enumerate(paths):
+        kept = read_tuning_run(path, fingerprint)
+        if kept is not None:
+            say(f"{'tuning' if K == 1 else f'tuning run {k + 1}/{K}'}: read from {runio.shown(path)}")
+            done[k] = kept
+    left = [k for k in range(K) if k not in done]
+    batched = bool(tune_cfg.get("batch_restarts", False)) and len(left) > 1
+    if batched:
+        # every run left in one batch: its searches side by side in each physics call
+        most = sharding.padded_size(len(left) * T, mesh) // mesh.size * P * R
+        _check_pool(env, most, f"the {len(left)} tuning runs batched (runs x tasks x population x repetitions)")
+    # With runs kept, Ctrl-C stops after the run (or batch) in flight (its files written).
     guard = contextlib.nullcontext() if keep_dir is None else runio.stop_on_interrupt(say, at="this tuning run")
     with guard as stop:
-        for k in range(K):
-            label = "tuning" if K == 1 else f"tuning run {k + 1}/{K}"
-            path = None if keep_dir is None else Path(keep_dir) / f"tuning_run_{k + 1}.json"
-            kept = read_tuning_run(path, fingerprint)
-            if kept is not None:
-                say(f"{label}: read from {runio.shown(path)}")
-                results.append(kept[0])
-                seconds.append(kept[1])
-                continue
-            t0 = time.perf_counter()
-            result = run_search(
-                search, starts, targets, np.ones_like(starts, bool), int(generations),
-                seed if k == 0 else jax.random.fold_in(seed, k), say=say, label=label, leash=leash,
-                centre_fn=centre_fn, extra_fn=extra_fn,
-            )  # fmt: skip
-            results.append(result)
-            seconds.append(time.perf_counter() - t0)
-            if path is not None:
-                write_tuning_run(path, fingerprint, result, seconds[-1])
-            if k + 1 < K:  # the later runs compile nothing: each takes about as long as the last
-                took = seconds[-1]
-                say(f"{label} done in {took:.0f} s; ETA of the other runs {(K - k - 1) * took:.0f} s")
+        for batch in [left] if batched else [[k] for k in left]:
+            if batched:
+                label = f"tuning runs {', '.join(str(k + 1) for k in batch)} of {K} (one batch)"
+            else:
+                label = "tuning" if K == 1 else f"tuning run {batch[0] + 1}/{K}"
+            for k, (result, took) in zip(batch, tune(batch, label), strict=True):
+                done[k] = (result, took)
+                if paths[k] is not None:
+                    write_tuning_run(paths[k], fingerprint, result, took)
+            still = [k for k in left if k not in done]
+            if still:  # the later runs compile nothing: each takes about as long as the last
+                say(f"{label} done in {took:.0f} s; ETA of the other runs {len(still) * took:.0f} s")
             if stop is not None:
                 stop.check()
+    results, seconds = [done[k][0] for k in range(K)], [done[k][1] for k in range(K)]
     # The start and every run's tuned kicks on the same fresh episodes (common random numbers).
     key = results[0].key
     keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (K + 1, E) + key.shape)
@@ -394,10 +459,13 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
 
 def tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, fitness_json, devices) -> str:
     """A hash of everything one tuning run's result depends on (not `restarts`: run k is the same
-    whatever the number of runs): the env, tasks, starts, search settings, cost and device count."""
+    whatever the number of runs; nor the contact pool's size, which holds one run or a batch of
+    them and stops a search that overflows it): the env, tasks, starts, search settings, cost and
+    device count."""
     keys = ("population_size", "repetitions", "seed", "start_leash", "neighbour_leash", "midpoint_weight")
+    physics = {k: v for k, v in kick_env.resolved(env.config).items() if k != "warp_contacts"}
     payload = {
-        "env": kick_env.resolved(env.config),
+        "env": physics,
         "targets": np.asarray(targets, np.float32).tolist(),
         "starts": hashlib.sha256(np.ascontiguousarray(starts, np.float32).tobytes()).hexdigest(),
         "tune": {k: tune_cfg[k] for k in keys},

@@ -99,6 +99,10 @@ def _experts() -> ml_collections.ConfigDict:
     # "per_task" only: independent runs of the whole tuning (different CMA-ES keys); the one whose
     # kicks cost least over all tasks on fresh episodes is kept whole. Each run costs a tuning.
     cfg.tune.restarts = 1
+    # restarts > 1 only: True plays the runs as one batch (each physics call holds every run's
+    # episodes; the tuning's env gets a contact pool restarts x env.warp_contacts), each run from
+    # its own key as it would alone: the same runs, sooner where the device has room to spare.
+    cfg.tune.batch_restarts = False
     # With restarts > 1, what is kept: "run", the run above whole (one chain); "task", each task
     # the cheapest on those fresh episodes of its start and its kick in every run (runs mixed);
     # "chain", the same kicks chosen together: fresh costs plus the neighbour leash between them.

@@ -64,14 +64,16 @@ def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray,
 _TUNE_ENVS: dict = {}
 
 
-def tune_env(cfg) -> kick_env.KickEnv:
+def tune_env(cfg, runs: int = 1) -> kick_env.KickEnv:
     """The env the starting kicks are chosen and tuned in (cfg.env over the prior's task range),
     built once per process and env config: cmaes keeps its programs per env, so a second tuning
-    in the same process (a resumed or repeated run) compiles nothing again."""
+    in the same process (a resumed or repeated run) compiles nothing again. runs > 1: its contact
+    pool `runs` times env.warp_contacts, for that many tuning runs in one batch."""
     task_range = tuple(float(t) for t in cfg.prior.task_range)
-    key = (json.dumps(kick_env.resolved(cfg.env), sort_keys=True), task_range)
+    overrides = {"task_range": task_range, "warp_contacts": int(cfg.env.warp_contacts) * int(runs)}
+    key = (json.dumps(kick_env.resolved(cfg.env), sort_keys=True), task_range, int(runs))
     if key not in _TUNE_ENVS:
-        _TUNE_ENVS[key] = kick_env.KickEnv(cfg.env, {"task_range": task_range})
+        _TUNE_ENVS[key] = kick_env.KickEnv(cfg.env, overrides)
     return _TUNE_ENVS[key]
 
 
@@ -113,8 +115,9 @@ def starting_kicks(cfg, record: dict, say=print, keep_dir=None) -> tuple[np.ndar
                                     e.tune.sigma_init, **common)  # fmt: skip
             info["knot_params"] = out["knot_params"].tolist()
         else:
-            out = cmaes.tune_for_tasks(env, targets, starts, e.tune, e.tune.generations, e.tune.sigma_init,
-                                       keep_dir=keep_dir, **common)  # fmt: skip
+            runs = int(e.tune.restarts) if e.tune.batch_restarts else 1  # runs in one physics call
+            out = cmaes.tune_for_tasks(tune_env(cfg, runs), targets, starts, e.tune, e.tune.generations,
+                                       e.tune.sigma_init, keep_dir=keep_dir, **common)  # fmt: skip
         starts = out["params"]
         episodes += out["episodes"]
         improved = out["improved"].tolist() if isinstance(out["improved"], np.ndarray) else out["improved"]
@@ -122,7 +125,8 @@ def starting_kicks(cfg, record: dict, say=print, keep_dir=None) -> tuple[np.ndar
                     history_best_cost=out["history"])  # fmt: skip
         if "restart_costs" in out:  # the per-task scheme's runs and what was kept of them
             info.update(restart=out["restart"], restart_costs=out["restart_costs"], keep=e.tune.keep,
-                        runs_kept=np.asarray(out["runs_kept"]).tolist(), run_seconds=out["run_seconds"])  # fmt: skip
+                        runs_kept=np.asarray(out["runs_kept"]).tolist(), run_seconds=out["run_seconds"],
+                        batch_restarts=bool(e.tune.batch_restarts))  # fmt: skip
         if not family and e.tune.polish_generations > 0:
             starts, info["polish"], polish_episodes = polish(env, targets, starts, cfg, keep_dir, say)
             episodes += polish_episodes

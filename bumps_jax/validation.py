@@ -176,6 +176,8 @@ def experts(e, task_range, n_steps: int) -> None:
     positive_ints(e.tune, "experts.tune.", ("repetitions", "eval_repetitions", "population_size", "restarts"))
     if e.tune.keep not in TUNE_KEEPS:
         raise ValueError(f"experts.tune.keep must be one of {TUNE_KEEPS}, got {e.tune.keep!r}")
+    if not isinstance(e.tune.batch_restarts, bool):
+        raise ValueError(f"experts.tune.batch_restarts must be true or false, got {e.tune.batch_restarts!r}")
     polish = e.tune.polish_generations
     if isinstance(polish, bool) or not isinstance(polish, int) or polish < 0:
         raise ValueError(f"experts.tune.polish_generations must be an integer >= 0, got {polish!r}")

@@ -213,14 +213,21 @@ def _stand_in_tuning(monkeypatch, during_run=None, moves=MOVES):
     keys = []
 
     def run_search(search, x0, targets, free, generations, seed, **kwargs):
-        keys.append(np.asarray(jax.random.key_data(seed)))
-        k = next(i for i in moves if (jax.random.key_data(_run_key(i)) == keys[-1]).all())
-        if during_run is not None:
-            during_run(k)
+        batched = isinstance(seed, list)  # one key per run, the runs' tasks one block each
+        seed = seed if batched else [seed]
         mean = np.array(x0, np.float32)
-        mean[:, LEAN] += moves[k]
-        hist = {name: np.full((generations, len(targets)), k, np.float32) for name in cmaes.Stats._fields}
-        return cmaes.Result(mean, mean, np.zeros(len(targets)), hist, jax.random.key(7))
+        tasks = len(targets) // len(seed)
+        ran = []
+        for block, run_key in enumerate(seed):
+            keys.append(np.asarray(jax.random.key_data(run_key)))
+            k = next(i for i in moves if (jax.random.key_data(_run_key(i)) == keys[-1]).all())
+            if during_run is not None:
+                during_run(k)
+            mean[block * tasks : (block + 1) * tasks, LEAN] += moves[k]
+            ran += [k] * tasks
+        hist = {name: np.tile(np.float32(ran), (generations, 1)) for name in cmaes.Stats._fields}
+        key = jnp.stack([jax.random.key(7)] * len(seed)) if batched else jax.random.key(7)
+        return cmaes.Result(mean, mean, np.zeros(len(targets)), hist, key)
 
     def cost_program(env, mesh, fitness_json):
         def costs(params, fresh, targets):
@@ -417,6 +424,69 @@ def test_a_stopped_tuning_resumes_at_its_next_run(env, monkeypatch, tmp_path):
     other[:, LEAN] += 0.25
     cmaes.tune_for_tasks(env, [8.0, 12.0], other, RESTARTS_3, 2, 0.5, keep_dir=tmp_path, **common)
     assert len(keys) == 3
+
+
+def test_batched_restarts_are_the_runs_one_after_another(env, monkeypatch, tmp_path):
+    """batch_restarts: the runs not yet kept play as one batch, each from its own run's key (a
+    run kept in keep_dir is read, not run again), and the tuning ends as the runs one after
+    another do; a batch larger than the contact pool is refused before anything runs."""
+    common = dict(fitness=FITNESS, say=lambda *a, **k: None)
+    _stand_in_tuning(monkeypatch)
+    apart = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, **common)
+    batch = ml_collections.ConfigDict({**RESTARTS_3.to_dict(), "batch_restarts": True})
+    keys = _stand_in_tuning(monkeypatch)
+    said = []
+    together = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, batch, 2, 0.5, **{**common, "say": said.append})
+    assert [k.tobytes() for k in keys] == [np.asarray(jax.random.key_data(_run_key(k))).tobytes() for k in range(3)]
+    assert not said  # one batch: no run waits for another
+    for name in ("params", "start_cost", "tuned_cost", "improved", "history", "restart", "restart_costs"):
+        np.testing.assert_array_equal(together[name], apart[name])
+    assert together["episodes"] == apart["episodes"] and len(together["run_seconds"]) == 3
+
+    _stand_in_tuning(monkeypatch)
+    cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, keep_dir=tmp_path, **common)
+    (tmp_path / "tuning_run_2.json").unlink()
+    (tmp_path / "tuning_run_3.json").unlink()
+    keys = _stand_in_tuning(monkeypatch)
+    resumed = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, batch, 2, 0.5, keep_dir=tmp_path, **common)
+    assert [k.tobytes() for k in keys] == [np.asarray(jax.random.key_data(_run_key(k))).tobytes() for k in (1, 2)]
+    np.testing.assert_array_equal(resumed["params"], apart["params"])
+
+    class SmallPool:  # the env with a contact pool of 2 x 4 x 2 episodes: one run's tuning, not three
+        max_episodes, contacts_per_episode = 16, 12
+
+        def __getattr__(self, name):
+            return getattr(env, name)
+
+    keys = _stand_in_tuning(monkeypatch)
+    cmaes.tune_for_tasks(SmallPool(), [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, **common)  # apart: fits
+    with pytest.raises(ValueError, match="the 3 tuning runs batched .* plays 48 in one physics call"):
+        cmaes.tune_for_tasks(SmallPool(), [8.0, 12.0], STARTS, batch, 2, 0.5, **common)
+
+
+def test_runs_batched_in_one_search_draw_each_runs_own_random_numbers():
+    """run_search over a list of seeds: each run (a block of searches) ends bit for bit where it
+    ends alone from its seed, its neighbour leash (`per_run`) leaning on its own block only."""
+    search = _toy_search()
+    targets = np.array([10.0, 12.0, 14.0], np.float32)
+    x0 = np.tile(kick_model.DEFAULT_PARAMS, (3, 1)).astype(np.float32)
+    free = np.ones((3, kick_model.N_PARAMS), bool)
+    leash, centre_fn = cmaes.tuning_leash(x0, targets, 0.1, 0.5)
+    extra = np.array([1.0, 2.0, 3.0], np.float32)
+    quiet = dict(say=lambda m: None, leash=leash)
+    alone = [cmaes.run_search(search, x0, targets, free, 3, s, extra=extra, centre_fn=centre_fn, **quiet)
+             for s in (4, 9)]  # fmt: skip
+    both = cmaes.run_search(search, np.tile(x0, (2, 1)), np.tile(targets, 2), np.tile(free, (2, 1)), 3, [4, 9],
+                            extra=np.tile(extra, 2), centre_fn=cmaes.per_run(centre_fn, 2, 3), **quiet)  # fmt: skip
+    for one, run in zip(alone, cmaes.split_runs(both, 2), strict=True):
+        np.testing.assert_array_equal(run.mean, one.mean)
+        np.testing.assert_array_equal(run.best_cost, one.best_cost)
+        np.testing.assert_array_equal(run.history["best"], one.history["best"])
+        np.testing.assert_array_equal(jax.random.key_data(run.key), jax.random.key_data(one.key))
+    assert not np.array_equal(alone[0].mean, alone[1].mean)
+    assert cmaes.per_run(None, 2, 3) is None
+    with pytest.raises(ValueError, match="6 searches do not split into 4 runs"):
+        cmaes.run_search(search, np.tile(x0, (2, 1)), np.tile(targets, 2), np.tile(free, (2, 1)), 1, [1, 2, 3, 4])
 
 
 def test_best_starts_rejects_bad_inputs_before_compiling(env):

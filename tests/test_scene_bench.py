@@ -47,24 +47,11 @@ def test_a_bench_of_some_sections_writes_its_own_record_and_refuses_a_path_for_a
         assert f"--record {bad!r}" in capsys.readouterr().err
 
 
-def test_batched_tuning_runs_keep_their_chains_apart():
-    """bench's tuning section: K runs batched as K x T searches each lean on their own run's
-    neighbours (as K runs one after another would), and the projection counts K runs."""
-    import jax.numpy as jnp
-
+def test_the_tuning_projection_counts_every_run():
+    """bench's tuning section projects the preset's generations for K runs one after another
+    against the K runs in one batch."""
     from benchmarks import bench
-    from bumps_jax import cmaes
 
-    rng = np.random.default_rng(0)
-    targets = np.array([7.0, 9.0, 11.0, 13.0], np.float32)
-    starts = rng.normal(size=(4, 14)).astype(np.float32)
-    _, centre_fn = cmaes.tuning_leash(starts, targets, 0.5, 1.0)
-    means = jnp.asarray(rng.normal(size=(3 * 4, 14)), jnp.float32)
-    batched = np.asarray(bench.per_run_centre(centre_fn, 3, 4)(means))
-    for run in range(3):
-        block = slice(4 * run, 4 * run + 4)
-        np.testing.assert_allclose(batched[block], np.asarray(centre_fn(means[block])), rtol=1e-6)
-    assert bench.per_run_centre(None, 3, 4) is None  # no neighbour leash: no centre to move
     paper = config.make_config("paper")
     proj = bench.tuning_projection(paper, 1.0, 2.0, 4)
     generations = paper.experts.tune.generations
