@@ -281,8 +281,8 @@ PRESETS: dict[str, dict] = {
         "experts.tune.polish_generations": 20,
         "experts.tune.polish_sigma": 0.25,
         # The four tunings as one batch: the same runs (each from its own key), each physics call
-        # four times the episodes; a generation 2.22 s against 4 x 0.83 s one after another on one
-        # H100 (docs/decisions.md, tune.batch_restarts).
+        # four times the episodes; in the paper run of 2026-11-26 (one H100) the four runs took
+        # 147 s against 208 s one after another (docs/decisions.md, tune.batch_restarts).
         "experts.tune.batch_restarts": True,
     },
     "tiny": {
