@@ -607,3 +607,34 @@ def test_a_tiny_family_tuning_keeps_or_improves_its_start(env):
     np.testing.assert_allclose(out["params"], expected, rtol=1e-6)
     if not out["improved"]:
         np.testing.assert_allclose(out["knot_params"], start, rtol=1e-6)
+
+
+def test_the_batched_tuning_is_handed_a_contact_pool_for_every_run(monkeypatch):
+    """starting_kicks gives the tuning, with batch_restarts, an env whose pool holds restarts x
+    env.warp_contacts (built once per size), one run after another the env as configured; the
+    pool's size is no part of a kept run's fingerprint, so runs kept either way are read either way."""
+    from bumps_jax import starting_kicks  # noqa: PLC0415
+
+    cfg = config.make_config("tiny", {"experts.tune.restarts": 3, "experts.tune.batch_restarts": True})
+    targets = np.asarray(cfg.experts.tasks, np.float32)
+    starts = np.tile(kick_model.DEFAULT_PARAMS, (len(targets), 1)).astype(np.float32)
+    monkeypatch.setattr(starting_kicks, "kept_starts", lambda *a, **k: (starts, {}, 0))
+    pools = []
+
+    def tune_for_tasks(env, targets, starts, tune_cfg, *args, **kwargs):
+        pools.append(env.config.warp_contacts)
+        n = len(targets)
+        return {"params": starts, "start_cost": np.ones(n), "tuned_cost": np.ones(n), "improved": np.zeros(n, bool),
+                "history": np.zeros((1, n)), "episodes": 0}  # fmt: skip
+
+    monkeypatch.setattr(cmaes, "tune_for_tasks", tune_for_tasks)
+    starting_kicks.starting_kicks(cfg, {}, say=lambda *a, **k: None)
+    apart = config.make_config("tiny", {"experts.tune.restarts": 3})
+    starting_kicks.starting_kicks(apart, {}, say=lambda *a, **k: None)
+    assert pools == [3 * cfg.env.warp_contacts, cfg.env.warp_contacts]
+    assert starting_kicks.tune_env(cfg, 3) is starting_kicks.tune_env(cfg, 3)
+    fingerprints = {
+        cmaes.tuning_fingerprint(starting_kicks.tune_env(cfg, runs), targets, starts, cfg.experts.tune, 1, 0.5, "{}", 1)
+        for runs in (1, 3)
+    }
+    assert len(fingerprints) == 1
