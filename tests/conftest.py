@@ -1,11 +1,24 @@
 """Shared fixtures: compiled environments are expensive on the CPU, so build them once."""
 
-import jax
-import pytest
-import stand_ins
-import tiny_experts
+import os
 
-from bumps_jax import config, kick_env, rollout
+# The tests' programs compile with LLVM's cheap pipeline and XLA's loop emitters: on a CPU
+# compiling is about 40 % of the suite's time, and what their runs cost is Warp's physics (its own
+# kernels, not XLA's code) or nets too small for the codegen to matter (test_bc_stacked.py:
+# 84 s -> 33 s; an expert's first PPO update: compiles 20 s -> 9 s, its run time unchanged).
+# Set before JAX starts its backend; a user's XLA_FLAGS come after these and win. Processes the
+# tests start inherit them (tests/sharded_run.py's device count is added to them).
+TEST_XLA_FLAGS = (
+    "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true --xla_cpu_use_fusion_emitters=false"
+)
+os.environ["XLA_FLAGS"] = f"{TEST_XLA_FLAGS} {os.environ.get('XLA_FLAGS', '')}".strip()
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
+import stand_ins  # noqa: E402
+import tiny_experts  # noqa: E402
+
+from bumps_jax import config, kick_env, rollout  # noqa: E402
 
 
 @pytest.fixture(scope="session")

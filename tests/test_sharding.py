@@ -20,9 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def sharded_vs_single(env, contextual, tmp_path_factory):
-    run_env = dict(
-        os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={sharded_run.N_DEVICES}", JAX_PLATFORMS="cpu"
-    )
+    devices = f"--xla_force_host_platform_device_count={sharded_run.N_DEVICES}"
+    run_env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {devices}".strip(), JAX_PLATFORMS="cpu")
     run_env["PYTHONPATH"] = os.pathsep.join([str(ROOT), run_env.get("PYTHONPATH", "")])
     proc = subprocess.run(
         [sys.executable, str(ROOT / "tests" / "sharded_run.py")], env=run_env, capture_output=True, text=True, cwd=ROOT
