@@ -1,7 +1,6 @@
 """The scene benchmark measures on the env's own backend, with Warp's contact pool sized to the
 batch; a pool too small for the batch is refused rather than timed. The bench's own sections' wiring."""
 
-import numpy as np
 import pytest
 
 from benchmarks import scene_bench
