@@ -162,12 +162,15 @@ def test_filtering_end_to_end_in_mjx(env, contextual, monkeypatch):
     # The contextual family kicks further for a larger context (the map filtering corrects).
     assert np.all(np.diff(sel.distance.mean(axis=1)) > 0)
     # Rescoring: the env's own final error for a rollout whose target is the task equals the
-    # selection score computed from the resting points (the dynamics ignore the target).
+    # selection score computed from the resting points (the dynamics ignore the target). The
+    # selection's 8 episodes replayed in one call: the first two contexts' against the first task,
+    # the last two's against the second (each call costs its physics steps, whatever its targets).
     flat = np.repeat(contexts, 2)
     keys = filtering.stage_keys(sel_key, 4, 2)
-    for t_index, task in enumerate(tasks):
-        m = filtering.run_blocked(grid, params, flat, np.full(8, task), keys, BLOCK)
-        np.testing.assert_allclose(m["final_error"].reshape(4, 2).mean(1), sel.scores[t_index], atol=1e-4)
+    m = filtering.run_blocked(grid, params, flat, np.repeat(tasks, 4), keys, BLOCK)
+    rescored = m["final_error"].reshape(4, 2).mean(1)
+    np.testing.assert_allclose(rescored[:2], sel.scores[0, :2], atol=1e-4)
+    np.testing.assert_allclose(rescored[2:], sel.scores[1, 2:], atol=1e-4)
     m = filtering.evaluate_chosen(grid, params, chosen, tasks, 4, eval_key, block=BLOCK)
     assert m["final_error"].shape == (2, 4)
     row = filtering.table2_row(m, len(contexts), sel.best_score, len(contexts) * 2)

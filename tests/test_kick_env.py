@@ -15,17 +15,27 @@ def episode(env, jit_env):
     """A whole standing-still episode: (final state, (rewards, dones, final errors) per step).
 
     Stepped from Python with the session's compiled step: a scan of its own would compile the
-    physics again (~20 s on a CPU) for the same episode.
+    physics again (~20 s on a CPU) for the same episode. `episode(rng, target)` plays each
+    (rng, target) once and hands later asks the first episode (on a CPU each costs ~10 s);
+    `episode.again(rng, target)` always plays it anew.
     """
     reset, step = jit_env
+    played = {}
 
-    def run(rng, target):
+    def again(rng, target):
         state, trace = reset(rng, target), []
         for _ in range(env.n_steps):
             state = step(state, STAND)
             trace.append((state.reward, state.done, state.metrics["final_error"]))
         return state, tuple(jnp.stack(column) for column in zip(*trace, strict=True))
 
+    def run(rng, target):
+        key = (tuple(np.asarray(jax.random.key_data(rng)).ravel().tolist()), float(target))
+        if key not in played:
+            played[key] = again(rng, target)
+        return played[key]
+
+    run.again = again
     return run
 
 
@@ -83,8 +93,10 @@ def test_a_rolling_ball_scores_its_resting_point(env, jit_env):
 
 
 def test_same_rng_same_episode_bit_for_bit(episode):
-    a, ra = episode(jax.random.PRNGKey(3), 9.0)
-    b, rb = episode(jax.random.PRNGKey(3), 9.0)
+    # The first is the episode test_episode_ends_after_horizon_with_final_reward played (played now
+    # if that test did not run); the second is played again from the same rng.
+    a, ra = episode(jax.random.PRNGKey(1), 10.0)
+    b, rb = episode.again(jax.random.PRNGKey(1), 10.0)
     np.testing.assert_array_equal(a.pipeline_state.qpos, b.pipeline_state.qpos)
     np.testing.assert_array_equal(ra[0], rb[0])
 
