@@ -90,5 +90,6 @@ def test_paper_clone_fits_the_kick_with_the_deep_net():
     obs, actions = bc.kick_dataset(env, 12.0, jnp.asarray(kick_model.load_record()["params"]))
     policy = networks.policy_network.init(jax.random.key(0))
     lr = cfg.baseline.bc_learning_rate
-    _, losses = jax.jit(lambda p: bc.clone_kick(networks, p, obs, actions, 2000, lr))(policy)
+    # 500 steps (measured: loss 4e-4 after 200, 1.3e-4 after 500, 4.3e-5 after 2000).
+    _, losses = jax.jit(lambda p: bc.clone_kick(networks, p, obs, actions, 500, lr))(policy)
     assert float(losses[-1]) < 1e-3, float(losses[-1])
