@@ -25,8 +25,9 @@ KICK_SECTIONS = {
         "prior": "e38b970f96217601c6ed4c31aff219830db04d78627ad7239a92aca0fb1dfadc",
         # re-pinned when the paper's starting kicks became one chain from the long kick, each task's
         # copy at its own strength (2026-11-24)
-        # and again when its tuning became four runs kept as a chain with a polish (2026-11-26)
-        "experts": "274b8aa4f2e13270f8f4cca43eb69628c983760a639444f2ff8031ace4c2af1a",
+        # and again when its tuning became four runs kept as a chain with a polish (2026-11-26),
+        # and when those four runs became one batch (`tune.batch_restarts`, 2026-11-26)
+        "experts": "0d0d48d5791094820f37ba731ead9085182e5345a563c206ef2fd8160a43895b",
         # re-pinned when the paper preset's meta-policies began to train stacked, with the batched
         # backward (`meta.trainer`, 2026-11-25): a paper run's meta stage made before retrains
         "meta": "6d73862bf1f83bab736391a5cb2d80f8e09515b0bd4e82de452924dfb00b4ed2",
