@@ -165,9 +165,13 @@ def test_the_meta_stage_trains_stacked_when_told(env, tmp_path):
     """`meta.trainer`: "stacked" and "stacked_batched" (the paper preset's) train the stage's nets
     in one loop to the losses of "separate"; an unknown value is one line naming it."""
     data = _dataset(n=225)
+    # The stage's two nets, unlike in depth and width as the paper's are, at sizes that compile quickly.
+    nets = {"meta.nets.meta_4x256": (2, 16), "meta.nets.meta_11x128": (4, 8)}
     losses = {}
     for trainer in ("separate", "stacked", "stacked_batched"):
-        cfg = config.make_config("tiny", {"meta.trainer": trainer, "meta.train.epochs": 4, "meta.train.chunk": 2})
+        cfg = config.make_config(
+            "tiny", {"meta.trainer": trainer, "meta.train.epochs": 4, "meta.train.chunk": 2, **nets}
+        )
         _, states, seconds = meta_stage.train(cfg, tmp_path / trainer, data, env, say=lambda *a, **k: None)
         assert set(states) == set(seconds) == set(cfg.meta.nets) and all(int(s.step) == 8 for s in states.values())
         with open(tmp_path / trainer / "meta_11x128" / "progress.csv") as f:
