@@ -198,7 +198,7 @@ def bench_tuning(cfg, mesh, generations: int) -> dict:
         x0 = np.tile(starts, (k, 1))
 
         def run(search=search, x0=x0, k=k):
-            seeds = list(range(k)) if k > 1 else 0  # each run its own key, as the tuning batches them
+            seeds = list(range(k))  # each run its own key, as the tuning batches them
             return cmaes.run_search(search, x0, np.tile(targets, k), np.ones_like(x0, bool), generations, seeds,
                                     say=lambda *a, **kw: None, leash=leash,
                                     centre_fn=cmaes.per_run(centre_fn, k, len(targets)))  # fmt: skip

@@ -390,11 +390,11 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
         m, t0 = len(runs), time.perf_counter()
         result = run_search(
             search, np.tile(starts, (m, 1)), np.tile(targets, m), np.ones((m * T, kick_model.N_PARAMS), bool),
-            int(generations), [seeds[k] for k in runs] if m > 1 else seeds[runs[0]], say=say, label=label,
-            leash=leash, centre_fn=per_run(centre_fn, m, T), extra_fn=per_run(extra_fn, m, T),
+            int(generations), [seeds[k] for k in runs], say=say, label=label, leash=leash,
+            centre_fn=per_run(centre_fn, m, T), extra_fn=per_run(extra_fn, m, T),
         )  # fmt: skip
         took = (time.perf_counter() - t0) / m  # a batch's time, shared evenly by its runs
-        return [(r, took) for r in (split_runs(result, m) if m > 1 else [result])]
+        return [(r, took) for r in split_runs(result, m)]
 
     paths = [None if keep_dir is None else Path(keep_dir) / f"tuning_run_{k + 1}.json" for k in range(K)]
     done: dict[int, tuple[Result, float]] = {}

@@ -213,10 +213,8 @@ def _stand_in_tuning(monkeypatch, during_run=None, moves=MOVES):
     keys = []
 
     def run_search(search, x0, targets, free, generations, seed, **kwargs):
-        batched = isinstance(seed, list)  # one key per run, the runs' tasks one block each
-        seed = seed if batched else [seed]
         mean = np.array(x0, np.float32)
-        tasks = len(targets) // len(seed)
+        tasks = len(targets) // len(seed)  # seed: one key per run, the runs' tasks one block each
         ran = []
         for block, run_key in enumerate(seed):
             keys.append(np.asarray(jax.random.key_data(run_key)))
@@ -226,8 +224,7 @@ def _stand_in_tuning(monkeypatch, during_run=None, moves=MOVES):
             mean[block * tasks : (block + 1) * tasks, LEAN] += moves[k]
             ran += [k] * tasks
         hist = {name: np.tile(np.float32(ran), (generations, 1)) for name in cmaes.Stats._fields}
-        key = jnp.stack([jax.random.key(7)] * len(seed)) if batched else jax.random.key(7)
-        return cmaes.Result(mean, mean, np.zeros(len(targets)), hist, key)
+        return cmaes.Result(mean, mean, np.zeros(len(targets)), hist, jnp.stack([jax.random.key(7)] * len(seed)))
 
     def cost_program(env, mesh, fitness_json):
         def costs(params, fresh, targets):
@@ -364,11 +361,12 @@ def test_the_polish_tunes_the_mixed_kicks_once_more_from_a_key_of_its_own(env, m
     seen = []
 
     def run_search(search, x0, targets, free, generations, seed, **kwargs):
-        seen.append((generations, np.asarray(jax.random.key_data(seed))))
+        (key,) = seed  # the polish is one run
+        seen.append((generations, np.asarray(jax.random.key_data(key))))
         mean = np.array(x0, np.float32)
         mean[:, LEAN] = 14.0 - 0.5 * (np.arange(len(x0)) == 1)  # task 1's polished kick worse than its own
         hist = {name: np.zeros((generations, len(targets)), np.float32) for name in cmaes.Stats._fields}
-        return cmaes.Result(mean, mean, np.zeros(len(targets)), hist, jax.random.key(7))
+        return cmaes.Result(mean, mean, np.zeros(len(targets)), hist, jnp.stack([jax.random.key(7)]))
 
     _stand_in_tuning(monkeypatch)
     monkeypatch.setattr(cmaes, "run_search", run_search)
