@@ -37,6 +37,30 @@ class RolloutMemo:
             mp.setattr(meta_stage, "evaluate_unfiltered", self.wrap(meta_stage.evaluate_unfiltered))
 
 
+class EpisodeMemo(RolloutMemo):
+    """RolloutMemo per episode, for `filtering.run_blocked` (grid, params, contexts (B,), targets
+    (B,), keys (B,), *rest) -> dict of metrics (B, ...): a call each of whose episodes (its
+    context, target and key, with the call's program, params and other arguments) some earlier
+    call played gets those episodes' metrics; any other call runs whole. An episode's metrics do
+    not depend on the other episodes of its call (each is its own world), so a call that asks for
+    episodes played before, in whatever order or company, replays them without the physics."""
+
+    def wrap(self, fn):
+        def memo(grid, params, contexts, targets, keys, *rest, **kwargs):
+            call = (id(grid), fn.__name__, digest((params, rest, sorted(kwargs.items()))))
+            episodes = [(*call, digest((contexts[i], targets[i], keys[i]))) for i in range(len(contexts))]
+            if all(e in self.done for e in episodes):
+                self.hits += 1
+            else:
+                self.runs += 1
+                m = fn(grid, params, contexts, targets, keys, *rest, **kwargs)
+                for i, e in enumerate(episodes):  # the grid kept: its id stays its own
+                    self.done[e] = (grid, {k: np.array(v[i]) for k, v in m.items()})
+            return {k: np.stack([self.done[e][1][k] for e in episodes]) for k in self.done[episodes[0]][1]}
+
+        return memo
+
+
 def digest(tree) -> str:
     """A hash of every leaf's type, shape, dtype (and weak typing) and bytes (random keys by their
     key data)."""

@@ -167,12 +167,19 @@ def _main(args) -> tuple[dict | None, str]:
 
 
 @pytest.fixture(scope="module")
-def smoke_runs(tmp_path_factory):
+def jax_cache(tmp_path_factory):
+    """One compilation cache (JAX_COMPILATION_CACHE_DIR) for the module's runs of the smoke
+    comparison, as a user's would be: a run's programs compile once."""
+    return tmp_path_factory.mktemp("jax_cache")
+
+
+@pytest.fixture(scope="module")
+def smoke_runs(tmp_path_factory, jax_cache):
     """The smoke comparison (Brax's `fast` env, 2 seeds) run whole, and run again one part a call
     (`--stop-after-s 0`): 3 parts, 3 calls. One compilation cache for all, as a user's would be."""
     root = tmp_path_factory.mktemp("compare")
     with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("JAX_COMPILATION_CACHE_DIR", str(root / "jax_cache"))
+        mp.setenv("JAX_COMPILATION_CACHE_DIR", str(jax_cache))
         whole, _ = _main([*SMOKE, "--out-dir", str(root / "whole")])
         calls, parted = [], [*SMOKE, "--out-dir", str(root / "parted"), "--stop-after-s", "0"]
         for _ in range(3):
@@ -180,7 +187,7 @@ def smoke_runs(tmp_path_factory):
             parts = sorted(p.name for p in (root / "parted" / PARTS).glob("*.npz"))
             calls.append({"record": record, "said": said, "parts": parts})
     in_parts = (root / "parted" / PARTS / "jax_cache").exists()
-    cache = {"env var's": any((root / "jax_cache").iterdir()), "parts'": in_parts}
+    cache = {"env var's": any(jax_cache.iterdir()), "parts'": in_parts}
     return {"whole": whole, "calls": calls, "parted": parted, "parts_dir": root / "parted" / PARTS, "cache": cache}
 
 
@@ -329,7 +336,10 @@ def test_brax_starts_every_update_from_fresh_resets_only_when_asked():
     assert len(first) == num_envs + 1
 
 
-def test_the_resets_choice_names_its_record_its_parts_and_its_difference(tmp_path, capsys):
+def test_the_resets_choice_names_its_record_its_parts_and_its_difference(tmp_path, capsys, monkeypatch, jax_cache):
+    # The user's compilation cache: the part this call trains (ours, which the resets leave as it
+    # is) loads its programs from the smoke runs' where they ran before.
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(jax_cache))
     args = [*SMOKE, "--brax-resets", "fresh", "--out-dir", str(tmp_path), "--stop-after-s", "0"]
     record, said = _main(args)
     assert record is None and "left brax_seed0" in said

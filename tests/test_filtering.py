@@ -4,7 +4,7 @@ noise independence, bad inputs, and one tiny MJX run with the stand-in contextua
 import jax
 import numpy as np
 import pytest
-from rollout_memo import RolloutMemo
+from rollout_memo import EpisodeMemo
 
 from bumps_jax import config, filtering
 
@@ -146,7 +146,7 @@ BLOCK = 8  # every stage below runs as batches of 8 episodes: one compiled progr
 
 def test_filtering_end_to_end_in_mjx(env, contextual, monkeypatch):
     grid, params = contextual
-    memo = RolloutMemo()  # a call asking for episodes played before gets their metrics
+    memo = EpisodeMemo()  # a call asking only for episodes played before gets their metrics
     memo.patch(monkeypatch, filtering)
     task_range = tuple(env.config.task_range)
     # Inside the prior family's monotone part (its sweep rises up to the main kick, 12 m).
@@ -179,13 +179,17 @@ def test_filtering_end_to_end_in_mjx(env, contextual, monkeypatch):
     assert row["rel_error_mean"] == pytest.approx(np.mean(m["final_error"] / tasks[:, None]), rel=1e-5)
     # Successive halving draws rollout j of context c from the same key as the fixed selection:
     # one rung of 2 replays it; rungs (1, 2) keeping half spend 4 + 2 x 1 (each task keeps one
-    # of its 3 candidates: contexts 9 and 10 m, or one shared) rollouts or fewer.
+    # of its 3 candidates: contexts 9 and 10 m, or one shared) rollouts or fewer, each of them one
+    # of the selection's episodes (so the memo replays both rungs; an episode of another key
+    # would be played and land elsewhere).
     kw = dict(task_range=task_range, block=BLOCK)
     one = filtering.filter_policy(grid, params, contexts, tasks, 2.0, 2, sel_key, rungs=(2,), **kw)
     assert memo.hits == 1  # the one rung asked for the fixed selection's episodes, no others
     assert one.chosen.tolist() == sel.chosen.tolist() and one.rollouts == sel.rollouts == 8
     np.testing.assert_allclose(one.scores, sel.scores, rtol=1e-6)
+    runs = memo.runs
     halved = filtering.filter_policy(grid, params, contexts, tasks, 2.0, 2, sel_key, rungs=(1, 2), keep=0.3, **kw)
+    assert memo.runs == runs and memo.hits == 3  # both rungs asked for the selection's episodes only
     assert halved.distance.shape == (4, 1) and halved.rollouts <= 4 + 2
     np.testing.assert_allclose(halved.distance[:, 0], sel.distance[:, 0], rtol=1e-6)
     assert np.all(np.abs(halved.contexts[halved.chosen] - tasks) <= 2.0 + 1e-6)

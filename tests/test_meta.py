@@ -129,9 +129,10 @@ def _table_dataset(tasks) -> bc.Dataset:
 
 def test_loss_falls_on_the_tiny_preset(tmp_path):
     data = _table_dataset(kick_env.meta_train_tasks())
-    cfg = config.make_config("tiny", {"meta.train.epochs": 100, "meta.train.chunk": 25, "meta.train.decay_every": 50})
-    # All 23 experts' rows (14 steps per epoch): the tiny schedule cut to 100 epochs, 4 chunks
-    # (measured: loss 0.105 after the first chunk, 0.033 after the last, from 0.455 at the start).
+    cfg = config.make_config("tiny", {"meta.train.epochs": 50, "meta.train.chunk": 25, "meta.train.decay_every": 25})
+    # All 23 experts' rows (14 steps per epoch): the tiny schedule cut to 50 epochs, 2 chunks, the
+    # rate decayed once between them (measured: loss 0.101 after the first chunk, 0.048 after the
+    # second, from 0.453 at the start; the bar below is 0.136).
     depth, width = cfg.meta.nets["meta_4x256"]
     model = bc.MetaPolicy(depth, width)
     init, _ = bc.make_trainer(model, cfg.meta.train, len(data.obs))
