@@ -7,6 +7,8 @@
 #
 #   benchmarks/bc_flags.sh [OUT] [TRAINER ...]    (default OUT: runs/bc_flags; trainers: joint stacked_batched)
 #   PRESET=tiny benchmarks/bc_flags.sh runs/bc_flags_cpu   (a CPU smoke test of the script)
+#   SETS="none graphs_concurrent" SET=meta.train.unroll=14 benchmarks/bc_flags.sh OUT
+#     (only those flag sets, each with a config change; its records are named <set>_<change>)
 set -uo pipefail
 out=${1:-runs/bc_flags}
 shift || true
@@ -21,11 +23,15 @@ declare -A sets=(
   [graphs_concurrent_triton]="$buffers --xla_gpu_graph_enable_concurrent_region=true --xla_gpu_triton_gemm_any=true"
 )
 mkdir -p "$out"
-for name in none graphs_concurrent graphs_concurrent_mode triton_gemm graphs_concurrent_triton; do
-  echo "== $name: ${sets[$name]:-no flags}"
-  if XLA_FLAGS="${sets[$name]}" python -m benchmarks.bench --preset "${PRESET:-paper}" --backends warp \
-      --skip scene experts gae brax filter --bc-trainers "${trainers[@]}" --out-dir "$out" --record "$name" \
-      > "$out/$name.log" 2>&1; then
+change=()
+[ -z "${SET:-}" ] || change=(--set "$SET")
+for set in ${SETS:-none graphs_concurrent graphs_concurrent_mode triton_gemm graphs_concurrent_triton}; do
+  [ -n "${sets[$set]+known}" ] || { echo "bc_flags.sh: no flag set named $set (known: ${!sets[*]})"; exit 2; }
+  name=$set${SET:+_${SET//[^a-zA-Z0-9]/_}}
+  echo "== $name: ${sets[$set]:-no flags} ${change[*]}"
+  if XLA_FLAGS="${sets[$set]}" python -m benchmarks.bench --preset "${PRESET:-paper}" --backends warp \
+      --skip scene experts gae brax filter tuning --bc-trainers "${trainers[@]}" "${change[@]}" --out-dir "$out" \
+      --record "$name" > "$out/$name.log" 2>&1; then
     python -c 'import json, sys; d = json.load(open(sys.argv[1]))
 print("  " + ", ".join(f"{k}: {v:.0f} s" for k, v in d.items() if k.startswith("bc_") and k.endswith("wall_s")))' "$out/$name.json"
   else

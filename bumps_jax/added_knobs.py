@@ -21,4 +21,5 @@ ADDED_KNOBS = {
     "experts.bc.common_start_strength": False,
     "experts.ppo.unroll_gae": False,
     "baseline.ppo.unroll_gae": False,
+    "meta.train.unroll": 1,
 }

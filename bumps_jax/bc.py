@@ -171,7 +171,7 @@ class SeedCarry(NamedTuple):
     opt_state: Any
 
 
-def _epoch(apply_fns, optimizers, batch_size, epoch_steps, obs, actions, seed_key, carry: dict, epoch):
+def _epoch(apply_fns, optimizers, batch_size, epoch_steps, unroll, obs, actions, seed_key, carry: dict, epoch):
     """One pass over the dataset, shuffled with key fold_in(seed_key, epoch), of every net of the
     dicts (name -> apply_fn / optimizer / SeedCarry) on the same batches: (carry, losses {name: (epoch_steps,)})."""
     n = obs.shape[0]
@@ -186,7 +186,7 @@ def _epoch(apply_fns, optimizers, batch_size, epoch_steps, obs, actions, seed_ke
             new[name], losses[name] = SeedCarry(optax.apply_updates(c.params, updates), opt_state), loss
         return new, losses
 
-    return jax.lax.scan(step, carry, epoch_batches(seed_key, epoch, n, epoch_steps, batch_size))
+    return jax.lax.scan(step, carry, epoch_batches(seed_key, epoch, n, epoch_steps, batch_size), unroll=unroll)
 
 
 def make_joint_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):
@@ -203,6 +203,7 @@ def make_joint_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):
     optimizers = {name: optax.flatten(optax.adam(lr_schedule(train_cfg, epoch_steps))) for name in models}
     apply_fns = {name: policy_apply(model) for name, model in models.items()}
     chunk_epochs = int(train_cfg.chunk)
+    unroll = min(int(train_cfg.unroll), epoch_steps)
 
     def init_one(key):
         out = {}
@@ -218,7 +219,7 @@ def make_joint_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):
 
     def chunk_one(carry, seed_key, obs, actions, epochs):
         body = functools.partial(
-            _epoch, apply_fns, optimizers, train_cfg.batch_size, epoch_steps, obs, actions, seed_key
+            _epoch, apply_fns, optimizers, train_cfg.batch_size, epoch_steps, unroll, obs, actions, seed_key
         )
         carry, losses = jax.lax.scan(body, carry, epochs)
         return carry, {name: v.reshape(-1) for name, v in losses.items()}

@@ -217,6 +217,7 @@ def make_stacked_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2
     loss_and_grads = make_loss_and_grads(models, backward)
     joint_init, _ = bc.make_joint_trainer(models, train_cfg, n_rows, obs_size)
     batch_size, chunk_epochs = int(train_cfg.batch_size), int(train_cfg.chunk)
+    unroll = min(int(train_cfg.unroll), epoch_steps)
 
     def epoch(obs, actions, seed_key, carry, epoch_index):
         n = obs.shape[0]
@@ -229,7 +230,8 @@ def make_stacked_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2
             updates, opt_state = stacked_opt.update(grads, opt_state, params)
             return (optax.apply_updates(params, updates), opt_state), per_net
 
-        return jax.lax.scan(step, carry, bc.epoch_batches(seed_key, epoch_index, n, epoch_steps, batch_size))
+        batches = bc.epoch_batches(seed_key, epoch_index, n, epoch_steps, batch_size)
+        return jax.lax.scan(step, carry, batches, unroll=unroll)
 
     def chunk_one(params: dict, opt_states: dict, seed_key, obs, actions, epochs):
         stacked = stack_params(models, params)

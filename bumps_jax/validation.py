@@ -228,7 +228,7 @@ def chunk_divides(section, prefix: str, total: int) -> None:
 
 def meta(m, task_range, prefix: str = "", unit: str = "m", task: str = "kick") -> None:
     p = f"{prefix}meta."
-    positive_ints(m.train, f"{p}train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every"))
+    positive_ints(m.train, f"{p}train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every", "unroll"))
     if m.train.epochs % m.train.chunk:
         raise ValueError(f"{p}train.epochs {m.train.epochs} must be a multiple of {p}train.chunk {m.train.chunk}")
     positive_floats(m.train, f"{p}train.", ("learning_rate",))

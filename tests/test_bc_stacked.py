@@ -180,3 +180,29 @@ def test_the_meta_stage_trains_stacked_when_told(env, tmp_path):
     np.testing.assert_allclose(losses["stacked_batched"], losses["separate"], rtol=1e-3)
     with pytest.raises(ValueError, match=r"meta.trainer must be one of \('separate', 'stacked', 'stacked_batched'\)"):
         config.make_config("tiny", {"meta.trainer": "fused"})
+
+
+@pytest.mark.parametrize("make", ["joint", "stacked_batched"])
+def test_unrolled_steps_train_as_the_loop_does(make):
+    """meta.train.unroll runs several steps per loop iteration: the same steps on the same batches."""
+    obs, actions = _data()
+    trainers = {}
+    for unroll in (1, 3):  # 300 pairs: 3 steps per epoch, unrolled whole
+        cfg = _train_cfg(unroll=unroll)
+        trainers[unroll] = (
+            bc.make_joint_trainer(MODELS, cfg, 300)
+            if make == "joint"
+            else bc_stacked.make_stacked_trainer(MODELS, cfg, 300, backward="batched")
+        )
+    keys = bc.seed_keys(_train_cfg())
+    ends = {}
+    for unroll, (init, chunk) in trainers.items():
+        state = init(keys)
+        for _ in range(2):
+            state, losses = chunk(state, obs, actions, keys)
+        ends[unroll] = (state, losses)
+    (loop, loop_losses), (unrolled, unrolled_losses) = ends[1], ends[3]
+    for name in MODELS:
+        assert int(unrolled[name].step) == int(loop[name].step) == 12
+        np.testing.assert_allclose(unrolled_losses[name], loop_losses[name], rtol=1e-5)
+        _assert_close(unrolled[name].params, loop[name].params)
