@@ -274,6 +274,9 @@ PRESETS: dict[str, dict] = {
         # Both meta-policies in one stacked loop with the hand-written backward: the same
         # optimisation, 361 s against 404-411 s on one H100 (docs/decisions.md, meta.trainer).
         "meta.trainer": "stacked_batched",
+        # An epoch's 14 steps in one iteration of that loop: the two nets' training 310 s against
+        # 376 s in the meta stage on one H100 (docs/decisions.md, meta.train.unroll).
+        "meta.train.unroll": 14,
         # Four independent tunings of the starting kicks, each task's kick chosen among them with
         # the neighbour leash, then a 20-generation polish at a step of 0.25. On development seeds
         # 102 and 103 at the paper budget: experts 0.33 m, unfiltered 4x256 0.44-0.45 m and 11x128

@@ -29,8 +29,9 @@ KICK_SECTIONS = {
         # and when those four runs became one batch (`tune.batch_restarts`, 2026-11-26)
         "experts": "0d0d48d5791094820f37ba731ead9085182e5345a563c206ef2fd8160a43895b",
         # re-pinned when the paper preset's meta-policies began to train stacked, with the batched
-        # backward (`meta.trainer`, 2026-11-25): a paper run's meta stage made before retrains
-        "meta": "6d73862bf1f83bab736391a5cb2d80f8e09515b0bd4e82de452924dfb00b4ed2",
+        # backward (`meta.trainer`, 2026-11-25): a paper run's meta stage made before retrains;
+        # and when that loop began to run an epoch per iteration (`meta.train.unroll`, 2026-11-27)
+        "meta": "6f20a59d5ffebe35a4befeadf90607e00acc46cf741efa9903e3acdfda2975f3",
         "filter": "ab9e5ff5612b5c379ee36c36ee5c678ece58954c529f0017aab817c2269f29c9",
         "heldout": "3d00234a9a024e9b03d79264da1858dd0404759e5043654ec3c158bebcff9205",
         "baseline": "853e9de1255af4d4709ad6b988a5da7470cc7750e72ce0ea0479a003b50474e1",
