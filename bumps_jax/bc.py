@@ -329,10 +329,9 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
             while done < total_steps and (max_chunks is None or done_chunks < max_chunks):
                 t0 = time.perf_counter()
                 states, losses = chunk(states, obs, actions, keys)
+                losses = {n: np.asarray(losses[n]) for n in names}  # waits for the chunk to finish
                 seconds = time.perf_counter() - t0
-                rows = {
-                    n: _progress_row(states[n], np.asarray(losses[n]), epoch_steps, schedule, seconds) for n in names
-                }
+                rows = {n: _progress_row(states[n], losses[n], epoch_steps, schedule, seconds) for n in names}
                 for name in names:
                     runio.append_csv(out_dirs[name] / "progress.csv", CSV_FIELDS, [rows[name]])
                     managers[name].save(rows[name]["step"], args=ocp.args.StandardSave(states[name]))
