@@ -175,8 +175,8 @@ def _meta() -> ml_collections.ConfigDict:
     cfg.train.batch_size = 128
     cfg.train.epochs = 150_000  # passes over the dataset
     cfg.train.chunk = 2500  # epochs per host sync (progress, CSV, checkpoint)
-    # Gradient steps per iteration of the compiled loop (lax.scan's unroll): the same steps on the
-    # same batches, fewer loop iterations (each iteration costs the GPU a round trip to the host).
+    # Gradient steps per iteration of the compiled loop (lax.scan's unroll; at most an epoch's):
+    # the same steps on the same batches in fewer iterations, a longer compile.
     cfg.train.unroll = 1
     cfg.train.n_seeds = 1  # initialisations trained side by side; seed 0 is the table's row
     cfg.train.seed = 0
