@@ -120,6 +120,11 @@ def steps_per_epoch(train_cfg, n_rows: int) -> int:
     return -(-int(n_rows) // int(train_cfg.batch_size))
 
 
+def steps_unrolled(train_cfg, epoch_steps: int) -> int:
+    """Gradient steps per iteration of an epoch's compiled loop: train_cfg.unroll, at most the epoch's."""
+    return min(int(train_cfg.unroll), epoch_steps)
+
+
 def lr_schedule(train_cfg, epoch_steps: int = 1) -> optax.Schedule:
     """lr(step) = lr0 * decay ** floor(epoch / decay_every), epoch = step // epoch_steps: the
     paper's staircase decay, applied per epoch as its Keras scheduler did."""
@@ -203,7 +208,7 @@ def make_joint_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):
     optimizers = {name: optax.flatten(optax.adam(lr_schedule(train_cfg, epoch_steps))) for name in models}
     apply_fns = {name: policy_apply(model) for name, model in models.items()}
     chunk_epochs = int(train_cfg.chunk)
-    unroll = min(int(train_cfg.unroll), epoch_steps)
+    unroll = steps_unrolled(train_cfg, epoch_steps)
 
     def init_one(key):
         out = {}

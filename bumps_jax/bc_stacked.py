@@ -217,7 +217,7 @@ def make_stacked_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2
     loss_and_grads = make_loss_and_grads(models, backward)
     joint_init, _ = bc.make_joint_trainer(models, train_cfg, n_rows, obs_size)
     batch_size, chunk_epochs = int(train_cfg.batch_size), int(train_cfg.chunk)
-    unroll = min(int(train_cfg.unroll), epoch_steps)
+    unroll = bc.steps_unrolled(train_cfg, epoch_steps)
 
     def epoch(obs, actions, seed_key, carry, epoch_index):
         n = obs.shape[0]

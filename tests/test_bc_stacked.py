@@ -182,6 +182,20 @@ def test_the_meta_stage_trains_stacked_when_told(env, tmp_path):
         config.make_config("tiny", {"meta.trainer": "fused"})
 
 
+def _scan_unrolls(jaxpr) -> list[int]:
+    """The `unroll` of every scan in a jaxpr, nested programs included."""
+    out = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "scan":
+            out.append(int(eqn.params["unroll"]))
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, tuple | list) else (value,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    out += _scan_unrolls(inner)
+    return out
+
+
 @pytest.mark.parametrize("make", ["joint", "stacked_batched"])
 def test_unrolled_steps_train_as_the_loop_does(make):
     """meta.train.unroll runs several steps per loop iteration: the same steps on the same batches."""
@@ -198,6 +212,9 @@ def test_unrolled_steps_train_as_the_loop_does(make):
     ends = {}
     for unroll, (init, chunk) in trainers.items():
         state = init(keys)
+        # the knob reaches the program: its epoch loop (the scan over batches) unrolled that far
+        scans = _scan_unrolls(jax.make_jaxpr(chunk)(state, obs, actions, keys).jaxpr)
+        assert sorted(set(scans)) == sorted({1, unroll}), scans
         for _ in range(2):
             state, losses = chunk(state, obs, actions, keys)
         ends[unroll] = (state, losses)
