@@ -223,3 +223,20 @@ def test_unrolled_steps_train_as_the_loop_does(make):
         assert int(unrolled[name].step) == int(loop[name].step) == 12
         np.testing.assert_allclose(unrolled_losses[name], loop_losses[name], rtol=1e-5)
         _assert_close(unrolled[name].params, loop[name].params)
+
+
+def test_bc_profile_writes_its_record(tmp_path):
+    """benchmarks.bc_profile on the CPU: a timed chunk and one compiled with per-program options;
+    no device kernels to count here, which the record says; bad input is one clear line."""
+    from benchmarks import bc_profile  # noqa: PLC0415
+
+    out = tmp_path / "bc_profile.json"
+    record = bc_profile.main(["--preset", "tiny", "--set", "meta.trainer=stacked_batched", "--epochs", "1",
+                              "--out", str(out)])  # fmt: skip
+    assert record["steps_per_chunk"] == record["epochs_per_chunk"] * 2  # the tiny dataset: 2 batches an epoch
+    assert record["us_per_step"] > 0 and record["program_options"]["us_per_step"] > 0
+    assert record["traced"] is False and out.exists()
+    assert bc_profile._kind("gemm_fusion_dot_431") == "gemm_fusion_dot"
+    assert bc_profile._kind("loop_select_tanh_fusion") == "loop_select_tanh_fusion"
+    with pytest.raises(SystemExit):
+        bc_profile.parse_args(["--preset", "tiny", "--out", str(out)])  # the separate trainer: nothing to profile
