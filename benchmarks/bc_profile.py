@@ -25,11 +25,10 @@ import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.bench import derived
-from bumps_jax import bc, bc_stacked, cli, config, kick_env, runio
+from benchmarks.bench import bc_inputs
+from bumps_jax import bc, bc_stacked, cli, config, runio
 
 # The options `--program-options graphs` gives the chunk's program: XLA's default command-buffer
 # kinds plus while loops and conditionals (CUDA graphs around the loop), with concurrent regions;
@@ -49,16 +48,10 @@ def _kind(name: str) -> str:
 
 def _setup(cfg, epochs: int):
     """(chunk, state, obs, actions, keys, gradient steps per chunk) of the config's trainer."""
-    train_cfg = derived(cfg, {"meta.train.chunk": epochs}).meta.train
-    n_rows = len(cfg.experts.tasks) * kick_env.KickEnv(cfg.env).n_steps
-    rng = np.random.default_rng(0)
-    obs = jnp.asarray(rng.uniform(size=(n_rows, 2)), jnp.float32)
-    actions = jnp.asarray(rng.normal(size=(n_rows, 22)), jnp.float32)
-    keys = bc.seed_keys(train_cfg)
-    models = {name: bc.MetaPolicy(depth, width) for name, (depth, width) in cfg.meta.nets.items()}
+    train_cfg, models, obs, actions, keys = bc_inputs(cfg, epochs)
     backward = "batched" if cfg.meta.trainer == "stacked_batched" else "autodiff"
-    init, chunk = bc_stacked.make_stacked_trainer(models, train_cfg, n_rows, backward=backward)
-    return chunk, init(keys), obs, actions, keys, epochs * bc.steps_per_epoch(train_cfg, n_rows)
+    init, chunk = bc_stacked.make_stacked_trainer(models, train_cfg, len(obs), backward=backward)
+    return chunk, init(keys), obs, actions, keys, epochs * bc.steps_per_epoch(train_cfg, len(obs))
 
 
 def _time(run, state, repeats: int = 3) -> tuple[list[float], object]:

@@ -243,19 +243,26 @@ def bench_brax(cfg, epochs: int, all_tasks: bool = False) -> dict:
 BC_TRAINERS = ("separate", "joint", "stacked", "stacked_batched")
 
 
+def bc_inputs(cfg, chunk: int) -> tuple:
+    """(meta.train with `chunk` epochs per chunk, the meta nets {name: MetaPolicy}, random obs and
+    actions as many as the experts' dataset has pairs, the seed keys): what a BC bench trains on."""
+    n_rows = len(cfg.experts.tasks) * kick_env.KickEnv(cfg.env).n_steps
+    train_cfg = derived(cfg, {"meta.train.chunk": chunk}).meta.train
+    rng = np.random.default_rng(0)
+    obs = jnp.asarray(rng.uniform(size=(n_rows, 2)), jnp.float32)
+    actions = jnp.asarray(rng.normal(size=(n_rows, 22)), jnp.float32)
+    models = {name: bc.MetaPolicy(depth, width) for name, (depth, width) in cfg.meta.nets.items()}
+    return train_cfg, models, obs, actions, bc.seed_keys(train_cfg)
+
+
 def bench_bc(cfg, chunk: int, trainers=BC_TRAINERS) -> dict:
     """Gradient steps/s of the meta-policies' BC loop on a dataset of the experts' size, timed
     over `chunk` epochs, for each of `trainers` (`BC_TRAINERS`): each net in its own program, both
     nets in one (the same steps), and both stacked in one (the same steps in batched kernels);
     both nets' full schedules projected from each."""
-    n_rows = len(cfg.experts.tasks) * kick_env.KickEnv(cfg.env).n_steps
-    train_cfg = derived(cfg, {"meta.train.chunk": chunk}).meta.train
+    train_cfg, models, obs, actions, keys = bc_inputs(cfg, chunk)
+    n_rows = len(obs)
     epoch_steps = bc.steps_per_epoch(train_cfg, n_rows)
-    rng = np.random.default_rng(0)
-    obs = jnp.asarray(rng.uniform(size=(n_rows, 2)), jnp.float32)
-    actions = jnp.asarray(rng.normal(size=(n_rows, 22)), jnp.float32)
-    keys = bc.seed_keys(train_cfg)
-    models = {name: bc.MetaPolicy(depth, width) for name, (depth, width) in cfg.meta.nets.items()}
     steps = chunk * epoch_steps * train_cfg.n_seeds  # per net
     out: dict = {"bc_steps_per_epoch": epoch_steps}
     if "separate" in trainers:
