@@ -7,7 +7,7 @@ how long each kind takes, and how much of the traced span the device was busy. A
 compiled with `--program-options` (XLA options given to that one program, `jax.jit`'s
 `compiler_options`, rather than to the process by XLA_FLAGS) and timed beside the plain one.
 
-    python -m benchmarks.bc_profile --out benchmarks/results/bc_profile.json      # GPU
+    python -m benchmarks.bc_profile --out benchmarks/results/bc_profile/none.json  # GPU
     XLA_FLAGS=... python -m benchmarks.bc_profile --out OUT.json                  # flags kept in the record
     python -m benchmarks.bc_profile --preset tiny --set meta.trainer=stacked_batched --epochs 2 \
         --out runs/bc_profile.json                                                # CPU smoke test
