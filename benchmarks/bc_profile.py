@@ -28,7 +28,13 @@ import jax
 import numpy as np
 
 from benchmarks.bench import bc_inputs
-from bumps_jax import bc, bc_stacked, cli, config, runio
+
+# The options `--program-options graphs` gives the chunk's program: XLA's default command-buffer
+from bumps_jax import cli, config
+
+# The options `--program-options graphs` gives the chunk's program: XLA's default command-buffer
+from bumps_jax.algo import bc, bc_stacked
+from bumps_jax.pipeline import runio
 
 # The options `--program-options graphs` gives the chunk's program: XLA's default command-buffer
 # kinds plus while loops and conditionals (CUDA graphs around the loop), with concurrent regions;

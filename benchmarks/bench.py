@@ -38,23 +38,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks import scene_bench
-from bumps_jax import (
-    bc,
-    bc_stacked,
-    brax_compat,
-    cli,
-    cmaes,
-    config,
-    filtering,
-    kick_env,
-    kick_model,
-    kick_scoring,
-    rollout,
-    runio,
-    sharding,
-    starting_kicks,
-)
-from bumps_jax.stages import experts
+from bumps_jax import cli, config
+from bumps_jax.algo import bc, bc_stacked, filtering, rollout, sharding
+from bumps_jax.pipeline import runio
+from bumps_jax.pipeline.stages import experts
+from bumps_jax.tasks.kick import cmaes, starting_kicks
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import scoring as kick_scoring
+from experiments import brax_compat
 
 # What each preset measures: the paper's sizes on a GPU; CPU-sized for a smoke test.
 SIZES = {

@@ -25,7 +25,13 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from bumps_jax import c_replay, cli, config, kick_env, kick_model, rollout, runio, scene
+from benchmarks import c_replay
+from bumps_jax import cli, config
+from bumps_jax.algo import rollout
+from bumps_jax.pipeline import runio
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import scene
 
 ITERATIONS = (2, 4, 8)
 CONVERGED = 50  # C MuJoCo's reference solve

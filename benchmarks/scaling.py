@@ -37,7 +37,10 @@ import time
 from pathlib import Path
 
 from benchmarks import bench
-from bumps_jax import cli, config, runio
+
+# Each measured work and the record's key of its rate (`bench.Work.amount` per second).
+from bumps_jax import cli, config
+from bumps_jax.pipeline import runio
 
 # Each measured work and the record's key of its rate (`bench.Work.amount` per second).
 WORKS = {"experts": "experts_env_steps_per_s", "filter": "filter_rollouts_per_s"}
@@ -180,7 +183,7 @@ def worker(args, cfg) -> None:
     start, time one call, and write what it did."""
     import jax  # noqa: PLC0415 (a worker's devices are set by its environment, before jax starts)
 
-    from bumps_jax import sharding  # noqa: PLC0415
+    from bumps_jax.algo import sharding  # noqa: PLC0415
 
     folder, i = Path(args.worker_dir), args.worker_index
     mesh = sharding.device_mesh(args.worker_devices, impl=cfg.env.impl)

@@ -5,7 +5,7 @@ backend (`env.impl`; `--set env.impl=jax` for MJX-JAX).
     python -m benchmarks.scene_bench --out benchmarks/results/scene.json [--quick]
 
 Each design variant is timed on the device (physics steps/s at one batch size) and checked for
-physics with the C MuJoCo engine (`bumps_jax.c_replay`): the committed kick prior replayed
+physics with the C MuJoCo engine (`benchmarks.c_replay`): the committed kick prior replayed
 without noise, where the ball rests and whether the robot stays up. A faster variant only counts
 if the kick survives.
 """
@@ -21,7 +21,14 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from bumps_jax import c_replay, cli, config, kick_env, kick_model, physics, rollout, runio, scene
+from benchmarks import c_replay
+from bumps_jax import cli, config
+from bumps_jax.algo import rollout
+from bumps_jax.envs import physics
+from bumps_jax.pipeline import runio
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import scene
 
 BATCHES = (1024, 4096, 8192, 16384)
 VARIANTS = (

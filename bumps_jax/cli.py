@@ -150,7 +150,9 @@ def pipeline_stages(command: str, chosen) -> tuple[str, ...]:
 
 def dispatch(args) -> None:
     """Run one parsed command; ValueError for every user mistake."""
-    from bumps_jax import config, pipeline, runio  # noqa: PLC0415
+    from bumps_jax import config  # noqa: PLC0415
+    from bumps_jax.pipeline import runio  # noqa: PLC0415
+    from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
 
     known = (PIPELINES[args.command][1],) if args.command in PIPELINES else ("tiny", "paper")
     if args.preset not in known:
@@ -170,14 +172,14 @@ def dispatch(args) -> None:
     elif args.command in PIPELINES:
         stages = pipeline_stages(args.command, args.stages)
         if args.stages is not None:  # a named stage the task lacks is a mistake, not one to skip
-            from bumps_jax import tasks  # noqa: PLC0415
+            from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
             for name in stages:
                 tasks.check_stage(cfg.task, name)
         with lock:
             pipeline.run_pipeline(stages, cfg, run_dir, force=args.force)
     else:
-        from bumps_jax import commands  # noqa: PLC0415
+        from bumps_jax.pipeline import commands  # noqa: PLC0415
 
         commands.run(args.command, cfg, run_dir, args)
 
@@ -189,12 +191,12 @@ def main(argv=None) -> None:
         # otherwise. Only here: with MUJOCO_GL set, importing mujoco loads that GL library, and
         # a host without one could then not even simulate.
         os.environ.setdefault("MUJOCO_GL", "egl")
-    from bumps_jax import runio  # noqa: PLC0415
+    from bumps_jax.pipeline import runio  # noqa: PLC0415
 
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task or "kick")
     try:
         if args.distributed:
-            from bumps_jax import sharding  # noqa: PLC0415
+            from bumps_jax.algo import sharding  # noqa: PLC0415
 
             sharding.initialize_distributed()
         dispatch(args)

@@ -35,9 +35,12 @@ import math
 import ml_collections
 from ml_collections import FieldReference
 
-from bumps_jax import cheetah_config, kick_env, ppo_config, tasks
-from bumps_jax.env_records import differing_keys, jsonable
-from bumps_jax.eval_targets import DEV_TARGETS, HELDOUT_TARGETS
+from bumps_jax.algo import ppo_config
+from bumps_jax.pipeline.records import differing_keys, jsonable
+from bumps_jax.tasks import registry as tasks
+from bumps_jax.tasks.cheetah_vel import config as cheetah_config
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick.targets import DEV_TARGETS, HELDOUT_TARGETS
 
 
 def _prior() -> ml_collections.ConfigDict:
@@ -443,7 +446,7 @@ def coerce(key: str, value, kind: type, current, optional: bool = False):
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
     """Every section's range checks; ValueError naming the first bad value."""
-    from bumps_jax import validation  # noqa: PLC0415 (the checks import the algorithm modules)
+    from bumps_jax.pipeline import validation  # noqa: PLC0415 (the checks import the algorithm modules)
 
     validation.validate(cfg)
 

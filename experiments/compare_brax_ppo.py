@@ -50,7 +50,7 @@ result. Each MJX program takes ~30 s per reset or step in it to compile on a CPU
 
     python experiments/compare_brax_ppo.py --mode halfcheetah --preset smoke
 
-Brax runs through `bumps_jax.brax_compat` in both modes.
+Brax runs through `experiments.brax_compat` in both modes.
 """
 
 from __future__ import annotations
@@ -71,20 +71,15 @@ import scipy.stats
 from brax import envs as brax_envs
 from jax.experimental.compilation_cache import compilation_cache as cc
 
-from bumps_jax import (
-    brax_compat,
-    cli,
-    config,
-    env_records,
-    kick_env,
-    kick_model,
-    ppo,
-    ppo_config,
-    rollout,
-    runio,
-    starting_kicks,
-)
-from bumps_jax.stages import experts
+from bumps_jax import cli, config
+from bumps_jax.algo import ppo, ppo_config, rollout
+from bumps_jax.pipeline import records as env_records
+from bumps_jax.pipeline import runio
+from bumps_jax.pipeline.stages import experts
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import starting_kicks
+from experiments import brax_compat
 
 
 def comparison_config(target: float, n_updates: int, num_envs: int, overrides: dict | None = None):

@@ -22,7 +22,9 @@ import sys
 from pathlib import Path
 from typing import NamedTuple
 
-from bumps_jax import config, runio, tables
+from bumps_jax import config
+from bumps_jax.pipeline import runio
+from bumps_jax.report import tables
 
 ROOT = Path(__file__).resolve().parents[1]
 DEV_RECORDS = ROOT / "experiments" / "results" / "dev_starting_kicks"

@@ -1,7 +1,7 @@
 """Where the experts' starting kicks strike the ball, and how the strike moves with the ball.
 
 Replays kicks (an experts run's starting_kicks.json) without noise in C MuJoCo
-(`bumps_jax.c_replay`: the env's control loop and scoring) with the ball moved a few
+(`benchmarks.c_replay`: the env's control loop and scoring) with the ball moved a few
 millimetres along the kick line, and records the first contact between the robot and the ball:
 how far above the ball's centre it is, how steeply its normal points up, how fast the foot
 moves, and where the ball comes to rest. A strike through the centre with a level foot would
@@ -20,7 +20,11 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from bumps_jax import c_replay, cli, config, kick_env, runio, scene, starting_kicks
+from benchmarks import c_replay
+from bumps_jax import cli, config
+from bumps_jax.pipeline import runio
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import scene, starting_kicks
 
 OFFSETS_MM = (-10.0, -5.0, 0.0, 5.0, 10.0)
 

@@ -24,8 +24,13 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import config, kick_model, publish, rollout, runio, tasks
-from bumps_jax.stages import meta as meta_stage
+from bumps_jax import config
+from bumps_jax.algo import rollout
+from bumps_jax.pipeline import runio
+from bumps_jax.pipeline.stages import meta as meta_stage
+from bumps_jax.report import publish
+from bumps_jax.tasks import registry as tasks
+from bumps_jax.tasks.kick import keyframes as kick_model
 
 RULES = ("interpolated", "nearest")
 

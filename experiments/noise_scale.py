@@ -22,8 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from bumps_jax import cli, config, evaluate, kick_env, pipeline, runio
-from bumps_jax.stages import experts
+from bumps_jax import cli, config
+from bumps_jax.algo import evaluate
+from bumps_jax.pipeline import runio
+from bumps_jax.pipeline import runner as pipeline
+from bumps_jax.pipeline.stages import experts
+from bumps_jax.tasks.kick import env as kick_env
 
 
 def scaled_noise(env_cfg, scale: float) -> dict:

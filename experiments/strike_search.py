@@ -3,7 +3,7 @@
 Every kick the prior and the experts start from touches the ball 2.5-3.5 cm above its centre
 (`impact_geometry.py`), and small changes of the ball's placement move where it stops by metres.
 This searches the same 14-parameter kick family from several starting kicks, for several
-targets, with CMA-ES (`bumps_jax.cmaes`: all searches in one program per generation), twice over:
+targets, with CMA-ES (`bumps_jax.tasks.kick.cmaes`: all searches in one program per generation), twice over:
 
 - `control`: the prior's own fitness (resting error, sideways error, invalid kicks);
 - `centred`: the same plus `--height-weight` per metre of how far above or below the ball's
@@ -33,7 +33,21 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from bumps_jax import cmaes, config, kick_env, kick_model, rollout, runio, sharding, starting_kicks
+# Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
+from bumps_jax import config
+
+# Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
+from bumps_jax.algo import rollout, sharding
+from bumps_jax.pipeline import runio
+
+# Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
+from bumps_jax.tasks.kick import cmaes, starting_kicks
+
+# Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
+from bumps_jax.tasks.kick import env as kick_env
+
+# Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
+from bumps_jax.tasks.kick import keyframes as kick_model
 
 # Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
 # back less (the foot stays lower through the swing), varied in the knee and hip of the swing.

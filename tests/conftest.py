@@ -18,7 +18,9 @@ import pytest  # noqa: E402
 import stand_ins  # noqa: E402
 import tiny_experts  # noqa: E402
 
-from bumps_jax import config, kick_env, rollout  # noqa: E402
+from bumps_jax import config  # noqa: E402
+from bumps_jax.algo import rollout  # noqa: E402
+from bumps_jax.tasks.kick import env as kick_env  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -46,7 +48,7 @@ def contextual(env):
 def expert_programs(env):
     """The tiny experts' programs (tiny_experts.py), compiled on first use: test_experts.py
     trains with them."""
-    from bumps_jax.stages import experts as experts_stage
+    from bumps_jax.pipeline.stages import experts as experts_stage
 
     return experts_stage.compile_programs(tiny_experts.pipeline_config(), env)
 

@@ -5,7 +5,9 @@ import sys
 
 import numpy as np
 
-from bumps_jax import bc, config, runio
+from bumps_jax import config
+from bumps_jax.algo import bc
+from bumps_jax.pipeline import runio
 
 
 def main(out_dir: str) -> None:

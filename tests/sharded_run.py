@@ -15,8 +15,10 @@ import numpy as np
 import stand_ins
 import tiny_experts
 
-from bumps_jax import config, filtering, kick_env, rollout, sharding
-from bumps_jax.stages import experts
+from bumps_jax import config
+from bumps_jax.algo import filtering, rollout, sharding
+from bumps_jax.pipeline.stages import experts
+from bumps_jax.tasks.kick import env as kick_env
 
 # Two devices and three tiny experts: two on each device, one of them a padded copy, so padding
 # and unpadding run. On a CPU each device's share of a Warp physics step is a callback into Python,

@@ -22,8 +22,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import kick_model, rollout
-from bumps_jax.stages.experts import Family
+from bumps_jax.algo import rollout
+from bumps_jax.pipeline.stages.experts import Family
+from bumps_jax.tasks.kick import keyframes as kick_model
 
 
 def strength_for(targets, record: dict | None = None) -> np.ndarray:

@@ -7,8 +7,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax import bc, config, evaluate, kick_env, kick_model, ppo
-from bumps_jax.stages import baseline
+from bumps_jax import config
+from bumps_jax.algo import bc, evaluate, ppo
+from bumps_jax.pipeline.stages import baseline
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import keyframes as kick_model
 
 
 def test_tiny_baseline_writes_curve_for_two_seeds_and_two_arms(tmp_path, monkeypatch):

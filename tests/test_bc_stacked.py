@@ -1,4 +1,4 @@
-"""The stacked BC trainer (bumps_jax.bc_stacked): the joint trainer's optimisation in one stacked
+"""The stacked BC trainer (bumps_jax.algo.bc_stacked): the joint trainer's optimisation in one stacked
 program, padding that changes nothing, and states either trainer resumes."""
 
 import csv
@@ -9,8 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax import bc, bc_stacked, config
-from bumps_jax.stages import meta as meta_stage
+from bumps_jax import config
+from bumps_jax.algo import bc, bc_stacked
+from bumps_jax.pipeline.stages import meta as meta_stage
 
 # Two nets unlike in depth and width, as the paper's 4x256 and 11x128 are.
 MODELS = {"wide": bc.MetaPolicy(depth=2, width=8), "deep": bc.MetaPolicy(depth=4, width=4)}

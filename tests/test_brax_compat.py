@@ -6,7 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax import brax_compat, config, kick_env
+from bumps_jax import config
+from bumps_jax.tasks.kick import env as kick_env
+from experiments import brax_compat
 
 
 def test_patched_provides_device_put_replicated_and_restores_jax():

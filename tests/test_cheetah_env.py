@@ -7,7 +7,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from bumps_jax import cheetah_env
+from bumps_jax.tasks.cheetah_vel import env as cheetah_env
 
 TARGETS = (0.0, 1.5, 3.0)
 # Two commands beyond the motors' [-1, 1]: the env clips them, and the control cost is paid on the clipped ones.

@@ -7,7 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from bumps_jax import cheetah_env, config, filtering, pipeline, publish
+from bumps_jax import config
+from bumps_jax.algo import filtering
+from bumps_jax.pipeline import runner as pipeline
+from bumps_jax.report import publish
+from bumps_jax.tasks.cheetah_vel import env as cheetah_env
 
 
 @pytest.fixture(scope="module")

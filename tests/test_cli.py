@@ -6,7 +6,11 @@ import sys
 
 import pytest
 
-from bumps_jax import cli, config, env_records, kick_env, pipeline, runio
+from bumps_jax import cli, config
+from bumps_jax.pipeline import records as env_records
+from bumps_jax.pipeline import runio
+from bumps_jax.pipeline import runner as pipeline
+from bumps_jax.tasks.kick import env as kick_env
 
 
 def test_every_command_has_help(capsys):
@@ -121,7 +125,7 @@ def test_records_are_strict_json(tmp_path):  # defect 11
         "error_mean_m": None,
         "rows": [None, 1.0],
     }
-    from bumps_jax import evaluate
+    from bumps_jax.algo import evaluate
 
     row = evaluate.table_row({"accuracy": __import__("numpy").zeros(3), "error_mean_m": __import__("numpy").ones(3)})
     assert row["error_mean_m"] is None and row["tasks_above_threshold"] == 0
@@ -129,7 +133,7 @@ def test_records_are_strict_json(tmp_path):  # defect 11
 
 def test_no_stray_output_and_plain_numbers_in_errors():  # defect 12
     out = subprocess.run(
-        [sys.executable, "-c", "import bumps_jax.kick_env, bumps_jax.ppo, bumps_jax.config"],
+        [sys.executable, "-c", "import bumps_jax.tasks.kick.env, bumps_jax.algo.ppo, bumps_jax.config"],
         capture_output=True,
         text=True,
         env={"JAX_PLATFORMS": "cpu", "PATH": ""},

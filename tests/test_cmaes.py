@@ -1,4 +1,4 @@
-"""The CMA-ES driver (bumps_jax.cmaes): a toy cost for its bookkeeping, then the kick searches."""
+"""The CMA-ES driver (bumps_jax.tasks.kick.cmaes): a toy cost for its bookkeeping, then the kick searches."""
 
 import csv
 import json
@@ -9,7 +9,11 @@ import ml_collections
 import numpy as np
 import pytest
 
-from bumps_jax import cmaes, config, kick_model, kick_scoring, sharding
+from bumps_jax import config
+from bumps_jax.algo import sharding
+from bumps_jax.tasks.kick import cmaes
+from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import scoring as kick_scoring
 
 FITNESS = config.make_config("tiny").prior.fitness
 
@@ -356,7 +360,7 @@ def test_keep_chain_takes_a_dearer_kick_where_the_cheapest_breaks_the_chain(env,
 def test_the_polish_tunes_the_mixed_kicks_once_more_from_a_key_of_its_own(env, monkeypatch):
     """`starting_kicks.polish`: one run of `polish_generations` from the mixed kicks, from a key
     no tuning run uses, each task keeping the better of its kick and the polished one."""
-    from bumps_jax import starting_kicks  # noqa: PLC0415
+    from bumps_jax.tasks.kick import starting_kicks  # noqa: PLC0415
 
     seen = []
 
@@ -394,7 +398,7 @@ def test_a_stopped_tuning_resumes_at_its_next_run(env, monkeypatch, tmp_path):
     import os  # noqa: PLC0415
     import signal  # noqa: PLC0415
 
-    from bumps_jax import runio  # noqa: PLC0415
+    from bumps_jax.pipeline import runio  # noqa: PLC0415
 
     common = dict(fitness=FITNESS, say=lambda *a, **k: None)
     _stand_in_tuning(monkeypatch)
@@ -611,7 +615,7 @@ def test_the_batched_tuning_is_handed_a_contact_pool_for_every_run(monkeypatch):
     """starting_kicks gives the tuning, with batch_restarts, an env whose pool holds restarts x
     env.warp_contacts (built once per size), one run after another the env as configured; the
     pool's size is no part of a kept run's fingerprint, so runs kept either way are read either way."""
-    from bumps_jax import starting_kicks  # noqa: PLC0415
+    from bumps_jax.tasks.kick import starting_kicks  # noqa: PLC0415
 
     cfg = config.make_config("tiny", {"experts.tune.restarts": 3, "experts.tune.batch_restarts": True})
     targets = np.asarray(cfg.experts.tasks, np.float32)

@@ -9,7 +9,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax import c_replay, cmaes, config, kick_env, kick_model, ppo, ppo_config, rollout, scene, task_env
+from benchmarks import c_replay
+from bumps_jax import config
+from bumps_jax.algo import ppo, ppo_config, rollout
+from bumps_jax.envs import base as task_env
+from bumps_jax.tasks.kick import cmaes, scene
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import keyframes as kick_model
 
 NO_NOISE = {f"noise.{k}": 0.0 for k in ("ball_xy", "joint_angle", "friction", "actuator_gain")}
 MAIN = kick_model.ANCHORS.index("main")

@@ -12,9 +12,14 @@ import pytest
 from rollout_memo import digest
 from tiny_experts import N_STEPS, pipeline_config
 
-from bumps_jax import bc, cmaes, config, kick_model, kick_scoring, rollout, runio, starting_kicks
-from bumps_jax.stages import experts
-from bumps_jax.stages import prior as prior_stage
+from bumps_jax import config
+from bumps_jax.algo import bc, rollout
+from bumps_jax.pipeline import runio
+from bumps_jax.pipeline.stages import experts
+from bumps_jax.pipeline.stages import prior as prior_stage
+from bumps_jax.tasks.kick import cmaes, starting_kicks
+from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import scoring as kick_scoring
 
 
 @pytest.fixture(scope="module")

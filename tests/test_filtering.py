@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from rollout_memo import EpisodeMemo
 
-from bumps_jax import config, filtering
+from bumps_jax import config
+from bumps_jax.algo import filtering
 
 TASK_RANGE = (7.0, 18.0)
 

@@ -5,7 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax import kick_env, scene
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import scene
 
 STAND = jnp.asarray(scene.stance_command())
 

@@ -4,7 +4,7 @@ against hand computations; pure numbers, no physics."""
 import numpy as np
 import pytest
 
-from bumps_jax import kick_model
+from bumps_jax.tasks.kick import keyframes as kick_model
 
 
 def _knot_params():

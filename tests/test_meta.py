@@ -14,26 +14,18 @@ import pytest
 import stand_ins
 from rollout_memo import RolloutMemo
 
-from bumps_jax import (
-    bc,
-    cli,
-    config,
-    evaluate,
-    filtering,
-    kick_env,
-    kick_model,
-    meta_programs,
-    pipeline,
-    policies,
-    publish,
-    report,
-    runio,
-    tables,
-)
-from bumps_jax.stages import experts as experts_stage
-from bumps_jax.stages import filter as filter_stage
-from bumps_jax.stages import heldout
-from bumps_jax.stages import meta as meta_stage
+from bumps_jax import cli, config
+from bumps_jax.algo import bc, evaluate, filtering, meta_programs
+from bumps_jax.pipeline import policies, runio
+from bumps_jax.pipeline import runner as pipeline
+from bumps_jax.pipeline.stages import experts as experts_stage
+from bumps_jax.pipeline.stages import filter as filter_stage
+from bumps_jax.pipeline.stages import heldout
+from bumps_jax.pipeline.stages import meta as meta_stage
+from bumps_jax.report import publish, tables
+from bumps_jax.report import summary as report
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import keyframes as kick_model
 
 
 def quiet(*args, **kwargs):

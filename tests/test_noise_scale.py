@@ -2,7 +2,8 @@
 
 import pytest
 
-from bumps_jax import config, kick_env
+from bumps_jax import config
+from bumps_jax.tasks.kick import env as kick_env
 from experiments import noise_scale
 
 

@@ -12,7 +12,11 @@ from pathlib import Path
 
 import pytest
 
-from bumps_jax import config, pipeline, publish, report, runio
+from bumps_jax import config
+from bumps_jax.pipeline import runio
+from bumps_jax.pipeline import runner as pipeline
+from bumps_jax.report import publish
+from bumps_jax.report import summary as report
 
 
 def fake_stage(name, log, upstream=None, fail=False):
@@ -259,7 +263,8 @@ def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, stages, 
 def test_publishing_refuses_a_run_with_a_stage_unfinished(tmp_path, stages):
     """A run stopped before its last stage is not published: the committed record of that stage
     would stay from an older run beside the new ones, and the report would set them side by side."""
-    from bumps_jax import commands, tasks
+    from bumps_jax.pipeline import commands
+    from bumps_jax.tasks import registry as tasks
 
     log, modules = stages
     for name in tasks.STAGES["kick"]:

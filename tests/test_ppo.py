@@ -13,8 +13,11 @@ from brax.envs.base import State
 from brax.training import types
 from brax.training.agents.ppo import losses as ppo_losses
 
-from bumps_jax import config, kick_model, ppo, ppo_config, starting_kicks
-from bumps_jax.stages import experts
+from bumps_jax import config
+from bumps_jax.algo import ppo, ppo_config
+from bumps_jax.pipeline.stages import experts
+from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import starting_kicks
 
 N_STEPS = 75
 

@@ -5,8 +5,12 @@ import json
 import numpy as np
 import pytest
 
-from bumps_jax import cmaes, config, kick_env, kick_model, kick_scoring, scene
-from bumps_jax.stages import prior
+from bumps_jax import config
+from bumps_jax.pipeline.stages import prior
+from bumps_jax.tasks.kick import cmaes, scene
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import scoring as kick_scoring
 
 
 def test_actions_shape_and_joint_limits():

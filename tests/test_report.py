@@ -6,7 +6,12 @@ from pathlib import Path
 
 import pytest
 
-from bumps_jax import cheetah_table, config, publish, readme_table, report, runio, tables
+from bumps_jax import config
+from bumps_jax.pipeline import runio
+from bumps_jax.report import publish, tables
+from bumps_jax.report import readme as readme_table
+from bumps_jax.report import summary as report
+from bumps_jax.tasks.cheetah_vel import table as cheetah_table
 
 ROOT = Path(__file__).resolve().parent.parent
 

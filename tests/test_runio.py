@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from bumps_jax import pipeline, runio
+from bumps_jax.pipeline import runio
+from bumps_jax.pipeline import runner as pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -83,7 +84,8 @@ def test_a_manifest_and_messages_name_paths_relative_to_the_working_directory(tm
 
 
 def test_an_experiment_record_is_named_by_the_backend_and_carries_its_provenance(tmp_path):
-    from bumps_jax import config, kick_env
+    from bumps_jax import config
+    from bumps_jax.tasks.kick import env as kick_env
 
     cfg = config.make_config("tiny")
     path = runio.write_experiment(tmp_path, "probe", {"value": 1.5}, cfg, 2.0)

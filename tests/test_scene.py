@@ -4,7 +4,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from bumps_jax import physics, scene
+# SimSpark's joint table (degrees): name -> (low, high).
+from bumps_jax.envs import physics
+from bumps_jax.tasks.kick import scene
 
 # SimSpark's joint table (degrees): name -> (low, high).
 LIMITS_DEG = {

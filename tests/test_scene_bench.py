@@ -4,7 +4,8 @@ batch; a pool too small for the batch is refused rather than timed. The bench's 
 import pytest
 
 from benchmarks import scene_bench
-from bumps_jax import config, kick_env
+from bumps_jax import config
+from bumps_jax.tasks.kick import env as kick_env
 
 
 def test_rates_run_on_the_envs_backend_with_a_pool_sized_to_the_batch():

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import sharded_run
 
-from bumps_jax import sharding
-from bumps_jax.stages import experts
+from bumps_jax.algo import sharding
+from bumps_jax.pipeline.stages import experts
 
 ROOT = Path(__file__).resolve().parents[1]
 

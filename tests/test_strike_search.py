@@ -4,7 +4,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from bumps_jax import kick_env, kick_model, scene
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import scene
 from experiments import strike_search
 
 

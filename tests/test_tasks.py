@@ -6,7 +6,16 @@ import json
 
 import pytest
 
-from bumps_jax import added_knobs, config, pipeline, tasks
+from bumps_jax import config
+
+# sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the
+from bumps_jax.pipeline import added_knobs
+
+# sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the
+from bumps_jax.pipeline import runner as pipeline
+
+# sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the
+from bumps_jax.tasks import registry as tasks
 
 # sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the
 # task switch existed: a change here makes every kick run made before it refuse to resume. The

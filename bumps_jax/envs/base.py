@@ -1,0 +1,149 @@
+"""The shared base of the pipeline's contextual tasks (the kick, HalfCheetah-Vel).
+
+A contextual task is a brax-style env whose `reset(rng, target)` takes the task's parameter (the
+context: a distance in m, a velocity in m/s) and whose final metrics score the episode against it:
+
+    final_error   the episode's error against its target, in the context's unit (final at `done`)
+    valid         1 for an episode the pipeline counts (no fall, no physics overflow, ...), else 0
+
+and, for policy filtering, enough to score the same episode against any other target
+(`error_against`): the physics of an episode does not depend on the target, only its score does.
+A (meta-)policy sees `with_context(obs, context)`; an expert sees `expert_observation` of it.
+
+`ContextualEnv` holds what both envs share: the physics step and backend setup, the Warp
+contact pool's capacity in episodes, the target checks and the context's normalisation.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+
+import jax
+import ml_collections
+import mujoco
+import numpy as np
+from brax.envs.base import Env
+
+from bumps_jax.envs import physics
+
+IMPLS = ("jax", "warp")
+
+
+def validate_physics(cfg: ml_collections.ConfigDict, int_keys=()) -> None:
+    """ValueError naming the first bad physics value of an env config: the backend, the solver's
+    iterations (None: the model's own), Warp's buffers, and the positive integers `int_keys`."""
+    if cfg.impl not in IMPLS:
+        raise ValueError(f"env.impl must be one of {IMPLS}, got {cfg.impl!r}")
+    if cfg.impl == "warp" and importlib.util.find_spec("warp") is None:
+        raise ValueError(
+            "env.impl 'warp' needs the warp-lang package (pip install 'mujoco-mjx[warp]==3.17.0'), or set env.impl=jax"
+        )
+    for key in ("solver_iterations", "warp_contacts", "warp_constraints_per_world", *int_keys):
+        value = cfg[key]
+        if (value is not None or key != "solver_iterations") and (
+            isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1
+        ):
+            raise ValueError(f"env.{key} must be a positive integer, got {value!r}")
+
+
+def validate_physics_dt(cfg: ml_collections.ConfigDict) -> None:
+    """ValueError if env.physics_dt is set outside (0, ctrl_dt]."""
+    if cfg.physics_dt is not None and not 0 < cfg.physics_dt <= cfg.ctrl_dt:
+        raise ValueError(f"env.physics_dt must be in (0, ctrl_dt {cfg.ctrl_dt}], got {cfg.physics_dt!r}")
+
+
+def check_targets(targets, task_range, unit: str = "m") -> np.ndarray:
+    """Targets as a float array, or ValueError naming the first one outside `task_range` (in `unit`)."""
+    arr = np.asarray(targets, dtype=np.float64)
+    lo, hi = task_range
+    bad = ~np.isfinite(arr) | (arr < lo - 1e-9) | (arr > hi + 1e-9)
+    if bad.any():
+        raise ValueError(f"target {float(arr[bad].flat[0])!r} {unit} is outside the task range [{lo}, {hi}] {unit}")
+    return arr
+
+
+class ContextualEnv(Env):
+    """What every contextual task of the pipeline shares. A subclass sets `config` (with ctrl_dt,
+    physics_dt, solver_iterations, impl, warp_contacts, warp_constraints_per_world, task_range),
+    `contacts_per_episode`, then calls `_init_physics(mj_model)`; it defines reset, step,
+    observation_size, action_size, with_context and error_against."""
+
+    UNIT = "m"  # the context's unit
+    ACHIEVED = "distance"  # the final metric holding what an episode achieved, in UNIT (plots)
+    contacts_per_episode: int  # the most contacts one episode makes: Warp's pool holds this per episode
+
+    def _init_physics(self, mj_model: mujoco.MjModel) -> None:
+        """The model's physics step and solver iterations from the config, the control step's
+        physics steps, Warp's capacity in episodes, and the MJX model and blank data."""
+        cfg = self.config
+        if cfg.physics_dt is not None:
+            mj_model.opt.timestep = cfg.physics_dt
+        if cfg.solver_iterations is not None:
+            mj_model.opt.iterations = cfg.solver_iterations
+        self.mj_model = mj_model
+        physics_dt = self.physics_dt = float(mj_model.opt.timestep)
+        self.n_substeps = int(round(cfg.ctrl_dt / physics_dt))
+        if not math.isclose(self.n_substeps * physics_dt, cfg.ctrl_dt, rel_tol=1e-6):
+            raise ValueError(f"ctrl_dt {cfg.ctrl_dt} is not a multiple of the physics step {physics_dt}")
+        # Episodes one physics call holds: Warp's contact pool; None: no limit (MJX-JAX).
+        self.max_episodes = cfg.warp_contacts // self.contacts_per_episode if cfg.impl == "warp" else None
+        self.mjx_model, self._warp_data = physics.put_physics(mj_model, cfg)
+
+    # -- brax's Env interface ------------------------------------------------------------
+    @property
+    def backend(self) -> str:
+        return "mjx"
+
+    @property
+    def dt(self) -> float:
+        return self.config.ctrl_dt
+
+    # -- the context -----------------------------------------------------------------------
+    def check_targets(self, targets) -> np.ndarray:
+        """Targets as a float array, or ValueError naming the first one outside the task range."""
+        return check_targets(targets, self.config.task_range, self.UNIT)
+
+    def normalise_context(self, context):
+        """A target or context as the policy sees it: 0 at the task range's low end, 1 at its high."""
+        lo, hi = self.config.task_range
+        return (context - lo) / (hi - lo)
+
+    @property
+    def context_observation_size(self) -> int:
+        """Size of what a contextual policy observes (`with_context`); the env's own by default."""
+        return self.observation_size
+
+    def expert_observation(self, obs: jax.Array) -> jax.Array:
+        """What a single-task expert observes of a contextual observation (..., context size):
+        the env's own observation, its first `observation_size` numbers (..., observation_size)."""
+        return obs[..., : self.observation_size]
+
+    def error_against(self, metrics: dict, targets) -> np.ndarray:
+        """Final errors of finished episodes against other targets: metrics (host arrays of shape
+        S, as the env reports them) with targets broadcasting against S, e.g. (T, 1, 1) against
+        (C, R) -> (T, C, R)."""
+        raise NotImplementedError
+
+
+class ContextObserved:
+    """`env` whose every observation carries its episode's target (`env.with_context`): what one
+    policy over every target trains on when the env's own observation holds none. The rest is `env`'s."""
+
+    def __init__(self, env):
+        self.env = env
+
+    def __getattr__(self, name):
+        return getattr(self.env, name)
+
+    @property
+    def observation_size(self) -> int:
+        return self.env.context_observation_size
+
+    def reset(self, rng, target=None):
+        state = self.env.reset(rng, target)
+        return state.replace(obs=self.env.with_context(state.obs, state.info["target"]))
+
+    def step(self, state, action):
+        nxt = self.env.step(state, action)
+        return nxt.replace(obs=self.env.with_context(nxt.obs, nxt.info["target"]))

@@ -1,0 +1,1 @@
+"""The pipeline: stages, the run directory, and the commands that run them."""

@@ -1,0 +1,175 @@
+"""The commands besides the stages: report, publish, render, video, showcase, evaluate, kick.
+
+Each takes the pipeline config, the run directory and the parsed arguments; each checks its
+inputs (with their paths) before any long work.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from bumps_jax.pipeline import runio
+
+
+def run(command: str, cfg, run_dir: Path, args) -> None:
+    commands = {"report": report, "publish": publish, "render": render, "video": video, "showcase": showcase,
+                "evaluate": evaluate, "kick": kick}  # fmt: skip
+    commands[command](cfg, Path(run_dir), args)
+
+
+def report(cfg, run_dir: Path, args) -> None:
+    from bumps_jax.report import publish as publish_mod  # noqa: PLC0415
+    from bumps_jax.report import summary as report_mod  # noqa: PLC0415
+
+    if not run_dir.is_dir():
+        raise ValueError(f"no run directory {str(run_dir)!r}: run a stage first (e.g. python -m bumps_jax demo)")
+    if not report_mod.has_results(run_dir):
+        raise ValueError(f"{run_dir} holds no stage results yet: run a stage first")
+    path = publish_mod.write_report(run_dir)
+    print(path.read_text())
+    print(f"wrote {path}")
+
+
+def publish(cfg, run_dir: Path, args) -> None:
+    """A finished paper run into the repository; another task's run into results/<task>/."""
+    from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
+    from bumps_jax.report import publish as publish_mod  # noqa: PLC0415
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
+
+    # A run with a stage unfinished would leave that stage's committed record from an older run
+    # beside the new ones (and the report would set them side by side): refused, naming them.
+    missing = pipeline.unfinished(run_dir, tasks.STAGES[cfg.task])
+    if missing:
+        records = ", ".join(f"{m}/{pipeline.stage_module(m).OUTPUT}" for m in missing)
+        raise ValueError(
+            f"not published: {runio.shown(run_dir)} has not finished {', '.join(missing)} (no {records}); "
+            "rerun the same reproduce to finish it"
+        )
+    if cfg.task != "kick":
+        for path in publish_mod.publish_task(run_dir, cfg.task):
+            print(f"wrote {path}")
+        return
+    made_with = publish_mod.run_config(run_dir, cfg)
+    try:
+        pipeline.check_current(made_with, run_dir, tasks.STAGES[made_with.task])
+    except pipeline.StaleRunError as err:
+        raise ValueError(f"not published: {err}") from None
+    if made_with.preset != cfg.preset:
+        print(f"{run_dir} is a {made_with.preset} run: publishing it with the {made_with.preset} preset's config")
+    for path in publish_mod.publish(run_dir, cfg=made_with):
+        print(f"wrote {path}")
+
+
+def render(cfg, run_dir: Path, args) -> None:
+    from bumps_jax.tasks.kick import render as render_mod  # noqa: PLC0415
+
+    out = Path(args.out) if args.out else run_dir / "stance.png"
+    runio.check_writable(out.parent)
+    print(f"wrote {render_mod.stance_picture(out)}")
+
+
+def video(cfg, run_dir: Path, args) -> None:
+    """A GIF of filtered kicks of a finished run: the (4, 256) net at the test tasks nearest 8, 12, 16 m."""
+    import jax  # noqa: PLC0415
+
+    from bumps_jax.algo import bc  # noqa: PLC0415
+    from bumps_jax.pipeline.stages import meta as meta_stage  # noqa: PLC0415
+    from bumps_jax.tasks.kick import env as kick_env  # noqa: PLC0415
+    from bumps_jax.tasks.kick import render  # noqa: PLC0415
+
+    table2 = runio.read_json(run_dir / "filter" / "table2.json", "run the filter stage first")
+    obs_norm = meta_stage.run_obs_norm(run_dir)
+    out = Path(args.out) if args.out else run_dir / "filtered_kicks.gif"
+    runio.check_writable(out.parent)
+    tasks, chosen = np.asarray(table2["tasks"]), np.asarray(table2["chosen_contexts"]["filtered_4x256"])
+    picks = sorted({int(np.argmin(np.abs(tasks - t))) for t in (8.0, 12.0, 16.0)})
+    depth, width = cfg.meta.nets["meta_4x256"]
+    apply_fn, params = bc.load_policy(run_dir / "meta" / "meta_4x256", depth, width, cfg.meta.train, obs_norm=obs_norm)
+    params = jax.tree.map(lambda a: a[cfg.filter.net_seed], params)
+    env = kick_env.KickEnv(cfg.env)
+    path = render.kick_gif(out, env, apply_fn, params, chosen[picks], tasks[picks])
+    print(f"wrote {path}")
+
+
+def showcase(cfg, run_dir: Path, args) -> None:
+    """A batch of noisy episodes of the committed prior's main kick: the scene and env at a glance."""
+    import jax  # noqa: PLC0415
+    import jax.numpy as jnp  # noqa: PLC0415
+
+    from bumps_jax.algo import rollout  # noqa: PLC0415
+    from bumps_jax.tasks.kick import env as kick_env  # noqa: PLC0415
+    from bumps_jax.tasks.kick import keyframes as kick_model  # noqa: PLC0415
+
+    if args.episodes < 1:
+        raise ValueError(f"--episodes must be a positive integer, got {args.episodes}")
+    record = kick_model.load_record(kick_model.ASSET, env_cfg=cfg.env)
+    env = kick_env.KickEnv(cfg.env)
+    table = kick_model.action_tables(kick_model.clip_params(record["params"])[None], env.n_steps, env.dt)
+    keys = jax.random.split(jax.random.key(0), args.episodes)[None]
+    target = jnp.full((1,), 12.0)
+    out = rollout.matched_fn(env, rollout.table_policy)(table, target, target, keys)
+    print(f"{args.episodes} noisy kicks of the committed 12 m prior:")
+    print(f"  resting distance {np.mean(out['distance']):.2f} +- {np.std(out['distance']):.2f} m")
+    print(f"  final error      {np.mean(out['final_error']):.2f} m, valid {np.mean(out['valid']):.2f}")
+
+
+def evaluate(cfg, run_dir: Path, args) -> None:
+    """A finished run on the held-out targets (its heldout stage: run_dir/heldout/heldout.json),
+    or on the development targets (`--dev`: run_dir/dev/dev.json, outside the pipeline)."""
+    from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
+    from bumps_jax.pipeline.stages import heldout  # noqa: PLC0415
+
+    if args.heldout == args.dev:
+        raise ValueError("evaluate needs one of --heldout (reporting) or --dev (design choices)")
+    if args.heldout:
+        pipeline.run_stage("heldout", cfg, run_dir, force=args.force)
+        print(f"wrote {run_dir / 'heldout' / heldout.OUTPUT}")
+        return
+    heldout.run(cfg, run_dir, section="dev")  # its inputs checked, then run_dir/dev made writable
+    print(f"wrote {run_dir / 'dev' / 'dev.json'}")
+
+
+def kick(cfg, run_dir: Path, args) -> None:
+    """Kick to --target with a shipped meta-policy: filter a context, then --kicks noisy kicks."""
+    import time  # noqa: PLC0415
+
+    from bumps_jax import config  # noqa: PLC0415
+    from bumps_jax.pipeline import policies  # noqa: PLC0415
+
+    t0 = time.perf_counter()
+    for name, value in (("--kicks", args.kicks), ("--selection-reps", args.selection_reps)):
+        if value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value}")
+    directory = args.policies or policies.ASSET_DIR
+    if not (Path(directory) / policies.MANIFEST).is_file():
+        raise ValueError(f"no shipped policies in {directory}: {policies.HOW_TO_MAKE}")
+    manifest = runio.read_json(Path(directory) / policies.MANIFEST, "a shipped-policies manifest")
+    # The policies' own physics, with only the env keys the user set on the command line.
+    env_overrides = {k.removeprefix("env."): v for k, v in config.overrides_of(cfg).items() if k.startswith("env.")}
+    from bumps_jax.algo import sharding  # noqa: PLC0415
+
+    n_devices = sharding.device_mesh(impl=policies.env_config(manifest, env_overrides).impl).size
+    env_cfg = policies.kick_env_config(manifest, env_overrides, args.kicks, n_devices)
+    if args.net not in manifest.get("nets", {}):
+        raise ValueError(f"--net {args.net!r}: the shipped nets are {sorted(manifest.get('nets', {}))}")
+    from bumps_jax.tasks.kick import env as kick_env  # noqa: PLC0415
+
+    target = float(kick_env.check_targets([args.target], tuple(env_cfg.task_range))[0])
+    if args.gif:
+        runio.check_writable(Path(args.gif).parent)
+    shipped = policies.load(directory, env_cfg)
+    out = policies.filtered_kicks(shipped, args.net, target, args.kicks, env_cfg, args.selection_reps, args.seed)
+    for line in policies.describe(shipped, args.net, target, out, time.perf_counter() - t0):
+        print(line)
+    if args.gif:
+        from bumps_jax.algo import bc  # noqa: PLC0415
+        from bumps_jax.tasks.kick import render  # noqa: PLC0415
+
+        entry = shipped.manifest["nets"][args.net]
+        model = bc.MetaPolicy(entry["depth"], entry["width"], obs_norm=bc.obs_norm_of_record(entry))
+        apply_fn = bc.policy_apply(model)
+        env = kick_env.KickEnv(env_cfg)
+        path = render.kick_gif(args.gif, env, apply_fn, shipped.nets[args.net], [out.context], [target], args.seed)
+        print(f"wrote {path}")

@@ -1,0 +1,257 @@
+"""Running stages into a run directory without ever mixing configs.
+
+    run_dir/
+      prior/     stage.json  kick_prior.json  kick_prior_asset.json  ...
+      experts/   stage.json  experts.json  final_params/  checkpoints/  progress.csv
+      meta/      stage.json  table1.json  <net>/checkpoints/  dataset.npz
+      filter/    stage.json  table2.json  error_vs_target.png  context_map.png
+      baseline/  stage.json  baseline.json  baseline_curve.png
+      pipeline.json  report.md
+
+Data flows one way: prior -> experts -> meta -> filter (and prior -> baseline). Each stage
+module (`bumps_jax.pipeline.stages.<name>`) says which files it reads (`inputs`) and which record marks
+it done (`OUTPUT`); `run_stage` checks every input before any work, compares the stage's
+manifest (its config section, the env and the inputs' fingerprints) with what is already there,
+and then reuses, resumes, recomputes (`force`) or refuses.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import shutil
+import time
+from pathlib import Path
+
+from bumps_jax import config
+from bumps_jax.pipeline import added_knobs, runio
+from bumps_jax.tasks import registry as tasks
+
+MANIFEST = "stage.json"  # each stage directory's manifest
+
+# Stage name -> the stages that read its outputs (directly or through another).
+ORDER = ("prior", "experts", "meta", "filter", "heldout", "baseline")
+DOWNSTREAM = {"prior": ("experts", "meta", "filter", "heldout", "baseline"), "experts": ("meta", "filter", "heldout"),
+              "meta": ("filter", "heldout"), "filter": ("heldout",), "heldout": (), "baseline": ()}  # fmt: skip
+
+
+def stage_module(name: str):
+    if name not in ORDER:
+        raise ValueError(f"unknown stage {name!r}; choose one of {ORDER}")
+    return importlib.import_module(f"bumps_jax.pipeline.stages.{name}")
+
+
+def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]:
+    """(manifest wanted, status) of one stage, checked before any work: the config's task has the
+    stage, every input exists and parses (ValueError naming it), and the stage directory holds
+    nothing of another config (StaleRunError; with `force` such a directory is wiped).
+    status: "new", "same" (resume), "done" (its record exists) or "forced"."""
+    tasks.check_stage(cfg.task, name)
+    module = stage_module(name)
+    wanted = manifest(config.section(cfg, name), module.inputs(config.task_view(cfg), run_dir))
+    status = check_manifest(run_dir / name, wanted, force)
+    if status == "same" and (run_dir / name / module.OUTPUT).exists():
+        status = "done"
+    return wanted, status
+
+
+def unfinished(run_dir: Path, stages) -> list[str]:
+    """The stages of `stages` whose record `run_dir` lacks (never run, or stopped before the end)."""
+    return [name for name in stages if not (Path(run_dir) / name / stage_module(name).OUTPUT).exists()]
+
+
+def run_stage(name: str, cfg, run_dir: Path, force: bool = False, say=print) -> dict:
+    """Run (or resume, or reuse) one stage; returns its record. With `force`, a stage whose
+    outputs were made otherwise is wiped with every stage after it, and recomputed."""
+    run_dir = runio.check_writable(run_dir)
+    return execute(name, cfg, run_dir, *plan(name, cfg, run_dir, force), say=say)
+
+
+def check_current(cfg, run_dir: Path, stages) -> None:
+    """StaleRunError unless every one of `stages` that `run_dir` holds was made with `cfg` and the
+    inputs there now (its manifest, `check_manifest`): what publishing a run checks first, so that
+    no record goes out under a config it was not made with."""
+    for name in stages:
+        if (run_dir / name).exists():
+            plan(name, cfg, run_dir)
+
+
+def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print) -> dict:
+    """One stage after `plan`: reuse its record, or write its manifest and run it."""
+    module = stage_module(name)
+    output = run_dir / name / module.OUTPUT
+    if status == "done":
+        say(f"== {name}: up to date ({output})")
+        return runio.read_json(output)
+    if status == "forced":
+        for later in DOWNSTREAM[name]:
+            if (run_dir / later).exists():
+                say(f"== {later}: removed (made from the {name} outputs that --force replaces)")
+                shutil.rmtree(run_dir / later)
+    write_manifest(run_dir / name, wanted)
+    say(f"== {name}" + (" (resuming)" if status == "same" else ""), flush=True)
+    # Ctrl-C only asks the stage to stop (a KeyboardInterrupt raised inside a Warp callback
+    # crashed the process): its chunk loops stop at their next chunk, a stage without chunks
+    # when it is done, and the call then ends as an interrupted one.
+    with runio.stop_on_interrupt(say, at="this chunk, or at the end of this stage") as stop:
+        record = module.run(config.task_view(cfg), run_dir, say=say)
+        stop.check()
+    return record
+
+
+def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> dict:
+    """Run `stages` in order into `run_dir` (those the config's task has: `tasks.STAGES`), then write
+    the report. Writes run_dir/pipeline.json:
+    each stage's wall time over every call (`stages_s`; their sum is `wall_s`), the number of
+    calls, and this call's own time.
+
+    Every stage's inputs and manifest are checked up front where they already exist, so a stale
+    later stage stops the call before the first stage does any work.
+    """
+    from bumps_jax.report import publish  # noqa: PLC0415
+
+    run_dir = runio.check_writable(run_dir)
+    stages = [name for name in stages if name in tasks.STAGES[cfg.task]]
+    for name in stages:
+        if (run_dir / name).exists() and not force:
+            try:
+                plan(name, cfg, run_dir)
+            except StaleRunError:
+                raise
+            except ValueError:
+                pass  # an input that an earlier stage of this call writes
+    timing_path = run_dir / "pipeline.json"
+    timing = runio.read_json(timing_path) if timing_path.exists() else {"stages_s": {}}
+    count_killed_call(run_dir, timing, say)
+    counted = False
+    t_call = time.perf_counter()
+    for name in stages:
+        wanted, status = plan(name, cfg, run_dir, force)
+        if status == "done":
+            execute(name, cfg, run_dir, wanted, status, say)
+            continue
+        if status in ("new", "forced"):  # a stage made anew counts its own time, not its predecessor's
+            timing["stages_s"].pop(name, None)
+        if not counted:  # a report says whether the run was resumed
+            timing["calls"], counted = timing.get("calls", 0) + 1, True
+        # A SIGKILL skips the `finally` below; this mark lets the next call count the lost time.
+        timing["open"] = {"stage": name, "started": time.time()}
+        runio.write_json(timing_path, timing)
+        t0 = time.perf_counter()
+        try:
+            execute(name, cfg, run_dir, wanted, status, say)
+        finally:  # also when interrupted: a resumed stage adds up its parts
+            timing.pop("open", None)
+            timing["stages_s"][name] = timing["stages_s"].get(name, 0.0) + time.perf_counter() - t0
+            timing["call_wall_s"] = time.perf_counter() - t_call
+            timing.update(runio.provenance(cfg.preset, sum(timing["stages_s"].values()), config.resolved_env(cfg)))
+            timing["overrides"] = config.overrides_of(cfg)
+            runio.write_json(timing_path, timing)
+    path = publish.write_report(run_dir)
+    say(path.read_text())
+    say(f"wrote {path}")
+    return timing
+
+
+def count_killed_call(run_dir: Path, timing: dict, say=print) -> None:
+    """Add a call that was killed mid-stage (its `open` mark is left) to `timing`, in place.
+
+    Its time is counted up to the stage's last write under run_dir (a checkpoint, a progress
+    row): what came after it was lost and is redone by this call."""
+    opened = timing.pop("open", None)
+    if not opened:
+        return
+    stage_dir = run_dir / opened["stage"]
+    writes = [p.stat().st_mtime for p in stage_dir.rglob("*") if p.is_file()] if stage_dir.exists() else []
+    lost = max([0.0, *(t - opened["started"] for t in writes)])
+    timing["stages_s"][opened["stage"]] = timing["stages_s"].get(opened["stage"], 0.0) + lost
+    timing["killed_calls"] = timing.get("killed_calls", 0) + 1
+    say(f"== a previous call was killed during {opened['stage']}: counting its {lost:.0f} s up to its last write")
+
+
+# -- the stage manifest ------------------------------------------------------------------------
+
+
+class StaleRunError(ValueError):
+    """A run directory holds outputs of another config or other inputs than this call's."""
+
+
+def manifest(section: dict, inputs: dict[str, str | Path]) -> dict:
+    """What a stage's outputs depend on: its config (`config.section`) and its input files'
+    fingerprints (name -> path)."""
+    return {
+        "config": section,
+        "inputs": {
+            name: {"path": runio.shown(path), "sha256": runio.file_hash(path)} for name, path in sorted(inputs.items())
+        },
+    }
+
+
+def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
+    """Compare a stage directory's manifest with `wanted` before the stage runs.
+
+    Returns "new" (nothing there yet), "same" (its outputs belong to this config and inputs: reuse
+    or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
+    StaleRunError naming the differing keys and the two ways on. Warp's buffer sizes
+    (`env.warp_contacts`, `env.warp_constraints_per_world`) are not compared. A config key the manifest lacks
+    counts as the same where `wanted` has it at the value that behaves as the code did before the
+    key existed (`added_knobs.ADDED_KNOBS`), so runs made before a knob resume; set otherwise, the
+    stage is stale (whatever the preset's default).
+    """
+    from bumps_jax.pipeline import records as env_records  # noqa: PLC0415
+
+    path = stage_dir / MANIFEST
+    if not path.exists():
+        if stage_dir.exists() and any(p.name != MANIFEST for p in stage_dir.iterdir()):
+            diff = ["(outputs without a manifest: made by an older version or another program)"]
+        else:
+            return "new"
+    else:
+        try:
+            have = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            have = {}
+        diff = env_records.differing_keys(
+            {"config": have.get("config", {}), "inputs": _hashes(have.get("inputs", {}))},
+            {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
+        )
+        diff = [key for key in diff if not _added_at_its_old_behaviour(key, have, wanted) and not _capacity(key)]
+        if not diff:
+            return "same"
+    if force:
+        shutil.rmtree(stage_dir)
+        return "forced"
+    shown = ", ".join(d.removeprefix("config.") for d in diff[:6]) + (" ..." if len(diff) > 6 else "")
+    raise StaleRunError(
+        f"{stage_dir} holds outputs of another config or other inputs ({shown}): "
+        "use a new --run-dir, or --force to recompute this stage and every stage after it"
+    )
+
+
+def write_manifest(stage_dir: Path, wanted: dict) -> Path:
+    return runio.write_json(stage_dir / MANIFEST, wanted)
+
+
+def _added_at_its_old_behaviour(key: str, have: dict, wanted: dict) -> bool:
+    """Is dotted `key` ("config. ...") missing from the manifest `have` and, in `wanted`, at the
+    value `added_knobs.ADDED_KNOBS` gives for it?"""
+    from bumps_jax.pipeline.records import MISSING, lookup  # noqa: PLC0415
+
+    path = key.removeprefix("config.")
+    if not key.startswith("config.") or path not in added_knobs.ADDED_KNOBS:
+        return False
+    missing = lookup(have.get("config", {}), path) == MISSING
+    return missing and lookup(wanted["config"], path) == added_knobs.ADDED_KNOBS[path]
+
+
+def _capacity(key: str) -> bool:
+    """Is dotted `key` one of Warp's buffer sizes (`env_records.CAPACITY_KEYS`)? They change no
+    physics, so a run resumes under another size (a smaller GPU, a larger batch); too small a
+    buffer is refused before any work, or its episodes are marked invalid, never silently wrong."""
+    from bumps_jax.pipeline.records import CAPACITY_KEYS  # noqa: PLC0415
+
+    return any(key == f"config.env.{k}" for k in CAPACITY_KEYS)
+
+
+def _hashes(inputs: dict) -> dict:
+    return {name: entry.get("sha256") for name, entry in inputs.items()}

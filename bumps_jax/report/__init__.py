@@ -1,0 +1,1 @@
+"""Reports of a finished run: tables, figures, README blocks, publishing."""

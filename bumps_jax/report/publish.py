@@ -1,0 +1,125 @@
+"""What a finished run leaves behind: its report.md, and its records, figures and policies
+copied into the repository (`publish` for the kick's paper run, `publish_task` for another task's).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from bumps_jax import config
+from bumps_jax.pipeline import policies, runio
+from bumps_jax.report import readme as readme_table
+from bumps_jax.report import summary as report
+from bumps_jax.report import task_report as report_task
+from bumps_jax.tasks.cheetah_vel import table as cheetah_table
+
+POLICIES = "assets/policies"  # the shipped policies (`policies.write`)
+# What `publish` copies from a finished paper run into the repository: run file -> committed path.
+PUBLISHED = {
+    "prior/kick_prior.json": "results/kick_prior.json",
+    "prior/kick_sweep.png": "docs/kick_sweep.png",
+    "prior/kick_prior_timing.json": "benchmarks/results/kick_prior.json",
+    # The prior the run's experts started from: the committed asset that later runs start from.
+    "prior/kick_prior_asset.json": report.PRIOR_ASSET,
+    "experts/experts.json": "results/experts.json",
+    "experts/experts.md": "docs/experts.md",
+    "experts/progress.csv": "docs/experts_progress.csv",
+    "experts/starting_kicks.json": "docs/experts_starting_kicks.json",
+    "meta/table1.json": "results/table1.json",
+    "meta/table1.md": "docs/table1.md",
+    "filter/table2.json": "results/table2.json",
+    "filter/table2.md": "docs/table2.md",
+    "filter/error_vs_target.png": "docs/error_vs_target.png",
+    "filter/context_map.png": "docs/context_map.png",
+    "baseline/baseline.json": "results/baseline.json",
+    "baseline/baseline_curve.png": "docs/baseline_curve.png",
+    "pipeline.json": "results/pipeline.json",
+    "heldout/heldout.json": "results/heldout.json",
+    "filtered_kicks.gif": "docs/filtered_kicks.gif",
+}
+
+# What `publish --task <task>` copies from a finished run: run file -> path under results/<task>/.
+TASK_PUBLISHED = {
+    "experts/experts.json": "experts.json",
+    "meta/table1.json": "table1.json",
+    "filter/table2.json": "table2.json",
+    "pipeline.json": "pipeline.json",
+    "report.md": "report.md",
+    "filter/error_vs_target.png": "error_vs_target.png",
+    "filter/context_map.png": "context_map.png",
+    "baseline/baseline.json": "baseline.json",
+    "baseline/baseline_curve.png": "baseline_curve.png",
+}
+
+
+def publish(run_dir: str | Path, root: str | Path = ".", cfg=None) -> list[Path]:
+    """Copy a finished paper run's results, tables and figures into results/ and docs/, and its
+    kick prior into assets/; with `cfg` (the run's config) and a finished filter stage, ship its
+    policies into assets/policies/ (`policies.write`). Then rebuild docs/results.md and README's
+    results table. Returns the paths written."""
+    run_dir, root = Path(run_dir), Path(root)
+    written = []
+    for rel, dest in PUBLISHED.items():
+        if (run_dir / rel).exists():
+            (root / dest).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(run_dir / rel, root / dest)
+            written.append(root / dest)
+    if not any(p.suffix == ".json" for p in written):
+        raise ValueError(f"{run_dir} holds no stage results to publish")
+    if cfg is not None and (run_dir / "filter" / "table2.json").exists():
+        written += policies.write(cfg, run_dir, root / POLICIES)
+    written.append(report.write_committed(root))
+    if (root / "README.md").exists():
+        written.append(readme_table.write_readme(root))
+    return written
+
+
+def run_config(run_dir: str | Path, cfg):
+    """The config `run_dir` was made with: its preset and overrides as its pipeline.json records
+    them (a run of single stages: its experts record's preset, with `cfg`'s overrides). The
+    policies shipped from a run are shaped by its own config, not by the publishing command's
+    default preset."""
+    run_dir = Path(run_dir)
+    if (run_dir / "pipeline.json").exists():
+        record = runio.read_json(run_dir / "pipeline.json")
+        overrides = record.get("overrides", {})
+    else:
+        record = runio.read_json(run_dir / "experts" / "experts.json", "the experts' record: run train-experts first")
+        overrides = config.overrides_of(cfg)
+    preset = record.get("preset", cfg.preset)
+    if preset == cfg.preset and overrides == config.overrides_of(cfg):
+        return cfg
+    return config.make_config(preset, {key: tuple(v) if isinstance(v, list) else v for key, v in overrides.items()})
+
+
+def write_report(run_dir: str | Path) -> Path:
+    """run_dir/report.md: the kick's report (`report.build`), or another task's (`report_task.build_task`) where the
+    run's records name one."""
+    path = Path(run_dir) / "report.md"
+    task = report_task.run_task(run_dir)
+    path.write_text(report.build(run_dir) if task == "kick" else report_task.build_task(run_dir, task))
+    return path
+
+
+def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list[Path]:
+    """Copy a finished run of `task` (not the kick) into results/<task>/ (`TASK_PUBLISHED`); for
+    HalfCheetah-Vel, then regenerate our rows of its comparison with the published results."""
+    run_dir, root = Path(run_dir), Path(root)
+    if not any((run_dir / rel).exists() for rel in TASK_PUBLISHED if rel.endswith(".json")):
+        raise ValueError(f"{run_dir} holds no stage results to publish")
+    if report_task.run_task(run_dir) != task:
+        raise ValueError(f"{run_dir} holds no {task} run (its records name {report_task.run_task(run_dir)!r})")
+    written = []
+    for rel, name in TASK_PUBLISHED.items():
+        if (run_dir / rel).exists():
+            dest = root / "results" / task / name
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(run_dir / rel, dest)
+            written.append(dest)
+    if task == "cheetah_vel":
+        if (root / cheetah_table.DOC).exists():
+            written.append(cheetah_table.write(root))  # our rows beside the published results
+        if (root / "README.md").exists():
+            written.append(cheetah_table.write_readme(root))
+    return written

@@ -1,0 +1,71 @@
+"""The report of another contextual task's runs (not the kick): no paper columns, no prior, no
+held-out stage; and `publish --task <task>`, which copies such a run into results/<task>/.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from bumps_jax.report import tables
+from bumps_jax.report.summary import EXTRAS, STAGES, load, pipeline_lines, preamble_lines, stages_table
+
+
+def run_task(run_dir: str | Path) -> str:
+    """The task a run's records name (`task`; the kick's records name none)."""
+    for rel in (STAGES["experts"], STAGES["meta"], STAGES["filter"]):
+        record = load(Path(run_dir), rel)
+        if record:
+            return record.get("task", "kick")
+    return "kick"
+
+
+def build_task(run_dir: str | Path, task: str) -> str:
+    """The report's markdown of a run of `task` (not the kick): its stages' wall times, the
+    experts, Table 1, Table 2 and the multi-task PPO baseline in the task's unit."""
+    run_dir = Path(run_dir)
+    found = {name: load(run_dir, STAGES[name]) for name in ("experts", "meta", "filter")}
+    found["baseline"] = load(run_dir, EXTRAS["baseline"])
+    lines = [f"# BUMPS on {task}: run `{run_dir.name}`", ""]
+    first = next((v for v in found.values() if v), None)
+    if first is None:
+        return "\n".join([*lines, "No stage has written results in this directory yet.", ""])
+    unit = first.get("unit", "m")
+    lines += preamble_lines([first["preset"]], first)
+    stage_lines, own_s = stages_table(found)
+    lines += stage_lines
+    lines += pipeline_lines(load(run_dir, EXTRAS["pipeline"]), own_s)
+    if found["experts"]:
+        lines += ["## Experts (each on its own training target)", "", tables.task_experts_markdown(found["experts"])]
+    if found["meta"]:
+        lines += [tables.task_table1_markdown(found["meta"]["rows"], unit)]
+    if found["filter"]:
+        lines += [tables.task_table2_markdown(found["filter"]["rows"], unit)]
+    if found["baseline"]:
+        lines += task_baseline_lines(found["baseline"], found["experts"], found["filter"], unit)
+    figures = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.glob("*/*.png"))
+    if figures:
+        lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
+    return "\n".join(lines)
+
+
+def task_baseline_lines(baseline: dict, experts: dict | None, filtered: dict | None, unit: str) -> list[str]:
+    """The multi-task PPO baseline beside BUMPS: its test error, its env steps against the experts'."""
+    lo, hi = baseline["sample_task_range"]
+    start = baseline["start"]
+    lines = [
+        "## Multi-task PPO baseline (one policy for every target, the same PPO)",
+        "",
+        f"One policy over (state, target) trained by PPO from a fresh init on targets drawn from U[{lo:g}, {hi:g}] "
+        f"{unit}, {baseline['seeds']} seeds x {baseline['env_steps_per_seed']:,} env steps: test error "
+        f"{baseline['error_mean_m']:.2f} {unit} over {len(baseline['eval_tasks'])} test targets, accuracy "
+        f"{baseline['accuracy_mean']:.2f} (at the start: {start['error_mean_all_m']:.2f} {unit}).",
+    ]
+    if experts:
+        n = len(experts["tasks_m"])
+        lines.append(
+            f"BUMPS's experts used {n * experts['env_steps']:,} PPO env steps in all ({n} of {experts['env_steps']:,})."
+        )
+    if filtered:
+        name, best = min(filtered["rows"].items(), key=lambda kv: kv[1]["error_mean_m"])
+        lines.append(f"Best BUMPS variant ({name}): {best['error_mean_m']:.2f} {unit} on its test targets.")
+    return [*lines, ""]

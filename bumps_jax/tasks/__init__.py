@@ -1,0 +1,1 @@
+"""The contextual tasks: one folder each, found through the registry."""

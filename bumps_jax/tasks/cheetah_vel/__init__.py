@@ -1,0 +1,1 @@
+"""HalfCheetah-Vel: the half-cheetah runs at a target velocity."""

@@ -1,0 +1,692 @@
+"""CMA-ES on keyframe kicks: one driver for the prior's anchors, the experts' per-task tuning and
+the strike search. What a candidate costs, and the replays that score finished kicks, are in
+`kick_scoring`.
+
+A search moves a kick's 14 parameters as params = clip(x0 + scale * z), z drawn by evosax's
+CMA-ES in units of `kick_model.PARAM_SCALE`; a parameter left out of the search's free mask has
+scale 0 and stays at x0. Many independent searches (T of them, each with its start x0, target,
+free mask and one extra number for its cost) run as one generation program, vmapped over
+searches and split over a device mesh (`sharding.over_batch`):
+
+    ask (P candidates) -> P x R noisy episodes -> mean cost per candidate -> tell
+
+All candidates of one search's generation meet the same R episodes (common random numbers), so
+the ranking compares kicks, not luck. The driver keeps each search's best candidate so far
+beside CMA-ES's own state; the host loop between generations prints progress with an ETA.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import time
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bumps_jax.algo import sharding
+from bumps_jax.pipeline import runio, validation
+from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import scoring as kick_scoring
+
+PROGRESS_FIELDS = ("generation", "best_fitness", "mean_fitness", "best_so_far", "valid_fraction", "seconds")
+
+
+class Carry(NamedTuple):
+    """What one generation hands to the next, every leaf with a leading (T,) search axis."""
+
+    es: Any  # evosax CMA-ES state
+    best_cost: jax.Array  # (T,) lowest mean cost of any candidate so far
+    best_params: jax.Array  # (T, 14) that candidate
+
+
+class Stats(NamedTuple):
+    """One generation's summary per search, (T,) each."""
+
+    best: jax.Array  # lowest mean cost among this generation's candidates
+    mean: jax.Array  # mean cost over the population
+    valid: jax.Array  # fraction of valid kicks over the population's episodes
+    overflow: jax.Array  # fraction of episodes whose physics ran out of contact slots (Warp; else 0)
+
+
+class Search(NamedTuple):
+    """A compiled CMA-ES generation over T searches (`make_search`)."""
+
+    es: Any
+    es_params: Any
+    # jitted (Carry, keys (T,), x0 (T, *shape), targets (T,), scale (T, *shape), extra (T,), leash (T,),
+    # centre (T, *shape)) -> (Carry, Stats)
+    step: Any
+    mesh: Any
+    shape: tuple = (kick_model.N_PARAMS,)  # one search's solution: a kick (14,), or a family's knots (K, 14)
+
+
+class Result(NamedTuple):
+    """Where T searches ended (host arrays, padding dropped)."""
+
+    mean: np.ndarray  # (T, *shape) params at each search's final CMA-ES mean
+    best: np.ndarray  # (T, *shape) each search's best candidate over all generations
+    best_cost: np.ndarray  # (T,) its mean cost in the generation that drew it
+    history: dict  # Stats field -> (generations, T)
+    key: jax.Array  # the driver's PRNG key after the last generation
+
+
+# -- the driver --------------------------------------------------------------------------------
+
+
+def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, mesh,
+                shape: tuple = (kick_model.N_PARAMS,)) -> Search:  # fmt: skip
+    """One CMA-ES generation of T searches as a jitted program split over `mesh`.
+
+    cost_fn(params (P, *shape), keys (P, R), target (), extra ()) -> (mean cost (P,), metrics of
+    (..., R) holding "valid"), e.g. `kick_cost` (shape (14,): one kick) or `family_cost` (shape
+    (K, 14): a family's knots). Searches step in z space of `kick_model.PARAM_SCALE` units along
+    the last axis, starting at z = 0 with step `sigma_init`. A search's `leash` adds leash x the
+    mean over its free parameters of the squared distance, in scale units, of the candidate from
+    the search's `centre` params to every candidate's cost (0: the cost alone), so that CMA-ES
+    ranks candidates far from the centre lower; Stats and the best cost include it.
+    """
+    from evosax.algorithms import CMA_ES  # noqa: PLC0415 (heavy import, only needed here)
+
+    P, R, shape = int(population), int(repetitions), tuple(int(n) for n in shape)
+    if not shape or shape[-1] != kick_model.N_PARAMS:
+        raise ValueError(f"a search's solution shape must end in {kick_model.N_PARAMS} kick params, got {shape}")
+    es = CMA_ES(population_size=P, solution=jnp.zeros(shape))
+    es_params = es.default_params.replace(std_init=jnp.asarray(sigma_init))
+
+    def generation(carry: Carry, key, x0, target, scale, extra, leash, centre):
+        ask_key, eval_key, tell_key = jax.random.split(key, 3)
+        z, es_state = es.ask(ask_key, carry.es, es_params)
+        keys = jnp.broadcast_to(jax.random.split(eval_key, R), (P, R) + eval_key.shape)
+        params = kick_model.clip_params(x0 + scale * z)
+        cost, metrics = cost_fn(params, keys, target, extra)
+        free = scale > 0
+        axes = tuple(range(1, z.ndim))
+        off = jnp.where(free, (x0 + scale * z - centre) / jnp.where(free, scale, 1.0), 0.0)
+        away = jnp.sum(off * off, axis=axes) / jnp.maximum(jnp.sum(free), 1)
+        cost = cost + leash * away
+        es_state, _ = es.tell(tell_key, z, cost, es_state, es_params)
+        i = jnp.argmin(cost)
+        better = cost[i] < carry.best_cost
+        carry = Carry(
+            es_state,
+            jnp.where(better, cost[i], carry.best_cost),
+            jnp.where(better, params[i], carry.best_params),
+        )
+        overflow = jnp.mean(metrics["overflow"]) if "overflow" in metrics else jnp.zeros(())
+        return carry, Stats(jnp.min(cost), jnp.mean(cost), jnp.mean(metrics["valid"]), overflow)
+
+    step = sharding.over_batch(jax.vmap(generation), mesh, (True,) * 8)
+    return Search(es, es_params, step, mesh, shape)
+
+
+@functools.lru_cache(maxsize=8)
+def kick_search(env, mesh, population: int, repetitions: int, sigma_init: float, fitness_json: str,
+                midpoint_weight: float = 0.0) -> Search:  # fmt: skip
+    """`make_search` of `kick_cost` (with `midpoint_weight` > 0: `chain_cost`, its extra the
+    neighbours of `neighbour_partners`), kept per settings: the prior's three anchors, or a
+    resumed tuning in the same process, compile it once (about a minute on a CPU)."""
+    fitness = kick_scoring.weights(fitness_json)
+    if midpoint_weight > 0:
+        cost = kick_scoring.chain_cost(env, fitness, midpoint_weight)
+    else:
+        cost = kick_scoring.kick_cost(env, fitness)
+    return make_search(cost, population, repetitions, sigma_init, mesh)
+
+
+@functools.lru_cache(maxsize=4)
+def family_search(env, mesh, population: int, repetitions: int, sigma_init: float, fitness_json: str,
+                  knots: tuple, targets: tuple) -> Search:  # fmt: skip
+    """`make_search` of `family_cost` (one search's solution: the (K, 14) knot params), kept per
+    settings."""
+    cost = kick_scoring.family_cost(env, kick_scoring.weights(fitness_json), knots, targets)
+    return make_search(cost, population, repetitions, sigma_init, mesh, shape=(len(knots), kick_model.N_PARAMS))
+
+
+def run_search(search: Search, x0, targets, free, generations: int, seed, extra=None, say=print,
+               label: str = "cma-es", on_generation=None, leash=None, centre_fn=None,
+               extra_fn=None) -> Result:  # fmt: skip
+    """Run T searches for `generations` generations from key(seed) (seed: an int or a JAX key).
+
+    seed may also be a list of K seeds: the searches are then K runs of T / K searches each (run
+    k the k-th block), and run k draws its keys from seed k exactly as it would alone, so a batch
+    of runs plays the random numbers of the runs one after another; `Result.key` is then (K,), the
+    runs' keys (`split_runs`).
+
+    x0: (T, *search.shape) starts; targets: (T,) m; free: (T, *search.shape) bool, the parameters
+    each search moves; extra: (T,) numbers handed to the cost (default 0); leash: (T,) each
+    search's cost per squared scale unit from its centre (`make_search`; default 0).
+    centre_fn(means (T, *shape)) -> (T, *shape): each search's centre for the next generation
+    from every search's current CMA-ES mean params (None: each search's start, fixed).
+    extra_fn(means (T, *shape)) -> (T, ...): likewise each search's extra for the next generation
+    (None: `extra`, fixed).
+    on_generation(gen, stats) is called on the host after each generation with `Stats` of (T,)
+    numpy arrays.
+    """
+    x0 = kick_model.clip_params(jnp.asarray(x0, jnp.float32))
+    if x0.shape[1:] != search.shape:
+        raise ValueError(f"starts must have shape (T, {', '.join(map(str, search.shape))}), got {x0.shape}")
+    n = x0.shape[0]
+    targets = jnp.asarray(targets, jnp.float32)
+    scale = jnp.where(jnp.asarray(free, bool), jnp.asarray(kick_model.PARAM_SCALE, jnp.float32), 0.0)
+    extra = jnp.zeros(n, jnp.float32) if extra is None else jnp.asarray(extra, jnp.float32)
+    leash = jnp.zeros(n, jnp.float32) if leash is None else jnp.broadcast_to(jnp.asarray(leash, jnp.float32), (n,))
+    x0, targets, scale, extra, leash = sharding.pad(
+        (x0, targets, scale, extra, leash), sharding.padded_size(n, search.mesh)
+    )
+    T = x0.shape[0]
+    seeds = list(seed) if isinstance(seed, list | tuple) else [seed]
+    runs = len(seeds)
+    if runs == 0 or n % runs:
+        raise ValueError(f"{n} searches do not split into {runs} runs of equal size")
+    key = jnp.stack([jax.random.key(s) if isinstance(s, int | np.integer) else s for s in seeds])
+
+    def draw(key):  # each run's next key, and one key per search from each run's own stream
+        pair = jax.vmap(jax.random.split)(key)
+        per_search = jax.vmap(lambda k: jax.random.split(k, n // runs))(pair[:, 1]).reshape(n)
+        return pair[:, 0], sharding.pad(per_search, T)
+
+    key, init_keys = draw(key)
+    init = jax.vmap(lambda k: search.es.init(k, jnp.zeros(search.shape), search.es_params))
+    carry = Carry(init(init_keys), jnp.full(T, jnp.inf, jnp.float32), x0)
+    # CMA-ES starts some fields weakly typed and returns them strongly typed: fix the types now
+    # so that the generation program compiles once, not twice.
+    carry = jax.tree.map(lambda x: x.astype(x.dtype), carry)
+    x0, targets, scale, leash = sharding.place((x0, targets, scale, leash), search.mesh)
+    centre, extra = x0, sharding.place(extra, search.mesh)
+    history, pace = [], runio.Clock(generations)
+
+    def follow(fn, carry):  # fn of every search's current CMA-ES mean params, padded and placed
+        means = x0[:n] + scale[:n] * carry.es.mean[:n].reshape(x0[:n].shape)
+        return sharding.place(sharding.pad(jnp.asarray(fn(means), jnp.float32), T), search.mesh)
+
+    for gen in range(generations):
+        key, gen_keys = draw(key)
+        if centre_fn is not None:
+            centre = follow(centre_fn, carry)
+        if extra_fn is not None:
+            extra = follow(extra_fn, carry)
+        carry, stats = search.step(
+            *sharding.place((carry, gen_keys), search.mesh), x0, targets, scale, extra, leash, centre,
+        )  # fmt: skip
+        stats = Stats(*(np.asarray(s) for s in sharding.unpad(tuple(stats), n)))
+        if stats.overflow.max() > 0:  # dropped contacts: every cost of this generation is wrong
+            raise RuntimeError(
+                f"{label} gen {gen + 1}: the physics ran out of contact slots in "
+                f"{stats.overflow.max():.0%} of a search's episodes; raise env.warp_contacts"
+            )
+        history.append(stats)
+        if on_generation is not None:
+            on_generation(gen, stats)
+        say(f"{label} gen {gen + 1}/{generations}  best cost {stats.best.mean():.3f} (worst search "
+            f"{stats.best.max():.3f})  population mean {stats.mean.mean():.3f}  valid {stats.valid.mean():.2f}  "
+            f"{pace.tick(gen + 1)}")  # fmt: skip
+    es, best_cost, best = sharding.unpad(tuple(carry), n)
+    mean = kick_model.clip_params(x0[:n] + scale[:n] * es.mean.reshape(x0[:n].shape))
+    names = Stats._fields
+    hist = {k: np.asarray([getattr(s, k) for s in history]).reshape(generations, n) for k in names}
+    return Result(np.asarray(mean), np.asarray(best), np.asarray(best_cost), hist,
+                  key if isinstance(seed, list | tuple) else key[0])  # fmt: skip
+
+
+def split_runs(result: Result, runs: int) -> list[Result]:
+    """The `runs` runs of one `run_search` over a list of `runs` seeds, each its own Result as if
+    it had run alone (its block of searches, its history, its key)."""
+    if result.key.shape != (runs,):
+        raise ValueError(f"a result of {result.key.shape} keys is not {runs} runs")
+    n = len(result.mean) // runs
+    block = [slice(k * n, (k + 1) * n) for k in range(runs)]
+    out = []
+    for k, b in enumerate(block):
+        history = {field: h[:, b] for field, h in result.history.items()}
+        out.append(Result(result.mean[b], result.best[b], result.best_cost[b], history, result.key[k]))
+    return out
+
+
+def per_run(fn, runs: int, searches: int):
+    """`run_search`'s centre_fn or extra_fn `fn` (of one run's means (searches, ...)) for `runs`
+    runs batched as runs x searches: each run's block of means is its own chain, `fn` of that
+    block alone. None stays None."""
+    if fn is None or runs == 1:
+        return fn
+
+    def batched(means):
+        out = jax.vmap(fn)(means.reshape(runs, searches, *means.shape[1:]))
+        return out.reshape(runs * searches, *out.shape[2:])
+
+    return batched
+
+
+# -- what the stages call ------------------------------------------------------------------------
+
+
+def optimise(env, start, target: float, free_params, cfg, csv_path=None, mesh=None, say=print, label="") -> dict:
+    """One search (T = 1 of the driver) for the kick that rests at `target` m.
+
+    start: params (14,); free_params: names of the parameters it moves (the rest stay at start);
+    cfg: population_size, generations, repetitions, sigma_init, seed and fitness weights (the
+    prior's config section). csv_path: a per-generation progress CSV (`PROGRESS_FIELDS`), begun
+    anew. Returns {"params": best candidate (14,), "best_cost", "mean_params": final mean (14,),
+    "history": Stats field -> (generations,)}.
+    """
+    start = np.asarray(start, np.float32)
+    unknown = [n for n in free_params if n not in kick_model.PARAM_NAMES]
+    if start.shape != (kick_model.N_PARAMS,) or unknown or not free_params:
+        raise ValueError(f"need start ({kick_model.N_PARAMS},) and free_params among PARAM_NAMES, got "
+                         f"{start.shape} and {tuple(free_params)!r}")  # fmt: skip
+    _check_search(env, [target], cfg.population_size, cfg.repetitions, cfg.sigma_init, cfg.generations)
+    mesh = mesh or sharding.device_mesh(impl=env.config.impl)
+    _check_pool(env, int(cfg.population_size) * int(cfg.repetitions), "the search")
+    search = kick_search(env, mesh, int(cfg.population_size), int(cfg.repetitions), float(cfg.sigma_init),
+                         kick_scoring.fitness_json_of(cfg.fitness))  # fmt: skip
+    free = np.array([n in free_params for n in kick_model.PARAM_NAMES])
+    on_generation = None
+    if csv_path is not None:
+        csv_path = Path(csv_path)
+        csv_path.parent.mkdir(parents=True, exist_ok=True)
+        runio.trim_csv(csv_path, PROGRESS_FIELDS, "generation", -1)  # a search always restarts at 0
+        on_generation = _progress_writer(csv_path)
+    result = run_search(search, start[None], [target], free[None], int(cfg.generations), int(cfg.seed),
+                        say=say, label=label or f"kick {target:g} m", on_generation=on_generation)  # fmt: skip
+    return {
+        "params": result.best[0],
+        "best_cost": float(result.best_cost[0]),
+        "mean_params": result.mean[0],
+        "history": {k: v[:, 0] for k, v in result.history.items()},
+    }
+
+
+def _progress_writer(path: Path):
+    """on_generation for one search: appends a row of PROGRESS_FIELDS per generation."""
+    state = {"best": np.inf, "t": time.perf_counter()}
+
+    def write(gen, stats):
+        now = time.perf_counter()
+        state["best"] = min(state["best"], float(stats.best[0]))
+        row = [gen, float(stats.best[0]), float(stats.mean[0]), state["best"], float(stats.valid[0]), now - state["t"]]
+        state["t"] = now
+        runio.append_csv(path, PROGRESS_FIELDS, [dict(zip(PROGRESS_FIELDS, row, strict=True))])
+
+    return write
+
+
+def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init: float, *, fitness, mesh=None,
+                   say=print, keep_dir=None) -> dict:  # fmt: skip
+    """CMA-ES on every task's own kick at once: one search per target, every parameter free.
+
+    targets: (T,) m; starts: (T, 14). tune_cfg: population_size, repetitions, eval_repetitions,
+    seed (`cfg.experts.tune`); fitness: the cost weights (`cfg.prior.fitness`). Each task keeps
+    the better of its start and its final CMA-ES mean on `eval_repetitions` fresh noisy episodes
+    shared by both, so a task's kick never gets worse than its start.
+
+    With tune_cfg.start_leash > 0 each search's candidates pay that much per squared scale unit
+    of mean distance from their task's start (`make_search`): neighbouring tasks that start alike
+    stay alike. With tune_cfg.neighbour_leash > 0 they pay that much per squared scale unit of
+    mean distance from the midpoint of their neighbouring tasks' current CMA-ES means (one
+    neighbour at either end of the sorted targets), so the tasks move as a chain: a kick between
+    two tasks' kicks is near both. The two leashes add up (one quadratic about their weighted
+    centre). With tune_cfg.midpoint_weight > 0 a candidate also pays that much times the mean cost
+    of the kicks halfway between it and its neighbouring tasks' current CMA-ES means
+    (`kick_scoring.chain_cost`: two more episodes per episode). The keep-the-better rule compares
+    the kicks' costs alone.
+
+    With tune_cfg.restarts = K > 1 the whole tuning runs K times from independent CMA-ES keys
+    (the first the one restarts = 1 uses), and the tuning keeps one of them whole: the run whose
+    tasks, each the better of its start and its tuned kick, cost least in the mean over tasks on
+    the same fresh episodes. Kicks are never mixed between runs, so a chain stays one chain. With
+    tune_cfg.keep = "task" (default "run") each task keeps instead the cheapest on those episodes
+    of its start and its kick in every run: runs are mixed, a task never worse than in any run.
+    With "chain" the tasks' choices among the same kicks are made together (`chain_choice`): the
+    fresh costs plus the neighbour leash between the chosen kicks, the tuning's own objective, so a
+    task takes a slightly dearer kick where the cheapest one would break the chain.
+
+    With tune_cfg.batch_restarts the runs play as one batch of K x T searches (each physics call K
+    runs' episodes: `env`'s contact pool must hold them), each run from its own key as alone
+    (`run_search`), so batching changes the schedule, not the runs; off, one run after another.
+
+    keep_dir: where each finished run is kept (`tuning_run_<k>.json`, with a fingerprint of
+    everything it depends on): a rerun with the same inputs reads the runs it finds there instead
+    of running them again (batched or not), and Ctrl-C stops between runs (batches). None keeps
+    nothing.
+
+    Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
+    "history": (generations, T) best cost per generation, "restart": the run kept,
+    "restart_costs": (K,) each run's mean cost over tasks, "runs_kept": (T,) int, each task's kick
+    from run k (1..K) or its start (0), "run_seconds": (K,) (a batch's time shared evenly by its
+    runs), "episodes": int}; with keep "task" or
+    "chain" "restart" is None and "history" the first run's.
+    """
+    targets = np.asarray(targets, np.float32)
+    starts = np.asarray(kick_model.clip_params(jnp.asarray(starts, jnp.float32)))
+    if targets.ndim != 1 or starts.shape != (targets.shape[0], kick_model.N_PARAMS):
+        raise ValueError(
+            f"need targets (T,) and starts (T, {kick_model.N_PARAMS}), got {targets.shape} and {starts.shape}"
+        )
+    if isinstance(generations, bool) or not isinstance(generations, int | np.integer) or generations < 0:
+        raise ValueError(f"generations must be an integer >= 0, got {generations!r}")
+    _check_search(env, targets, tune_cfg.population_size, tune_cfg.repetitions, sigma_init, 1)
+    kick_scoring.check_count("eval_repetitions", tune_cfg.eval_repetitions)
+    mesh = mesh or sharding.device_mesh(impl=env.config.impl)
+    P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
+    per_device = sharding.padded_size(T, mesh) // mesh.size  # searches each device plays at once
+    _check_pool(env, per_device * P * R, "the tuning (tasks x population x repetitions)")
+    fitness_json = kick_scoring.fitness_json_of(fitness)
+    midpoint_weight = float(tune_cfg.midpoint_weight)
+    kick_scoring.check_count("restarts", tune_cfg.restarts)
+    K = int(tune_cfg.restarts)
+    keep = tune_cfg.get("keep", "run")
+    if keep not in validation.TUNE_KEEPS:
+        raise ValueError(f"tune keep must be one of {validation.TUNE_KEEPS}, got {keep!r}")
+    _check_pool(env, per_device * (K + 1) * E, "the tuning's fresh scoring (tasks x (restarts + 1) x eval_repetitions)")
+    search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json, midpoint_weight)
+    leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
+    extra_fn = (lambda means: neighbour_partners(means, targets)) if midpoint_weight > 0 else None
+    fingerprint = tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, fitness_json, mesh.size)
+    seed = jax.random.key(int(tune_cfg.seed))
+    seeds = [seed if k == 0 else jax.random.fold_in(seed, k) for k in range(K)]  # run k's own key
+
+    def tune(runs: list[int], label: str) -> list[tuple[Result, float]]:  # the runs `runs` as one batch
+        m, t0 = len(runs), time.perf_counter()
+        result = run_search(
+            search, np.tile(starts, (m, 1)), np.tile(targets, m), np.ones((m * T, kick_model.N_PARAMS), bool),
+            int(generations), [seeds[k] for k in runs], say=say, label=label, leash=leash,
+            centre_fn=per_run(centre_fn, m, T), extra_fn=per_run(extra_fn, m, T),
+        )  # fmt: skip
+        took = (time.perf_counter() - t0) / m  # a batch's time, shared evenly by its runs
+        return [(r, took) for r in split_runs(result, m)]
+
+    paths = [None if keep_dir is None else Path(keep_dir) / f"tuning_run_{k + 1}.json" for k in range(K)]
+    done: dict[int, tuple[Result, float]] = {}
+    for k, path in enumerate(paths):
+        kept = read_tuning_run(path, fingerprint)
+        if kept is not None:
+            say(f"{'tuning' if K == 1 else f'tuning run {k + 1}/{K}'}: read from {runio.shown(path)}")
+            done[k] = kept
+    left = [k for k in range(K) if k not in done]
+    batched = bool(tune_cfg.get("batch_restarts", False)) and len(left) > 1
+    if batched:
+        # every run left in one batch: its searches side by side in each physics call
+        most = sharding.padded_size(len(left) * T, mesh) // mesh.size * P * R
+        _check_pool(env, most, f"the {len(left)} tuning runs batched (runs x tasks x population x repetitions)")
+    # With runs kept, Ctrl-C stops after the run (or batch) in flight (its files written).
+    guard = contextlib.nullcontext() if keep_dir is None else runio.stop_on_interrupt(say, at="this tuning run")
+    with guard as stop:
+        for batch in [left] if batched else [[k] for k in left]:
+            if batched:
+                label = f"tuning runs {', '.join(str(k + 1) for k in batch)} of {K} (one batch)"
+            else:
+                label = "tuning" if K == 1 else f"tuning run {batch[0] + 1}/{K}"
+            for k, (result, took) in zip(batch, tune(batch, label), strict=True):
+                done[k] = (result, took)
+                if paths[k] is not None:
+                    write_tuning_run(paths[k], fingerprint, result, took)
+            still = [k for k in left if k not in done]
+            if still:  # the later runs compile nothing: each takes about as long as the last
+                say(f"{label} done in {took:.0f} s; ETA of the other runs {len(still) * took:.0f} s")
+            if stop is not None:
+                stop.check()
+    results, seconds = [done[k][0] for k in range(K)], [done[k][1] for k in range(K)]
+    # The start and every run's tuned kicks on the same fresh episodes (common random numbers).
+    key = results[0].key
+    keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (K + 1, E) + key.shape)
+    kicks = jnp.stack([starts] + [r.mean for r in results], 1)  # (T, K + 1, 14)
+    padded = sharding.pad((kicks, jnp.asarray(targets)), sharding.padded_size(T, mesh))
+    score = kick_scoring.cost_program(env, mesh, fitness_json)
+    costs = np.asarray(sharding.unpad(score(padded[0], keys, padded[1]), T))
+    best, improved, run_costs = keep_best_run(costs)
+    if keep == "run":
+        kept = np.where(improved, best + 1, 0)  # (T,) 0: the start
+    elif keep == "task":
+        kept = np.argmin(costs, 1)
+    else:  # "chain": the choices that cost least with the neighbour leash between them
+        kept = chain_choice(costs, np.asarray(kicks), targets, float(tune_cfg.neighbour_leash))
+    tasks = np.arange(T)
+    return {
+        "params": np.asarray(kicks)[tasks, kept],
+        "start_cost": costs[:, 0],
+        "tuned_cost": costs[:, best + 1] if keep == "run" else costs[:, 1:].min(1),  # the tuned kick kept or not
+        "improved": kept > 0,
+        "history": results[best if keep == "run" else 0].history["best"],
+        "restart": best if keep == "run" else None,
+        "restart_costs": run_costs.tolist(),
+        "runs_kept": kept,
+        "run_seconds": seconds,  # each run's time, the first's compile included, kept runs' as they took
+        # every episode played: with the halfway kicks, three per candidate's episode
+        "episodes": int(T * (K * generations * P * R * (3 if midpoint_weight > 0 else 1) + (K + 1) * E)),
+    }
+
+
+def tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, fitness_json, devices) -> str:
+    """A hash of everything one tuning run's result depends on (not `restarts`: run k is the same
+    whatever the number of runs; nor the contact pool's size, which holds one run or a batch of
+    them and stops a search that overflows it): the env, tasks, starts, search settings, cost and
+    device count."""
+    keys = ("population_size", "repetitions", "seed", "start_leash", "neighbour_leash", "midpoint_weight")
+    physics = {k: v for k, v in kick_env.resolved(env.config).items() if k != "warp_contacts"}
+    payload = {
+        "env": physics,
+        "targets": np.asarray(targets, np.float32).tolist(),
+        "starts": hashlib.sha256(np.ascontiguousarray(starts, np.float32).tobytes()).hexdigest(),
+        "tune": {k: tune_cfg[k] for k in keys},
+        "generations": int(generations),
+        "sigma_init": float(sigma_init),
+        "fitness": fitness_json,
+        "devices": int(devices),
+    }
+    return runio.fingerprint(payload)
+
+
+def write_tuning_run(path: Path, fingerprint: str, result: Result, seconds: float) -> None:
+    """Keep one finished tuning run's `Result` and the seconds it took under its fingerprint,
+    written atomically."""
+    runio.write_kept(path, fingerprint, {
+        "seconds": float(seconds),
+        "mean": np.asarray(result.mean).tolist(),
+        "best": np.asarray(result.best).tolist(),
+        "best_cost": np.asarray(result.best_cost).tolist(),
+        "history": {name: np.asarray(v).tolist() for name, v in result.history.items()},
+        "key": np.asarray(jax.random.key_data(result.key)).tolist(),
+    })  # fmt: skip
+
+
+def read_tuning_run(path: Path | None, fingerprint: str) -> tuple[Result, float] | None:
+    """(Result, seconds) of a run `write_tuning_run` kept at `path` under the same fingerprint,
+    else None (no file, an unreadable one, or another config's)."""
+    kept = runio.read_kept(path, fingerprint)
+    if kept is None:
+        return None
+
+    def floats(x):  # strict JSON wrote a non-finite number as null: it reads back as NaN
+        return np.array(x, dtype=float).astype(np.float32)
+
+    mean, best, best_cost = (floats(kept[f]) for f in ("mean", "best", "best_cost"))
+    history = {name: floats(v).reshape(-1, len(mean)) for name, v in kept["history"].items()}
+    key = jax.random.wrap_key_data(np.asarray(kept["key"], np.uint32))
+    return Result(mean, best, best_cost, history, key), float(kept["seconds"])
+
+
+def keep_best_run(costs) -> tuple[int, np.ndarray, np.ndarray]:
+    """Which tuning run to keep, from fresh costs (T, 1 + K): column 0 each task's start, column
+    1 + k its kick in run k. Each task of a run keeps the better of its start and its kick; the
+    run kept is the one whose kept kicks cost least in the mean over tasks (the first on a tie).
+    Returns (run, improved (T,) bool: the tasks that keep that run's kick, run_costs (K,))."""
+    costs = np.asarray(costs, np.float64)
+    if costs.ndim != 2 or costs.shape[1] < 2:
+        raise ValueError(f"need fresh costs of shape (tasks, 1 + runs), got {costs.shape}")
+    run_costs = np.minimum(costs[:, :1], costs[:, 1:]).mean(0)
+    run = int(np.argmin(run_costs))
+    return run, costs[:, run + 1] < costs[:, 0], run_costs
+
+
+def chain_choice(costs, kicks, targets, leash: float) -> np.ndarray:
+    """Each task's kick among its candidates, chosen together: (T,) indices into the candidates
+    that minimise the sum over tasks of the fresh cost (costs (T, C)) plus `leash` times the
+    neighbour leash of the tuning (`tuning_leash`: the mean over parameters of the squared distance,
+    in PARAM_SCALE units, of a task's kick from the midpoint of its neighbours' in the order of
+    `targets` (T,); the first and last task's one neighbour counts twice). kicks: (T, C, 14).
+    Exact, by dynamic programming over pairs of neighbouring choices (T * C**3 terms); leash 0 is
+    each task's cheapest."""
+    costs, kicks = np.asarray(costs, np.float64), np.asarray(kicks, np.float64)
+    T, C = costs.shape
+    if kicks.shape != (T, C, kick_model.N_PARAMS) or np.shape(targets) != (T,):
+        raise ValueError(f"need costs (T, C), kicks (T, C, {kick_model.N_PARAMS}) and targets (T,), "
+                         f"got {costs.shape}, {kicks.shape} and {np.shape(targets)}")  # fmt: skip
+    if leash == 0.0 or T == 1:
+        return np.argmin(costs, 1)
+    order = np.argsort(np.asarray(targets), kind="stable")
+    z = kicks[order] / np.asarray(kick_model.PARAM_SCALE, np.float64)  # (T, C, 14) in scale units
+    cost = costs[order]
+
+    def away(kick, lower, upper):  # broadcasting (..., 14) -> (...): the leash of `kick`
+        return np.mean((kick - 0.5 * (lower + upper)) ** 2, -1)
+
+    # value[a, b]: least total of tasks 0..t with task t-1 at choice a and task t at b, the leash of
+    # every task before t counted (task t's waits for task t+1).
+    value = cost[0][:, None] + cost[1][None, :] + leash * away(z[0][:, None], z[1][None, :], z[1][None, :])
+    back = []
+    for t in range(2, T):
+        # total[a, b, c]: tasks t-2, t-1, t at a, b, c; task t-1's leash is now known
+        total = value[:, :, None] + leash * away(z[t - 1][None, :, None], z[t - 2][:, None, None], z[t][None, None, :])
+        back.append(np.argmin(total, 0))  # (b, c) -> best a
+        value = np.min(total, 0) + cost[t][None, :]
+    value = value + leash * away(z[T - 1][None, :], z[T - 2][:, None], z[T - 2][:, None])  # the last task's leash
+    a, b = np.unravel_index(np.argmin(value), value.shape)
+    chosen = [b, a]
+    for best_a in reversed(back):
+        chosen.append(best_a[chosen[-1], chosen[-2]])
+    kept = np.empty(T, int)
+    kept[order] = chosen[::-1]
+    return kept
+
+
+def neighbours(targets) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each task's lower and upper neighbour in the order of `targets` (T,) (ties keep their
+    order): indices (T,) each, and (T,) bool whether it has one; a missing neighbour (the first
+    and the last task's) is the task itself."""
+    order = np.argsort(np.asarray(targets), kind="stable")
+    rank = np.argsort(order, kind="stable")  # each task's place in the sorted order
+    has_lower, has_upper = rank > 0, rank < len(order) - 1
+    return order[np.maximum(rank - 1, 0)], order[np.minimum(rank + 1, len(order) - 1)], has_lower, has_upper
+
+
+def neighbour_partners(params: jax.Array, targets) -> jax.Array:
+    """(T, 2, 16): for each task its lower and upper neighbour (`neighbours`), each as its params
+    (14, clipped to the bounds), its target and 1, or the task's own params and target and 0
+    where it has none: `chain_cost`'s extra."""
+    targets = np.asarray(targets, np.float32)
+    lower, upper, has_lower, has_upper = neighbours(targets)
+    params = kick_model.clip_params(jnp.asarray(params, jnp.float32))
+
+    def row(index, present):
+        return jnp.concatenate([params[index], targets[index][:, None], present[:, None].astype(np.float32)], 1)
+
+    return jnp.stack([row(lower, has_lower), row(upper, has_upper)], 1)
+
+
+def neighbour_midpoints(params: jax.Array, targets) -> jax.Array:
+    """(T, 14): for each task the mean of its neighbours' params (T, 14) (`neighbours`; the first
+    and last task's one neighbour counts twice; a lone task is its own)."""
+    lower, upper, has_lower, has_upper = neighbours(targets)
+    lower, upper = np.where(has_lower, lower, upper), np.where(has_upper, upper, lower)
+    return 0.5 * (params[lower] + params[upper])
+
+
+def tuning_leash(starts, targets, to_start: float, to_neighbours: float):
+    """(leash, centre_fn) of `run_search` for the per-task tuning's two leashes: `to_start` per
+    squared scale unit from each task's start (T, 14), `to_neighbours` from the midpoint of its
+    neighbours' current means in the order of `targets` (T,). Their sum is one quadratic about
+    the weighted mean of the two centres (the constant left over ranks no candidate)."""
+    total = to_start + to_neighbours
+    if to_neighbours == 0.0:
+        return to_start, None
+    starts = jnp.asarray(starts, jnp.float32)
+
+    def centre_fn(means):
+        return (to_start * starts + to_neighbours * neighbour_midpoints(means, targets)) / total
+
+    return total, centre_fn
+
+
+def tune_family(env, targets, knots, start_knots, tune_cfg, generations: int, sigma_init: float, *, fitness,
+                mesh=None, say=print) -> dict:  # fmt: skip
+    """ONE CMA-ES over a contextual kick scored on every task at once (`family_cost`).
+
+    targets: (T,) m, the tasks; knots: (K,) m, increasing; start_knots: (K, 14) the family's params
+    at the knots. tune_cfg: population_size, repetitions, eval_repetitions, seed
+    (`cfg.experts.tune`); fitness: the cost weights (`cfg.prior.fitness`). The result is the
+    better family, start or final CMA-ES mean, by the mean over tasks of each task's cost on
+    `eval_repetitions` fresh noisy episodes (the same for both; `tune_for_tasks`' rule for a whole
+    family), so the family never gets worse than its start on those episodes.
+
+    Returns {"params": (T, 14) each task's kick, "knot_params": (K, 14), "start_cost": (T,),
+    "tuned_cost": (T,), "improved": bool, "history": (generations,) best cost per generation,
+    "episodes": int}.
+    """
+    targets = np.asarray(targets, np.float32)
+    knots = np.asarray(knots, np.float32)
+    start_knots = np.asarray(kick_model.clip_params(jnp.asarray(start_knots, jnp.float32)))
+    if targets.ndim != 1 or knots.ndim != 1 or len(knots) < 2 or start_knots.shape != (len(knots), kick_model.N_PARAMS):
+        raise ValueError(f"need targets (T,), knots (K >= 2,) and start_knots (K, {kick_model.N_PARAMS}), got "
+                         f"{targets.shape}, {knots.shape} and {start_knots.shape}")  # fmt: skip
+    if not np.all(np.diff(knots) > 0):
+        raise ValueError(f"knots must increase, got {knots.tolist()}")
+    if isinstance(generations, bool) or not isinstance(generations, int | np.integer) or generations < 0:
+        raise ValueError(f"generations must be an integer >= 0, got {generations!r}")
+    _check_search(env, targets, tune_cfg.population_size, tune_cfg.repetitions, sigma_init, 1)
+    kick_env.check_targets(knots.tolist(), env.config.task_range)
+    kick_scoring.check_count("eval_repetitions", tune_cfg.eval_repetitions)
+    mesh = mesh or sharding.device_mesh(impl=env.config.impl)
+    P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
+    _check_pool(env, P * R * T, "the family tuning (population x repetitions x tasks)")
+    fitness_json = kick_scoring.fitness_json_of(fitness)
+    search = family_search(env, mesh, P, R, float(sigma_init), fitness_json, tuple(knots.tolist()),
+                           tuple(targets.tolist()))  # fmt: skip
+    result = run_search(search, start_knots[None], targets[:1], np.ones((1, *start_knots.shape), bool),
+                        int(generations), int(tune_cfg.seed), say=say, label="family tuning")  # fmt: skip
+    members = jax.vmap(jax.vmap(kick_model.family_params, in_axes=(None, None, 0)), in_axes=(0, None, None))
+    pair = np.asarray(members(jnp.stack([start_knots, result.mean[0]]), knots, targets))  # (2, T, 14)
+    key = result.key
+    keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
+    padded = sharding.pad((jnp.asarray(pair.transpose(1, 0, 2)), jnp.asarray(targets)), sharding.padded_size(T, mesh))
+    costs = np.asarray(
+        sharding.unpad(kick_scoring.cost_program(env, mesh, fitness_json)(padded[0], keys, padded[1]), T)
+    )
+    improved = bool(costs[:, 1].mean() < costs[:, 0].mean())
+    return {
+        "params": pair[int(improved)],
+        "knot_params": np.asarray(result.mean[0] if improved else start_knots),
+        "start_cost": costs[:, 0],
+        "tuned_cost": costs[:, 1],
+        "improved": improved,
+        "history": result.history["best"][:, 0],
+        "episodes": int(generations * P * R * T + 2 * E * T),
+    }
+
+
+def _check_pool(env, episodes: int, what: str) -> None:
+    """ValueError when one physics call of a search (on one device) plays more episodes than
+    Warp's contact pool holds (`kick_env` config `warp_contacts`): its contacts would be dropped
+    and every cost be wrong. A search's program is not split into chunks as rollouts are."""
+    most = env.max_episodes  # None: not Warp, no pool
+    if most is not None and episodes > most:
+        raise ValueError(
+            f"env.warp_contacts {env.config.warp_contacts} holds {most} episodes, but {what} plays {episodes} "
+            f"in one physics call: set env.warp_contacts to at least {episodes * env.contacts_per_episode}"
+        )
+
+
+def _check_search(env, targets, population, repetitions, sigma_init, generations) -> None:
+    """ValueError naming the first bad setting of a search, before anything compiles."""
+    kick_scoring.check_count("population_size", population)
+    if population < 2:
+        raise ValueError(f"population_size must be >= 2 for CMA-ES, got {population}")
+    kick_scoring.check_count("repetitions", repetitions)
+    kick_scoring.check_count("generations", generations)
+    if not np.isfinite(sigma_init) or sigma_init <= 0:
+        raise ValueError(f"sigma_init must be > 0, got {sigma_init!r}")
+    kick_env.check_targets(np.asarray(targets).tolist(), env.config.task_range)
