@@ -28,8 +28,6 @@ import jax
 import numpy as np
 
 from benchmarks.bench import bc_inputs
-
-# The options `--program-options graphs` gives the chunk's program: XLA's default command-buffer
 from bumps_jax import cli, config
 
 # The options `--program-options graphs` gives the chunk's program: XLA's default command-buffer

@@ -23,13 +23,10 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-# on_substep(model, data, control_step) runs after every physics substep.
 from bumps_jax.envs import physics
 
 # on_substep(model, data, control_step) runs after every physics substep.
 from bumps_jax.tasks.kick import env as kick_env
-
-# on_substep(model, data, control_step) runs after every physics substep.
 from bumps_jax.tasks.kick import keyframes as kick_model
 from bumps_jax.tasks.kick import scene
 

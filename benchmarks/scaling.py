@@ -37,8 +37,6 @@ import time
 from pathlib import Path
 
 from benchmarks import bench
-
-# Each measured work and the record's key of its rate (`bench.Work.amount` per second).
 from bumps_jax import cli, config
 from bumps_jax.pipeline import runio
 

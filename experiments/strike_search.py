@@ -33,20 +33,15 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-# Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
 from bumps_jax import config
 
 # Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
 from bumps_jax.algo import rollout, sharding
 from bumps_jax.pipeline import runio
-
-# Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
 from bumps_jax.tasks.kick import cmaes, starting_kicks
 
 # Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
 from bumps_jax.tasks.kick import env as kick_env
-
-# Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
 from bumps_jax.tasks.kick import keyframes as kick_model
 
 # Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds

@@ -8,20 +8,14 @@ import pytest
 
 # MJX's JAX backend and C MuJoCo do not rest a kick at the same point (docs/decisions.md gives
 from benchmarks import c_replay
-
-# MJX's JAX backend and C MuJoCo do not rest a kick at the same point (docs/decisions.md gives
 from bumps_jax import config
 
 # MJX's JAX backend and C MuJoCo do not rest a kick at the same point (docs/decisions.md gives
 from bumps_jax.algo import rollout
-
-# MJX's JAX backend and C MuJoCo do not rest a kick at the same point (docs/decisions.md gives
 from bumps_jax.envs import physics
 
 # MJX's JAX backend and C MuJoCo do not rest a kick at the same point (docs/decisions.md gives
 from bumps_jax.tasks.kick import env as kick_env
-
-# MJX's JAX backend and C MuJoCo do not rest a kick at the same point (docs/decisions.md gives
 from bumps_jax.tasks.kick import keyframes as kick_model
 from bumps_jax.tasks.kick import scene
 

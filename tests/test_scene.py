@@ -4,7 +4,6 @@ import mujoco
 import numpy as np
 import pytest
 
-# SimSpark's joint table (degrees): name -> (low, high).
 from bumps_jax.envs import physics
 from bumps_jax.tasks.kick import scene
 

@@ -7,14 +7,10 @@ import json
 import pytest
 
 from bumps_jax import config
-
-# sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the
 from bumps_jax.pipeline import added_knobs
 
 # sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the
 from bumps_jax.pipeline import runner as pipeline
-
-# sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the
 from bumps_jax.tasks import registry as tasks
 
 # sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the

@@ -10,8 +10,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from bumps_jax.algo import rollout
-
-# The paper counts a meta-policy's error only on tasks where it kicks validly this often.
 from bumps_jax.envs import base as task_env
 
 # The paper counts a meta-policy's error only on tasks where it kicks validly this often.

@@ -27,8 +27,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from bumps_jax.algo import evaluate, sharding
-
-# -- candidates ---------------------------------------------------------------------------------
 from bumps_jax.tasks.kick import env as kick_env
 
 # -- candidates ---------------------------------------------------------------------------------

@@ -10,8 +10,6 @@ from __future__ import annotations
 import json
 
 from bumps_jax.algo import bc, rollout
-
-# The processes' caches: (task, env config[, architecture, devices]) -> env / compiled program.
 from bumps_jax.tasks import registry as tasks
 
 # The processes' caches: (task, env config[, architecture, devices]) -> env / compiled program.

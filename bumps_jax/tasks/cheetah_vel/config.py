@@ -11,7 +11,6 @@ import copy
 
 import ml_collections
 
-# Meta-training velocities (m/s): a grid of 0.25 m/s over PEARL's U[0, 3] range.
 from bumps_jax.algo import ppo_config
 from bumps_jax.pipeline import validation
 

@@ -19,8 +19,6 @@ import ml_collections
 import numpy as np
 
 from bumps_jax.algo import rollout, sharding
-
-# -- costs -------------------------------------------------------------------------------------
 from bumps_jax.tasks.kick import env as kick_env
 
 # -- costs -------------------------------------------------------------------------------------

@@ -16,14 +16,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-# The strengths `bc.common_start_strength` sweeps its one kick over to place each task's copy.
 from bumps_jax.algo import evaluate, rollout
 from bumps_jax.pipeline import runio
 
 # The strengths `bc.common_start_strength` sweeps its one kick over to place each task's copy.
 from bumps_jax.tasks.kick import env as kick_env
-
-# The strengths `bc.common_start_strength` sweeps its one kick over to place each task's copy.
 from bumps_jax.tasks.kick import keyframes as kick_model
 
 # The strengths `bc.common_start_strength` sweeps its one kick over to place each task's copy.
