@@ -330,7 +330,8 @@ def filter_work(cfg, step: float, reps: int, mesh, workload: int = 1, seed: int 
 
     def run():
         sel = filtering.filter_policy(grid, params, contexts, tasks, f.width, reps, sel_key,
-                                      task_range=cfg.env.task_range, block=f.block, multiple=mesh.size)  # fmt: skip
+                                      task_range=cfg.env.task_range, block=f.block, multiple=mesh.size,
+                                      **filtering.scoring(env))  # fmt: skip
         chosen = sel.contexts[sel.chosen]
         return filtering.evaluate_chosen(grid, params, chosen, tasks, f.eval_repetitions, eval_key, f.block, mesh.size)
 

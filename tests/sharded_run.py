@@ -60,7 +60,17 @@ def filter_synthetic(env, grid, params, n_devices: int) -> dict:
     block = EPISODES_PER_CALL // n_devices
     task_range = tuple(env.config.task_range)
     sel = filtering.filter_policy(
-        grid, params, contexts, tasks, 2.0, 3, sel_key, task_range=task_range, block=block, multiple=n_devices
+        grid,
+        params,
+        contexts,
+        tasks,
+        2.0,
+        3,
+        sel_key,
+        task_range=task_range,
+        block=block,
+        multiple=n_devices,
+        **filtering.scoring(env),
     )
     return {"chosen": sel.chosen.tolist(), "distance": sel.distance.tolist(), "scores": sel.scores.tolist()}
 

@@ -12,6 +12,7 @@ from bumps_jax.algo import bc, evaluate, ppo
 from bumps_jax.pipeline.stages import baseline
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import start as kick_start
 
 
 def test_tiny_baseline_writes_curve_for_two_seeds_and_two_arms(tmp_path, monkeypatch):
@@ -90,9 +91,9 @@ def test_paper_clone_fits_the_kick_with_the_deep_net():
     cfg = config.make_config("paper")
     env = kick_env.KickEnv(cfg.env)
     networks = ppo.make_train(cfg.baseline.ppo, env).networks
-    obs, actions = bc.kick_dataset(env, 12.0, jnp.asarray(kick_model.load_record()["params"]))
+    obs, actions = kick_start.kick_dataset(env, 12.0, jnp.asarray(kick_model.load_record()["params"]))
     policy = networks.policy_network.init(jax.random.key(0))
     lr = cfg.baseline.bc_learning_rate
     # 500 steps (measured: loss 4e-4 after 200, 1.3e-4 after 500, 4.3e-5 after 2000).
-    _, losses = jax.jit(lambda p: bc.clone_kick(networks, p, obs, actions, 500, lr))(policy)
+    _, losses = jax.jit(lambda p: bc.clone_policy(networks, p, obs, actions, 500, lr))(policy)
     assert float(losses[-1]) < 1e-3, float(losses[-1])

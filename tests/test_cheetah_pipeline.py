@@ -105,7 +105,7 @@ def test_filtering_scores_contexts_from_per_step_velocities():
     vels = np.array([[[0.5, 1.5, 1.0, 1.0]], [[2.0, 2.0, 2.0, 3.0]]])  # (C=2, R=1, steps=4)
     metrics = {"forward_vels": vels, "valid": np.ones((2, 1))}
     env = object.__new__(cheetah_env.CheetahVelEnv)  # error_against reads no model
-    errors = filtering.env_errors(env)(metrics, [1.0, 2.0])
+    errors = filtering.scoring(env)["errors"](metrics, [1.0, 2.0])
     assert errors.shape == (2, 2, 1)
     np.testing.assert_allclose(errors[:, :, 0], [[0.25, 1.25], [1.0, 0.25]])
     scores = errors.mean(axis=-1)

@@ -1,5 +1,6 @@
 """Expert training: config errors, vmapped = alone, resume (also past a corrupt checkpoint), Table-1 record."""
 
+import dataclasses
 import json
 import re
 import shutil
@@ -13,13 +14,14 @@ from rollout_memo import digest
 from tiny_experts import N_STEPS, pipeline_config
 
 from bumps_jax import config
-from bumps_jax.algo import bc, rollout
+from bumps_jax.algo import rollout
 from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts
-from bumps_jax.pipeline.stages import prior as prior_stage
 from bumps_jax.tasks.kick import cmaes, starting_kicks
 from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import prior as prior_stage
 from bumps_jax.tasks.kick import scoring as kick_scoring
+from bumps_jax.tasks.kick import start as kick_start
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +62,7 @@ def test_presets_validate():
 
 def test_kick_dataset_is_the_prior_kick(env):
     params = jnp.asarray(kick_model.load_record()["params"], jnp.float32)
-    obs, actions = bc.kick_dataset(env, 12.0, params)
+    obs, actions = kick_start.kick_dataset(env, 12.0, params)
     assert obs.shape == (N_STEPS, 2) and actions.shape == (N_STEPS, 22)
     np.testing.assert_allclose(obs[:, 0], np.arange(N_STEPS) / N_STEPS, rtol=1e-6)
     np.testing.assert_allclose(obs[:, 1], (12.0 - 7.0) / 11.0, rtol=1e-6)
@@ -72,16 +74,16 @@ def test_starting_kicks_read_the_runs_prior(tmp_path):
     record = json.loads(kick_model.ASSET.read_text())
     kick = kick_model.DEFAULT_PARAMS.tolist()
     record.update(params=kick, anchors=dict.fromkeys(kick_model.ANCHORS, kick))
-    runio.write_json(tmp_path / "prior" / experts.PRIOR, record)
-    assert experts.prior_path(pipeline_config(), tmp_path) == tmp_path / "prior" / experts.PRIOR
-    assert experts.prior_path(pipeline_config(), tmp_path / "elsewhere") == kick_model.ASSET
+    runio.write_json(tmp_path / "prior" / kick_start.PRIOR, record)
+    assert kick_start.prior_path(tmp_path) == tmp_path / "prior" / kick_start.PRIOR
+    assert kick_start.prior_path(tmp_path / "elsewhere") == kick_model.ASSET
     cfg = pipeline_config()  # tune.generations 0: no CMA-ES, nothing compiled
     expected = np.tile(kick_model.DEFAULT_PARAMS, (len(cfg.experts.tasks), 1))
     committed, _ = starting_kicks.starting_kicks(cfg, kick_model.load_record(), say=lambda *a, **k: None)
     assert not np.allclose(committed, expected)  # else the test could not tell the two apart
     for per_task in (True, False):
         cfg = pipeline_config(**{"experts.bc.per_task_strength": per_task})
-        own = kick_model.load_record(experts.prior_path(cfg, tmp_path), env_cfg=cfg.env)
+        own = kick_model.load_record(kick_start.prior_path(tmp_path), env_cfg=cfg.env)
         kicks, _ = starting_kicks.starting_kicks(cfg, own, say=lambda *a, **k: None)
         np.testing.assert_allclose(kicks, expected, rtol=1e-6)
 
@@ -163,12 +165,12 @@ def test_kept_starts_are_read_back_bit_for_bit_under_the_same_config(monkeypatch
 
 def test_a_prior_of_another_env_config_is_refused(tmp_path):
     record = json.loads(kick_model.ASSET.read_text())
-    runio.write_json(tmp_path / "prior" / experts.PRIOR, record)
+    runio.write_json(tmp_path / "prior" / kick_start.PRIOR, record)
     cfg = pipeline_config(**{"env.physics_dt": 0.005})
     with pytest.raises(ValueError, match=re.escape("env.physics_dt: 0.0025 there, 0.005 here")):
         experts.inputs(cfg, tmp_path)
     del record["env"]
-    runio.write_json(tmp_path / "prior" / experts.PRIOR, record)
+    runio.write_json(tmp_path / "prior" / kick_start.PRIOR, record)
     with pytest.raises(ValueError, match="does not record the env config"):
         experts.inputs(pipeline_config(), tmp_path)
 
@@ -380,7 +382,9 @@ def test_trained_experts_without_a_record_are_evaluated_not_retrained(tmp_path, 
         return runio.write_json(stage_dir / experts.OUTPUT, {"error_mean_m": 0.5}) and {"error_mean_m": 0.5}
 
     monkeypatch.setattr(experts, "evaluate_experts", evaluate)
-    monkeypatch.setattr(experts.tables, "experts_markdown", lambda record: "table")
+    kick = experts.tasks.get("kick")
+    quiet = dataclasses.replace(kick, report=dataclasses.replace(kick.report, experts=lambda record: "table"))
+    monkeypatch.setattr(experts.tasks, "get", lambda name: quiet)
     experts.run(pipeline_config(), tmp_path, say=lambda *a, **k: None)
     assert seen == {"params": ("params of", stage_dir), "wall_s": 7.5}
     # With the record written, the training checkpoints are gone; final_params stays.

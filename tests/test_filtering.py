@@ -8,6 +8,7 @@ from rollout_memo import EpisodeMemo
 
 from bumps_jax import config
 from bumps_jax.algo import filtering
+from bumps_jax.tasks.kick import env as kick_env
 
 TASK_RANGE = (7.0, 18.0)
 
@@ -17,6 +18,11 @@ def _resting(contexts, achieved, reps=3, spread=0.0, seed=0):
     rng = np.random.default_rng(seed)
     d = achieved(np.asarray(contexts))[:, None] + spread * rng.standard_normal((len(contexts), reps))
     return d, np.zeros_like(d)
+
+
+def score_matrix(distance, lateral, blown_up, tasks) -> np.ndarray:
+    """Mean final error (T, C) of each context's kicks (C, R) against each task (T,), by the kick's rule."""
+    return kick_env.error_against(distance, lateral, blown_up, np.asarray(tasks, np.float64)[:, None, None]).mean(-1)
 
 
 def _no_blow_up(distance):
@@ -29,7 +35,7 @@ def test_selection_picks_the_context_that_lands_on_the_target():
     tasks = np.array([8.0, 11.3, 17.5])
     contexts = filtering.candidate_contexts(tasks, contexts)
     distance, lateral = _resting(contexts, lambda c: c + 0.5)
-    scores = filtering.score_matrix(distance, lateral, _no_blow_up(distance), tasks)
+    scores = score_matrix(distance, lateral, _no_blow_up(distance), tasks)
     assert scores.shape == (3, len(contexts))
     chosen = contexts[filtering.select_contexts(scores, contexts, tasks, 1.0, TASK_RANGE)]
     np.testing.assert_allclose(chosen, tasks - 0.5, atol=1e-6)
@@ -52,7 +58,7 @@ def test_scores_equal_a_slow_reference():
         for c in range(4):
             errs = [np.sqrt((distance[c, r] - task) ** 2 + lateral[c, r] ** 2) for r in range(5)]
             expected[t, c] = sum(task if blown[c, r] else errs[r] for r in range(5)) / 5
-    np.testing.assert_allclose(filtering.score_matrix(distance, lateral, blown, tasks), expected, rtol=1e-12)
+    np.testing.assert_allclose(score_matrix(distance, lateral, blown, tasks), expected, rtol=1e-12)
 
 
 def test_context_grids_have_the_papers_sizes():
@@ -67,7 +73,7 @@ def test_a_perfect_family_keeps_each_task_on_its_own_context():
     tasks = np.array([7.1, 12.0, 18.0])
     contexts = filtering.candidate_contexts(tasks, filtering.context_grid(7.1, 18.0, 0.5))
     distance, lateral = _resting(contexts, lambda c: c)
-    scores = filtering.score_matrix(distance, lateral, _no_blow_up(distance), tasks)
+    scores = score_matrix(distance, lateral, _no_blow_up(distance), tasks)
     np.testing.assert_allclose(contexts[filtering.select_contexts(scores, contexts, tasks, 2.0, TASK_RANGE)], tasks)
 
 
@@ -75,7 +81,7 @@ def test_blown_up_rollouts_score_as_the_target_distance():
     contexts = np.array([10.0, 10.5])
     distance, lateral = _resting(contexts, lambda c: c, reps=2)
     blown = np.array([[True, True], [False, False]])
-    scores = filtering.score_matrix(distance, lateral, blown, [10.0])
+    scores = score_matrix(distance, lateral, blown, [10.0])
     np.testing.assert_allclose(scores, [[10.0, 0.5]])
     assert filtering.select_contexts(scores, contexts, [10.0], 1.0, TASK_RANGE)[0] == 1
 
@@ -154,7 +160,9 @@ def test_filtering_end_to_end_in_mjx(env, contextual, monkeypatch):
     tasks = np.array([9.0, 10.0])
     contexts = filtering.candidate_contexts(tasks, [7.5, 11.5])
     sel_key, eval_key = filtering.noise_keys(0)
-    sel = filtering.filter_policy(grid, params, contexts, tasks, 2.0, 2, sel_key, task_range=task_range, block=BLOCK)
+    sel = filtering.filter_policy(
+        grid, params, contexts, tasks, 2.0, 2, sel_key, task_range=task_range, block=BLOCK, **filtering.scoring(env)
+    )
     assert sel.scores.shape == (2, 4) and sel.distance.shape == (4, 2)
     chosen = sel.contexts[sel.chosen]
     assert np.all(np.abs(chosen - tasks) <= 2.0 + 1e-6)
@@ -183,7 +191,7 @@ def test_filtering_end_to_end_in_mjx(env, contextual, monkeypatch):
     # of its 3 candidates: contexts 9 and 10 m, or one shared) rollouts or fewer, each of them one
     # of the selection's episodes (so the memo replays both rungs; an episode of another key
     # would be played and land elsewhere).
-    kw = dict(task_range=task_range, block=BLOCK)
+    kw = dict(task_range=task_range, block=BLOCK, **filtering.scoring(env))
     one = filtering.filter_policy(grid, params, contexts, tasks, 2.0, 2, sel_key, rungs=(2,), **kw)
     assert memo.hits == 1  # the one rung asked for the fixed selection's episodes, no others
     assert one.chosen.tolist() == sel.chosen.tolist() and one.rollouts == sel.rollouts == 8

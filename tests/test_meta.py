@@ -15,8 +15,9 @@ import stand_ins
 from rollout_memo import RolloutMemo
 
 from bumps_jax import cli, config
-from bumps_jax.algo import bc, evaluate, filtering, meta_programs
+from bumps_jax.algo import bc, evaluate, filtering
 from bumps_jax.pipeline import policies, runio
+from bumps_jax.pipeline import programs as meta_programs
 from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.pipeline.stages import filter as filter_stage
@@ -26,6 +27,7 @@ from bumps_jax.report import publish, tables
 from bumps_jax.report import summary as report
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
+from bumps_jax.tasks.kick import start as kick_start
 
 
 def quiet(*args, **kwargs):
@@ -642,7 +644,7 @@ def _leaves(d, prefix=""):
 
 
 def test_raw_inputs_show_the_net_the_time_step_and_the_target_in_metres(env):
-    obs, _ = bc.kick_dataset(env, 12.3, kick_model.load_record()["params"])
+    obs, _ = kick_start.kick_dataset(env, 12.3, kick_model.load_record()["params"])
     shift, scale = bc.kick_raw_inputs(env.n_steps, env.config.task_range)
     raw = (np.asarray(obs) - np.asarray(shift)) / np.asarray(scale)
     np.testing.assert_allclose(raw[:, 0], np.arange(env.n_steps), atol=1e-4)

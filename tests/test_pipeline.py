@@ -43,7 +43,7 @@ def fake_stage(name, log, upstream=None, fail=False):
 def stages(monkeypatch):
     log = []
     modules = {"experts": fake_stage("experts", log), "meta": fake_stage("meta", log, upstream="experts")}
-    monkeypatch.setattr(pipeline, "stage_module", lambda name: modules[name])
+    monkeypatch.setattr(pipeline, "stage_module", lambda name, task="kick": modules[name])
     monkeypatch.setattr(
         publish, "write_report", lambda run_dir: runio.write_text(Path(run_dir) / "report.md", "report\n")
     )
@@ -267,15 +267,15 @@ def test_publishing_refuses_a_run_with_a_stage_unfinished(tmp_path, stages):
     from bumps_jax.tasks import registry as tasks
 
     log, modules = stages
-    for name in tasks.STAGES["kick"]:
+    for name in tasks.get("kick").stages:
         modules.setdefault(name, fake_stage(name, log))
     for name in ("prior", "experts", "meta", "filter", "heldout"):
         pipeline.run_stage(name, cfg(), tmp_path)
     (tmp_path / "baseline").mkdir()  # started, stopped before its record
-    assert pipeline.unfinished(tmp_path, tasks.STAGES["kick"]) == ["baseline"]
+    assert pipeline.unfinished(tmp_path, tasks.get("kick").stages, "kick") == ["baseline"]
     refusal = r"not published: .* has not finished baseline \(no baseline/out.json\)"
     with pytest.raises(ValueError, match=refusal) as err:
         commands.publish(cfg(), tmp_path, None)
     assert "\n" not in str(err.value)  # one line, before anything is read or written
     pipeline.run_stage("baseline", cfg(), tmp_path)
-    assert pipeline.unfinished(tmp_path, tasks.STAGES["kick"]) == []
+    assert pipeline.unfinished(tmp_path, tasks.get("kick").stages, "kick") == []

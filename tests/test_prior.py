@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 from bumps_jax import config
-from bumps_jax.pipeline.stages import prior
-from bumps_jax.tasks.kick import cmaes, scene
+from bumps_jax.tasks.kick import cmaes, prior, scene
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 from bumps_jax.tasks.kick import scoring as kick_scoring

@@ -1,5 +1,5 @@
-"""Behaviour cloning: the contextual meta-policy fitted to the experts' pairs, and one kick
-cloned into an expert's Gaussian policy.
+"""Behaviour cloning: the contextual meta-policy fitted to the experts' pairs, and a policy's
+mean fitted to given actions (an expert's start).
 
 The meta-policy (BUMPS step 2): an MLP (tanh hidden layers, linear output) maps the contextual
 observation to the action: for the kick (phase, normalised context) to the 22 joint targets, for
@@ -10,8 +10,8 @@ gradient steps. The pairs stay on the device; each chunk of epochs is one jitted
 fold_in(seed key, e), so a resumed run draws the same batches as an uninterrupted one; seeds
 are vmapped. The host syncs once per chunk: progress line, CSV row, orbax checkpoint.
 
-Kick cloning (the experts' and the baseline's start): full-batch Adam fits a Gaussian policy's
-mean to a keyframe kick's (T, 22) joint targets (`kick_dataset`, `clone_kick`).
+An expert's start (`clone_policy`): full-batch Adam fits a Gaussian policy's mean to (T, A)
+actions, e.g. a task's scripted motion.
 """
 
 from __future__ import annotations
@@ -30,8 +30,6 @@ import optax
 
 from bumps_jax.algo import ppo
 from bumps_jax.pipeline import runio
-from bumps_jax.tasks.kick import env as kick_env
-from bumps_jax.tasks.kick import keyframes as kick_model
 
 CSV_FIELDS = ("epoch", "step", "lr", "loss_mean", "loss_last", "loss_best_seed", "seconds")
 KEEP_CHECKPOINTS = 2
@@ -392,30 +390,18 @@ def load_policy(
     return policy_apply(model), restored["params"]
 
 
-# -- cloning one kick into an expert's Gaussian policy ----------------------------------------
+# -- cloning a policy's mean onto given actions (an expert's start) ----------------------------
 
 
 class BCCarry(NamedTuple):
-    """The scan carry of kick cloning."""
+    """The scan carry of `clone_policy`."""
 
     policy: Any  # policy network params
     opt_state: Any
 
 
-def kick_dataset(env: kick_env.KickEnv, target, kick_params) -> tuple[jax.Array, jax.Array]:
-    """A keyframe kick (14,) as (obs (T, 2), actions (T, 22)) for an expert of `target` m.
-
-    obs[k] is what the env shows before step k: (k / T, normalised target); actions[k] the
-    kick's joint targets for step k.
-    """
-    phase = jnp.arange(env.n_steps, dtype=jnp.float32) / env.n_steps
-    context = jnp.full_like(phase, env.normalise_context(jnp.asarray(target, jnp.float32)))
-    actions = kick_model.keyframes_to_actions(kick_params, env.n_steps, env.dt)
-    return jnp.stack([phase, context], axis=-1), actions
-
-
 def _clone_loss(networks, normalizer, policy, obs, actions):
-    """Mean squared error (rad^2) of the policy mean against the kick's actions."""
+    """Mean squared error of the policy mean against the actions."""
     return jnp.mean(jnp.square(ppo.policy_mean(networks, normalizer, policy, obs) - actions))
 
 
@@ -426,13 +412,12 @@ def _clone_step(networks, optimizer, normalizer, obs, actions, carry: BCCarry, _
     return BCCarry(optax.apply_updates(carry.policy, updates), opt_state), loss
 
 
-def clone_kick(networks, policy, obs, actions, steps: int, learning_rate: float):
-    """Fit the policy mean to (obs (T, 2), actions (T, 22)). Returns (policy params, losses (steps,)).
+def clone_policy(networks, policy, obs, actions, steps: int, learning_rate: float):
+    """Fit the policy mean to (obs (T, O), actions (T, A)). Returns (policy params, losses (steps,)).
 
     Only the mean's weights move: the log-std keeps its initial value (its gradient is zero).
     """
-    # Cosine decay to 1% of the peak: the kick's sharp swing needs the late small steps to be
-    # fitted closely enough to strike.
+    # Cosine decay to 1% of the peak: the late small steps fit sharp actions closely.
     optimizer = optax.adam(optax.cosine_decay_schedule(learning_rate, steps, alpha=0.01))
     normalizer = ppo.init_normalizer(obs.shape[-1])
     body = functools.partial(_clone_step, networks, optimizer, normalizer, obs, actions)

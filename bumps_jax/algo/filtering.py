@@ -9,8 +9,7 @@ among candidates within +- `width` m of the task (the task's own context is alwa
 The dynamics do not depend on the target, only the scoring does: each candidate context is
 rolled out once (C x R episodes) and its resting points, as the env reports them (`distance`
 along the kick line, `lateral`), are scored against every task at once by the env's own rule
-(`kick_env.error_against`; another task's env: its `error_against`, e.g. the cheetah's from its
-per-step velocities): a (tasks, contexts) matrix, no rollout per (task, context) pair.
+(`env.error_against`: `scoring`): a (tasks, contexts) matrix, no rollout per (task, context) pair.
 
 Selection and the final evaluation draw independent noise (`noise_keys`): each task's chosen
 context is evaluated afresh. The ensemble of two nets takes, per task, the net whose best
@@ -27,7 +26,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from bumps_jax.algo import evaluate, sharding
-from bumps_jax.tasks.kick import env as kick_env
 
 # -- candidates ---------------------------------------------------------------------------------
 
@@ -75,16 +73,6 @@ def stage_keys(key, n: int, reps: int) -> jax.Array:
 
 
 # -- scores and choices (pure, no simulation) -----------------------------------------------------
-
-
-def score_matrix(distance, lateral, blown_up, tasks) -> np.ndarray:
-    """Mean final error (T, C) of each context's rollouts against each task, as the env scores it.
-
-    distance, lateral: (C, R) resting point along and across the kick line (m, the env's
-    metrics); blown_up: (C, R) (such an episode scores the target distance); tasks: (T,) m.
-    """
-    tasks = np.asarray(tasks, np.float64)[:, None, None]
-    return kick_env.error_against(distance, lateral, blown_up, tasks).mean(axis=-1)
 
 
 def candidate_mask(contexts, tasks, width, task_range) -> np.ndarray:
@@ -175,27 +163,22 @@ def successive_halving(errors_of, candidates, rungs, keep: float) -> Halving:
     return Halving(chosen, scores[np.arange(n_tasks), chosen], scores, reached, int(reached.sum()))
 
 
-def kick_errors(metrics: dict, tasks) -> np.ndarray:
-    """Final errors (T, C, R) of kicks (metrics of (C, R)) against tasks (T,) m: `kick_env.error_against`."""
-    tasks = np.asarray(tasks, np.float64)[:, None, None]
-    return kick_env.error_against(metrics["distance"], metrics["lateral"], metrics["blown_up"], tasks)
-
-
-def env_errors(env):
-    """errors(metrics of (C, R, ...), tasks (T,)) -> (T, C, R): `env.error_against`, for `filter_policy`."""
+def scoring(env) -> dict:
+    """`filter_policy`'s scoring by `env`'s own rule: {"errors": errors(metrics of (C, R, ...), tasks
+    (T,)) -> (T, C, R) by `env.error_against`, "achieved": the metric holding what an episode achieved}."""
 
     def errors(metrics: dict, tasks) -> np.ndarray:
         return env.error_against(metrics, np.asarray(tasks, np.float64)[:, None, None])
 
-    return errors
+    return {"errors": errors, "achieved": env.ACHIEVED}
 
 
 class Selection(NamedTuple):
     """One net's filtering: candidates, their rollouts, and each task's choice."""
 
     contexts: np.ndarray  # (C,) candidate contexts (m)
-    # (C, R) what each rollout achieved: the resting distance along the kick line (m); another
-    # task's `env.ACHIEVED` metric (the cheetah's mean velocity, m/s)
+    # (C, R) what each rollout achieved: the env's `ACHIEVED` metric (the kick's resting distance
+    # along the kick line, m; the cheetah's mean velocity, m/s)
     distance: np.ndarray
     valid: np.ndarray  # (C, R)
     scores: np.ndarray  # (T, C) mean final error of context c against task t (m)
@@ -273,15 +256,15 @@ def run_blocked(grid, params, contexts, targets, keys, block: int | None, multip
 
 def filter_policy(
     grid, params, contexts, tasks, width, repetitions: int, key, *, task_range, block=None, multiple: int = 1,
-    rungs=None, keep: float = 0.25, errors=kick_errors, achieved: str = "distance",
+    rungs=None, keep: float = 0.25, errors, achieved: str,
 ) -> Selection:  # fmt: skip
     """Roll every candidate context (C,) out `repetitions` times and choose one per task (T,);
     with `rungs`, successive halving instead (`successive_halving`, keeping `keep`).
 
     The env needs a target to score against; the episode does not depend on it, so each rollout
     uses its own context as target, and `errors(metrics of (C, R), tasks (T,)) -> (T, C, R)`
-    scores it against every task (`kick_errors`; another env: `env_errors`). `achieved`: the
-    metric a Selection keeps of each rollout.
+    scores it against every task; `achieved`: the metric a Selection keeps of each rollout (both
+    from `scoring(env)`).
     """
     contexts = check_contexts(contexts, task_range)
     check_width(width)
@@ -292,7 +275,7 @@ def filter_policy(
     flat_ctx = np.repeat(contexts, R)
     m = run_blocked(grid, params, flat_ctx, flat_ctx, stage_keys(key, C, R), block, multiple)
     m = {k: v.reshape(C, R, *v.shape[1:]) for k, v in m.items()}
-    scores = errors(m, tasks).mean(axis=-1)  # (T, C): for the kick, `score_matrix`
+    scores = errors(m, tasks).mean(axis=-1)  # (T, C)
     chosen = select_contexts(scores, contexts, tasks, width, task_range)
     return Selection(
         contexts=contexts,
@@ -306,7 +289,7 @@ def filter_policy(
 
 
 def _halving_policy(grid, params, contexts, tasks, width, key, task_range, block, multiple, rungs, keep,
-                    errors=kick_errors, achieved: str = "distance") -> Selection:  # fmt: skip
+                    errors, achieved: str) -> Selection:  # fmt: skip
     """`filter_policy` by successive halving. Rollout j of context c has key (c, j) of a
     (C, rungs[-1]) grid from `key` (`stage_keys`), whatever rung it is drawn in: one rung of R
     rollouts replays the fixed selection's episodes. distance and valid hold the first rung (NaN

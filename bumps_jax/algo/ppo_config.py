@@ -9,7 +9,7 @@ from __future__ import annotations
 import ml_collections
 import numpy as np
 
-from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.envs.base import locked_config
 
 
 def default_config() -> ml_collections.ConfigDict:
@@ -47,7 +47,7 @@ def default_config() -> ml_collections.ConfigDict:
 
 def make_config(config=None, overrides: dict | None = None) -> ml_collections.ConfigDict:
     """A locked copy of a PPO section (default: `default_config()`) with dotted `overrides`."""
-    return kick_env.make_config(default_config() if config is None else config, overrides)
+    return locked_config(default_config() if config is None else config, overrides)
 
 
 def validate_config(cfg: ml_collections.ConfigDict, n_steps: int, prefix: str = "ppo.") -> None:

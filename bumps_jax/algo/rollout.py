@@ -1,20 +1,21 @@
 """The one episode scan of the project, and its batched, grid and sharded forms.
 
-A policy is `apply_fn(params, obs) -> action (22,)`. Every episode is
+A policy is `apply_fn(params, obs) -> action (A,)`. Every episode is
 
     state = env.reset(key, target)
     repeat env.n_steps times: state = env.step(state, apply_fn(params, env.with_context(obs, context)))
 
-so the policy sees `context` (m) while the env scores the kick against `target` (m): the same
-for both when an expert kicks for its own task, different when filtering asks a meta-policy for
-another distance. What it returns besides the final metrics is chosen by `record`:
+so the policy sees `context` while the env scores the episode against `target`: the same for
+both when an expert acts for its own task, different when filtering asks a meta-policy for
+another context. What it returns besides the final metrics is chosen by `record`:
 
     None          metrics
-    "trajectory"  (metrics, (obs (T, obs_size), actions (T, 22)))  behaviour-cloning data
+    "trajectory"  (metrics, (obs (T, obs_size), actions (T, A)))   behaviour-cloning data
     "return"      (metrics, undiscounted return ())                 what PPO maximises
     "qpos"        (metrics, qpos (T, nq) after each control step)   rendering
 
-Keyframe kicks run through the same scan as a table policy (`table_policy`).
+A scripted motion (a task's open-loop actions) runs through the same scan as a table policy
+(`table_policy`).
 """
 
 from __future__ import annotations
@@ -24,12 +25,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from bumps_jax.algo import sharding
-from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.envs.base import ContextualEnv
 
 RECORDS = (None, "trajectory", "return", "qpos")
 
 
-def episode_fn(env: kick_env.KickEnv, apply_fn, record: str | None = None):
+def episode_fn(env: ContextualEnv, apply_fn, record: str | None = None):
     """A pure fn (params, context, target, key) -> metrics (or (metrics, recorded), see above)."""
     if record not in RECORDS:
         raise ValueError(f"record must be one of {RECORDS}, got {record!r}")
@@ -56,7 +57,7 @@ def over_reps(episode):
     return jax.vmap(episode, in_axes=(None, None, None, 0))
 
 
-def in_chunks(program, env: kick_env.KickEnv, axis: int, per_item: int, n_devices: int = 1):
+def in_chunks(program, env: ContextualEnv, axis: int, per_item: int, n_devices: int = 1):
     """`program(params, contexts (n,), targets (n,), keys (n, R))` run over chunks of the n axis
     so that no call holds more episodes per device than the env's physics can (Warp's contact
     pool: `env.max_episodes`); outputs joined along `axis`. Every chunk has the same size (the
@@ -87,7 +88,7 @@ def in_chunks(program, env: kick_env.KickEnv, axis: int, per_item: int, n_device
     return run
 
 
-def matched_fn(env: kick_env.KickEnv, apply_fn, record: str | None = None, mesh=None):
+def matched_fn(env: ContextualEnv, apply_fn, record: str | None = None, mesh=None):
     """(params (N, ...), contexts (N,), targets (N,), keys (N, R)) -> outputs of (N, R, ...), jitted.
 
     Policy i on its own (context i, target i), R noisy repetitions: experts on their tasks,
@@ -101,7 +102,7 @@ def matched_fn(env: kick_env.KickEnv, apply_fn, record: str | None = None, mesh=
     return in_chunks(sharding.over_batch(fn, mesh, (True, True, True, True)), env, 0, 1, mesh.size)
 
 
-def grid_fn(env: kick_env.KickEnv, apply_fn, mesh=None):
+def grid_fn(env: ContextualEnv, apply_fn, mesh=None):
     """Jitted (params (P, ...), contexts (n,), targets (n,), keys (n, R)) -> metrics of (P, n, R).
 
     Every policy of a stack (seeds, networks of one architecture) on every (context, target)

@@ -16,6 +16,7 @@ contact pool's capacity in episodes, the target checks and the context's normali
 
 from __future__ import annotations
 
+import copy
 import importlib.util
 import math
 
@@ -28,6 +29,24 @@ from brax.envs.base import Env
 from bumps_jax.envs import physics
 
 IMPLS = ("jax", "warp")
+
+
+def locked_config(config: ml_collections.ConfigDict, overrides: dict | None = None) -> ml_collections.ConfigDict:
+    """A locked deep copy of `config` with dotted `overrides`; an unknown key raises at once, naming it.
+    (The copy: overriding a nested key must not write into the caller's config.)"""
+    cfg = copy.deepcopy(ml_collections.ConfigDict(config))
+    cfg.lock()
+    for key, value in (overrides or {}).items():
+        node = cfg
+        *parents, leaf = key.split(".")
+        for p in parents:
+            if p not in node:
+                raise ValueError(f"unknown config key {key!r}")
+            node = node[p]
+        if leaf not in node:
+            raise ValueError(f"unknown config key {key!r}")
+        node[leaf] = value
+    return cfg
 
 
 def validate_physics(cfg: ml_collections.ConfigDict, int_keys=()) -> None:

@@ -40,9 +40,9 @@ def publish(cfg, run_dir: Path, args) -> None:
 
     # A run with a stage unfinished would leave that stage's committed record from an older run
     # beside the new ones (and the report would set them side by side): refused, naming them.
-    missing = pipeline.unfinished(run_dir, tasks.STAGES[cfg.task])
+    missing = pipeline.unfinished(run_dir, tasks.get(cfg.task).stages, cfg.task)
     if missing:
-        records = ", ".join(f"{m}/{pipeline.stage_module(m).OUTPUT}" for m in missing)
+        records = ", ".join(f"{m}/{pipeline.stage_module(m, cfg.task).OUTPUT}" for m in missing)
         raise ValueError(
             f"not published: {runio.shown(run_dir)} has not finished {', '.join(missing)} (no {records}); "
             "rerun the same reproduce to finish it"
@@ -53,7 +53,7 @@ def publish(cfg, run_dir: Path, args) -> None:
         return
     made_with = publish_mod.run_config(run_dir, cfg)
     try:
-        pipeline.check_current(made_with, run_dir, tasks.STAGES[made_with.task])
+        pipeline.check_current(made_with, run_dir, tasks.get(made_with.task).stages)
     except pipeline.StaleRunError as err:
         raise ValueError(f"not published: {err}") from None
     if made_with.preset != cfg.preset:

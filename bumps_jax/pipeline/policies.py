@@ -64,7 +64,7 @@ def write(cfg, run_dir: str | Path, dest: str | Path) -> list[Path]:
     experts_record = runio.read_json(run_dir / "experts" / experts_stage.OUTPUT, "run train-experts first")
     env = kick_env.resolved(table1["env"])
     for what, record in (("filter", table2), ("experts", experts_record)):
-        env_records.check_same_env(record.get("env"), env, f"the {what} record of {run_dir}")
+        env_records.check_same_env(record.get("env"), env, f"the {what} record of {run_dir}", kick_env.resolved)
     runio.check_writable(dest)
     train_cfg = ml_collections.ConfigDict(table1["config"]["train"])
     obs_norm = bc.obs_norm_of_record(table1)
@@ -150,7 +150,8 @@ def load(directory: str | Path = ASSET_DIR, env_cfg=None) -> Shipped:
             f"{directory / MANIFEST}: format_version {manifest.get('format_version')!r}, expected {FORMAT_VERSION}"
         )
     if env_cfg is not None:
-        env_records.check_same_env(manifest.get("env"), env_cfg, f"the shipped policies in {directory}")
+        what = f"the shipped policies in {directory}"
+        env_records.check_same_env(manifest.get("env"), env_cfg, what, kick_env.resolved)
 
     def read(name):
         path = directory / name
@@ -178,7 +179,8 @@ def filtered_kicks(
 ) -> Kicks:
     """Filter a context for `target` (m) as the run did (its grid and width; `selection_repetitions`
     noisy kicks per candidate), then `n_kicks` fresh noisy kicks at the chosen context."""
-    from bumps_jax.algo import bc, meta_programs, sharding  # noqa: PLC0415
+    from bumps_jax.algo import bc, sharding  # noqa: PLC0415
+    from bumps_jax.pipeline import programs as meta_programs  # noqa: PLC0415
 
     f = shipped.manifest["filter"]
     task_range = tuple(env_cfg.task_range)
@@ -189,13 +191,14 @@ def filtered_kicks(
     entry = shipped.manifest["nets"][net]
     mesh = sharding.device_mesh(impl=env_cfg.impl)
     obs_norm = bc.obs_norm_of_record(entry)  # the net's fixed input map, shipped with it (None: none)
-    program = meta_programs.meta_grid(env_cfg, entry["depth"], entry["width"], mesh, obs_norm=obs_norm)
+    program = meta_programs.meta_grid(env_cfg, entry["depth"], entry["width"], mesh, "kick", obs_norm)
     params = jax.tree.map(lambda a: np.asarray(a)[None], shipped.nets[net])
     sel_key, eval_key = filtering.noise_keys(seed)
     block = int(n_kicks)  # one compiled program serves the selection and the kicks
     sel = filtering.filter_policy(
         program, params, contexts, targets, f["width"], selection_repetitions, sel_key,
         task_range=task_range, block=block, multiple=mesh.size,
+        **filtering.scoring(meta_programs.stage_env(env_cfg, "kick")),
     )  # fmt: skip
     context = float(sel.contexts[sel.chosen[0]])
     m = filtering.evaluate_chosen(program, params, [context], targets, n_kicks, eval_key, block, mesh.size)

@@ -6,17 +6,16 @@ import json
 
 import ml_collections
 
-from bumps_jax.tasks.kick import env as kick_env
-
 # Env keys that size MuJoCo Warp's buffers: they change no physics, so records may differ in them.
 CAPACITY_KEYS = ("warp_contacts", "warp_constraints_per_world")
 MISSING = "<missing>"  # what `lookup` and `differing_keys` read where a dict lacks a key
 
 
-def env_key(env_cfg: ml_collections.ConfigDict | dict) -> dict:
-    """The part of an env config that changes the physics or the scoring: what must match
-    between a record and the run that reads it (the task list and range only choose targets)."""
-    d = kick_env.resolved(env_cfg)  # physics_dt None -> the scene's own step, as records carry it
+def env_key(env: ml_collections.ConfigDict | dict) -> dict:
+    """The part of an env config (as records carry it: its task's `resolved_env`) that changes the
+    physics or the scoring: what must match between a record and the run that reads it (the task
+    list and range only choose targets)."""
+    d = env.to_dict() if isinstance(env, ml_collections.ConfigDict) else dict(env)
     return {k: jsonable(v) for k, v in sorted(d.items()) if k not in ("tasks", "task_range", *CAPACITY_KEYS)}
 
 
@@ -32,12 +31,13 @@ def differing_keys(a: dict, b: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def check_same_env(record_env: dict | None, env_cfg, what: str) -> None:
+def check_same_env(record_env: dict | None, env, what: str, resolve=dict) -> None:
     """ValueError naming the differing keys if `what` (a record or asset) was made under another
-    env config than `env_cfg`; a record that names none is refused too."""
+    env config than `env`; a record that names none is refused too. `resolve`: the task's
+    `resolved_env`, applied to both (an older record may lack keys that have defaults now)."""
     if record_env is None:
         raise ValueError(f"{what} does not record the env config it was made under; remake it")
-    mine, theirs = env_key(env_cfg), env_key(record_env)
+    mine, theirs = env_key(resolve(env)), env_key(resolve(record_env))
     diff = differing_keys(theirs, mine)
     if diff:
         shown = ", ".join(f"env.{k}: {lookup(theirs, k)} there, {lookup(mine, k)} here" for k in diff)

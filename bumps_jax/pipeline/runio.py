@@ -52,11 +52,10 @@ def versions() -> dict:
 
 def provenance(preset: str, wall_s: float, env: dict, command: str | None = None) -> dict:
     """The keys every results file carries: device, versions, date, command, preset, wall time, and
-    the env config it ran under (`env`: physics_dt in s, the backend `impl`, noise, reward)."""
+    the env config it ran under (`env`, as its task resolves it: `config.resolved_env`)."""
     from bumps_jax.algo import sharding  # noqa: PLC0415
-    from bumps_jax.tasks.kick import env as kick_env  # noqa: PLC0415
 
-    resolved = kick_env.resolved(env)
+    resolved = dict(env)
     record = {
         "device": device_name(),
         # the devices its programs were split over (Warp physics uses one GPU: `sharding.device_mesh`)
@@ -112,7 +111,9 @@ def write_experiment(out_dir: str | os.PathLike, name: str, payload: dict, cfg=N
 
     kind = "cpu" if jax.default_backend() == "cpu" else "gpu"
     if cfg is not None:
-        payload = payload | provenance(cfg.preset, wall_s, cfg.env)
+        from bumps_jax import config  # noqa: PLC0415
+
+        payload = payload | provenance(cfg.preset, wall_s, config.resolved_env(cfg))
     return write_json(Path(out_dir) / f"{name}_{kind}.json", payload)
 
 

@@ -26,19 +26,22 @@ from pathlib import Path
 from bumps_jax import config
 from bumps_jax.pipeline import added_knobs, runio
 from bumps_jax.tasks import registry as tasks
+from bumps_jax.tasks.protocol import STAGE_ORDER
 
 MANIFEST = "stage.json"  # each stage directory's manifest
 
 # Stage name -> the stages that read its outputs (directly or through another).
-ORDER = ("prior", "experts", "meta", "filter", "heldout", "baseline")
+ORDER = STAGE_ORDER
 DOWNSTREAM = {"prior": ("experts", "meta", "filter", "heldout", "baseline"), "experts": ("meta", "filter", "heldout"),
               "meta": ("filter", "heldout"), "filter": ("heldout",), "heldout": (), "baseline": ()}  # fmt: skip
 
 
-def stage_module(name: str):
+def stage_module(name: str, task: str):
+    """The module that runs stage `name` of `task`: the task's own (`Task.own_stages`, e.g. the
+    kick's prior), else the pipeline's (`bumps_jax.pipeline.stages`)."""
     if name not in ORDER:
         raise ValueError(f"unknown stage {name!r}; choose one of {ORDER}")
-    return importlib.import_module(f"bumps_jax.pipeline.stages.{name}")
+    return importlib.import_module(tasks.get(task).own_stages.get(name, f"bumps_jax.pipeline.stages.{name}"))
 
 
 def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]:
@@ -47,7 +50,7 @@ def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]
     nothing of another config (StaleRunError; with `force` such a directory is wiped).
     status: "new", "same" (resume), "done" (its record exists) or "forced"."""
     tasks.check_stage(cfg.task, name)
-    module = stage_module(name)
+    module = stage_module(name, cfg.task)
     wanted = manifest(config.section(cfg, name), module.inputs(config.task_view(cfg), run_dir))
     status = check_manifest(run_dir / name, wanted, force)
     if status == "same" and (run_dir / name / module.OUTPUT).exists():
@@ -55,9 +58,9 @@ def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]
     return wanted, status
 
 
-def unfinished(run_dir: Path, stages) -> list[str]:
-    """The stages of `stages` whose record `run_dir` lacks (never run, or stopped before the end)."""
-    return [name for name in stages if not (Path(run_dir) / name / stage_module(name).OUTPUT).exists()]
+def unfinished(run_dir: Path, stages, task: str) -> list[str]:
+    """The stages of `stages` (of `task`) whose record `run_dir` lacks (never run, or stopped before the end)."""
+    return [name for name in stages if not (Path(run_dir) / name / stage_module(name, task).OUTPUT).exists()]
 
 
 def run_stage(name: str, cfg, run_dir: Path, force: bool = False, say=print) -> dict:
@@ -78,7 +81,7 @@ def check_current(cfg, run_dir: Path, stages) -> None:
 
 def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print) -> dict:
     """One stage after `plan`: reuse its record, or write its manifest and run it."""
-    module = stage_module(name)
+    module = stage_module(name, cfg.task)
     output = run_dir / name / module.OUTPUT
     if status == "done":
         say(f"== {name}: up to date ({output})")
@@ -111,7 +114,7 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
     from bumps_jax.report import publish  # noqa: PLC0415
 
     run_dir = runio.check_writable(run_dir)
-    stages = [name for name in stages if name in tasks.STAGES[cfg.task]]
+    stages = [name for name in stages if name in tasks.get(cfg.task).stages]
     for name in stages:
         if (run_dir / name).exists() and not force:
             try:

@@ -12,6 +12,7 @@ from bumps_jax.pipeline import policies, runio
 from bumps_jax.report import readme as readme_table
 from bumps_jax.report import summary as report
 from bumps_jax.report import task_report as report_task
+from bumps_jax.tasks import registry as tasks
 from bumps_jax.tasks.cheetah_vel import table as cheetah_table
 
 POLICIES = "assets/policies"  # the shipped policies (`policies.write`)
@@ -98,7 +99,8 @@ def write_report(run_dir: str | Path) -> Path:
     run's records name one."""
     path = Path(run_dir) / "report.md"
     task = report_task.run_task(run_dir)
-    path.write_text(report.build(run_dir) if task == "kick" else report_task.build_task(run_dir, task))
+    paper_rows = tasks.get(task).report.paper_rows
+    path.write_text(report.build(run_dir) if paper_rows else report_task.build_task(run_dir, task))
     return path
 
 

@@ -1,51 +1,49 @@
-"""The contextual tasks the pipeline runs (`task` in the config), and their envs by name.
+"""The contextual tasks the pipeline runs (`task` in the config), by name.
 
-    kick         the paper's: the NAO kicks a ball to a target distance (m); kick_env
-    cheetah_vel  HalfCheetah-Vel: the half-cheetah runs at a target velocity (m/s); cheetah_env
-
-Each env module has default_config, make_config, validate_config, resolved (its config as records
-carry it), noise_free (overrides that switch its noise off) and its env class.
+Each entry names a task's folder, whose `task.py` builds its `protocol.Task` as `TASK`. Adding a
+task is its folder and one line here (`docs/your_task.md`).
 """
 
 from __future__ import annotations
 
+import functools
 import importlib
 
-TASKS = ("kick", "cheetah_vel")
-_MODULES = {"kick": "bumps_jax.tasks.kick.env", "cheetah_vel": "bumps_jax.tasks.cheetah_vel.env"}
-_CLASSES = {"kick": "KickEnv", "cheetah_vel": "CheetahVelEnv"}
-# The stages each task runs, in the pipeline's order: the keyframe prior and the held-out targets
-# are the kick's (a closed-loop task's experts and baseline start from a fresh policy).
-STAGES = {
-    "kick": ("prior", "experts", "meta", "filter", "heldout", "baseline"),
-    "cheetah_vel": ("experts", "meta", "filter", "baseline"),
+from bumps_jax.tasks.protocol import Task
+
+_TASKS = {
+    "kick": "bumps_jax.tasks.kick.task",  # the paper's: the NAO kicks a ball to a distance (m)
+    "cheetah_vel": "bumps_jax.tasks.cheetah_vel.task",  # HalfCheetah-Vel: run at a velocity (m/s)
 }
+TASKS = tuple(_TASKS)
 
 
-def check_task(task: str) -> str:
-    """`task`, or ValueError naming the tasks there are."""
-    if task not in TASKS:
-        raise ValueError(f"unknown task {task!r}; choose one of {TASKS}")
-    return task
+def check_task(name: str) -> str:
+    """`name`, or ValueError naming the tasks there are."""
+    if name not in _TASKS:
+        raise ValueError(f"unknown task {name!r}; choose one of {TASKS}")
+    return name
 
 
-def env_module(task: str):
-    """The env module of `task` (kick_env or cheetah_env)."""
-    return importlib.import_module(_MODULES[check_task(task)])
+@functools.cache
+def get(name: str) -> Task:
+    """The task called `name` (its folder is imported on first use)."""
+    return importlib.import_module(_TASKS[check_task(name)]).TASK
 
 
-def make_env(task: str, env_cfg, overrides: dict | None = None):
-    """The env of `task` built from its env config (and dotted `overrides`)."""
-    return getattr(env_module(task), _CLASSES[task])(env_cfg, overrides)
+def make_env(name: str, env_cfg, overrides: dict | None = None):
+    """The env of task `name` built from its env config (and dotted `overrides`)."""
+    return get(name).make_env(env_cfg, overrides)
 
 
-def resolved(task: str, env_cfg) -> dict:
-    """`task`'s env config as plain data, as records carry it (`<env module>.resolved`)."""
-    return env_module(task).resolved(env_cfg)
+def resolved(name: str, env_cfg) -> dict:
+    """Task `name`'s env config as plain data, as records carry it."""
+    return get(name).resolved_env(env_cfg)
 
 
-def check_stage(task: str, stage: str) -> str:
-    """`stage`, or ValueError if `task` has no such stage."""
-    if stage not in STAGES[check_task(task)]:
-        raise ValueError(f"the {task} task has no {stage} stage; its stages are {STAGES[task]}")
+def check_stage(name: str, stage: str) -> str:
+    """`stage`, or ValueError if task `name` has no such stage."""
+    stages = get(name).stages
+    if stage not in stages:
+        raise ValueError(f"the {name} task has no {stage} stage; its stages are {stages}")
     return stage

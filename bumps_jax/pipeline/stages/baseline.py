@@ -1,21 +1,19 @@
 """The paper's Figure 1: plain multi-task PPO, one contextual policy for every target distance.
 
 The experts' PPO trainer on one policy (the `baseline` section: 11 x 256 in the paper preset)
-whose episodes each draw their target from U[7, 18] m, started by cloning the main kick of the
-run's prior at every training context, several seeds trained side by side (vmap over seeds).
+whose episodes each draw their target from `baseline.ppo.sample_task_range` (the kick: U[7, 18] m),
+started as the task's expert start says (`ExpertStart.baseline_start`: the kick clones the main
+kick of the run's prior at every training context; without one, a fresh policy), several seeds
+trained side by side (vmap over seeds). The policy sees the contextual observation
+(`ContextObserved`) and is scored by the env's own error.
 Besides the paper's learning rate (`baseline.ppo.learning_rate`) an optional second arm
 (`baseline.extra_learning_rate`) trains the same seeds in the same program (the rate is a value
 of each run's optimiser state). Writes run_dir/baseline/baseline.json (per arm: the return curve
-and the training error curve in m, each with a 95 % bootstrap band over seeds, and the meta-test
+and the training error curve in the task's unit, each with a 95 % bootstrap band over seeds, and the meta-test
 error evaluated like the BUMPS variants; the paper arm's also at the top level) and
 baseline_curve.png. Training runs in compiled chunks of `baseline.updates_per_chunk` updates, each
 followed by progress.csv rows, an orbax checkpoint and a progress line; a killed run resumes.
 Once the record is written only the newest checkpoint (the trained runs) is kept.
-
-A task without a keyframe prior (`cfg.task`, e.g. cheetah_vel) starts every seed from a fresh
-policy; its env's observation holds no target, so the policy trains on its contextual observation
-(`task_env.ContextObserved`) and is scored by the env's own error (the cheetah's mean velocity error, m/s),
-its record naming the task and the unit.
 """
 
 from __future__ import annotations
@@ -28,48 +26,28 @@ import jax.numpy as jnp
 import numpy as np
 
 from bumps_jax import config
-from bumps_jax.algo import bc, evaluate, ppo, rollout
+from bumps_jax.algo import evaluate, ppo, rollout
 from bumps_jax.envs import base as task_env
 from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.tasks import registry as tasks
-from bumps_jax.tasks.kick import env as kick_env
-from bumps_jax.tasks.kick import keyframes as kick_model
 
 OUTPUT = "baseline.json"
 
 
 def inputs(cfg, run_dir: Path) -> dict:
-    """The kick prior the experts of this run start from (checked the same way)."""
+    """What the task's expert start reads (the baseline starts as its experts do)."""
     return experts_stage.inputs(cfg, run_dir)
 
 
-def training_env(cfg, env):
-    """The env PPO trains in: the kick's as it is (its observation holds the target), another
-    task's `task_env.ContextObserved`."""
-    return env if cfg.task == "kick" else task_env.ContextObserved(env)
-
-
 def start_policy(cfg, env, trainer: ppo.Trainer, run_dir: Path, say=print) -> tuple:
-    """The policy every seed starts from and its BC losses: the kick's main kick cloned (`clone_start`),
-    a fresh policy (no losses: None) for a task without a keyframe prior."""
-    if cfg.task != "kick":
+    """The policy every seed starts from and its losses: the task's (`ExpertStart.baseline_start`,
+    the kick's main kick cloned), else a fresh policy (no losses: None)."""
+    start = tasks.get(cfg.task).expert_start
+    if start is None:
         say(f"a fresh {len(cfg.baseline.ppo.policy_hidden)}-layer policy", flush=True)
         return trainer.networks.policy_network.init(jax.random.key(0)), None
-    b = cfg.baseline
-    record = kick_model.load_record(experts_stage.prior_path(cfg, run_dir), env_cfg=cfg.env)
-    say(f"cloning the main kick into the {len(b.ppo.policy_hidden)}-layer policy ({b.bc_steps} steps)", flush=True)
-    return clone_start(cfg, env, trainer, jnp.asarray(record["params"]))
-
-
-def clone_start(cfg, env: kick_env.KickEnv, trainer: ppo.Trainer, kick) -> tuple:
-    """The policy every seed starts from: the kick cloned at every meta-training context. (params, BC losses)."""
-    b = cfg.baseline
-    pairs = [bc.kick_dataset(env, t, kick) for t in kick_env.meta_train_tasks()]
-    obs, actions = (jnp.concatenate(parts) for parts in zip(*pairs, strict=True))
-    policy0 = trainer.networks.policy_network.init(jax.random.key(0))
-    clone = jax.jit(lambda p: bc.clone_kick(trainer.networks, p, obs, actions, b.bc_steps, b.bc_learning_rate))
-    return clone(policy0)
+    return start.baseline_start(cfg, env, trainer, run_dir, say)
 
 
 def bootstrap_curve(returns: np.ndarray, steps_per_update: int) -> dict:
@@ -167,7 +145,7 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
     stage_dir = Path(run_dir) / "baseline"
     env = tasks.make_env(cfg.task, cfg.env)
     unit = env.UNIT
-    trainer = ppo.make_train(b.ppo, training_env(cfg, env), traced_learning_rate=True)
+    trainer = ppo.make_train(b.ppo, task_env.ContextObserved(env), traced_learning_rate=True)
     policy0, bc_losses = start_policy(cfg, env, trainer, run_dir, say)
     rates = learning_rates(b)
     n_runs = len(rates) * b.seeds
@@ -194,24 +172,24 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
         # The paper arm (ppo.learning_rate) at the top level, as the results contract names it.
         **{k: paper[k] for k in ("learning_rate", "curve", "error_curve", "error_mean_m", "accuracy_mean", "per_seed")},
         "arms": arms,
-        "start": rows[0],  # the policy every seed started from (the kick's: the cloned main kick), before PPO
+        "start": rows[0],  # the policy every seed started from, before PPO
         **({} if bc_losses is None else {"bc_final_loss": float(bc_losses[-1])}),  # the clone's fit
         "env_steps": int(env_steps),
         "train_wall_s": train_s,
         "eval_tasks": eval_tasks.tolist(),
         "eval_repetitions": int(b.eval_repetitions),
     }
-    if cfg.task != "kick":  # the task's name and unit, and the range its training targets came from
-        payload.update(task=cfg.task, unit=unit, sample_task_range=list(b.ppo.sample_task_range))
-        # Per eval task, the first arm's mean error over its seeds (unit), as BUMPS's tables list them.
-        payload["per_task_error_m"] = per_task[1 : 1 + b.seeds].mean(axis=0).tolist()
+    # The task's name and unit, and the range its training targets came from.
+    payload.update(task=cfg.task, unit=unit, sample_task_range=list(b.ppo.sample_task_range))
+    # Per eval task, the first arm's mean error over its seeds (unit), as BUMPS's tables list them.
+    payload["per_task_error_m"] = per_task[1 : 1 + b.seeds].mean(axis=0).tolist()
     runio.write_json(stage_dir / OUTPUT, payload)
     runio.keep_newest_checkpoint(stage_dir / "checkpoints")  # the trained policies; the rest is history
     plot_curve(payload, stage_dir / "baseline_curve.png", tuple(b.ppo.sample_task_range), unit)
     for arm in arms:
         say(f"baseline, lr {arm['learning_rate']:g}: error {arm['error_mean_m']:.2f} {unit}, "
             f"accuracy {arm['accuracy_mean']:.2f}, {env_steps:,} env steps per seed")  # fmt: skip
-    start_name = "the cloned main kick" if bc_losses is not None else "the fresh policy"
+    start_name = "the fresh policy" if bc_losses is None else "the cloned start"
     say(f"at the start ({start_name}): error {rows[0]['error_mean_all_m']:.2f} {unit}, "
         f"accuracy {rows[0]['accuracy_mean']:.2f}")  # fmt: skip
     return payload
@@ -223,7 +201,7 @@ def evaluate_runs(cfg, env, trainer, policy0, state) -> tuple[list[dict], np.nda
     errors per eval task, (1 + runs, tasks). Each policy sees the contextual observation
     (`env.with_context`), as it trained."""
     b = cfg.baseline
-    cloned = experts_stage.ExpertParams(ppo.init_normalizer(training_env(cfg, env).observation_size), policy0)
+    cloned = experts_stage.ExpertParams(ppo.init_normalizer(task_env.ContextObserved(env).observation_size), policy0)
     params = jax.tree.map(
         lambda a, s: jnp.concatenate([jnp.asarray(a, s.dtype)[None], s]),
         cloned,

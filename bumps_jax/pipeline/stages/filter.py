@@ -17,11 +17,13 @@ import jax
 import numpy as np
 
 from bumps_jax import config
-from bumps_jax.algo import bc, evaluate, filtering, meta_programs, sharding
+from bumps_jax.algo import bc, evaluate, filtering, sharding
+from bumps_jax.pipeline import programs as meta_programs
 from bumps_jax.pipeline import records as env_records
 from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import meta as meta_stage
 from bumps_jax.report import tables
+from bumps_jax.tasks import registry as tasks
 
 OUTPUT = "table2.json"
 # Variant -> (net, context grid): "low" steps by filter.context_step, "high" by high_context_step.
@@ -65,10 +67,7 @@ def filter_variant(cfg, grid, params, contexts, mesh_size: int):
     sel_key, eval_key = filtering.noise_keys(f.seed)
     t0 = time.perf_counter()
     rungs = tuple(f.halving_rungs) if f.selection == "halving" else None
-    scoring = {}
-    if cfg.task != "kick":  # the kick's defaults: its resting points, `filtering.kick_errors`
-        env = meta_programs.stage_env(cfg.env, cfg.task)
-        scoring = {"errors": filtering.env_errors(env), "achieved": env.ACHIEVED}
+    scoring = filtering.scoring(meta_programs.stage_env(cfg.env, cfg.task))
     sel = filtering.filter_policy(
         grid, params, contexts, targets, f.width, f.selection_repetitions, sel_key,
         task_range=tuple(cfg.env.task_range), block=f.block, multiple=mesh_size, rungs=rungs, keep=f.halving_keep,
@@ -139,30 +138,23 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         "timings": timings,
         **runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)),
     }
-    if cfg.task != "kick":  # no paper numbers: the paper ran the kick only
+    report = tasks.get(cfg.task).report
+    if not report.paper_rows:  # the paper's numbers are of its own task only
         del payload["paper"]
-        payload.update(task=cfg.task, unit=unit)
+    payload.update(task=cfg.task, unit=unit)
     runio.write_json(stage_dir / OUTPUT, payload)
-    markdown = tables.table2_markdown(rows) if cfg.task == "kick" else tables.task_table2_markdown(rows, unit)
-    runio.write_text(stage_dir / "table2.md", markdown)
-    labels = AXIS_LABELS.get(cfg.task, AXIS_LABELS["kick"])
-    write_plots(stage_dir, run_dir / "meta" / meta_stage.OUTPUT, payload, selections, tuple(cfg.env.task_range), labels)
+    runio.write_text(stage_dir / "table2.md", report.table2(rows, unit))
+    write_plots(stage_dir, run_dir / "meta" / meta_stage.OUTPUT, payload, selections, tuple(cfg.env.task_range),
+                report.axes)  # fmt: skip
     return runio.json_safe(payload)
 
 
 # -- plots --------------------------------------------------------------------------------------
 
 
-# Each task's plot labels: (target, error, achieved) axis names.
-AXIS_LABELS = {
-    "kick": ("target distance (m)", "mean final error (m)", "achieved distance (m)"),
-    "cheetah_vel": ("target velocity (m/s)", "mean velocity error (m/s)", "achieved mean velocity (m/s)"),
-}
-
-
-def write_plots(stage_dir: Path, table1: Path, payload: dict, selections: dict, task_range,
-                labels=AXIS_LABELS["kick"]) -> None:  # fmt: skip
-    """error_vs_target.png (experts, unfiltered nets, the filtered ensemble) and context_map.png."""
+def write_plots(stage_dir: Path, table1: Path, payload: dict, selections: dict, task_range, labels) -> None:
+    """error_vs_target.png (experts, unfiltered nets, the filtered ensemble) and context_map.png.
+    labels: the task's (context, error, achieved) axis names (`Report.axes`)."""
     curves = unfiltered_curves(runio.read_json(table1))
     curves["BUMPS filtered ensemble"] = (payload["tasks"], payload["per_task_error_m"]["filtered_ensemble"])
     plot_error_vs_target(stage_dir / "error_vs_target.png", curves, labels[:2])
@@ -186,7 +178,7 @@ def unfiltered_curves(table1: dict) -> dict:
     return curves
 
 
-def plot_error_vs_target(path, curves: dict, labels=AXIS_LABELS["kick"][:2]) -> Path:
+def plot_error_vs_target(path, curves: dict, labels=("target", "mean final error")) -> Path:
     """Final error vs target. curves: name -> (targets (n,), mean error (n,)); labels: (x, y) axis names."""
     import matplotlib  # noqa: PLC0415
 

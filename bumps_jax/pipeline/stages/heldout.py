@@ -28,14 +28,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax.algo import bc, evaluate, filtering, meta_programs, rollout, sharding
+from bumps_jax import config
+from bumps_jax.algo import bc, evaluate, filtering, rollout, sharding
+from bumps_jax.pipeline import programs as meta_programs
 from bumps_jax.pipeline import records as env_records
 from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.pipeline.stages import filter as filter_stage
 from bumps_jax.pipeline.stages import meta as meta_stage
 from bumps_jax.report import tables
-from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks import registry as tasks
 
 OUTPUT = "heldout.json"
 ENSEMBLE = ("filtered_ensemble", "filtered_4x256", "filtered_11x128")
@@ -51,7 +53,10 @@ def inputs(cfg, run_dir: Path) -> dict:
     run_dir = Path(run_dir)
     experts_json = run_dir / "experts" / experts_stage.OUTPUT
     record = runio.read_json(experts_json, "the experts' record: run train-experts first")
-    env_records.check_same_env(record.get("env"), kick_env.resolved(cfg.env), f"the experts record {experts_json}")
+    resolve = tasks.get(cfg.task).resolved_env
+    env_records.check_same_env(
+        record.get("env"), config.resolved_env(cfg), f"the experts record {experts_json}", resolve
+    )
     if [float(t) for t in record.get("tasks_m", [])] != [float(t) for t in cfg.experts.tasks]:
         raise ValueError(f"{experts_json} trained the tasks {record.get('tasks_m')}, not experts.tasks of this config")
     final = run_dir / "experts" / "final_params"
@@ -60,7 +65,7 @@ def inputs(cfg, run_dir: Path) -> dict:
     out = {"experts": experts_json, **filter_stage.inputs(cfg, run_dir)}
     table2 = run_dir / "filter" / filter_stage.OUTPUT
     record = runio.read_json(table2, "the filter stage's record: run filter first")
-    env_records.check_same_env(record.get("env"), kick_env.resolved(cfg.env), f"the filter record {table2}")
+    env_records.check_same_env(record.get("env"), config.resolved_env(cfg), f"the filter record {table2}", resolve)
     return {**out, "filter": table2}
 
 
@@ -105,7 +110,7 @@ def run(cfg, run_dir: Path, say=print, section: str = "heldout") -> dict:
     nearest = nearest_tasks(family.tasks, targets)
     say(f"{section}: {len(targets)} targets x {h.repetitions} kicks; experts of the nearest task (compiling first)",
         flush=True)  # fmt: skip
-    env = kick_env.KickEnv(cfg.env)
+    env = meta_programs.stage_env(cfg.env, cfg.task)
     params = jax.tree.map(lambda a: jnp.asarray(a)[nearest], family.params)
     keys = filtering.stage_keys(eval_key, len(targets), h.repetitions).reshape(len(targets), h.repetitions)
     tj = jnp.asarray(targets, jnp.float32)  # the same noise as evaluate_chosen's, below
@@ -139,7 +144,7 @@ def run(cfg, run_dir: Path, say=print, section: str = "heldout") -> dict:
             "filter": {k: f[k] for k in ("context_range", "context_step", "width", "net_seed")},
         },  # fmt: skip
         "run": str(run_dir),
-        **runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env),
+        **runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)),
     }
     runio.write_json(run_dir / section / f"{section}.json", payload)
     lines = tables.heldout_lines(payload)
@@ -160,13 +165,14 @@ def meta_variants(cfg, run_dir: Path, net: str, targets, contexts, noise_keys, m
     obs_norm = meta_stage.run_obs_norm(run_dir)
     _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train, obs_norm=obs_norm)
     params = jax.tree.map(lambda a: a[f.net_seed : f.net_seed + 1], params)
-    grid = meta_programs.meta_grid(cfg.env, depth, width, mesh, obs_norm=obs_norm)
+    grid = meta_programs.meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)
     reps = int(h.repetitions)
     unfiltered = filtering.evaluate_chosen(grid, params, targets, targets, reps, eval_key, f.block, mesh.size)
     sel = filtering.filter_policy(
         grid, params, contexts, targets, f.width, h.selection_repetitions, sel_key,
         task_range=tuple(cfg.env.task_range), block=f.block, multiple=mesh.size,
         rungs=tuple(f.halving_rungs) if f.selection == "halving" else None, keep=f.halving_keep,
+        **filtering.scoring(meta_programs.stage_env(cfg.env, cfg.task)),
     )  # fmt: skip
     chosen = sel.contexts[sel.chosen]
     filtered = filtering.evaluate_chosen(grid, params, chosen, targets, reps, eval_key, f.block, mesh.size)

@@ -19,15 +19,13 @@ import copy
 import time
 from pathlib import Path
 
-import jax
 import numpy as np
 
 from bumps_jax import config
-from bumps_jax.algo import bc, bc_stacked, evaluate, filtering, meta_programs, rollout, sharding
+from bumps_jax.algo import bc, bc_stacked, evaluate, rollout
 from bumps_jax.pipeline import records as env_records
 from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts as experts_stage
-from bumps_jax.report import tables
 from bumps_jax.tasks import registry as tasks
 
 OUTPUT = "table1.json"
@@ -94,8 +92,8 @@ def dataset_env(cfg):
     """The env the experts are recorded in: cfg.env, noise-free when they run once each (the paper)."""
     overrides = {}
     if cfg.meta.dataset.repetitions == 1:
-        overrides = tasks.env_module(cfg.task).noise_free(cfg.env)
-    # A copy: `kick_env.make_config` shares the nested sections of the config it is given.
+        overrides = tasks.get(cfg.task).noise_free(cfg.env)
+    # A copy: `locked_config` shares the nested sections of the config it is given.
     return tasks.make_env(cfg.task, copy.deepcopy(cfg.env), overrides)
 
 
@@ -159,7 +157,7 @@ def net_obs_norm(cfg, env, data: bc.Dataset) -> tuple | None:
     """The nets' `bc.MetaPolicy.obs_norm`: another task's states normalised by the dataset's
     statistics; the kick's (phase, context) as they are, or with `meta.inputs = "raw"` mapped to
     the paper's unscaled (time step, target m), with "centred" to [-1, 1]."""
-    if cfg.task != "kick":
+    if tasks.get(cfg.task).normalise_meta_inputs:
         return bc.obs_norm_of(data.obs)
     if cfg.meta.inputs == "raw":
         return bc.kick_raw_inputs(env.n_steps, env.config.task_range, int(data.obs.shape[-1]))
@@ -181,23 +179,6 @@ def evaluate_unfiltered(grid, params, tasks, repetitions: int, seed: int) -> dic
     tasks = np.asarray(tasks, np.float32)
     out = grid(params, tasks, tasks, rollout.repetition_keys(seed, len(tasks), repetitions))
     return {k: np.asarray(v) for k, v in out.items()}
-
-
-def evaluate_blocked(cfg, depth: int, width: int, params, obs_norm=None) -> dict:
-    """`evaluate_unfiltered`'s metrics (P, n_tasks, R) from the filter stage's program of this
-    architecture (`meta_programs.meta_grid`, called in blocks of `filter.block` episodes per device),
-    which the filter stage then reuses instead of compiling its own: another task's evaluation.
-    (The kick's keeps its own program, whose numbers its tests pin.)"""
-    e, mesh = cfg.meta.eval, sharding.device_mesh(impl=cfg.env.impl)
-    grid = meta_programs.meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)
-    tasks_, reps = np.asarray(e.tasks, np.float64), int(e.repetitions)
-    flat, keys = np.repeat(tasks_, reps), rollout.repetition_keys(e.seed, len(tasks_), reps).reshape(-1)
-    out = []
-    for s in range(cfg.meta.train.n_seeds):
-        seed_params = jax.tree.map(lambda a, s=s: a[s : s + 1], params)
-        m = filtering.run_blocked(grid, seed_params, flat, flat, keys, cfg.filter.block, mesh.size)
-        out.append({k: v.reshape(len(tasks_), reps, *v.shape[1:]) for k, v in m.items()})
-    return {k: np.stack([o[k] for o in out]) for k in out[0]}
 
 
 def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict, dict, dict]:
@@ -230,14 +211,10 @@ def evaluate_net(cfg, name: str, model: bc.MetaPolicy, state: bc.TrainState, env
     grids: (depth, width) -> program, filled here."""
     m = cfg.meta
     t0 = time.perf_counter()
-    if cfg.task != "kick":
-        metrics = evaluate_blocked(cfg, model.depth, model.width, state.params, model.obs_norm)
-    else:
-        key = (model.depth, model.width, model.obs_norm)  # one program per architecture and inputs
-        if key not in grids:
-            grids[key] = rollout.grid_fn(env, bc.policy_apply(model))
-        grid = grids[key]
-        metrics = evaluate_unfiltered(grid, state.params, m.eval.tasks, m.eval.repetitions, m.eval.seed)
+    key = (model.depth, model.width, model.obs_norm)  # one program per architecture and inputs
+    if key not in grids:
+        grids[key] = rollout.grid_fn(env, bc.policy_apply(model))
+    metrics = evaluate_unfiltered(grids[key], state.params, m.eval.tasks, m.eval.repetitions, m.eval.seed)
     summaries = [evaluate.summarise_tasks({k: v[s] for k, v in metrics.items()}) for s in range(m.train.n_seeds)]
     eval_wall_s = time.perf_counter() - t0
     row = {**evaluate.table_row(summaries[0]), "per_task": per_task_list(m.eval.tasks, summaries[0])}
@@ -292,8 +269,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         "config": cfg.meta.to_dict(),  # what the filter stage checks its nets against
         **runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)),
     }
-    if cfg.task != "kick":
-        payload.update(task=cfg.task, unit=env.UNIT, obs_size=int(data.obs.shape[-1]), n_actions=env.action_size)
+    payload.update(task=cfg.task, unit=env.UNIT, obs_size=int(data.obs.shape[-1]), n_actions=env.action_size)
     # every net's `net_obs_norm`: what the filter and held-out stages, and the shipped policies, build the nets with
     payload.update(bc.obs_norm_fields(next(iter(models.values())).obs_norm))
     runio.write_json(stage_dir / OUTPUT, payload)
@@ -301,6 +277,6 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     # ones go, as the experts' and the baseline's do once their records are written.
     for name in models:
         runio.keep_newest_checkpoint(stage_dir / name / "checkpoints")
-    markdown = tables.table1_markdown(rows) if cfg.task == "kick" else tables.task_table1_markdown(rows, env.UNIT)
+    markdown = tasks.get(cfg.task).report.table1(rows, env.UNIT)
     runio.write_text(stage_dir / "table1.md", markdown)
     return runio.json_safe(payload)

@@ -34,7 +34,6 @@ from mujoco import mjx
 
 from bumps_jax.envs import base as task_env
 from bumps_jax.envs.physics import read_flags
-from bumps_jax.tasks.kick import env as kick_env
 
 # The cheetah's total mass (kg): what the model's `settotalmass` sets (`load_model`).
 TOTAL_MASS = 14.0
@@ -86,7 +85,7 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
 
     Unknown keys raise at once, naming the key.
     """
-    return kick_env.make_config(default_config() if config is None else config, overrides)
+    return task_env.locked_config(default_config() if config is None else config, overrides)
 
 
 def validate_config(cfg: ml_collections.ConfigDict) -> None:

@@ -11,7 +11,6 @@ different tasks: `jax.vmap(env.reset)(rngs, targets)`.
 
 from __future__ import annotations
 
-import copy
 import functools
 import json
 
@@ -90,20 +89,7 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
 
     Unknown keys raise at once, naming the key.
     """
-    # A deep copy: overriding a nested key must not write into the caller's config.
-    cfg = copy.deepcopy(ml_collections.ConfigDict(default_config() if config is None else config))
-    cfg.lock()
-    for key, value in (overrides or {}).items():
-        node = cfg
-        *parents, leaf = key.split(".")
-        for p in parents:
-            if p not in node:
-                raise ValueError(f"unknown config key {key!r}")
-            node = node[p]
-        if leaf not in node:
-            raise ValueError(f"unknown config key {key!r}")
-        node[leaf] = value
-    return cfg
+    return task_env.locked_config(default_config() if config is None else config, overrides)
 
 
 IMPLS = task_env.IMPLS

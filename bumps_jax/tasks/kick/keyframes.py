@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bumps_jax.pipeline import records as env_records
+from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import scene
 
 FORMAT_VERSION = 1
@@ -272,7 +273,7 @@ def load_record(path: str | Path = ASSET, env_cfg=None) -> dict:
     if tuple(record.get("param_names", ())) != PARAM_NAMES:
         raise ValueError(f"{path}: param_names {record.get('param_names')!r} do not match {PARAM_NAMES}")
     if env_cfg is not None:
-        env_records.check_same_env(record.get("env"), env_cfg, f"kick prior {path}")
+        env_records.check_same_env(record.get("env"), env_cfg, f"kick prior {path}", kick_env.resolved)
     record["params"] = np.asarray(record["params"], np.float32)
     if "anchors" in record:
         record["anchors"] = np.asarray([record["anchors"][n] for n in ANCHORS], np.float32)

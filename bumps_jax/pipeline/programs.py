@@ -1,7 +1,7 @@
 """The compiled episode programs of meta-policies, shared by every stage that rolls them out.
 
 `meta_grid` builds the `rollout.grid_fn` program of one architecture in one env once per process:
-the meta stage's evaluation, the filter stage, the held-out evaluation and the `kick` command reuse
+the filter stage, the held-out evaluation and the shipped policies reuse
 it (each MJX program costs tens of seconds to compile on a CPU).
 """
 
@@ -17,7 +17,7 @@ _PROGRAMS: dict = {}
 _ENVS: dict = {}
 
 
-def stage_env(env_cfg, task: str = "kick"):
+def stage_env(env_cfg, task: str):
     """The env of `task` built from `env_cfg`, once per process and env config."""
     key = (task, json.dumps(tasks.resolved(task, env_cfg), sort_keys=True))
     if key not in _ENVS:
@@ -25,7 +25,7 @@ def stage_env(env_cfg, task: str = "kick"):
     return _ENVS[key]
 
 
-def meta_grid(env_cfg, depth: int, width: int, mesh, task: str = "kick", obs_norm=None):
+def meta_grid(env_cfg, depth: int, width: int, mesh, task: str, obs_norm=None):
     """The `rollout.grid_fn` program of a (depth, width) meta-policy (observations normalised by
     `obs_norm`, `bc.MetaPolicy`) in `task`'s env of `env_cfg`, once per process, env config,
     architecture and device mesh. Its apply_fn is bc.policy_apply."""

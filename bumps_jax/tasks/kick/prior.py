@@ -160,7 +160,7 @@ def _payload(cfg, wall_s: float, found: dict, anchors: dict, rows: list) -> dict
         for name in EXTREMES
     }
     return {
-        **runio.provenance(cfg.preset, wall_s, cfg.env),
+        **runio.provenance(cfg.preset, wall_s, kick_env.resolved(cfg.env)),
         "target_m": float(p.target),
         "n_reps": int(p.eval_repetitions),
         "mean_error_m": evaluation["mean_error"],

@@ -1,0 +1,20 @@
+"""HalfCheetah-Vel as a BUMPS task: experts from fresh policies, states normalised for the nets."""
+
+from bumps_jax.report import tables
+from bumps_jax.tasks.cheetah_vel import env
+from bumps_jax.tasks.protocol import Report, Task
+
+TASK = Task(
+    name="cheetah_vel",
+    env_class=env.CheetahVelEnv,
+    env_config=env.default_config,
+    resolved_env=env.resolved,
+    noise_free=env.noise_free,
+    stages=("experts", "meta", "filter", "baseline"),
+    report=Report(
+        experts=tables.task_experts_markdown,
+        table1=tables.task_table1_markdown,
+        table2=tables.task_table2_markdown,
+        axes=("target velocity (m/s)", "mean velocity error (m/s)", "achieved mean velocity (m/s)"),
+    ),
+)

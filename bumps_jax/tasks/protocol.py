@@ -1,0 +1,94 @@
+"""What a contextual task declares to run BUMPS: the one interface between a task and the pipeline.
+
+A task is one folder under `bumps_jax/tasks/` that builds a `Task` and one line in `registry.py`.
+The pipeline and the algorithm ask a `Task` for everything task-specific; they never import a
+task's folder or compare a task's name. `docs/your_task.md` is the recipe.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any, Protocol
+
+import ml_collections
+import numpy as np
+
+from bumps_jax.envs.base import ContextualEnv
+
+# The pipeline's stages in their order; a task runs those it lists in `Task.stages`.
+STAGE_ORDER = ("prior", "experts", "meta", "filter", "heldout", "baseline")
+
+
+class ExpertStart(Protocol):
+    """How a task's experts start before PPO refines them (the kick: its keyframe kicks, cloned).
+    A task without one starts every expert from a fresh policy."""
+
+    size: int  # numbers describing one expert's start (the kick: a keyframe kick's 14 parameters)
+
+    def inputs(self, cfg, run_dir: Path) -> dict[str, Path]:
+        """The files the experts stage reads for the starts, each checked to exist and parse."""
+
+    def starts(self, cfg, run_dir: Path, stage_dir: Path, say=print) -> np.ndarray:
+        """The experts' starts (E, size), made on the host before training; may keep files
+        under `stage_dir` (what it made them from, so that a rerun starts from the same)."""
+
+    def make_init(self, cfg, env: ContextualEnv, trainer) -> Callable:
+        """A pure fn (rng, target, start (size,)) -> (ppo.TrainState, losses (steps,))."""
+
+    def describe(self, cfg, run_dir: Path, stage_dir: Path, env: ContextualEnv, record: dict) -> dict:
+        """Entries the experts' record adds about the starts (their own evaluation, env steps)."""
+
+    def scratch(self) -> tuple[str, ...]:
+        """Folders under the experts stage's directory removed once its record is written."""
+
+    def baseline_start(self, cfg, env: ContextualEnv, trainer, run_dir: Path, say=print) -> tuple:
+        """The multi-task baseline's starting policy params and its losses (None: no cloning)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Report:
+    """How a task's records read as tables: markdown from a stage's record or rows."""
+
+    experts: Callable[[dict], str]  # experts.json -> experts.md
+    table1: Callable[[dict, str], str]  # (Table 1 rows, unit) -> table1.md
+    table2: Callable[[dict, str], str]  # (Table 2 rows, unit) -> table2.md
+    # Plot axes: (the context, an error, what an episode achieved), each with its unit.
+    axes: tuple[str, str, str]
+    paper_rows: bool = False  # its records sit beside the paper's own numbers (the paper's task)
+
+
+@dataclasses.dataclass(frozen=True)
+class Task:
+    """A contextual task as the pipeline sees it.
+
+    The env is a brax-style `ContextualEnv` whose `reset(rng, context)` takes the context and whose
+    `error_against(metrics, contexts)` scores a finished episode against any other context.
+    """
+
+    name: str
+    env_class: type[ContextualEnv]  # built as env_class(env_config, overrides)
+    env_config: Callable[[], ml_collections.ConfigDict]  # the env section's defaults
+    resolved_env: Callable[[Any], dict]  # an env config as records carry it (defaults resolved)
+    noise_free: Callable[[Any], dict]  # overrides of an env config that switch its noise off
+    stages: tuple[str, ...]  # the stages it runs, a subset of STAGE_ORDER in that order
+    report: Report
+    expert_start: ExpertStart | None = None  # None: experts start from a fresh policy
+    # The meta-policies' inputs normalised by the dataset's statistics (False: the observation as
+    # it is, when it is in [0, 1] already).
+    normalise_meta_inputs: bool = True
+    own_stages: Mapping[str, str] = dataclasses.field(default_factory=dict)  # stage -> module (the kick's prior)
+
+    def __post_init__(self):
+        unknown = [s for s in self.stages if s not in STAGE_ORDER]
+        if unknown or list(self.stages) != [s for s in STAGE_ORDER if s in self.stages]:
+            raise ValueError(f"task {self.name!r}: stages {self.stages} must be in the order {STAGE_ORDER}")
+
+    def make_env(self, env_cfg, overrides: dict | None = None) -> ContextualEnv:
+        """The task's env from its env config and dotted `overrides`."""
+        return self.env_class(env_cfg, overrides)
+
+    @property
+    def unit(self) -> str:
+        return self.env_class.UNIT
