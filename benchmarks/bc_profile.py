@@ -165,7 +165,7 @@ def main(argv=None) -> dict:
                                      "us_per_step": float(np.mean(walls)) / steps * 1e6}  # fmt: skip
     record.update(_trace(plain, state, steps))
     print({k: v for k, v in record.items() if k != "kinds"}, flush=True)
-    record.update(runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env))
+    record.update(runio.provenance(cfg.preset, time.perf_counter() - start, config.resolved_env(cfg)))
     runio.write_json(Path(args.out), record)
     print(f"wrote {args.out}")
     return record

@@ -450,7 +450,7 @@ def main(argv=None) -> dict:
         print({k: v for k, v in part.items() if not isinstance(v, list)}, flush=True)
         ratios(training, own)
         print(f"[bench] {name}{f' ({into})' if into else ''} done at {time.perf_counter() - start:.0f} s", flush=True)
-        prov = runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env)
+        prov = runio.provenance(cfg.preset, time.perf_counter() - start, config.resolved_env(cfg))
         # Written after each section: a run cut short keeps what it measured.
         runio.write_json(out_dir / f"{args.record}.json", {**training, **prov})
     return training

@@ -24,11 +24,11 @@ import mujoco
 import numpy as np
 
 from bumps_jax.envs import physics
+from bumps_jax.tasks.kick import ball, scene
 
 # on_substep(model, data, control_step) runs after every physics substep.
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
-from bumps_jax.tasks.kick import scene
 
 # on_substep(model, data, control_step) runs after every physics substep.
 SubstepHook = Callable[[mujoco.MjModel, mujoco.MjData, int], None]
@@ -132,7 +132,7 @@ class Replay:
         """The kick scored now, as the env scores its final state (see `Outcome`)."""
         cfg = self.env.config
         pos, vel, angvel = self.ball_state()
-        rest = np.asarray(physics.rest_point(pos, vel, angvel, self.env.decel_rate), np.float64)
+        rest = np.asarray(ball.rest_point(pos, vel, angvel, self.env.decel_rate), np.float64)
         struck = self.max_ball_speed >= cfg.strike_speed
         fallen = self.min_torso_z < cfg.fall_height
         return Outcome(

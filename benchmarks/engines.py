@@ -273,7 +273,7 @@ def main(argv=None) -> dict:
             if e != "c"
         },
     }
-    record = {**runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env), **payload}
+    record = {**runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)), **payload}
     runio.write_json(args.out, record)
     print(f"wrote {args.out}")
     return record

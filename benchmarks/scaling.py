@@ -206,7 +206,7 @@ def worker(args, cfg) -> None:
     end = time.time()
     record = {"start": start, "end": end, "wall_s": end - start, "compile_s": first - (end - start),
               "amount": work.amount, "detail": work.detail, "gpu": os.environ.get("CUDA_VISIBLE_DEVICES"),
-              "provenance": runio.provenance(cfg.preset, 0.0, cfg.env)}  # fmt: skip
+              "provenance": runio.provenance(cfg.preset, 0.0, config.resolved_env(cfg))}  # fmt: skip
     runio.write_json(folder / f"result.{i}.json", record)
 
 

@@ -201,7 +201,9 @@ def main(argv=None) -> None:
         },
         "impl": env.config.impl,  # every rate above and every variant's: the env's own backend
     }
-    runio.write_json(args.out, {**runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env), **payload})
+    runio.write_json(
+        args.out, {**runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)), **payload}
+    )
     for name in args.variants.split(","):
         dt = VARIANT_PHYSICS_DT.get(name)
         variant_env = (
@@ -224,7 +226,10 @@ def main(argv=None) -> None:
             flush=True,
         )
         # Written after every variant: a run cut short still leaves what it measured.
-        runio.write_json(args.out, {**runio.provenance(cfg.preset, time.perf_counter() - t_start, cfg.env), **payload})
+        runio.write_json(
+            args.out,
+            {**runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)), **payload},
+        )
     print(f"wrote {args.out}")
 
 

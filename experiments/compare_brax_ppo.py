@@ -174,7 +174,7 @@ def compare(target: float = 16.0, n_updates: int = 8, num_envs: int = 16, eval_e
         "brax_wall_s": round(brax_wall, 2),
     }
     out["return_gap"] = out["ours"]["return_mean"] - out["brax"]["return_mean"]
-    out.update(runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env))
+    out.update(runio.provenance(cfg.preset, time.perf_counter() - start, config.resolved_env(cfg)))
     return out
 
 

@@ -100,7 +100,7 @@ def main(argv=None) -> None:
         "kicks": args.kicks,
         "offsets_mm": list(OFFSETS_MM),
         "targets": rows,
-        **runio.provenance(cfg.preset, time.perf_counter() - start, cfg.env),
+        **runio.provenance(cfg.preset, time.perf_counter() - start, config.resolved_env(cfg)),
     }
     print(runio.write_json(Path(args.out_dir) / "impact_geometry_cpu.json", payload))
 

@@ -230,7 +230,7 @@ def main(argv=None) -> None:
         "best": best,
         "references": references,
         "searches": searches,
-        **runio.provenance("strike_search", time.perf_counter() - t0, env.config),
+        **runio.provenance("strike_search", time.perf_counter() - t0, kick_env.resolved(env.config)),
     }
     write(args, kinds, best, payload)
 

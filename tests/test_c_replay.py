@@ -12,12 +12,11 @@ from bumps_jax import config
 
 # MJX's JAX backend and C MuJoCo do not rest a kick at the same point (docs/decisions.md gives
 from bumps_jax.algo import rollout
-from bumps_jax.envs import physics
+from bumps_jax.tasks.kick import ball, scene
 
 # MJX's JAX backend and C MuJoCo do not rest a kick at the same point (docs/decisions.md gives
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
-from bumps_jax.tasks.kick import scene
 
 # MJX's JAX backend and C MuJoCo do not rest a kick at the same point (docs/decisions.md gives
 # the measured gap): this bounds it for the committed main kick, noise-free, rather than asking
@@ -76,7 +75,7 @@ def test_replay_is_deterministic_and_agrees_with_itself_split_into_parts(quiet_e
 
 def test_resting_point_is_the_envs_closed_form_of_its_final_ball_state(quiet_env, main_outcome):
     o = main_outcome
-    rest = np.asarray(physics.rest_point(o.ball_pos, o.ball_vel, o.ball_angvel, quiet_env.decel_rate))
+    rest = np.asarray(ball.rest_point(o.ball_pos, o.ball_vel, o.ball_angvel, quiet_env.decel_rate))
     assert (o.rest_x, o.rest_y) == (float(rest[0]), float(rest[1]))
     start = c_replay.Replay(quiet_env).ball_start
     assert o.distance == pytest.approx(o.rest_x - start[0]) and o.lateral == pytest.approx(o.rest_y - start[1])

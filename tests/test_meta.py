@@ -295,7 +295,10 @@ def _experts_run(cfg, run_dir):
     rng = np.random.default_rng(0)
     err = rng.uniform(0.1, 0.5, size=(len(tasks), 4))
     metrics = {"final_error": err, "rel_error": err / np.asarray(tasks)[:, None], "valid": np.ones_like(err)}
-    record = {**evaluate.experts_record(tasks, metrics, 600), **runio.provenance(cfg.preset, 0.0, cfg.env)}
+    record = {
+        **evaluate.experts_record(tasks, metrics, 600),
+        **runio.provenance(cfg.preset, 0.0, config.resolved_env(cfg)),
+    }
     # The starting kicks before PPO: made-up numbers a little worse than the experts'.
     record["starting_kicks"] = evaluate.tasks_record(tasks, {**metrics, "final_error": err + 0.3})
     runio.write_json(run_dir / "experts" / "experts.json", record)

@@ -17,7 +17,11 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def _common(preset="tiny", **env):
-    return {**runio.provenance(preset, 12.0, config.make_config("tiny", env).env, command="python -m bumps_jax demo")}
+    return {
+        **runio.provenance(
+            preset, 12.0, config.resolved_env(config.make_config("tiny", env)), command="python -m bumps_jax demo"
+        )
+    }
 
 
 def test_report_fills_tables_and_names_missing_stages(tmp_path):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from bumps_jax.envs import physics
-from bumps_jax.tasks.kick import scene
+from bumps_jax.tasks.kick import ball, scene
 
 # SimSpark's joint table (degrees): name -> (low, high).
 LIMITS_DEG = {
@@ -180,8 +180,8 @@ def test_rest_point_matches_full_simulation_once_ball_rolls(kind):
     for _ in range(int(0.5 / model.opt.timestep)):
         mujoco.mj_step(model, data)
     pos, vel, angvel = _ball_world_state(data, ids)
-    assert bool(physics.rolling(vel, angvel))
-    expected = np.asarray(physics.rest_point(pos, vel, angvel, scene.rolling_decel_rate()))
+    assert bool(ball.rolling(vel, angvel))
+    expected = np.asarray(ball.rest_point(pos, vel, angvel, scene.rolling_decel_rate()))
     rest = _simulate_to_rest(model, ids, data)
     assert np.linalg.norm(rest - expected) < 0.05, (kind, rest, expected)
 
@@ -192,7 +192,7 @@ def test_rest_point_of_a_ball_not_yet_rolling_is_flagged(kind):
     error stays bounded (measured: 7, 17 and 20 cm)."""
     model, ids, data = _full_scene_ball(kind)
     pos, vel, angvel = _ball_world_state(data, ids)
-    assert not bool(physics.rolling(vel, angvel))
-    expected = np.asarray(physics.rest_point(pos, vel, angvel, scene.rolling_decel_rate()))
+    assert not bool(ball.rolling(vel, angvel))
+    expected = np.asarray(ball.rest_point(pos, vel, angvel, scene.rolling_decel_rate()))
     rest = _simulate_to_rest(model, ids, data)
     assert np.linalg.norm(rest - expected) < 0.3, (kind, rest, expected)

@@ -57,6 +57,9 @@ class Report:
     # Plot axes: (the context, an error, what an episode achieved), each with its unit.
     axes: tuple[str, str, str]
     paper_rows: bool = False  # its records sit beside the paper's own numbers (the paper's task)
+    # The experts' record's key holding their starts scored as the experts are (a Table 1 row
+    # before PPO); None: no such row.
+    start_row: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)

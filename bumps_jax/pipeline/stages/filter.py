@@ -164,14 +164,13 @@ def write_plots(stage_dir: Path, table1: Path, payload: dict, selections: dict, 
 
 
 def unfiltered_curves(table1: dict) -> dict:
-    """name -> (targets, mean error m) of the experts and the unfiltered nets from Table 1's record."""
+    """name -> (targets, mean error) of the experts (and their starts, where the record has them)
+    and the unfiltered nets from Table 1's record."""
     per_task = table1.get("per_task", {})
     curves = {}
-    if "experts" in per_task:
-        curves["experts"] = (per_task["experts"]["tasks"], per_task["experts"]["error_mean_m"])
-    if "starting_kicks" in per_task:  # what the experts' PPO started from
-        kicks = per_task["starting_kicks"]
-        curves[tables.ROW_LABELS["starting_kicks"]] = (kicks["tasks"], kicks["error_mean_m"])
+    for row, entry in per_task.items():  # the experts' rows: those with tasks of their own
+        if isinstance(entry, dict) and "tasks" in entry:
+            curves[tables.ROW_LABELS.get(row, row)] = (entry["tasks"], entry["error_mean_m"])
     for net in meta_stage.NETS:
         if net in per_task:
             curves[f"{net} unfiltered"] = (per_task["tasks"], per_task[net]["error_mean_m"])

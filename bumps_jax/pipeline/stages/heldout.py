@@ -108,7 +108,7 @@ def run(cfg, run_dir: Path, say=print, section: str = "heldout") -> dict:
     mesh = sharding.device_mesh(impl=cfg.env.impl)
     family = experts_stage.load_family(cfg, run_dir)
     nearest = nearest_tasks(family.tasks, targets)
-    say(f"{section}: {len(targets)} targets x {h.repetitions} kicks; experts of the nearest task (compiling first)",
+    say(f"{section}: {len(targets)} targets x {h.repetitions} episodes; experts of the nearest task (compiling first)",
         flush=True)  # fmt: skip
     env = meta_programs.stage_env(cfg.env, cfg.task)
     params = jax.tree.map(lambda a: jnp.asarray(a)[nearest], family.params)
@@ -134,7 +134,7 @@ def run(cfg, run_dir: Path, say=print, section: str = "heldout") -> dict:
         "selection": f.selection,
         "selection_repetitions": int(h.selection_repetitions),
         "rows": rows_of(metrics, selections, ens, len(contexts)),
-        "error_rule": "error_mean_m: the mean over every target of its mean final error (invalid kicks included)",
+        "error_rule": "error_mean_m: the mean over every target of its mean final error (invalid episodes included)",
         "nearest_expert_task_m": family.tasks[nearest].tolist(),
         "chosen_contexts": {k: s.contexts[s.chosen].tolist() for k, s in selections.items()},
         "filtered_ensemble_uses_11x128": ens.use_b.tolist(),

@@ -250,8 +250,9 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     rows["experts"], experts_per_task = experts_row(experts_record, record_path)
     if experts_per_task:
         per_task["experts"] = experts_per_task
-    if "starting_kicks" in experts_record:  # the experts' starting kicks, scored as the experts are
-        rows["starting_kicks"], per_task["starting_kicks"] = experts_row(experts_record["starting_kicks"], record_path)
+    start_row = tasks.get(cfg.task).report.start_row  # the experts' starts, scored as the experts are
+    if start_row in experts_record:
+        rows[start_row], per_task[start_row] = experts_row(experts_record[start_row], record_path)
     rows_per_seed, timings, grids = {}, {}, {}
     models, states, train_s = train(cfg, stage_dir, data, env, say)
     for name, model in models.items():

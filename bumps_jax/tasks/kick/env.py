@@ -23,8 +23,9 @@ from mujoco import mjx
 
 from bumps_jax.envs import base as task_env
 from bumps_jax.envs import physics
-from bumps_jax.envs.physics import read_flags, rest_point, rolling, servo_ramp
+from bumps_jax.envs.physics import read_flags, servo_ramp
 from bumps_jax.tasks.kick import scene
+from bumps_jax.tasks.kick.ball import rest_point, rolling
 
 
 def meta_train_tasks() -> tuple[float, ...]:

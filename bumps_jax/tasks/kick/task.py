@@ -21,5 +21,6 @@ TASK = Task(
         table2=lambda rows, unit: tables.table2_markdown(rows),
         axes=("target distance (m)", "mean final error (m)", "achieved distance (m)"),
         paper_rows=True,
+        start_row="starting_kicks",
     ),
 )
