@@ -301,3 +301,32 @@ def test_tiny_ppo_improves_return():
     returns = np.asarray(metrics.episode_return[0])  # (updates,), each collected before its update
     print(f"collected returns per update {returns.round(2).tolist()}")
     assert returns[2:].mean() > returns[0] + 1.0
+
+
+def test_ppo_improves_the_return_on_the_warp_backend():
+    """PPO from a fresh policy raises the collected return on MuJoCo Warp, the backend every
+    result uses: HalfCheetah-Vel at 1.5 m/s, 10 updates of 16 twenty-step episodes (CPU, seed 0:
+    the return went -34.3 -> -26.6, the velocity error 1.57 -> 1.18 m/s)."""
+    n = 10
+    overrides = {
+        "env.impl": "warp",
+        "experts.tasks": (1.5,),
+        "env.episode_steps": 20,
+        "experts.ppo.num_envs": 16,
+        "experts.ppo.num_minibatches": 4,
+        "experts.ppo.num_epochs": 4,
+        "experts.ppo.total_env_steps": 16 * 20 * n,
+        "experts.ppo.learning_rate": 3e-3,
+        "experts.updates_per_chunk": n,
+    }
+    cfg = config.make_config("tiny", {"task": "cheetah_vel", **{f"cheetah_vel.{k}": v for k, v in overrides.items()}})
+    view = config.task_view(cfg)
+    programs = experts.compile_programs(view)
+    assert programs.env.config.impl == "warp"
+    tasks = jnp.asarray(view.experts.tasks)
+    state, _ = experts.run_init(programs, experts.task_rngs(0, 1), tasks, np.zeros((1, 0)))
+    _, metrics = experts.run_chunk(programs, state, tasks)
+    returns, errors = np.asarray(metrics.episode_return)[0], np.asarray(metrics.final_error)[0]
+    assert np.isfinite(returns).all() and returns.shape == (n,)
+    assert returns[-3:].mean() > returns[:3].mean() + 3.0
+    assert errors[-3:].mean() < errors[:3].mean() - 0.15

@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
 import ml_collections
 import numpy as np
@@ -71,10 +71,10 @@ class Task:
     """
 
     name: str
-    env_class: type[ContextualEnv]  # built as env_class(env_config, overrides)
-    env_config: Callable[[], ml_collections.ConfigDict]  # the env section's defaults
-    resolved_env: Callable[[Any], dict]  # an env config as records carry it (defaults resolved)
-    noise_free: Callable[[Any], dict]  # overrides of an env config that switch its noise off
+    # Built as env_class(env_config, overrides); its static `default_config()`, `resolved(env_config)`
+    # (the config as records carry it) and `noise_free(env_config)` (overrides that switch the
+    # env's noise off) describe its config.
+    env_class: type[ContextualEnv]
     stages: tuple[str, ...]  # the stages it runs, a subset of STAGE_ORDER in that order
     report: Report
     expert_start: ExpertStart | None = None  # None: experts start from a fresh policy
@@ -91,6 +91,18 @@ class Task:
     def make_env(self, env_cfg, overrides: dict | None = None) -> ContextualEnv:
         """The task's env from its env config and dotted `overrides`."""
         return self.env_class(env_cfg, overrides)
+
+    def env_config(self) -> ml_collections.ConfigDict:
+        """The env section's defaults."""
+        return self.env_class.default_config()
+
+    def resolved_env(self, env_cfg) -> dict:
+        """An env config as records carry it (its defaults resolved)."""
+        return self.env_class.resolved(env_cfg)
+
+    def noise_free(self, env_cfg) -> dict:
+        """Overrides of an env config that switch the env's noise off."""
+        return self.env_class.noise_free(env_cfg)
 
     @property
     def unit(self) -> str:

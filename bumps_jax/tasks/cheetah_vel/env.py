@@ -183,6 +183,10 @@ class CheetahVelEnv(task_env.ContextualEnv):
     (bthigh, bshin, bfoot, fthigh, fshin, ffoot).
     """
 
+    default_config = staticmethod(default_config)
+    resolved = staticmethod(resolved)
+    noise_free = staticmethod(noise_free)
+
     UNIT = "m/s"
     ACHIEVED = "mean_forward_vel"
 

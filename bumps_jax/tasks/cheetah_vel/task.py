@@ -7,9 +7,6 @@ from bumps_jax.tasks.protocol import Report, Task
 TASK = Task(
     name="cheetah_vel",
     env_class=env.CheetahVelEnv,
-    env_config=env.default_config,
-    resolved_env=env.resolved,
-    noise_free=env.noise_free,
     stages=("experts", "meta", "filter", "baseline"),
     report=Report(
         experts=tables.task_experts_markdown,

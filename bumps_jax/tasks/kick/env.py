@@ -152,6 +152,10 @@ class KickEnv(task_env.ContextualEnv):
     servo target moves toward them no faster than SimSpark's 6.1395 rad/s.
     """
 
+    default_config = staticmethod(default_config)
+    resolved = staticmethod(resolved)
+    noise_free = staticmethod(noise_free)
+
     def __init__(self, config=None, config_overrides: dict | None = None):
         self.config = make_config(config, config_overrides)
         validate_config(self.config)

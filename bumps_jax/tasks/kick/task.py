@@ -8,9 +8,6 @@ from bumps_jax.tasks.protocol import Report, Task
 TASK = Task(
     name="kick",
     env_class=env.KickEnv,
-    env_config=env.default_config,
-    resolved_env=env.resolved,
-    noise_free=env.noise_free,
     stages=("prior", "experts", "meta", "filter", "heldout", "baseline"),
     own_stages={"prior": "bumps_jax.tasks.kick.prior"},
     expert_start=KeyframeStart(),
