@@ -156,18 +156,6 @@ def _meta() -> ml_collections.ConfigDict:
     cfg = ml_collections.ConfigDict()
     # name -> (hidden layers, width): the paper's two meta-policies.
     cfg.nets = ml_collections.ConfigDict({"meta_4x256": (4, 256), "meta_11x128": (11, 128)})
-    # How the nets train, the same optimisation each way: "separate", each net its own loop, one
-    # after the other; "stacked", every net padded and stacked in one loop (`bc_stacked`: each
-    # layer of all nets one batched matmul); "stacked_batched", the same with the hand-written
-    # backward pass. Rounding differs between them, so a run made one way is not resumed another.
-    cfg.trainer = "separate"
-    # What the kick's nets read: "unit", (phase = step / steps, (target - 7) / 11), both in [0, 1];
-    # "raw", the paper's unscaled (time step, target in m); "centred", both moved to [-1, 1]. Either
-    # way the dataset and the env's observations stay (phase, normalised context): "raw" and
-    # "centred" are a fixed affine map in front of the first layer (`bc.kick_raw_inputs`,
-    # `bc.kick_centred_inputs`), recorded with the nets. Another task takes only "unit"
-    # (its states are normalised by the dataset's statistics).
-    cfg.inputs = "unit"
     cfg.dataset = ml_collections.ConfigDict()
     cfg.dataset.repetitions = 1  # rollouts per expert; 1 records them noise-free (the paper)
     cfg.dataset.seed = 0
@@ -178,9 +166,6 @@ def _meta() -> ml_collections.ConfigDict:
     cfg.train.batch_size = 128
     cfg.train.epochs = 150_000  # passes over the dataset
     cfg.train.chunk = 2500  # epochs per host sync (progress, CSV, checkpoint)
-    # Gradient steps per iteration of the compiled loop (lax.scan's unroll; at most an epoch's):
-    # the same steps on the same batches in fewer iterations, a longer compile.
-    cfg.train.unroll = 1
     cfg.train.n_seeds = 1  # initialisations trained side by side; seed 0 is the table's row
     cfg.train.seed = 0
     cfg.eval = ml_collections.ConfigDict()
@@ -274,12 +259,6 @@ def default_config() -> ml_collections.ConfigDict:
 # Each preset: dotted overrides of the defaults (the paper's values).
 PRESETS: dict[str, dict] = {
     "paper": {
-        # Both meta-policies in one stacked loop with the hand-written backward: the same
-        # optimisation, 361 s against 404-411 s on one H100 (docs/decisions.md, meta.trainer).
-        "meta.trainer": "stacked_batched",
-        # An epoch's 14 steps in one iteration of that loop: the two nets' training 310 s against
-        # 376 s in the meta stage on one H100 (docs/decisions.md, meta.train.unroll).
-        "meta.train.unroll": 14,
         # Four independent tunings of the starting kicks, each task's kick chosen among them with
         # the neighbour leash, then a 20-generation polish at a step of 0.25. On development seeds
         # 102 and 103 at the paper budget: experts 0.33 m, unfiltered 4x256 0.44-0.45 m and 11x128
