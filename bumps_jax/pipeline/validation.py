@@ -11,7 +11,6 @@ import ml_collections
 import numpy as np
 
 from bumps_jax.algo import ppo_config
-from bumps_jax.pipeline.added_knobs import ADDED_KNOBS
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 
@@ -197,11 +196,10 @@ def experts(e, task_range, n_steps: int) -> None:
         if isinstance(weight, bool) or not isinstance(weight, int | float) or not weight >= 0:
             raise ValueError(f"experts.tune.{name} must be a number >= 0, got {weight!r}")
     if e.tune.scheme == "family":
-        # The per-task knobs that are on, each named with the value that turns it off (the value
-        # the code behaved as before the knob existed): all in one line, so that switching a
-        # preset that uses several of them (the paper's) takes one try.
-        per_task = ("restarts", "polish_generations", "start_leash", "neighbour_leash", "midpoint_weight")
-        off = {k: ADDED_KNOBS[f"experts.tune.{k}"] for k in per_task}
+        # The per-task knobs that are on, each named with the value that turns it off: all in one
+        # line, so that switching a preset that uses several of them (the paper's) takes one try.
+        off = {"restarts": 1, "polish_generations": 0, "start_leash": 0.0, "neighbour_leash": 0.0,
+               "midpoint_weight": 0.0}  # fmt: skip
         on = [f"experts.tune.{k}={v:g}" for k, v in off.items() if e.tune[k] != v]
         if on:
             raise ValueError(f"experts.tune.scheme 'family' has no per-task tuning knobs: set {', '.join(on)}")
