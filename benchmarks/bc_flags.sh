@@ -1,19 +1,16 @@
 #!/usr/bin/env bash
-# The BC section of the bench (`benchmarks/bench.py --bc-trainers ...`) under each of several XLA
+# The BC section of the bench (`benchmarks/bench.py`, the meta stage's one trainer) under each of several XLA
 # flag sets, one process per set (XLA reads its flags when it starts). Each set's record goes to
 # OUT/<set>.json with the flags it ran under (`xla_flags`, as every record made with XLA_FLAGS set);
 # a set XLA refuses is reported and skipped. The BC loop is launch-bound (docs/decisions.md, BC):
 # the sets are ways to run its small kernels with fewer launches or side by side.
 #
-#   benchmarks/bc_flags.sh [OUT] [TRAINER ...]    (default OUT: runs/bc_flags; trainers: joint stacked_batched)
+#   benchmarks/bc_flags.sh [OUT]    (default OUT: runs/bc_flags)
 #   PRESET=tiny benchmarks/bc_flags.sh runs/bc_flags_cpu   (a CPU smoke test of the script)
-#   SETS="none graphs_concurrent" SET=meta.train.unroll=14 benchmarks/bc_flags.sh OUT
+#   SETS="none graphs_concurrent" SET=meta.train.batch_size=256 benchmarks/bc_flags.sh OUT
 #     (only those flag sets, each with a config change; its records are named <set>_<change>)
 set -uo pipefail
 out=${1:-runs/bc_flags}
-shift || true
-trainers=("$@")
-[ ${#trainers[@]} -gt 0 ] || trainers=(joint stacked_batched)
 buffers="--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL"
 declare -A sets=(
   [none]=""
@@ -30,7 +27,7 @@ for set in ${SETS:-none graphs_concurrent graphs_concurrent_mode triton_gemm gra
   name=$set${SET:+_${SET//[^a-zA-Z0-9]/_}}
   echo "== $name: ${sets[$set]:-no flags} ${change[*]}"
   if XLA_FLAGS="${sets[$set]}" python -m benchmarks.bench --preset "${PRESET:-paper}" --backends warp \
-      --skip scene experts gae brax filter tuning --bc-trainers "${trainers[@]}" "${change[@]}" --out-dir "$out" \
+      --skip scene experts gae brax filter tuning "${change[@]}" --out-dir "$out" \
       --record "$name" > "$out/$name.log" 2>&1; then
     python -c 'import json, sys; d = json.load(open(sys.argv[1]))
 print("  " + ", ".join(f"{k}: {v:.0f} s" for k, v in d.items() if k.startswith("bc_") and k.endswith("wall_s")))' "$out/$name.json"

@@ -1,6 +1,6 @@
 """Where a step of the meta-policies' BC loop spends its time on the GPU.
 
-Builds the config's stacked trainer (`meta.trainer`, the paper's: both nets in one program) on a
+Builds the meta stage's trainer (`bc.make_trainer`: both nets stacked in one program) on a
 dataset of the experts' size, times a chunk of `--epochs` epochs (its second call), then traces one
 more chunk with the JAX profiler and counts the device's kernels: how many a gradient step runs,
 how long each kind takes, and how much of the traced span the device was busy. A chunk is also
@@ -9,7 +9,7 @@ compiled with `--program-options` (XLA options given to that one program, `jax.j
 
     python -m benchmarks.bc_profile --out benchmarks/results/bc_profile/none.json  # GPU
     XLA_FLAGS=... python -m benchmarks.bc_profile --out OUT.json                  # flags kept in the record
-    python -m benchmarks.bc_profile --preset tiny --set meta.trainer=stacked_batched --epochs 2 \
+    python -m benchmarks.bc_profile --preset tiny --epochs 2 \
         --out runs/bc_profile.json                                                # CPU smoke test
 
 Tracing slows kernels somewhat: `traced_busy_us_per_step` is for shares, `us_per_step` for speed.
@@ -29,9 +29,7 @@ import numpy as np
 
 from benchmarks.bench import bc_inputs
 from bumps_jax import cli, config
-
-# The options `--program-options graphs` gives the chunk's program: XLA's default command-buffer
-from bumps_jax.algo import bc, bc_stacked
+from bumps_jax.algo import bc
 from bumps_jax.pipeline import runio
 
 # The options `--program-options graphs` gives the chunk's program: XLA's default command-buffer
@@ -53,8 +51,7 @@ def _kind(name: str) -> str:
 def _setup(cfg, epochs: int):
     """(chunk, state, obs, actions, keys, gradient steps per chunk) of the config's trainer."""
     train_cfg, models, obs, actions, keys = bc_inputs(cfg, epochs)
-    backward = "batched" if cfg.meta.trainer == "stacked_batched" else "autodiff"
-    init, chunk = bc_stacked.make_stacked_trainer(models, train_cfg, len(obs), backward=backward)
+    init, chunk = bc.make_trainer(models, train_cfg, len(obs))
     return chunk, init(keys), obs, actions, keys, epochs * bc.steps_per_epoch(train_cfg, len(obs))
 
 
@@ -123,7 +120,7 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", default="paper", choices=sorted(config.PRESETS))
     p.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
-                   help="dotted config overrides, e.g. meta.train.unroll=1")  # fmt: skip
+                   help="dotted config overrides, e.g. meta.train.batch_size=256")  # fmt: skip
     p.add_argument("--epochs", type=int, default=1000, help="epochs per timed chunk (default 1000)")
     p.add_argument("--program-options", default="graphs", choices=sorted(PROGRAM_OPTIONS) + ["none"],
                    help="XLA options given to one program, timed beside the plain one (none: skip)")  # fmt: skip
@@ -136,8 +133,6 @@ def parse_args(argv=None):
         runio.check_writable(Path(args.out).parent)
     except ValueError as err:
         p.error(str(err))
-    if cfg.meta.trainer == "separate":
-        p.error("meta.trainer 'separate' runs one program per net: profile 'stacked' or 'stacked_batched'")
     return args, cfg
 
 
@@ -148,8 +143,8 @@ def main(argv=None) -> dict:
     plain = lambda s: chunk(s, obs, actions, keys)  # noqa: E731
     walls, state = _time(plain, state)
     record = {
-        "trainer": cfg.meta.trainer,
-        "unroll": int(cfg.meta.train.unroll),
+        "trainer": "stacked_batched",  # the one trainer, under the name it was measured by before
+        "unroll": bc.steps_unrolled(bc.steps_per_epoch(cfg.meta.train, len(obs))),
         "epochs_per_chunk": args.epochs,
         "steps_per_chunk": steps,
         "us_per_step": float(np.mean(walls)) / steps * 1e6,

@@ -39,7 +39,7 @@ import numpy as np
 
 from benchmarks import scene_bench
 from bumps_jax import cli, config
-from bumps_jax.algo import bc, bc_stacked, filtering, rollout, sharding
+from bumps_jax.algo import bc, filtering, rollout, sharding
 from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts
 from bumps_jax.tasks.kick import cmaes, starting_kicks
@@ -229,12 +229,6 @@ def bench_brax(cfg, epochs: int, all_tasks: bool = False) -> dict:
     return out
 
 
-# The BC loops the bench can time: each net in its own program (the meta stage's "separate"),
-# both in one (`bc.make_joint_trainer`), and both stacked (`bc_stacked`, the stage's "stacked"
-# and "stacked_batched").
-BC_TRAINERS = ("separate", "joint", "stacked", "stacked_batched")
-
-
 def bc_inputs(cfg, chunk: int) -> tuple:
     """(meta.train with `chunk` epochs per chunk, the meta nets {name: MetaPolicy}, random obs and
     actions as many as the experts' dataset has pairs, the seed keys): what a BC bench trains on."""
@@ -247,49 +241,23 @@ def bc_inputs(cfg, chunk: int) -> tuple:
     return train_cfg, models, obs, actions, bc.seed_keys(train_cfg)
 
 
-def bench_bc(cfg, chunk: int, trainers=BC_TRAINERS) -> dict:
-    """Gradient steps/s of the meta-policies' BC loop on a dataset of the experts' size, timed
-    over `chunk` epochs, for each of `trainers` (`BC_TRAINERS`): each net in its own program, both
-    nets in one (the same steps), and both stacked in one (the same steps in batched kernels);
-    both nets' full schedules projected from each."""
+def bench_bc(cfg, chunk: int) -> dict:
+    """Gradient steps/s of the meta stage's BC loop (`bc.make_trainer`: both nets stacked in one
+    program) on a dataset of the experts' size, timed over `chunk` epochs; both nets' full
+    schedules projected. Its keys keep the name the loop was measured under before it became
+    the only one (`bc_stacked_batched_*`), so that older records compare."""
     train_cfg, models, obs, actions, keys = bc_inputs(cfg, chunk)
     n_rows = len(obs)
     epoch_steps = bc.steps_per_epoch(train_cfg, n_rows)
     steps = chunk * epoch_steps * train_cfg.n_seeds  # per net
-    out: dict = {"bc_steps_per_epoch": epoch_steps}
-    if "separate" in trainers:
-        total, last = 0.0, {}
-        for name, model in models.items():
-            init, step_chunk = bc.make_trainer(model, train_cfg, n_rows)
-            (_, loss), first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
-            out[f"bc_steps_per_s_{name}"] = steps / wall
-            out[f"bc_compile_s_{name}"] = first - wall
-            last[name] = float(np.asarray(loss)[:, -1].mean())
-            total += train_cfg.epochs * epoch_steps / (steps / wall)
-        out["bc_steps_per_s"] = min(out[f"bc_steps_per_s_{name}"] for name in models)
-        out["bc_last_loss"] = last
-        # Both nets' full schedules (train.epochs passes each), one after the other, at the measured rates.
-        out["bc_wall_s"] = total
-    # Both nets in one program: "bc_joint" one loop of both nets' steps; "bc_stacked" every layer of
-    # both one batched matmul, the gradient by `jax.grad`; "bc_stacked_batched" the same with the
-    # hand-written batched backward.
-    makers = {
-        "joint": ("bc_joint", lambda: bc.make_joint_trainer(models, train_cfg, n_rows)),
-        "stacked": ("bc_stacked", lambda: bc_stacked.make_stacked_trainer(models, train_cfg, n_rows)),
-        "stacked_batched": (
-            "bc_stacked_batched",
-            lambda: bc_stacked.make_stacked_trainer(models, train_cfg, n_rows, backward="batched"),
-        ),
-    }
-    for trainer, (key, make) in makers.items():
-        if trainer not in trainers:
-            continue
-        init, step_chunk = make()
-        (_, losses), first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
-        out[f"{key}_steps_per_s"] = steps / wall  # gradient steps of each net per second, both nets at once
-        out[f"{key}_compile_s"] = first - wall
-        out[f"{key}_last_loss"] = {name: float(np.asarray(v)[:, -1].mean()) for name, v in losses.items()}
-        out[f"{key}_wall_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
+    out: dict = {"bc_steps_per_epoch": epoch_steps, "bc_unroll": bc.steps_unrolled(epoch_steps)}
+    init, step_chunk = bc.make_trainer(models, train_cfg, n_rows)
+    (_, losses), first, wall = timed(lambda s, f=step_chunk: f(s, obs, actions, keys), init(keys))
+    key = "bc_stacked_batched"
+    out[f"{key}_steps_per_s"] = steps / wall  # gradient steps of each net per second, both nets at once
+    out[f"{key}_compile_s"] = first - wall
+    out[f"{key}_last_loss"] = {name: float(np.asarray(v)[:, -1].mean()) for name, v in losses.items()}
+    out[f"{key}_wall_s"] = train_cfg.epochs * epoch_steps / (steps / wall)
     return out
 
 
@@ -364,8 +332,6 @@ def parse_args(argv=None):
                         help="the record's file name in --out-dir, without .json: a bench of some sections "
                              "(--skip) keeps its own record, e.g. --record experts_gae")  # fmt: skip
     parser.add_argument("--skip", nargs="*", default=(), choices=SECTIONS)
-    parser.add_argument("--bc-trainers", nargs="+", default=list(BC_TRAINERS), choices=BC_TRAINERS,
-                        help="the BC loops timed (default: all)")  # fmt: skip
     parser.add_argument("--backends", nargs="+", default=list(kick_env.IMPLS), choices=kick_env.IMPLS,
                         help="physics backends measured side by side (the config's own is measured last)")  # fmt: skip
     args = parser.parse_args(argv)
@@ -379,7 +345,7 @@ def parse_args(argv=None):
     return args, cfg
 
 
-def sections(cfg, size: dict, backends, one, bc_trainers=BC_TRAINERS) -> list:
+def sections(cfg, size: dict, backends, one) -> list:
     """(name, measurement, where its result goes) in the order they run: a backend's sections
     go into `backends.<impl>`, the others into the record's top level. The config's own backend
     (`env.impl`) runs last, with the GAE variants, Brax and BC."""
@@ -406,7 +372,7 @@ def sections(cfg, size: dict, backends, one, bc_trainers=BC_TRAINERS) -> list:
         ("gae", lambda: experts_gae(True), None),
         ("brax", lambda: bench_brax(cfg, size["brax_epochs"]), None),
         ("brax", lambda: bench_brax(cfg, size["brax_epochs"], all_tasks=True), None),
-        ("bc", lambda: bench_bc(cfg, size["bc_chunk"], bc_trainers), None),
+        ("bc", lambda: bench_bc(cfg, size["bc_chunk"]), None),
     ]
 
 
@@ -441,7 +407,7 @@ def main(argv=None) -> dict:
         "bc_wall_s", "bc_joint_wall_s", "bc_stacked_wall_s", "bc_stacked_batched_wall_s",
         "tuning_projected_s", "tuning_batched_projected_s",
     ]  # fmt: skip
-    for name, fn, into in sections(cfg, SIZES[args.preset], args.backends, one, args.bc_trainers):
+    for name, fn, into in sections(cfg, SIZES[args.preset], args.backends, one):
         if name in args.skip:
             continue
         part = fn()

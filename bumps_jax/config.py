@@ -23,7 +23,26 @@ task's stages read only that view.
 
 Defaults are the `paper` preset (the paper's budgets, for a GPU); `tiny` overrides the
 sizes so that the whole pipeline runs on a CPU in minutes. Every value a user can set is a
-leaf here; `docs/decisions.md` says how the numbers were chosen.
+leaf here, with a comment saying what it does; `docs/decisions.md` says how the numbers were
+chosen and which settings lost.
+
+What the `paper` preset runs that the paper did not (its hyperparameter tables; the
+original code's keyframe kick):
+  - the physics: MuJoCo (Warp) at a 2.5 ms step with `env.noise`, not SimSpark;
+  - PPO (`experts.ppo`): 256 episodes (19,200 steps) per update in 16 minibatches of 1,200
+    steps, where the paper has 4,096-step batches and minibatches of 1,024 (the same 12 M
+    steps per expert and 30 epochs); a separate value-net rate (`value_learning_rate` 1e-3,
+    the paper one Adam at 1e-6), gradient clipping, reward scaling 0.01 on top of the env's
+    0.1 (`ppo_config` names the paper's value beside each);
+  - the experts' start: every task's keyframe kick from the prior's long kick at its own
+    strength, then tuned by CMA-ES as one chain (`experts.bc`, `experts.tune`): four tuning
+    runs (`tune.restarts` 4) whose kicks are chosen together with the neighbour leash, then a
+    20-generation polish (`tune.polish_*`); the paper cloned no tuned kicks;
+  - the meta-policies read (phase, normalised target) in [0, 1], not (time step, target m);
+    the paper's BC learning rate is printed as 3^-6, ours is 3e-4 (the original code's);
+  - filtering by successive halving (`filter.selection`), not a fixed number of rollouts per
+    context, and the 6 baseline seeds trained at a second learning rate besides the paper's
+    (`baseline.extra_learning_rate`).
 """
 
 from __future__ import annotations
@@ -45,27 +64,27 @@ from bumps_jax.tasks.kick.targets import DEV_TARGETS, HELDOUT_TARGETS
 
 def _prior() -> ml_collections.ConfigDict:
     cfg = ml_collections.ConfigDict()
-    cfg.target = 12.0  # m: the main kick is tuned for the middle of the task range
-    # Targets allowed while tuning: wide enough for the short and long ends of the kick family.
-    cfg.task_range = (5.0, 25.0)
+    cfg.target = 12.0  # m: the distance the main kick is searched for
+    cfg.task_range = (5.0, 25.0)  # m: targets the prior's searches may kick for
     cfg.extremes = ml_collections.ConfigDict({"short": 6.0, "long": 21.0})  # m: the family's ends
     cfg.population_size = 64  # CMA-ES candidates per generation
-    cfg.generations = 80
+    cfg.generations = 80  # CMA-ES generations of each search
     cfg.repetitions = 16  # noisy episodes per candidate per generation
     cfg.eval_repetitions = 100  # fresh noisy episodes scoring the best kick
     cfg.sigma_init = 1.0  # CMA-ES step, in units of the kick model's PARAM_SCALE
-    cfg.seed = 0
-    # Kick record the main search starts from ("": the committed assets/kick_prior.json). A run
-    # copies it into its directory first, so a rerun starts from the same kick.
+    cfg.seed = 0  # CMA-ES and noise seed of the prior's searches
+    # Kick record the main search starts from ("": the committed assets/kick_prior.json); a run
+    # copies it into its directory first.
     cfg.start = ""
-    cfg.start_strength = 0.75  # the main kick's swing speed cap, leaving headroom for longer kicks
+    cfg.start_strength = 0.75  # the main kick's swing speed cap (strength is not searched)
     # Parameters the main search moves (the extremes move all); strength stays at start_strength.
     cfg.free_params = (
         "lean", "support_hip", "support_ankle", "t_shift", "t_lift", "back_hip", "back_knee",
         "back_ankle", "t_back", "swing_hip", "swing_knee", "swing_ankle", "t_swing",
     )  # fmt: skip
-    cfg.sweep_strengths = tuple(i / 8 for i in range(9))  # along short (0) -> main (0.5) -> long (1)
-    cfg.fitness = ml_collections.ConfigDict()
+    # Strengths at which the family is swept to calibrate distance: short (0) -> main (0.5) -> long (1).
+    cfg.sweep_strengths = tuple(i / 8 for i in range(9))
+    cfg.fitness = ml_collections.ConfigDict()  # a kick's cost in every CMA-ES search
     cfg.fitness.distance = 1.0  # cost per metre of resting error along the kick line
     cfg.fitness.lateral = 2.0  # cost per metre sideways
     cfg.fitness.invalid = 20.0  # cost of a fall, a miss or a blow-up
@@ -75,12 +94,13 @@ def _prior() -> ml_collections.ConfigDict:
 def _experts() -> ml_collections.ConfigDict:
     cfg = ml_collections.ConfigDict()
     cfg.tasks = kick_env.meta_train_tasks()  # m, one expert each
-    cfg.seed = 0
-    cfg.updates_per_chunk = 25  # PPO updates per compiled chunk; progress and a checkpoint between
-    cfg.keep_checkpoints = 3
-    cfg.bc = ml_collections.ConfigDict()
+    cfg.seed = 0  # the experts' PPO seed
+    # Speed and logging only: PPO updates per compiled chunk; progress and a checkpoint between.
+    cfg.updates_per_chunk = 25
+    cfg.keep_checkpoints = 3  # checkpoints kept while training (disk only)
+    cfg.bc = ml_collections.ConfigDict()  # cloning each task's starting kick into its expert
     cfg.bc.steps = 20000  # full-batch Adam steps cloning the starting kick (cosine decay)
-    cfg.bc.learning_rate = 1e-2
+    cfg.bc.learning_rate = 1e-2  # peak Adam rate of that cloning
     # Where each task's starting kick begins, before tuning: True, the prior's family at the
     # task's calibrated strength (with `tune.anchor_starts`, the best of that and the prior's
     # anchors); False, one kick (`common_start`) for every task, so that the tuned kicks are one family.
@@ -95,10 +115,10 @@ def _experts() -> ml_collections.ConfigDict:
     cfg.tune = ml_collections.ConfigDict()  # CMA-ES on every task's starting kick, all at once
     cfg.tune.generations = 60  # 0: clone the (blended or anchor) kick as it is
     cfg.tune.sigma_init = 2.0  # in PARAM_SCALE units around each task's start
-    cfg.tune.population_size = 32
+    cfg.tune.population_size = 32  # CMA-ES candidates per task per generation
     cfg.tune.repetitions = 8  # noisy kicks per candidate per generation
     cfg.tune.eval_repetitions = 32  # fresh kicks choosing between start and tuned
-    cfg.tune.seed = 0
+    cfg.tune.seed = 0  # CMA-ES seed of the tuning
     # "per_task" only: independent runs of the whole tuning (different CMA-ES keys); the one whose
     # kicks cost least over all tasks on fresh episodes is kept whole. Each run costs a tuning.
     cfg.tune.restarts = 1
@@ -138,17 +158,17 @@ def _experts() -> ml_collections.ConfigDict:
     # middle target), added during the search (0: none; > 0 triples the tuning's episodes). > 0
     # tunes the tasks so that what a meta-policy plays between two of them still kicks.
     cfg.tune.midpoint_weight = 0.0
-    cfg.ppo = ppo_config.default_config()
+    cfg.ppo = ppo_config.default_config()  # each expert's PPO (`ppo_config` comments each leaf)
     cfg.ppo.num_envs = 256  # episodes per update (19,200 steps; the paper: 4,096)
     cfg.ppo.num_minibatches = 16  # 16 episodes = 1,200 steps each (the paper: 1,024)
-    cfg.ppo.num_epochs = 30
+    cfg.ppo.num_epochs = 30  # passes over each update's batch
     cfg.ppo.total_env_steps = 256 * 75 * 625  # 12.0 M per expert, 625 updates
-    cfg.ppo.learning_rate = 1e-6
-    cfg.ppo.init_log_std = -6.0
-    cfg.ppo.reward_scaling = 0.01
-    cfg.eval = ml_collections.ConfigDict()
+    cfg.ppo.learning_rate = 1e-6  # the policy's Adam rate
+    cfg.ppo.init_log_std = -6.0  # the policy's log-std at the start
+    cfg.ppo.reward_scaling = 0.01  # factor on the env's reward
+    cfg.eval = ml_collections.ConfigDict()  # the experts' evaluation (Table 1)
     cfg.eval.repetitions = 100  # noisy kicks per expert on its own task
-    cfg.eval.seed = 1
+    cfg.eval.seed = 1  # noise of that evaluation
     return cfg
 
 
@@ -156,43 +176,28 @@ def _meta() -> ml_collections.ConfigDict:
     cfg = ml_collections.ConfigDict()
     # name -> (hidden layers, width): the paper's two meta-policies.
     cfg.nets = ml_collections.ConfigDict({"meta_4x256": (4, 256), "meta_11x128": (11, 128)})
-    # How the nets train, the same optimisation each way: "separate", each net its own loop, one
-    # after the other; "stacked", every net padded and stacked in one loop (`bc_stacked`: each
-    # layer of all nets one batched matmul); "stacked_batched", the same with the hand-written
-    # backward pass. Rounding differs between them, so a run made one way is not resumed another.
-    cfg.trainer = "separate"
-    # What the kick's nets read: "unit", (phase = step / steps, (target - 7) / 11), both in [0, 1];
-    # "raw", the paper's unscaled (time step, target in m); "centred", both moved to [-1, 1]. Either
-    # way the dataset and the env's observations stay (phase, normalised context): "raw" and
-    # "centred" are a fixed affine map in front of the first layer (`bc.kick_raw_inputs`,
-    # `bc.kick_centred_inputs`), recorded with the nets. Another task takes only "unit"
-    # (its states are normalised by the dataset's statistics).
-    cfg.inputs = "unit"
-    cfg.dataset = ml_collections.ConfigDict()
+    cfg.dataset = ml_collections.ConfigDict()  # the experts' rollouts the nets are cloned from
     cfg.dataset.repetitions = 1  # rollouts per expert; 1 records them noise-free (the paper)
-    cfg.dataset.seed = 0
-    cfg.train = ml_collections.ConfigDict()
+    cfg.dataset.seed = 0  # noise of those rollouts (with repetitions > 1)
+    cfg.train = ml_collections.ConfigDict()  # behaviour cloning (`bc.make_trainer`: every net in one program)
     cfg.train.learning_rate = 3e-4  # Adam, times decay_rate every decay_every epochs
-    cfg.train.decay_rate = 0.8
+    cfg.train.decay_rate = 0.8  # factor on the rate every decay_every epochs
     cfg.train.decay_every = 5000  # epochs
-    cfg.train.batch_size = 128
+    cfg.train.batch_size = 128  # pairs per gradient step
     cfg.train.epochs = 150_000  # passes over the dataset
-    cfg.train.chunk = 2500  # epochs per host sync (progress, CSV, checkpoint)
-    # Gradient steps per iteration of the compiled loop (lax.scan's unroll; at most an epoch's):
-    # the same steps on the same batches in fewer iterations, a longer compile.
-    cfg.train.unroll = 1
+    cfg.train.chunk = 2500  # speed and logging only: epochs per host sync (progress, CSV, checkpoint)
     cfg.train.n_seeds = 1  # initialisations trained side by side; seed 0 is the table's row
-    cfg.train.seed = 0
-    cfg.eval = ml_collections.ConfigDict()
-    cfg.eval.tasks = kick_env.meta_test_tasks()
-    cfg.eval.repetitions = 100
-    cfg.eval.seed = 1
+    cfg.train.seed = 0  # initialisation and shuffling seed
+    cfg.eval = ml_collections.ConfigDict()  # the unfiltered evaluation (Table 1)
+    cfg.eval.tasks = kick_env.meta_test_tasks()  # m
+    cfg.eval.repetitions = 100  # noisy kicks per net per task
+    cfg.eval.seed = 1  # noise of that evaluation
     return cfg
 
 
 def _filter() -> ml_collections.ConfigDict:
     cfg = ml_collections.ConfigDict()
-    cfg.tasks = kick_env.meta_test_tasks()
+    cfg.tasks = kick_env.meta_test_tasks()  # m: the tasks filtered (Table 2)
     cfg.context_range = (7.1, 18.0)  # m: sampled contexts form a grid over this range ...
     cfg.context_step = 0.1  # ... of this step (110 contexts)
     cfg.high_context_step = 0.01  # the "high sample rate" variant (1091 contexts)
@@ -204,12 +209,12 @@ def _filter() -> ml_collections.ConfigDict:
     cfg.selection = "halving"
     cfg.selection_repetitions = 10  # noisy rollouts per sampled context ("fixed")
     cfg.halving_rungs = (2, 8, 32, 100)  # rollouts per surviving context after each rung ("halving")
-    cfg.halving_keep = 0.25  # fraction of a task's surviving candidates that goes on to the next rung
+    cfg.halving_keep = 0.25  # fraction of a task's candidates that goes on to the next rung ("halving")
     cfg.eval_repetitions = 100  # fresh noisy rollouts of each task's chosen context
     cfg.seed = 0  # split into independent selection and evaluation noise
     cfg.net_seed = 0  # which initialisation of a meta-policy ensemble is filtered
-    # Episodes per device per program call: one compiled program serves every batch (None: one
-    # call, and one compile, per batch size).
+    # Speed only: episodes per device per program call, one compiled program for every batch
+    # (None: one call, and one compile, per batch size).
     cfg.block = FieldReference(4096, field_type=int)
     return cfg
 
@@ -217,13 +222,14 @@ def _filter() -> ml_collections.ConfigDict:
 def _baseline() -> ml_collections.ConfigDict:
     cfg = ml_collections.ConfigDict()
     cfg.seeds = 6  # independent runs, trained side by side
-    cfg.updates_per_chunk = 25  # PPO updates per compiled chunk; progress and a checkpoint between
-    cfg.keep_checkpoints = 3
-    cfg.bc_steps = 20000  # cloning the main kick at every training context before PPO
-    cfg.bc_learning_rate = 1e-3
-    cfg.eval_tasks = kick_env.meta_test_tasks()
-    cfg.eval_repetitions = 100
-    cfg.eval_seed = 7
+    # Speed and logging only: PPO updates per compiled chunk; progress and a checkpoint between.
+    cfg.updates_per_chunk = 25
+    cfg.keep_checkpoints = 3  # checkpoints kept while training (disk only)
+    cfg.bc_steps = 20000  # Adam steps cloning the main kick at every training context before PPO
+    cfg.bc_learning_rate = 1e-3  # peak Adam rate of that cloning
+    cfg.eval_tasks = kick_env.meta_test_tasks()  # m: where each seed's policy is evaluated
+    cfg.eval_repetitions = 100  # noisy kicks per task
+    cfg.eval_seed = 7  # noise of that evaluation
     cfg.ppo = _experts().ppo  # one expert's PPO settings and budget per seed ...
     cfg.ppo.policy_hidden = (256,) * 11  # ... with the paper's 11 x 256 policy
     cfg.ppo.sample_task_range = (7.0, 18.0)  # each episode draws its target from U[7, 18] m
@@ -255,11 +261,11 @@ def default_config() -> ml_collections.ConfigDict:
     """The whole tree at its defaults (unlocked): the paper's values. `PRESETS["paper"]` changes
     the few knobs that only pay on a GPU; the tiny preset, for a CPU, keeps their defaults."""
     cfg = ml_collections.ConfigDict()
-    cfg.preset = "paper"
+    cfg.preset = "paper"  # the preset this tree was made from (recorded; set by `make_config`)
     # The contextual task every stage runs: "kick" (the paper's) or "cheetah_vel" (its sections:
     # `cheetah_vel`).
     cfg.task = "kick"
-    cfg.env = kick_env.default_config()
+    cfg.env = kick_env.default_config()  # the kick's physics, noise and reward (`kick_env` comments each leaf)
     cfg.prior = _prior()
     cfg.experts = _experts()
     cfg.meta = _meta()
@@ -271,27 +277,19 @@ def default_config() -> ml_collections.ConfigDict:
     return cfg
 
 
-# Each preset: dotted overrides of the defaults (the paper's values).
+# Each preset: dotted overrides of the defaults (the paper's values). "tiny" shrinks every budget
+# so the whole pipeline runs on a CPU in minutes.
 PRESETS: dict[str, dict] = {
     "paper": {
-        # Both meta-policies in one stacked loop with the hand-written backward: the same
-        # optimisation, 361 s against 404-411 s on one H100 (docs/decisions.md, meta.trainer).
-        "meta.trainer": "stacked_batched",
-        # An epoch's 14 steps in one iteration of that loop: the two nets' training 310 s against
-        # 376 s in the meta stage on one H100 (docs/decisions.md, meta.train.unroll).
-        "meta.train.unroll": 14,
-        # Four independent tunings of the starting kicks, each task's kick chosen among them with
-        # the neighbour leash, then a 20-generation polish at a step of 0.25. On development seeds
-        # 102 and 103 at the paper budget: experts 0.33 m, unfiltered 4x256 0.44-0.45 m and 11x128
-        # 0.36 m, where seed 102's other tunings gave 0.35-0.43, 0.49-0.65 and 0.42-0.48 m
-        # (docs/decisions.md, tune.restarts). The experts stage takes about 935 s instead of 762.
+        # The starting kicks tuned four times (independent CMA-ES keys), each task's kick chosen
+        # among the runs together with its neighbours' (the leash), then a 20-generation polish
+        # at a step of 0.25.
         "experts.tune.restarts": 4,
         "experts.tune.keep": "chain",
         "experts.tune.polish_generations": 20,
         "experts.tune.polish_sigma": 0.25,
-        # The four tunings as one batch: the same runs (each from its own key), each physics call
-        # four times the episodes; in the paper run of 2026-11-26 (one H100) the four runs took
-        # 147 s against 208 s one after another (docs/decisions.md, tune.batch_restarts).
+        # Those four runs played as one batch (each physics call all four runs' episodes): the
+        # same runs, sooner; speed only.
         "experts.tune.batch_restarts": True,
     },
     "tiny": {
@@ -311,8 +309,8 @@ PRESETS: dict[str, dict] = {
         "experts.tune.repetitions": 2,
         "experts.tune.eval_repetitions": 4,
         "experts.tune.anchor_starts": False,
-        # One generation cannot carry the main kick to 8 and 16 m: each task starts from its own
-        # strength, untied to its neighbours.
+        # Each task starts from the prior's family at its own strength, untied to its neighbours
+        # (one generation cannot carry one kick to 8 and 16 m).
         "experts.bc.per_task_strength": True,
         "experts.bc.common_start": "main",
         "experts.bc.common_start_strength": False,
@@ -333,7 +331,7 @@ PRESETS: dict[str, dict] = {
         "filter.tasks": kick_env.meta_test_tasks()[9::10],
         "filter.context_step": 1.0,
         "filter.high_context_step": 0.5,
-        # The tests' and the demo's selection: 2 rollouts per context.
+        # Every candidate context 2 rollouts (no halving).
         "filter.selection": "fixed",
         "filter.selection_repetitions": 2,
         "filter.halving_rungs": (1, 2),

@@ -20,7 +20,7 @@
 #        the meta and filtering stages' GPU time, about 8 minutes, is saved)
 #   FROM=ARM experiments/dev_starting_kicks.sh ARM2 ...   (ARM2 starts from ARM's finished experts, copied
 #        once into its own run directory: for arms that differ from ARM only in meta.* settings, e.g.
-#        FROM=<arm> ... <arm>,meta.inputs=raw; any other difference and the experts stage refuses them as stale)
+#        FROM=<arm> ... <arm>,meta.train.batch_size=256; any other difference and the experts stage refuses them as stale)
 #   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
 #        | midpoint_weight=<w> | repetitions=<n> (noisy kicks per CMA-ES candidate) | restarts=<n> (runs of the
 #          whole tuning, the best kept) | keep=task (each task its cheapest run's kick) | keep=chain (the runs'

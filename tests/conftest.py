@@ -4,7 +4,7 @@ import os
 
 # The tests' programs compile with LLVM's cheap pipeline and XLA's loop emitters: on a CPU
 # compiling is about 40 % of the suite's time, and what their runs cost is Warp's physics (its own
-# kernels, not XLA's code) or nets too small for the codegen to matter (test_bc_stacked.py:
+# kernels, not XLA's code) or nets too small for the codegen to matter (test_bc_trainer.py:
 # 84 s -> 33 s; an expert's first PPO update: compiles 20 s -> 9 s, its run time unchanged).
 # Set before JAX starts its backend; a user's XLA_FLAGS come after these and win. Processes the
 # tests start inherit them (tests/sharded_run.py's device count is added to them).
@@ -66,7 +66,7 @@ SLOWEST_FIRST = (
     "test_baseline.py",
     "test_compare_brax_ppo.py",
     "test_cheetah_pipeline.py",
-    "test_bc_stacked.py",
+    "test_bc_trainer.py",
     "test_ppo.py",
     "test_filtering.py",
     "test_cheetah_env.py",

@@ -26,8 +26,6 @@ from bumps_jax.pipeline.stages import meta as meta_stage
 from bumps_jax.report import publish, tables
 from bumps_jax.report import summary as report
 from bumps_jax.tasks.kick import env as kick_env
-from bumps_jax.tasks.kick import keyframes as kick_model
-from bumps_jax.tasks.kick import start as kick_start
 
 
 def quiet(*args, **kwargs):
@@ -60,12 +58,13 @@ def test_an_epoch_visits_every_row_once():
     actions = jnp.asarray(rng.normal(size=(300, 22)), jnp.float32)
     cfg = _train_cfg(learning_rate=1e-12, epochs=1, chunk=1, batch_size=128)
     model = bc.MetaPolicy(depth=1, width=8)
-    init, chunk = bc.make_trainer(model, cfg, 300)
-    state = init(bc.seed_keys(cfg))
-    params0 = jax.tree.map(lambda a: a[0], state.params)
+    init, chunk = bc.make_trainer({"net": model}, cfg, 300)
+    states = init(bc.seed_keys(cfg))
+    params0 = jax.tree.map(lambda a: a[0], states["net"].params)
     per_row = np.abs(np.asarray(bc.policy_apply(model)(params0, obs)) - np.asarray(actions)).mean(axis=1)
-    state, losses = chunk(state, obs, actions, bc.seed_keys(cfg))
-    assert int(state.step) == 3 and losses.shape == (1, 3)
+    states, losses = chunk(states, obs, actions, bc.seed_keys(cfg))
+    losses = losses["net"]
+    assert int(states["net"].step) == 3 and losses.shape == (1, 3)
     weighted = (128 * losses[0, 0] + 128 * losses[0, 1] + 44 * losses[0, 2]) / 300
     assert float(weighted) == pytest.approx(per_row.mean(), rel=1e-4)
 
@@ -77,15 +76,16 @@ def test_nets_trained_in_one_program_end_where_each_alone_does():
     cfg = _train_cfg(learning_rate=1e-2, epochs=4, chunk=2, batch_size=128, n_seeds=2)
     models = {"a": bc.MetaPolicy(depth=1, width=8), "b": bc.MetaPolicy(depth=3, width=4)}
     keys = bc.seed_keys(cfg)
-    init, chunk = bc.make_joint_trainer(models, cfg, 300)
+    init, chunk = bc.make_trainer(models, cfg, 300)
     states = init(keys)
     for _ in range(2):
         states, joint_losses = chunk(states, obs, actions, keys)
     for name, model in models.items():
-        init_one, chunk_one = bc.make_trainer(model, cfg, 300)
+        init_one, chunk_one = bc.make_trainer({name: model}, cfg, 300)
         state = init_one(keys)
         for _ in range(2):
             state, losses = chunk_one(state, obs, actions, keys)
+        state, losses = state[name], losses[name]
         assert int(states[name].step) == int(state.step) == 12
         np.testing.assert_allclose(joint_losses[name], losses, rtol=1e-5)
         jax.tree.map(
@@ -129,8 +129,8 @@ def test_loss_falls_on_the_tiny_preset(tmp_path):
     # second, from 0.453 at the start; the bar below is 0.136).
     depth, width = cfg.meta.nets["meta_4x256"]
     model = bc.MetaPolicy(depth, width)
-    init, _ = bc.make_trainer(model, cfg.meta.train, len(data.obs))
-    first = jax.tree.map(lambda a: a[0], init(bc.seed_keys(cfg.meta.train)).params)
+    init, _ = bc.make_trainer({"net": model}, cfg.meta.train, len(data.obs))
+    first = jax.tree.map(lambda a: a[0], init(bc.seed_keys(cfg.meta.train))["net"].params)
     initial = float(bc.mae_loss(first, bc.policy_apply(model), data.obs, data.actions))
     lines = []
     bc.train(model, data, cfg.meta.train, tmp_path, say=lines.append)
@@ -148,7 +148,7 @@ def test_resume_equals_uninterrupted(tmp_path):
     data = _table_dataset((8.0, 12.0))
     cfg = _train_cfg(epochs=40, chunk=10, n_seeds=2)
     model = bc.MetaPolicy(depth=1, width=8)
-    trainer = bc.make_joint_trainer({"net": model}, cfg, len(data.obs))  # 150 pairs: 2 steps per epoch
+    trainer = bc.make_trainer({"net": model}, cfg, len(data.obs))  # 150 pairs: 2 steps per epoch
     whole = bc.train(model, data, cfg, tmp_path / "a", say=quiet, trainer=trainer)
     part = bc.train(model, data, cfg, tmp_path / "b", say=quiet, max_chunks=2, trainer=trainer)
     assert int(part.step) == 2 * 20
@@ -173,7 +173,7 @@ def test_resume_falls_back_past_a_corrupt_checkpoint(tmp_path):
     data = _table_dataset((8.0, 12.0))
     cfg = _train_cfg(epochs=30, chunk=10)
     model = bc.MetaPolicy(depth=1, width=8)
-    trainer = bc.make_joint_trainer({"net": model}, cfg, len(data.obs))
+    trainer = bc.make_trainer({"net": model}, cfg, len(data.obs))
     whole = bc.train(model, data, cfg, tmp_path / "a", say=quiet, trainer=trainer)
     bc.train(model, data, cfg, tmp_path / "b", say=quiet, max_chunks=2, trainer=trainer)
     newest = tmp_path / "b" / "checkpoints" / "40"  # 2 chunks x 10 epochs x 2 steps
@@ -193,8 +193,8 @@ def test_load_policy_reads_params_whatever_the_optimiser_state(tmp_path):
     import orbax.checkpoint as ocp
 
     cfg = _train_cfg()
-    init, _ = bc.make_trainer(bc.MetaPolicy(1, 8), cfg, n_rows=4)
-    params = jax.tree.map(lambda a: a + 1.0, init(bc.seed_keys(cfg)).params)
+    init, _ = bc.make_trainer({"net": bc.MetaPolicy(1, 8)}, cfg, n_rows=4)
+    params = jax.tree.map(lambda a: a + 1.0, init(bc.seed_keys(cfg))["net"].params)
     # A checkpoint from a trainer with another optimiser layout (here: none of Adam's).
     state = {"params": params, "opt_state": {"other": jnp.zeros(3)}, "step": jnp.asarray(7)}
     with ocp.CheckpointManager((tmp_path / "checkpoints").resolve()) as manager:
@@ -643,50 +643,27 @@ def _leaves(d, prefix=""):
             yield f"{prefix}{k}", v
 
 
-# -- the kick nets' input maps (`meta.inputs = "raw"`, `"centred"`) ------------------------------
+# -- the nets' input map (`bc.MetaPolicy.obs_norm`) ---------------------------------------------
 
 
-def test_raw_inputs_show_the_net_the_time_step_and_the_target_in_metres(env):
-    obs, _ = kick_start.kick_dataset(env, 12.3, kick_model.load_record()["params"])
-    shift, scale = bc.kick_raw_inputs(env.n_steps, env.config.task_range)
-    raw = (np.asarray(obs) - np.asarray(shift)) / np.asarray(scale)
-    np.testing.assert_allclose(raw[:, 0], np.arange(env.n_steps), atol=1e-4)
-    np.testing.assert_allclose(raw[:, 1], 12.3, atol=1e-4)
-    # The net with the map in front equals the same weights fed the unscaled numbers.
-    mapped, plain = bc.MetaPolicy(2, 8, obs_norm=(shift, scale)), bc.MetaPolicy(2, 8)
-    params = plain.init(jax.random.key(0), jnp.zeros((1, 2)))["params"]
-    np.testing.assert_allclose(
-        bc.policy_apply(mapped)(params, obs), bc.policy_apply(plain)(params, jnp.asarray(raw)), rtol=1e-5, atol=1e-5
-    )
-    # With proprioception the further observations pass as they are.
-    shift, scale = bc.kick_raw_inputs(75, (7.0, 18.0), obs_size=5)
-    assert shift[2:] == (0.0, 0.0, 0.0) and scale[2:] == (1.0, 1.0, 1.0)
-
-
-def test_the_meta_stage_takes_raw_inputs_only_when_told(env):
+def test_the_kick_nets_read_phase_and_context_as_they_are(env):
     data = bc.Dataset(obs=np.zeros((4, 2), np.float32), actions=np.zeros((4, 22), np.float32),
                       task=np.zeros(4, np.float32))  # fmt: skip
     assert meta_stage.net_obs_norm(config.make_config("tiny"), env, data) is None
-    raw = meta_stage.net_obs_norm(config.make_config("tiny", {"meta.inputs": "raw"}), env, data)
-    assert raw == bc.kick_raw_inputs(env.n_steps, env.config.task_range)
-    assert bc.obs_norm_of_record({"obs_shift": list(raw[0]), "obs_scale": list(raw[1])}) == raw
-    centred = meta_stage.net_obs_norm(config.make_config("tiny", {"meta.inputs": "centred"}), env, data)
-    corners = (np.array([[0.0, 0.0], [1.0, 1.0]]) - np.asarray(centred[0])) / np.asarray(centred[1])
-    np.testing.assert_allclose(corners, [[-1.0, -1.0], [1.0, 1.0]])  # [0, 1] -> [-1, 1]
-    bad = "meta.inputs must be one of ('unit', 'raw', 'centred'), got 'scaled'"
-    with pytest.raises(ValueError, match=re.escape(bad)):
-        config.make_config("tiny", {"meta.inputs": "scaled"})
-    # Another task's nets read its states normalised by the dataset: "raw" there is refused, not ignored.
-    with pytest.raises(ValueError, match=re.escape("cheetah_vel.meta.inputs 'raw' is for the kick's")):
-        config.make_config("tiny", {"task": "cheetah_vel", "cheetah_vel.meta.inputs": "raw"})
+    assert bc.obs_norm_of_record({}) is None and bc.obs_norm_fields(None) == {}
+    norm = ((0.5, 0.5), (0.5, 0.5))
+    assert bc.obs_norm_of_record(bc.obs_norm_fields(norm)) == norm
+    with pytest.raises(ValueError, match=re.escape("unknown config key 'meta.inputs'")):
+        config.make_config("tiny", {"meta.inputs": "raw"})
 
 
 def test_shipped_nets_carry_their_input_map_to_kick(stage_run, tmp_path, monkeypatch):
-    """A run whose nets read raw inputs ships the map with each net, and `kick` builds them with it."""
+    """A run whose nets read their inputs through a map (another task's: the dataset's statistics)
+    ships the map with each net, and `kick` builds them with it."""
     run_dir = tmp_path / "run"
     shutil.copytree(stage_run["dir"], run_dir)
     table1 = json.loads((run_dir / "meta" / meta_stage.OUTPUT).read_text())
-    shift, scale = bc.kick_raw_inputs(75, stage_run["cfg"].env.task_range)
+    shift, scale = (0.5, 0.5), (0.5, 0.5)
     table1.update(obs_shift=list(shift), obs_scale=list(scale))
     (run_dir / "meta" / meta_stage.OUTPUT).write_text(json.dumps(table1))
     monkeypatch.setattr(experts_stage, "load_family", lambda c, d: stage_run["family"])

@@ -70,26 +70,34 @@ def test_a_rerun_with_other_overrides_is_refused_naming_the_keys(tmp_path, stage
     assert json.loads((tmp_path / "experts" / "out.json").read_text())["seed"] == 7
 
 
-def test_a_knob_added_later_at_its_default_keeps_an_older_run(tmp_path, stages):
-    """A manifest written before a config key existed: the run resumes where the key is at the
-    value that behaves as before it (added_knobs.ADDED_KNOBS), and is refused where it is set otherwise,
-    even at a preset's default (the paper's neighbour leash is 1, the code before it had none)."""
+def test_a_manifest_of_another_schema_is_refused_in_one_line(tmp_path, stages):
+    """A stage manifest without `MANIFEST_SCHEMA` (an older version's, whose config tree had other
+    keys) or with another is refused whole, in one line naming the file, the schemas and the two
+    ways on, even where its config would otherwise match; --force recomputes it."""
     log, _ = stages
     pipeline.run_stage("experts", cfg(), tmp_path)
     manifest = tmp_path / "experts" / pipeline.MANIFEST
-    older = json.loads(manifest.read_text())
-    del older["config"]["experts"]["tune"]["start_leash"]  # as written before the knob existed
-    manifest.write_text(json.dumps(older))
-    pipeline.run_stage("experts", cfg(), tmp_path)
-    assert log == ["experts"]  # up to date: not rerun
-    with pytest.raises(pipeline.StaleRunError, match="experts.tune.start_leash"):
-        pipeline.run_stage("experts", cfg(**{"experts.tune.start_leash": 0.5}), tmp_path)
-    del older["config"]["experts"]["tune"]["neighbour_leash"]
-    manifest.write_text(json.dumps(older))
-    with pytest.raises(pipeline.StaleRunError, match="experts.tune.neighbour_leash"):
-        pipeline.run_stage("experts", cfg(**{"experts.tune.neighbour_leash": 1.0}), tmp_path)
-    older["config"]["experts"]["seed"] = 9  # a key the manifest has, changed: still refused
-    manifest.write_text(json.dumps(older))
+    current = json.loads(manifest.read_text())
+    assert current["schema"] == pipeline.MANIFEST_SCHEMA == 2
+    for schema, named in ((None, "no schema"), (1, "schema 1"), ("2", "schema '2'")):
+        older = dict(current)
+        if schema is None:
+            del older["schema"]
+        else:
+            older["schema"] = schema
+        manifest.write_text(json.dumps(older))
+        with pytest.raises(pipeline.StaleRunError) as err:
+            pipeline.run_stage("experts", cfg(), tmp_path)
+        message = str(err.value)
+        assert "\n" not in message and str(manifest) in message and named in message
+        assert f"this version writes schema {pipeline.MANIFEST_SCHEMA}" in message
+        assert "--run-dir" in message and "--force" in message
+        assert log == ["experts"]  # refused before any work
+    pipeline.run_stage("experts", cfg(), tmp_path, force=True)
+    assert log == ["experts", "experts"]
+    assert json.loads(manifest.read_text())["schema"] == pipeline.MANIFEST_SCHEMA
+    current["config"]["experts"]["seed"] = 9  # the current schema, a key changed: refused by name
+    manifest.write_text(json.dumps(current))
     with pytest.raises(pipeline.StaleRunError, match="experts.seed"):
         pipeline.run_stage("experts", cfg(), tmp_path)
 

@@ -36,11 +36,10 @@ def test_a_bench_of_some_sections_writes_its_own_record_and_refuses_a_path_for_a
     from benchmarks import bench
 
     skip = ["--skip", "experts", "gae", "brax", "filter", "scene", "tuning"]
-    bench.main(["--preset", "tiny", "--backends", "jax", *skip, "--bc-trainers", "joint",
-                "--out-dir", str(tmp_path), "--record", "bc_probe"])  # fmt: skip
+    bench.main(["--preset", "tiny", "--backends", "jax", *skip, "--out-dir", str(tmp_path), "--record", "bc_probe"])
     assert [p.name for p in tmp_path.iterdir()] == ["bc_probe.json"]  # not training.json
     record = json.loads((tmp_path / "bc_probe.json").read_text())
-    assert record["bc_joint_steps_per_s"] > 0 and record["preset"] == "tiny"
+    assert record["bc_stacked_batched_steps_per_s"] > 0 and record["preset"] == "tiny"
     for bad in ("../training", "bc.json", "a/b"):
         with pytest.raises(SystemExit):
             bench.parse_args(["--record", bad, "--out-dir", str(tmp_path)])

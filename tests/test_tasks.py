@@ -7,20 +7,17 @@ import json
 import pytest
 
 from bumps_jax import config
-from bumps_jax.pipeline import added_knobs
-
-# sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the
 from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.tasks import registry as tasks
 
-# sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick, computed before the
-# task switch existed: a change here makes every kick run made before it refuse to resume. The
-# experts' and baseline's pins were retaken with `ppo.unroll_gae` = True (2026-11-24): both stages
-# of older runs now refuse to resume unless run with the knob at False (`added_knobs.ADDED_KNOBS`).
+# sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick: what a stage's
+# manifest records of the config. A change here makes every kick run made before it refuse to resume
+# (`pipeline.check_manifest`); a change of the tree's layout comes with a new
+# `pipeline.MANIFEST_SCHEMA`. Re-pinned when the losing arms' knobs left the tree (schema 2).
 KICK_SECTIONS = {
     "tiny": {
         "prior": "7129f2c0c8a5fbc223648451c94ff60aa6c7cd5fb1e7dfdb2cefd1160c757983",
-        "experts": "3f261fe74ec09d9557a11beb326c4b3480b02dddacfc6fc355a580ac5675ebc1",
+        "experts": "9b27aef357e3d85016bfb28f8e3a0cc63ad5eea30e461f028eaaa0cf811da046",
         "meta": "9f61c7c2f0ee9df1b5d6582298d9413735fd8dedd8e446cb824f7ec68e224381",
         "filter": "81ae60fe857ac89f1eba00f63262b72dc2554fb7f176b221b5d52f41a7dd1465",
         "heldout": "76980f87b5f5a78ea4c3b8b909581a3629b9e5e823f5167e86fb002102c19581",
@@ -28,15 +25,8 @@ KICK_SECTIONS = {
     },
     "paper": {
         "prior": "e38b970f96217601c6ed4c31aff219830db04d78627ad7239a92aca0fb1dfadc",
-        # re-pinned when the paper's starting kicks became one chain from the long kick, each task's
-        # copy at its own strength (2026-11-24)
-        # and again when its tuning became four runs kept as a chain with a polish (2026-11-26),
-        # and when those four runs became one batch (`tune.batch_restarts`, 2026-11-26)
-        "experts": "0d0d48d5791094820f37ba731ead9085182e5345a563c206ef2fd8160a43895b",
-        # re-pinned when the paper preset's meta-policies began to train stacked, with the batched
-        # backward (`meta.trainer`, 2026-11-25): a paper run's meta stage made before retrains;
-        # and when that loop began to run an epoch per iteration (`meta.train.unroll`, 2026-11-27)
-        "meta": "6f20a59d5ffebe35a4befeadf90607e00acc46cf741efa9903e3acdfda2975f3",
+        "experts": "0f1c1ef60373fb2544c4b4bec487d47a8d47cf7c92d19072c58465ebca6c8c6f",
+        "meta": "b3cbdc5da8d75d3f3d733a551ce389880e93f61c2b330750bd0b66d84070b146",
         "filter": "ab9e5ff5612b5c379ee36c36ee5c678ece58954c529f0017aab817c2269f29c9",
         "heldout": "3d00234a9a024e9b03d79264da1858dd0404759e5043654ec3c158bebcff9205",
         "baseline": "853e9de1255af4d4709ad6b988a5da7470cc7750e72ce0ea0479a003b50474e1",
@@ -44,36 +34,15 @@ KICK_SECTIONS = {
 }
 
 
-# Keys added to a kick section after the pin, at their default: a manifest without them still
-# resumes (`pipeline.check_manifest`, tests/test_pipeline.py), so the pin is taken without them.
-ADDED_LATER = {
-    stage: tuple(tuple(key.split(".")) for key in added_knobs.ADDED_KNOBS if key.startswith(f"{stage}."))
-    for stage in {key.split(".")[0] for key in added_knobs.ADDED_KNOBS}
-}
-
-
 def digest(section: dict) -> str:
     return hashlib.sha256(json.dumps(section, sort_keys=True).encode()).hexdigest()
-
-
-def pinned_part(section: dict, stage: str) -> dict:
-    """`section` without the keys added since the pin that are at 0, the behaviour before them (a
-    key set otherwise stays, and its preset's pin was taken with it)."""
-    section = json.loads(json.dumps(section))
-    for *parents, leaf in ADDED_LATER.get(stage, ()):
-        node = section
-        for key in parents:
-            node = node[key]
-        if node[leaf] == added_knobs.ADDED_KNOBS[".".join((*parents, leaf))]:
-            del node[leaf]
-    return section
 
 
 @pytest.mark.parametrize("preset", sorted(KICK_SECTIONS))
 def test_the_kicks_stage_sections_are_unchanged(preset):
     cfg = config.make_config(preset)
     assert cfg.task == "kick"
-    sections = {s: digest(pinned_part(config.section(cfg, s), s)) for s in KICK_SECTIONS[preset]}
+    sections = {s: digest(config.section(cfg, s)) for s in KICK_SECTIONS[preset]}
     assert sections == KICK_SECTIONS[preset]
     assert config.task_view(cfg) is cfg
 

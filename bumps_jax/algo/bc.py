@@ -6,9 +6,11 @@ observation to the action: for the kick (phase, normalised context) to the 22 jo
 a closed-loop task (the cheetah) the state and the normalised context to the motor commands.
 Loss: mean absolute error; Adam with a staircase decay per epoch; an epoch is one pass over the
 shuffled pairs in batches, the last one partial (as the original's Keras `fit`): ceil(N / batch)
-gradient steps. The pairs stay on the device; each chunk of epochs is one jitted lax.scan that shuffles epoch e with key
-fold_in(seed key, e), so a resumed run draws the same batches as an uninterrupted one; seeds
-are vmapped. The host syncs once per chunk: progress line, CSV row, orbax checkpoint.
+gradient steps. Every net of a stage trains in one program, the nets padded and stacked, with a
+hand-written backward pass (`make_trainer`): `jax.grad`'s optimisation in fewer kernels a step.
+The pairs stay on the device; each chunk of epochs is one jitted lax.scan that shuffles epoch e
+with key fold_in(seed key, e), so a resumed run draws the same batches as an uninterrupted one;
+seeds are vmapped. The host syncs once per chunk: progress line, CSV row, orbax checkpoint.
 
 An expert's start (`clone_policy`): full-batch Adam fits a Gaussian policy's mean to (T, A)
 actions, e.g. a task's scripted motion.
@@ -27,10 +29,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.flatten_util import ravel_pytree
 
 from bumps_jax.algo import ppo
 from bumps_jax.pipeline import runio
 
+# Gradient steps per iteration of the compiled epoch loop (lax.scan's unroll; at most an epoch's):
+# the same steps on the same batches in fewer loop iterations.
+UNROLL = 14
 CSV_FIELDS = ("epoch", "step", "lr", "loss_mean", "loss_last", "loss_best_seed", "seconds")
 KEEP_CHECKPOINTS = 2
 
@@ -50,9 +56,7 @@ class MetaPolicy(nn.Module):
     """MLP: obs (..., O) -> actions (..., n_actions) (kick: (2,) -> 22 joint targets); `depth` tanh
     layers of `width`, linear output. With `obs_norm` ((O,) shift, (O,) scale, fixed numbers
     from the dataset: `obs_norm_of`), the net sees (obs - shift) / scale: a closed-loop task's
-    states are not in [0, 1] as the kick's (phase, context) are; the kick's under `meta.inputs =
-    "raw"`: `kick_raw_inputs`; "centred": `kick_centred_inputs`. None: obs as it is (the kick's by
-    default)."""
+    states are not in [0, 1] as the kick's (phase, context) are. None: obs as it is (the kick's)."""
 
     depth: int
     width: int
@@ -68,23 +72,6 @@ class MetaPolicy(nn.Module):
         for _ in range(self.depth):
             x = nn.tanh(nn.Dense(self.width)(x))
         return nn.Dense(self.n_actions)(x)
-
-
-def kick_raw_inputs(n_steps: int, task_range, obs_size: int = 2) -> tuple:
-    """`MetaPolicy.obs_norm` under which a kick net reads the paper's unscaled inputs (time step,
-    target m) from the env's (phase = step / n_steps, (target - lo) / (hi - lo)): (obs - shift) /
-    scale with shift (0, -lo / (hi - lo)) and scale (1 / n_steps, 1 / (hi - lo)); any further
-    observations (proprioception) as they are."""
-    lo, hi = (float(v) for v in task_range)
-    shift = (0.0, -lo / (hi - lo)) + (0.0,) * (obs_size - 2)
-    scale = (1.0 / n_steps, 1.0 / (hi - lo)) + (1.0,) * (obs_size - 2)
-    return shift, scale
-
-
-def kick_centred_inputs(obs_size: int = 2) -> tuple:
-    """`MetaPolicy.obs_norm` under which a kick net reads (phase, normalised context) moved from
-    [0, 1] to [-1, 1] (zero-centred, as tanh layers train best on); further observations as they are."""
-    return (0.5, 0.5) + (0.0,) * (obs_size - 2), (0.5, 0.5) + (1.0,) * (obs_size - 2)
 
 
 def obs_norm_of_record(record: dict) -> tuple | None:
@@ -121,9 +108,9 @@ def steps_per_epoch(train_cfg, n_rows: int) -> int:
     return -(-int(n_rows) // int(train_cfg.batch_size))
 
 
-def steps_unrolled(train_cfg, epoch_steps: int) -> int:
-    """Gradient steps per iteration of an epoch's compiled loop: train_cfg.unroll, at most the epoch's."""
-    return min(int(train_cfg.unroll), epoch_steps)
+def steps_unrolled(epoch_steps: int) -> int:
+    """Gradient steps per iteration of an epoch's compiled loop: `UNROLL`, at most the epoch's."""
+    return min(UNROLL, epoch_steps)
 
 
 def lr_schedule(train_cfg, epoch_steps: int = 1) -> optax.Schedule:
@@ -170,94 +157,246 @@ class TrainState(NamedTuple):
     step: jax.Array  # () int32: gradient steps done
 
 
-class SeedCarry(NamedTuple):
-    """The scan carry of one seed's training."""
-
-    params: Any
-    opt_state: Any
-
-
-def _epoch(apply_fns, optimizers, batch_size, epoch_steps, unroll, obs, actions, seed_key, carry: dict, epoch):
-    """One pass over the dataset, shuffled with key fold_in(seed_key, epoch), of every net of the
-    dicts (name -> apply_fn / optimizer / SeedCarry) on the same batches: (carry, losses {name: (epoch_steps,)})."""
-    n = obs.shape[0]
-
-    def step(carry: dict, batch):
-        idx, slot = batch
-        weights = (slot < n).astype(obs.dtype)
-        new, losses = {}, {}
-        for name, c in carry.items():
-            loss, grads = jax.value_and_grad(mae_loss)(c.params, apply_fns[name], obs[idx], actions[idx], weights)
-            updates, opt_state = optimizers[name].update(grads, c.opt_state, c.params)
-            new[name], losses[name] = SeedCarry(optax.apply_updates(c.params, updates), opt_state), loss
-        return new, losses
-
-    return jax.lax.scan(step, carry, epoch_batches(seed_key, epoch, n, epoch_steps, batch_size), unroll=unroll)
+# -- the trainer: every net padded and stacked in one program ------------------------------------
+#
+# The BC loop is launch-bound: a step of a tiny net at batch 128 is some 70-80 small kernels run
+# one after another (docs/decisions.md, "Meta-policies and filtering"). Every net is padded to the
+# largest depth and width and the nets are stacked on a leading axis, so that each layer of every
+# net is one batched matmul: a step costs the kernels of one net of the largest depth.
+#
+# The padding changes nothing but rounding. Width: a net's padded units have zero weights in and
+# out, so their pre-activation is 0, tanh(0) = 0, and every padded weight's gradient is exactly 0;
+# Adam then leaves it at 0 (its moments stay 0). Depth: a shallower net's extra hidden layers pass
+# their input through unchanged (`jnp.where` on a per-net mask), so their weights get zero
+# gradients too. Each net's loss is its own mean absolute error on the same batch, and the
+# gradient of their sum with respect to one net's weights is that net's gradient alone.
 
 
-def make_joint_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):
-    """(init, chunk) training every net of `models` (name -> MetaPolicy, observations of `obs_size`)
-    in one compiled loop, each on the same batches as it would see alone (the shuffles depend on
-    the seed only), so each ends exactly where its own trainer would: init(seed_keys (S,)) ->
-    {name: TrainState}; chunk(states, obs (N, O), actions (N, A), seed_keys (S,)) -> (states after train_cfg.chunk
+def _shape_of(models: dict) -> tuple[int, int, int, tuple | None]:
+    """(largest depth, largest width, n_actions, obs_norm) of the nets, which must share the last two."""
+    actions = {m.n_actions for m in models.values()}
+    norms = {m.obs_norm for m in models.values()}
+    if len(actions) != 1 or len(norms) != 1:
+        raise ValueError("stacked nets must share n_actions and obs_norm")
+    return max(m.depth for m in models.values()), max(m.width for m in models.values()), actions.pop(), norms.pop()
+
+
+def stack_params(models: dict, params: dict) -> dict:
+    """{name: flax params of `bc.MetaPolicy`} -> the stacked layout: w0 (N, O, W), b0 (N, W), wh (N, D-1, W, W),
+    bh (N, D-1, W), wo (N, W, A), bo (N, A), zero where a net is narrower or shallower."""
+    depth, width, _, _ = _shape_of(models)
+
+    def one(model, p):
+        w, d = model.width, model.depth
+        obs_size, n_actions = p["Dense_0"]["kernel"].shape[0], p[f"Dense_{d}"]["kernel"].shape[1]
+        dtype = p["Dense_0"]["kernel"].dtype
+        out = {
+            "w0": jnp.zeros((obs_size, width), dtype).at[:, :w].set(p["Dense_0"]["kernel"]),
+            "b0": jnp.zeros((width,), dtype).at[:w].set(p["Dense_0"]["bias"]),
+            "wh": jnp.zeros((depth - 1, width, width), dtype),
+            "bh": jnp.zeros((depth - 1, width), dtype),
+            "wo": jnp.zeros((width, n_actions), dtype).at[:w].set(p[f"Dense_{d}"]["kernel"]),
+            "bo": p[f"Dense_{d}"]["bias"],
+        }
+        for layer in range(1, d):
+            out["wh"] = out["wh"].at[layer - 1, :w, :w].set(p[f"Dense_{layer}"]["kernel"])
+            out["bh"] = out["bh"].at[layer - 1, :w].set(p[f"Dense_{layer}"]["bias"])
+        return out
+
+    per_net = [one(model, params[name]) for name, model in models.items()]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *per_net)
+
+
+def unstack_params(models: dict, stacked: dict) -> dict:
+    """The inverse of `stack_params`: {name: flax params}."""
+    out = {}
+    for i, (name, model) in enumerate(models.items()):
+        w, d = model.width, model.depth
+        p = {"Dense_0": {"kernel": stacked["w0"][i, :, :w], "bias": stacked["b0"][i, :w]}}
+        for layer in range(1, d):
+            p[f"Dense_{layer}"] = {
+                "kernel": stacked["wh"][i, layer - 1, :w, :w],
+                "bias": stacked["bh"][i, layer - 1, :w],
+            }
+        p[f"Dense_{d}"] = {"kernel": stacked["wo"][i, :w], "bias": stacked["bo"][i]}
+        out[name] = p
+    return out
+
+
+def _ravel(tree) -> jax.Array:
+    """A pytree as one vector: the vector `optax.flatten` keeps (it ravels with `ravel_pytree` too)."""
+    return ravel_pytree(tree)[0]
+
+
+def _unravel(template, flat) -> dict:
+    """`_ravel`'s inverse, shaped like `template`."""
+    return ravel_pytree(template)[1](flat)
+
+
+def stack_opt_states(models: dict, params: dict, opt_states: dict):
+    """Each net's `optax.flatten(optax.adam)` state -> the stacked params' state of the same kind:
+    a vector over a net's params (Adam's moments) is laid out as `stack_params` lays the params;
+    a scalar (the step count, the same for every net) is kept."""
+    names = list(models)
+
+    def leaf(*xs):
+        if xs[0].ndim == 0:
+            return xs[0]
+        trees = {name: _unravel(params[name], x) for name, x in zip(names, xs, strict=True)}
+        return _ravel(stack_params(models, trees))
+
+    return jax.tree.map(leaf, *(opt_states[name] for name in names))
+
+
+def unstack_opt_states(models: dict, stacked_params: dict, stacked_state) -> dict:
+    """The inverse of `stack_opt_states`: {name: that net's flattened Adam state}."""
+
+    def per_net(x) -> dict:  # one leaf of the stacked state -> {name: that net's leaf}
+        if x.ndim == 0:
+            return {name: x for name in models}
+        return {name: _ravel(t) for name, t in unstack_params(models, _unravel(stacked_params, x)).items()}
+
+    leaves, treedef = jax.tree.flatten(stacked_state)
+    split = [per_net(x) for x in leaves]
+    return {name: jax.tree.unflatten(treedef, [s[name] for s in split]) for name in models}
+
+
+def _layout(models: dict) -> tuple[int, jax.Array, tuple | None]:
+    """(largest depth, active (N, depth - 1): hidden layer l + 1 is one of net n's own, obs_norm)."""
+    depth, _, _, obs_norm = _shape_of(models)
+    active = jnp.asarray([[layer + 1 < m.depth for layer in range(depth - 1)] for m in models.values()])
+    return depth, active, obs_norm
+
+
+def _normalised(obs, obs_norm):
+    if obs_norm is None:
+        return obs
+    shift, scale = (jnp.asarray(v, obs.dtype) for v in obs_norm)
+    return (obs - shift) / scale
+
+
+def _forward_one(p: dict, active, x) -> tuple[jax.Array, list, list]:
+    """One net's (output (B, A), hidden values [h_0 ... h_(D-1)], the stacked layers' tanh [t_0 ...]):
+    h_0 = tanh(x w0 + b0); t_l = tanh(h_l wh_l + bh_l); h_(l+1) = t_l where the layer is the net's
+    own, else h_l; the output reads h_(D-1)."""
+    hidden, outputs = [jnp.tanh(x @ p["w0"] + p["b0"])], []
+    for layer in range(p["wh"].shape[0]):
+        outputs.append(jnp.tanh(hidden[-1] @ p["wh"][layer] + p["bh"][layer]))
+        hidden.append(jnp.where(active[layer], outputs[-1], hidden[-1]))
+    return hidden[-1] @ p["wo"] + p["bo"], hidden, outputs
+
+
+def make_forward(models: dict):
+    """apply(stacked params, obs (B, O)) -> actions (N, B, A) of every net on the same observations."""
+    _, active, obs_norm = _layout(models)
+
+    def apply(stacked, obs):
+        one = lambda p, act, x: _forward_one(p, act, x)[0]  # noqa: E731
+        return jax.vmap(one, in_axes=(0, 0, None))(stacked, active, _normalised(obs, obs_norm))
+
+    return apply
+
+
+def _grads_one(p: dict, active, x, actions, weights) -> tuple[jax.Array, dict]:
+    """One net's (loss, gradient) written out by hand: the backward pass of `_forward_one` and
+    `bc.mae`, with the stacked hidden layers' weight gradients as one batched matmul over the
+    layers (and their bias gradients as one sum) instead of a matmul and a sum per layer."""
+    out, hidden, outputs = _forward_one(p, active, x)
+    loss = mae(out, actions, weights)
+    # d|r|/dr = sign(r) (0 at 0, as jax.grad of jnp.abs), over A joints and the rows of weight 1
+    d_out = jnp.sign(out - actions) * (weights / (out.shape[-1] * jnp.sum(weights)))[:, None]
+    grads = {"wo": hidden[-1].T @ d_out, "bo": jnp.sum(d_out, axis=0)}
+    g, dz = d_out @ p["wo"].T, [None] * len(outputs)  # g: the gradient at the current hidden value
+    for layer in reversed(range(len(outputs))):
+        dz[layer] = jnp.where(active[layer], g * (1 - outputs[layer] ** 2), 0.0)
+        g = jnp.where(active[layer], dz[layer] @ p["wh"][layer].T, g)  # a layer not the net's passes g on
+    if outputs:  # (D - 1, B, W) each: every stacked layer's input and pre-activation gradient at once
+        hs, dzs = jnp.stack(hidden[:-1]), jnp.stack(dz)
+        grads["wh"], grads["bh"] = jnp.einsum("lbi,lbj->lij", hs, dzs), jnp.sum(dzs, axis=1)
+    else:
+        grads["wh"], grads["bh"] = jnp.zeros_like(p["wh"]), jnp.zeros_like(p["bh"])
+    dz0 = g * (1 - hidden[0] ** 2)
+    grads["w0"], grads["b0"] = x.T @ dz0, jnp.sum(dz0, axis=0)
+    return loss, grads
+
+
+def make_loss_and_grads(models: dict):
+    """fn(stacked params, obs (B, O), actions (B, A), weights (B,)) -> (each net's loss (N,), the
+    gradient of their sum, written out by hand: `_grads_one`, `jax.grad`'s numbers up to rounding
+    in fewer kernels)."""
+    _, active, obs_norm = _layout(models)
+
+    def fn(stacked, obs, actions, weights):
+        x = _normalised(obs, obs_norm)
+        return jax.vmap(_grads_one, in_axes=(0, 0, None, None, None))(stacked, active, x, actions, weights)
+
+    return fn
+
+
+def make_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):
+    """(init, chunk) training every net of `models` (name -> MetaPolicy, observations of
+    `obs_size`) stacked in one compiled loop, each on the same batches as it would see alone (the
+    shuffles depend on the seed only): init(seed_keys (S,)) -> {name: TrainState};
+    chunk(states, obs (N, O), actions (N, A), seed_keys (S,)) -> (states after train_cfg.chunk
     more epochs, {name: losses (S, chunk epochs x steps per epoch)}). Both jitted.
 
-    One loop for several nets: the loop is launch-bound (tiny nets, batches of 128), and the
-    device can overlap the independent nets' kernels of one step."""
+    Each net starts from flax's initialisation and steps with Adam over its own flat vector
+    (`optax.flatten`), as `jax.grad` of its own MAE would move it: the gradient is written out by
+    hand (`_grads_one`), the nets padded and stacked so that each layer of every net is one
+    batched matmul, and `steps_unrolled` steps run per iteration of the epoch's loop. A state
+    holds each net's own flax params and flattened Adam state (the stacking is inside a chunk)."""
+    names = list(models)
     epoch_steps = steps_per_epoch(train_cfg, n_rows)
-    # Adam over one flat vector: the same update, elementwise, in fewer kernels per step.
-    optimizers = {name: optax.flatten(optax.adam(lr_schedule(train_cfg, epoch_steps))) for name in models}
-    apply_fns = {name: policy_apply(model) for name, model in models.items()}
-    chunk_epochs = int(train_cfg.chunk)
-    unroll = steps_unrolled(train_cfg, epoch_steps)
+    optimizer = optax.flatten(optax.adam(lr_schedule(train_cfg, epoch_steps)))
+    loss_and_grads = make_loss_and_grads(models)
+    batch_size, chunk_epochs = int(train_cfg.batch_size), int(train_cfg.chunk)
+    unroll = steps_unrolled(epoch_steps)
 
     def init_one(key):
-        out = {}
-        for name, model in models.items():
-            params = model.init(key, jnp.zeros((1, obs_size)))["params"]
-            out[name] = SeedCarry(params, optimizers[name].init(params))
-        return out
+        params = {name: model.init(key, jnp.zeros((1, obs_size)))["params"] for name, model in models.items()}
+        return params, {name: optimizer.init(p) for name, p in params.items()}
 
     @jax.jit
     def init(seed_keys):
-        carries = jax.vmap(init_one)(seed_keys)
-        return {name: TrainState(c.params, c.opt_state, jnp.zeros((), jnp.int32)) for name, c in carries.items()}
+        params, opt_states = jax.vmap(init_one)(seed_keys)
+        zero = jnp.zeros((), jnp.int32)
+        return {name: TrainState(params[name], opt_states[name], zero) for name in names}
 
-    def chunk_one(carry, seed_key, obs, actions, epochs):
-        body = functools.partial(
-            _epoch, apply_fns, optimizers, train_cfg.batch_size, epoch_steps, unroll, obs, actions, seed_key
-        )
-        carry, losses = jax.lax.scan(body, carry, epochs)
-        return carry, {name: v.reshape(-1) for name, v in losses.items()}
+    def epoch(obs, actions, seed_key, carry, epoch_index):
+        n = obs.shape[0]
+
+        def step(carry, batch):
+            params, opt_state = carry
+            idx, slot = batch
+            weights = (slot < n).astype(obs.dtype)
+            per_net, grads = loss_and_grads(params, obs[idx], actions[idx], weights)
+            updates, opt_state = optimizer.update(grads, opt_state, params)
+            return (optax.apply_updates(params, updates), opt_state), per_net
+
+        batches = epoch_batches(seed_key, epoch_index, n, epoch_steps, batch_size)
+        return jax.lax.scan(step, carry, batches, unroll=unroll)
+
+    def chunk_one(params: dict, opt_states: dict, seed_key, obs, actions, epochs):
+        stacked = stack_params(models, params)
+        carry = (stacked, stack_opt_states(models, params, opt_states))
+        (stacked, opt_state), losses = jax.lax.scan(functools.partial(epoch, obs, actions, seed_key), carry, epochs)
+        losses = losses.reshape(-1, len(names))  # (epochs x steps, N)
+        unstacked = unstack_params(models, stacked)
+        return unstacked, unstack_opt_states(models, stacked, opt_state), {n: losses[:, i] for i, n in enumerate(names)}
 
     @jax.jit
     def chunk(states: dict, obs, actions, seed_keys):
         if obs.shape[0] != n_rows:
             raise ValueError(f"the trainer was built for {n_rows} pairs, got {obs.shape[0]}")
-        step = next(iter(states.values())).step
+        step = states[names[0]].step
         epochs = step // epoch_steps + jnp.arange(chunk_epochs, dtype=jnp.int32)
-        carry = {name: SeedCarry(s.params, s.opt_state) for name, s in states.items()}
-        carry, losses = jax.vmap(chunk_one, in_axes=(0, 0, None, None, None))(carry, seed_keys, obs, actions, epochs)
+        params = {name: states[name].params for name in names}
+        opt_states = {name: states[name].opt_state for name in names}
+        params, opt_states, losses = jax.vmap(chunk_one, in_axes=(0, 0, 0, None, None, None))(
+            params, opt_states, seed_keys, obs, actions, epochs
+        )
         done = step + chunk_epochs * epoch_steps
-        return {name: TrainState(c.params, c.opt_state, done) for name, c in carry.items()}, losses
-
-    return init, chunk
-
-
-def make_trainer(model: MetaPolicy, train_cfg, n_rows: int, obs_size: int = 2):
-    """(init, chunk) for one net (`make_joint_trainer` of one): init(seed_keys (S,)) -> TrainState;
-    chunk(state, obs (N, O), actions (N, A), seed_keys (S,)) -> (state after train_cfg.chunk
-    more epochs, losses (S, chunk epochs x steps per epoch)). Both jitted."""
-    init_all, chunk_all = make_joint_trainer({"net": model}, train_cfg, n_rows, obs_size)
-
-    @jax.jit
-    def init(seed_keys):
-        return init_all(seed_keys)["net"]
-
-    @jax.jit
-    def chunk(state: TrainState, obs, actions, seed_keys):
-        states, losses = chunk_all({"net": state}, obs, actions, seed_keys)
-        return states["net"], losses["net"]
+        return {name: TrainState(params[name], opt_states[name], done) for name in names}, losses
 
     return init, chunk
 
@@ -283,7 +422,7 @@ def _progress_row(state: TrainState, losses: np.ndarray, epoch_steps: int, sched
 
 def train(model: MetaPolicy, data: Dataset, train_cfg, out_dir, say=print, max_chunks=None, trainer=None) -> TrainState:
     """Train (or resume) one architecture on data (N pairs): `train_nets` of one net, in out_dir.
-    trainer: `make_joint_trainer({"net": model}, ...)`'s (init, chunk), to reuse its compiled programs."""
+    trainer: `make_trainer({"net": model}, ...)`'s (init, chunk), to reuse its compiled programs."""
     return train_nets({"net": model}, data, train_cfg, {"net": out_dir}, say, max_chunks, trainer)["net"]
 
 
@@ -293,8 +432,8 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
     returns {name: final TrainState}, whose `step` counts gradient steps (train_cfg.epochs x
     `steps_per_epoch`).
 
-    trainer: (init, chunk) over dicts of nets (`make_joint_trainer`'s, the default, or
-    `bc_stacked.make_stacked_trainer`'s). After every chunk each net writes
+    trainer: `make_trainer`'s (init, chunk) for these nets, to reuse its compiled programs. After
+    every chunk each net writes
     out_dirs[name]/progress.csv and an orbax checkpoint in out_dirs[name]/checkpoints: one net's
     files are those of a net trained alone. A rerun resumes from the newest step every net holds
     readably and ends where an uninterrupted run would.
@@ -306,7 +445,7 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
     out_dirs = {name: Path(out_dirs[name]).resolve() for name in names}
     for d in out_dirs.values():
         d.mkdir(parents=True, exist_ok=True)
-    init, chunk = trainer or make_joint_trainer(models, train_cfg, len(data.obs), data.obs.shape[-1])
+    init, chunk = trainer or make_trainer(models, train_cfg, len(data.obs), data.obs.shape[-1])
     epoch_steps = steps_per_epoch(train_cfg, len(data.obs))
     total_steps = train_cfg.epochs * epoch_steps
     keys = seed_keys(train_cfg)
@@ -371,11 +510,11 @@ def load_policy(
     if not path.is_dir():
         raise ValueError(f"{path}: no checkpoint folder (run meta-train first)")
     model = MetaPolicy(depth, width, n_actions, obs_norm)
-    init, _ = make_trainer(model, train_cfg, 1, obs_size)  # the state's shapes do not depend on the data
+    init, _ = make_trainer({"net": model}, train_cfg, 1, obs_size)  # the state's shapes do not depend on the data
     # Only the params: a policy does not need the optimiser's state, whose layout may differ
     # between versions of the trainer. (Real arrays, not `jax.eval_shape`: orbax restores a leaf
     # without a sharding as a NumPy array, and initialising these small nets takes milliseconds.)
-    target = {"params": init(seed_keys(train_cfg)).params}
+    target = {"params": init(seed_keys(train_cfg))["net"].params}
     restore_args = ocp.checkpoint_utils.construct_restore_args(target)
     args = ocp.args.PyTreeRestore(item=target, restore_args=restore_args, partial_restore=True)
     with runio.checkpoint_manager(path, KEEP_CHECKPOINTS, read_only=True) as manager:

@@ -24,11 +24,14 @@ import time
 from pathlib import Path
 
 from bumps_jax import config
-from bumps_jax.pipeline import added_knobs, runio
+from bumps_jax.pipeline import runio
 from bumps_jax.tasks import registry as tasks
 from bumps_jax.tasks.protocol import STAGE_ORDER
 
 MANIFEST = "stage.json"  # each stage directory's manifest
+# The manifest's layout and the config tree it records: raised when either changes so that a run
+# directory of an older layout is refused whole rather than compared key by key.
+MANIFEST_SCHEMA = 2
 
 # Stage name -> the stages that read its outputs (directly or through another).
 ORDER = STAGE_ORDER
@@ -181,8 +184,9 @@ class StaleRunError(ValueError):
 
 def manifest(section: dict, inputs: dict[str, str | Path]) -> dict:
     """What a stage's outputs depend on: its config (`config.section`) and its input files'
-    fingerprints (name -> path)."""
+    fingerprints (name -> path), under the manifest's schema (`MANIFEST_SCHEMA`)."""
     return {
+        "schema": MANIFEST_SCHEMA,
         "config": section,
         "inputs": {
             name: {"path": runio.shown(path), "sha256": runio.file_hash(path)} for name, path in sorted(inputs.items())
@@ -196,10 +200,8 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
     Returns "new" (nothing there yet), "same" (its outputs belong to this config and inputs: reuse
     or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
     StaleRunError naming the differing keys and the two ways on. Warp's buffer sizes
-    (`env.warp_contacts`, `env.warp_constraints_per_world`) are not compared. A config key the manifest lacks
-    counts as the same where `wanted` has it at the value that behaves as the code did before the
-    key existed (`added_knobs.ADDED_KNOBS`), so runs made before a knob resume; set otherwise, the
-    stage is stale (whatever the preset's default).
+    (`env.warp_contacts`, `env.warp_constraints_per_world`) are not compared. A manifest without
+    `MANIFEST_SCHEMA` (an older version's) is refused in one line, whatever it holds.
     """
     from bumps_jax.pipeline import records as env_records  # noqa: PLC0415
 
@@ -214,11 +216,21 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
             have = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError):
             have = {}
+        schema = have.get("schema") if isinstance(have, dict) else None
+        if schema != MANIFEST_SCHEMA:
+            if force:
+                shutil.rmtree(stage_dir)
+                return "forced"
+            made = "no schema" if schema is None else f"schema {schema!r}"
+            raise StaleRunError(
+                f"{path} has {made}, this version writes schema {MANIFEST_SCHEMA} (a run of another "
+                "version): use a new --run-dir, or --force to recompute this stage and every stage after it"
+            )
         diff = env_records.differing_keys(
             {"config": have.get("config", {}), "inputs": _hashes(have.get("inputs", {}))},
             {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
         )
-        diff = [key for key in diff if not _added_at_its_old_behaviour(key, have, wanted) and not _capacity(key)]
+        diff = [key for key in diff if not _capacity(key)]
         if not diff:
             return "same"
     if force:
@@ -233,18 +245,6 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
 
 def write_manifest(stage_dir: Path, wanted: dict) -> Path:
     return runio.write_json(stage_dir / MANIFEST, wanted)
-
-
-def _added_at_its_old_behaviour(key: str, have: dict, wanted: dict) -> bool:
-    """Is dotted `key` ("config. ...") missing from the manifest `have` and, in `wanted`, at the
-    value `added_knobs.ADDED_KNOBS` gives for it?"""
-    from bumps_jax.pipeline.records import MISSING, lookup  # noqa: PLC0415
-
-    path = key.removeprefix("config.")
-    if not key.startswith("config.") or path not in added_knobs.ADDED_KNOBS:
-        return False
-    missing = lookup(have.get("config", {}), path) == MISSING
-    return missing and lookup(wanted["config"], path) == added_knobs.ADDED_KNOBS[path]
 
 
 def _capacity(key: str) -> bool:

@@ -11,7 +11,6 @@ import ml_collections
 import numpy as np
 
 from bumps_jax.algo import ppo_config
-from bumps_jax.pipeline.added_knobs import ADDED_KNOBS
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 
@@ -21,8 +20,6 @@ HELDOUT_MIN_TARGETS = 50
 TUNE_SCHEMES = ("per_task", "family")  # experts.tune.scheme
 TUNE_KEEPS = ("run", "task", "chain")  # experts.tune.keep
 SELECTIONS = ("fixed", "halving")  # filter.selection
-META_TRAINERS = ("separate", "stacked", "stacked_batched")  # meta.trainer
-META_INPUTS = ("unit", "raw", "centred")  # meta.inputs
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
@@ -70,7 +67,7 @@ def cheetah_vel(c, prefix: str) -> None:
     positive_ints(e.eval, f"{prefix}experts.eval.", ("repetitions",))
     ppo_section(e.ppo, f"{prefix}experts.ppo.", n_steps, task_range)
     chunk_divides(e, f"{prefix}experts.", int(e.ppo.total_env_steps // (e.ppo.num_envs * n_steps)))
-    meta(c.meta, task_range, prefix, unit, task="cheetah_vel")
+    meta(c.meta, task_range, prefix, unit)
     filtering(c.filter, task_range, prefix, unit)
     if c.filter.net_seed >= c.meta.train.n_seeds:
         raise ValueError(f"{prefix}filter.net_seed {c.filter.net_seed} names no network: "
@@ -199,11 +196,10 @@ def experts(e, task_range, n_steps: int) -> None:
         if isinstance(weight, bool) or not isinstance(weight, int | float) or not weight >= 0:
             raise ValueError(f"experts.tune.{name} must be a number >= 0, got {weight!r}")
     if e.tune.scheme == "family":
-        # The per-task knobs that are on, each named with the value that turns it off (the value
-        # the code behaved as before the knob existed): all in one line, so that switching a
-        # preset that uses several of them (the paper's) takes one try.
-        per_task = ("restarts", "polish_generations", "start_leash", "neighbour_leash", "midpoint_weight")
-        off = {k: ADDED_KNOBS[f"experts.tune.{k}"] for k in per_task}
+        # The per-task knobs that are on, each named with the value that turns it off: all in one
+        # line, so that switching a preset that uses several of them (the paper's) takes one try.
+        off = {"restarts": 1, "polish_generations": 0, "start_leash": 0.0, "neighbour_leash": 0.0,
+               "midpoint_weight": 0.0}  # fmt: skip
         on = [f"experts.tune.{k}={v:g}" for k, v in off.items() if e.tune[k] != v]
         if on:
             raise ValueError(f"experts.tune.scheme 'family' has no per-task tuning knobs: set {', '.join(on)}")
@@ -228,21 +224,14 @@ def chunk_divides(section, prefix: str, total: int) -> None:
         )
 
 
-def meta(m, task_range, prefix: str = "", unit: str = "m", task: str = "kick") -> None:
+def meta(m, task_range, prefix: str = "", unit: str = "m") -> None:
     p = f"{prefix}meta."
-    positive_ints(m.train, f"{p}train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every", "unroll"))
+    positive_ints(m.train, f"{p}train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every"))
     if m.train.epochs % m.train.chunk:
         raise ValueError(f"{p}train.epochs {m.train.epochs} must be a multiple of {p}train.chunk {m.train.chunk}")
     positive_floats(m.train, f"{p}train.", ("learning_rate",))
     if not 0 < m.train.decay_rate <= 1:
         raise ValueError(f"{p}train.decay_rate must be in (0, 1], got {m.train.decay_rate!r}")
-    if m.trainer not in META_TRAINERS:
-        raise ValueError(f"{p}trainer must be one of {META_TRAINERS}, got {m.trainer!r}")
-    if m.inputs not in META_INPUTS:
-        raise ValueError(f"{p}inputs must be one of {META_INPUTS}, got {m.inputs!r}")
-    if task != "kick" and m.inputs != "unit":  # another task's nets read its states normalised by the dataset
-        raise ValueError(f"{p}inputs {m.inputs!r} is for the kick's (time step, target); this task's nets read "
-                         "its states normalised by the dataset: leave it at 'unit'")  # fmt: skip
     positive_ints(m.dataset, f"{p}dataset.", ("repetitions",))
     positive_ints(m.eval, f"{p}eval.", ("repetitions",))
     targets(m.eval.tasks, task_range, f"{p}eval.tasks", unit)

@@ -4,8 +4,8 @@
    times on its own task (the paper: once, with the noise off); each step's (observation,
    action) is kept, the observation's context being the expert's task. Saved as dataset.npz
    and reused when the stage resumes.
-2. Each net of `meta.nets` (`bc.MetaPolicy`) is trained on it, resumable: each in its own loop
-   (`bc.train`), or with `meta.trainer` "stacked" all in one (`bc.train_nets`, `bc_stacked`).
+2. The nets of `meta.nets` (`bc.MetaPolicy`) are trained on it, resumable, all in one stacked
+   program (`bc.train_nets`).
 3. Evaluation, unfiltered: every net on `meta.eval.tasks` x `meta.eval.repetitions` noisy kicks
    with context = target (`rollout.grid_fn`); the experts' row comes from their own record.
 
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from bumps_jax import config
-from bumps_jax.algo import bc, bc_stacked, evaluate, rollout
+from bumps_jax.algo import bc, evaluate, rollout
 from bumps_jax.pipeline import records as env_records
 from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts as experts_stage
@@ -155,14 +155,10 @@ def dataset(cfg, run_dir: Path, say=print) -> bc.Dataset:
 
 def net_obs_norm(cfg, env, data: bc.Dataset) -> tuple | None:
     """The nets' `bc.MetaPolicy.obs_norm`: another task's states normalised by the dataset's
-    statistics; the kick's (phase, context) as they are, or with `meta.inputs = "raw"` mapped to
-    the paper's unscaled (time step, target m), with "centred" to [-1, 1]."""
+    statistics (`Task.normalise_meta_inputs`), else the observation as it is (the kick's phase
+    and normalised context, in [0, 1] already)."""
     if tasks.get(cfg.task).normalise_meta_inputs:
         return bc.obs_norm_of(data.obs)
-    if cfg.meta.inputs == "raw":
-        return bc.kick_raw_inputs(env.n_steps, env.config.task_range, int(data.obs.shape[-1]))
-    if cfg.meta.inputs == "centred":
-        return bc.kick_centred_inputs(int(data.obs.shape[-1]))
     return None
 
 
@@ -182,27 +178,18 @@ def evaluate_unfiltered(grid, params, tasks, repetitions: int, seed: int) -> dic
 
 
 def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict, dict, dict]:
-    """Train (or resume) every net of cfg.meta.nets into stage_dir/<net>, as `meta.trainer` says:
-    each in its own loop, or all stacked in one (`bc_stacked`). Returns ({net: bc.MetaPolicy},
-    {net: final bc.TrainState}, {net: train_wall_s}; stacked nets share one time)."""
+    """Train (or resume) every net of cfg.meta.nets into stage_dir/<net>, all stacked in one
+    program (`bc.make_trainer`). Returns ({net: bc.MetaPolicy}, {net: final bc.TrainState},
+    {net: train_wall_s}: the nets share one loop, so each shows its whole time)."""
     m = cfg.meta
     obs_norm = net_obs_norm(cfg, env, data)
     names = net_names(m.nets)
     models = {name: bc.MetaPolicy(*m.nets[name], env.action_size, obs_norm) for name in names}
     for name in names:
         say(f"{name}: {m.nets[name][0]} x {m.nets[name][1]}, {m.train.epochs} epochs, {m.train.n_seeds} seed(s)")
-    states, seconds = {}, {}
-    if m.trainer == "separate":
-        for name, model in models.items():
-            t0 = time.perf_counter()
-            states[name] = bc.train(model, data, m.train, stage_dir / name, say)
-            seconds[name] = time.perf_counter() - t0  # compiling and checkpoints included
-        return models, states, seconds
-    say(f"{', '.join(names)}: trained stacked in one loop ({m.trainer})")
+    say(f"{', '.join(names)}: trained stacked in one loop")
     t0 = time.perf_counter()
-    backward = "batched" if m.trainer == "stacked_batched" else "autodiff"
-    trainer = bc_stacked.make_stacked_trainer(models, m.train, len(data.obs), data.obs.shape[-1], backward)
-    states = bc.train_nets(models, data, m.train, {name: stage_dir / name for name in names}, say, trainer=trainer)
+    states = bc.train_nets(models, data, m.train, {name: stage_dir / name for name in names}, say)
     return models, states, dict.fromkeys(names, time.perf_counter() - t0)
 
 
@@ -258,7 +245,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     for name, model in models.items():
         out = evaluate_net(cfg, name, model, states[name], env, grids, say)
         rows[name], rows_per_seed[name], per_task[name] = out["row"], out["rows_per_seed"], out["per_task"]
-        # stacked nets (the record's config.trainer) share one loop: each shows its whole time
+        # the nets share one loop: each shows its whole time
         timings[name] = {"train_wall_s": train_s[name], "eval_wall_s": out["eval_wall_s"]}
     payload = {
         "rows": rows,
