@@ -118,7 +118,7 @@ def _trace(run, state, steps: int) -> dict:
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--preset", default="paper", choices=sorted(config.PRESETS))
+    p.add_argument("--preset", default="paper", choices=config.PRESETS)
     p.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
                    help="dotted config overrides, e.g. meta.train.batch_size=256")  # fmt: skip
     p.add_argument("--epochs", type=int, default=1000, help="epochs per timed chunk (default 1000)")

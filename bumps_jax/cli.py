@@ -3,9 +3,8 @@
     python -m bumps_jax <command> [--preset tiny|paper] [--task kick|cheetah_vel] [--run-dir D]
                                   [--set KEY=VALUE ...] [--force]
 
-`--task` picks the contextual task (the config's `task`: the kick by default); another task's runs
-go to runs/<task>/<preset> unless --run-dir says otherwise, and its `--set` keys name its own
-sections: `--task cheetah_vel --set experts.seed=3` sets `cheetah_vel.experts.seed`.
+`--task` picks the contextual task (the config's `task`: the kick by default), whose tree the
+`--set` keys name; another task's runs go to runs/<task>/<preset> unless --run-dir says otherwise.
 
 `--set` takes dotted keys of the one config tree (`bumps_jax.config`): `env.physics_dt=0.005`,
 `experts.ppo.learning_rate=1e-5`; a stage's own keys may drop their section
@@ -51,12 +50,13 @@ OTHER = {
 }
 
 
-def parse_overrides(groups, section: str | None = None) -> dict:
+def parse_overrides(groups, section: str | None = None, task: str | None = None) -> dict:
     """[['a.b=1', 'c=[1, 2]'], ['d=x']] -> {'a.b': 1, 'c': (1, 2), 'd': 'x'}. With a stage's
-    `section`, a key that names no top-level section of the tree is read inside that section."""
+    `section`, a key that names no top-level section of `task`'s tree is read inside that section."""
     from bumps_jax import config  # noqa: PLC0415
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
-    tops = set(config.default_config().keys())
+    tops = set(config.default_config(task or tasks.DEFAULT).keys())
     out = {}
     for item in [i for group in groups for i in group]:
         key, sep, value = item.partition("=")
@@ -70,20 +70,6 @@ def parse_overrides(groups, section: str | None = None) -> dict:
             key = f"{section}.{key}"
         out[key] = tuple(parsed) if isinstance(parsed, list) else parsed
     return out
-
-
-def task_overrides(overrides: dict) -> dict:
-    """`overrides` with the keys of a section the selected task (its `task` key) has of its own
-    moved into that task's sections: {"task": "cheetah_vel", "experts.seed": 3} ->
-    {"task": "cheetah_vel", "cheetah_vel.experts.seed": 3}. The kick's are kept as they are."""
-    from bumps_jax import config  # noqa: PLC0415
-
-    task = overrides.get("task", "kick")
-    tree = config.default_config()
-    if task == "kick" or task not in tree:
-        return overrides
-    own = set(tree[task].keys())
-    return {(f"{task}.{k}" if k.split(".")[0] in own else k): v for k, v in overrides.items()}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -131,9 +117,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def default_run_dir(command: str, preset: str, task: str = "kick") -> Path:
+def default_run_dir(command: str, preset: str, task: str | None = None) -> Path:
+    """runs/<preset> (runs/demo for demo) for the default task, runs/<task>/<preset> for another."""
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
+
     name = "demo" if command == "demo" else preset
-    return Path("runs") / name if task == "kick" else Path("runs") / task / name
+    return Path("runs") / name if task in (None, tasks.DEFAULT) else Path("runs") / task / name
 
 
 def pipeline_stages(command: str, chosen) -> tuple[str, ...]:
@@ -158,10 +147,14 @@ def dispatch(args) -> None:
     if args.preset not in known:
         raise ValueError(f"{args.command} runs the {known[0]!r} preset only, got --preset {args.preset!r}")
     section = STAGE_COMMANDS.get(args.command, (None,))[0]
-    overrides = parse_overrides(args.set, section)
+    if args.task is not None:
+        from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
+
+        tasks.check_task(args.task)
+    overrides = parse_overrides(args.set, section, args.task)
     if args.task is not None:
         overrides = {"task": args.task, **overrides}
-    cfg = config.make_config(args.preset, task_overrides(overrides))
+    cfg = config.make_config(args.preset, overrides)
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, cfg.task)
     # One command at a time writes stages into a run directory; with --distributed every host runs
     # the same command into the same directory, by design.
@@ -193,7 +186,7 @@ def main(argv=None) -> None:
         os.environ.setdefault("MUJOCO_GL", "egl")
     from bumps_jax.pipeline import runio  # noqa: PLC0415
 
-    run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task or "kick")
+    run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task)
     try:
         if args.distributed:
             from bumps_jax.algo import sharding  # noqa: PLC0415

@@ -20,14 +20,14 @@ def cheetah_run(tmp_path_factory):
     timing."""
     run_dir = tmp_path_factory.mktemp("cheetah")
     # Both meta-policies of one small architecture: one compiled rollout program serves the two.
-    nets = {f"cheetah_vel.meta.nets.{name}": (1, 16) for name in ("meta_4x256", "meta_11x128")}
+    nets = {f"meta.nets.{name}": (1, 16) for name in ("meta_4x256", "meta_11x128")}
     cfg = config.make_config("tiny", {"task": "cheetah_vel", **nets})
     timing = pipeline.run_pipeline(pipeline.ORDER, cfg, run_dir, say=lambda *a, **k: None)
     return {"cfg": cfg, "dir": run_dir, "timing": timing}
 
 
 def test_the_tiny_pipeline_runs_the_cheetahs_stages(cheetah_run):
-    run_dir, view = cheetah_run["dir"], config.task_view(cheetah_run["cfg"])
+    run_dir, view = cheetah_run["dir"], cheetah_run["cfg"]
     assert sorted(cheetah_run["timing"]["stages_s"]) == ["baseline", "experts", "filter", "meta"]
     experts = json.loads((run_dir / "experts" / "experts.json").read_text())
     assert experts["task"] == "cheetah_vel" and experts["unit"] == "m/s"
@@ -73,7 +73,7 @@ def test_a_rerun_is_up_to_date_and_publishes_into_results(cheetah_run, tmp_path)
 def test_the_baseline_trains_one_policy_on_the_experts_velocities_and_scores_the_test_ones(cheetah_run):
     """Multi-task PPO from a fresh policy that sees the target, on velocities drawn from the
     experts' range, scored on the test velocities with the cheetah's mean velocity error."""
-    run_dir, view = cheetah_run["dir"], config.task_view(cheetah_run["cfg"])
+    run_dir, view = cheetah_run["dir"], cheetah_run["cfg"]
     b = view.baseline
     saved = json.loads((run_dir / "baseline" / "baseline.json").read_text())
     assert saved["task"] == "cheetah_vel" and saved["unit"] == "m/s" and "bc_final_loss" not in saved

@@ -319,8 +319,7 @@ def test_ppo_improves_the_return_on_the_warp_backend():
         "experts.ppo.learning_rate": 3e-3,
         "experts.updates_per_chunk": n,
     }
-    cfg = config.make_config("tiny", {"task": "cheetah_vel", **{f"cheetah_vel.{k}": v for k, v in overrides.items()}})
-    view = config.task_view(cfg)
+    view = config.make_config("tiny", {"task": "cheetah_vel", **overrides})
     programs = experts.compile_programs(view)
     assert programs.env.config.impl == "warp"
     tasks = jnp.asarray(view.experts.tasks)

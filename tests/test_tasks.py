@@ -13,23 +13,24 @@ from bumps_jax.tasks import registry as tasks
 # sha256 of json.dumps(config.section(cfg, stage), sort_keys=True) for the kick: what a stage's
 # manifest records of the config. A change here makes every kick run made before it refuse to resume
 # (`pipeline.check_manifest`); a change of the tree's layout comes with a new
-# `pipeline.MANIFEST_SCHEMA`. Re-pinned when the losing arms' knobs left the tree (schema 2).
+# `pipeline.MANIFEST_SCHEMA`. Re-pinned when the losing arms' knobs left the tree (schema 2), and
+# when every section came to name its task (the kick's values unchanged: the pins without it held).
 KICK_SECTIONS = {
     "tiny": {
-        "prior": "7129f2c0c8a5fbc223648451c94ff60aa6c7cd5fb1e7dfdb2cefd1160c757983",
-        "experts": "9b27aef357e3d85016bfb28f8e3a0cc63ad5eea30e461f028eaaa0cf811da046",
-        "meta": "9f61c7c2f0ee9df1b5d6582298d9413735fd8dedd8e446cb824f7ec68e224381",
-        "filter": "81ae60fe857ac89f1eba00f63262b72dc2554fb7f176b221b5d52f41a7dd1465",
-        "heldout": "76980f87b5f5a78ea4c3b8b909581a3629b9e5e823f5167e86fb002102c19581",
-        "baseline": "88f64e4ead9f1c4ed6875a1891601ce9d0415e4ce069bc8c23094462beb64272",
+        "prior": "c77d5ee26ce79ab481bb9e662a761800766d5204f5cb12fa5c4abe3858fe232d",
+        "experts": "a26d07dbb2615e465aeeee0bf073ab7c2685c05f8612d89e48055365d13bd0f7",
+        "meta": "c31ba242d420911a21c719be714c6c0a9918a88b2ce264eefd0223fce6f637ac",
+        "filter": "25192c3f5983701f519587d2751b13a476b2d74c42985a855c0b5b6af8b77757",
+        "heldout": "8bc6c1a9635b8e095e776cb3f006cb4378154fa4e755b89594bbe5768cd7ad0d",
+        "baseline": "6a979f969de01a641d4650e63fdd1f326f0abd38a46ce1abfff45ce08793f69b",
     },
     "paper": {
-        "prior": "e38b970f96217601c6ed4c31aff219830db04d78627ad7239a92aca0fb1dfadc",
-        "experts": "0f1c1ef60373fb2544c4b4bec487d47a8d47cf7c92d19072c58465ebca6c8c6f",
-        "meta": "b3cbdc5da8d75d3f3d733a551ce389880e93f61c2b330750bd0b66d84070b146",
-        "filter": "ab9e5ff5612b5c379ee36c36ee5c678ece58954c529f0017aab817c2269f29c9",
-        "heldout": "3d00234a9a024e9b03d79264da1858dd0404759e5043654ec3c158bebcff9205",
-        "baseline": "853e9de1255af4d4709ad6b988a5da7470cc7750e72ce0ea0479a003b50474e1",
+        "prior": "60e55d10a9447f32ad888a955a4228849515451ee277be74d5ef7aef6bed3d2d",
+        "experts": "f66b2ea8eb909cbd53d1ad64afa63da8cf3c725015165493531a2c45317603cd",
+        "meta": "834c238fff5fba0f7d17f26daa7839143042a938df1a0ff0b73e11ea835f4b62",
+        "filter": "28c68bd2e8a7fcbf5c7ee90aaf6dd5164a9097f322b524f9bfbfa020d98004c8",
+        "heldout": "be6b478575aee78b6124528e9ff0987742791f2d5f312e8a448e5bb78a1b1e53",
+        "baseline": "fe3b2493c8c10f2803dede6d928187700b942007d20d00b55ad870a67b29a358",
     },
 }
 
@@ -44,21 +45,20 @@ def test_the_kicks_stage_sections_are_unchanged(preset):
     assert cfg.task == "kick"
     sections = {s: digest(config.section(cfg, s)) for s in KICK_SECTIONS[preset]}
     assert sections == KICK_SECTIONS[preset]
-    assert config.task_view(cfg) is cfg
 
 
-def test_cheetah_sections_are_its_own():
+def test_a_tasks_tree_is_its_own():
     cfg = config.make_config("tiny", {"task": "cheetah_vel"})
-    view = config.task_view(cfg)
-    assert view.task == "cheetah_vel" and config.task_view(view) is view
-    assert tuple(view.experts.tasks) == (0.5, 2.0) and view.env.episode_steps == 10
+    assert cfg.task == "cheetah_vel" and "prior" not in cfg and "cheetah_vel" not in cfg
+    assert tuple(cfg.experts.tasks) == (0.5, 2.0) and cfg.env.episode_steps == 10
     section = config.section(cfg, "experts")
     assert section["task"] == "cheetah_vel" and section["env"]["physics_dt"] == pytest.approx(0.01)
-    assert section["experts"] == json.loads(json.dumps(view.experts.to_dict(), default=list))
-    # The kick's sections of the same config are untouched by the switch.
+    assert section["experts"] == json.loads(json.dumps(cfg.experts.to_dict(), default=list))
+    # The default task is the kick's, with its own sections.
     kick = config.make_config("tiny")
     assert config.section(kick, "experts") == config.section(config.make_config("tiny", {"task": "kick"}), "experts")
-    paper = config.task_view(config.make_config("paper", {"task": "cheetah_vel"}))
+    assert "prior" in kick and "tune" in kick.experts and "tune" not in cfg.experts
+    paper = config.make_config("paper", {"task": "cheetah_vel"})
     assert paper.env.warp_contacts >= 16 * len(paper.experts.tasks) * paper.experts.ppo.num_envs
     assert not set(paper.experts.tasks) & set(paper.filter.tasks)  # the test velocities are held out
 
@@ -67,23 +67,23 @@ def test_cheetah_sections_are_its_own():
     ("overrides", "message"),
     [
         ({"task": "walker"}, "unknown task 'walker'; choose one of"),
-        ({"task": "cheetah_vel", "cheetah_vel.experts.tasks": (3.5,)}, "cheetah_vel.experts.tasks: target 3.5 m/s"),
-        ({"task": "cheetah_vel", "cheetah_vel.env.impl": "torch"}, "cheetah_vel.env.impl must be one of"),
+        ({"task": "cheetah_vel", "experts.tasks": (3.5,)}, "experts.tasks: target 3.5 m/s"),
+        ({"task": "cheetah_vel", "env.impl": "torch"}, "env.impl must be one of"),
         (
-            {"task": "cheetah_vel", "cheetah_vel.baseline.eval_tasks": (3.5,)},
-            "cheetah_vel.baseline.eval_tasks: target 3.5 m/s",
+            {"task": "cheetah_vel", "baseline.eval_tasks": (3.5,)},
+            "baseline.eval_tasks: target 3.5 m/s",
         ),
         (
-            {"task": "cheetah_vel", "cheetah_vel.baseline.ppo.sample_task_range": (2.0, 0.5)},
-            "cheetah_vel.baseline.ppo.sample_task_range must be",
+            {"task": "cheetah_vel", "baseline.ppo.sample_task_range": (2.0, 0.5)},
+            "baseline.ppo.sample_task_range must be",
         ),
         (
             {
                 "task": "cheetah_vel",
-                "cheetah_vel.experts.ppo.num_envs": 64,
-                "cheetah_vel.experts.ppo.total_env_steps": 1280,
+                "experts.ppo.num_envs": 64,
+                "experts.ppo.total_env_steps": 1280,
             },
-            "cheetah_vel.env.warp_contacts 256 holds 16 episodes",
+            "env.warp_contacts 256 holds 16 episodes",
         ),
     ],
 )
@@ -102,9 +102,13 @@ def test_a_stage_the_task_lacks_is_refused(tmp_path):
 def test_the_command_line_sets_the_selected_tasks_own_sections():
     from bumps_jax import cli
 
-    assert cli.task_overrides({"experts.seed": 3}) == {"experts.seed": 3}
-    moved = cli.task_overrides({"task": "cheetah_vel", "experts.seed": 3, "preset": "tiny"})
-    assert moved == {"task": "cheetah_vel", "cheetah_vel.experts.seed": 3, "preset": "tiny"}
+    # A stage's own keys may drop their section; the top sections are the task's.
+    assert cli.parse_overrides([["ppo.learning_rate=1e-5"]], "experts", "cheetah_vel") == {
+        "experts.ppo.learning_rate": 1e-5
+    }
+    assert cli.parse_overrides([["tune.generations=2"]], "experts") == {"experts.tune.generations": 2}
+    with pytest.raises(ValueError, match="unknown config key 'experts.tune.generations'"):
+        config.make_config("tiny", {"task": "cheetah_vel", **cli.parse_overrides([["tune.generations=2"]], "experts")})
     assert str(cli.default_run_dir("reproduce", "paper", "cheetah_vel")) == "runs/cheetah_vel/paper"
     assert str(cli.default_run_dir("demo", "tiny")) == "runs/demo"
     args = cli.build_parser().parse_args(["reproduce", "--task", "cheetah_vel", "--set", "experts.seed=3"])

@@ -87,7 +87,8 @@ class ContextualEnv(Env):
     physics_dt, solver_iterations, impl, warp_contacts, warp_constraints_per_world, task_range),
     `contacts_per_episode`, then calls `_init_physics(mj_model)`; it defines reset, step,
     observation_size, action_size, with_context and error_against, and its config's static
-    functions `default_config()`, `resolved(env_config)` and `noise_free(env_config)`."""
+    functions `default_config()`, `resolved(env_config)`, `noise_free(env_config)` and
+    `n_steps_of(env_config)` (an episode's control steps)."""
 
     UNIT = "m"  # the context's unit
     ACHIEVED = "distance"  # the final metric holding what an episode achieved, in UNIT (plots)

@@ -54,7 +54,7 @@ def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]
     status: "new", "same" (resume), "done" (its record exists) or "forced"."""
     tasks.check_stage(cfg.task, name)
     module = stage_module(name, cfg.task)
-    wanted = manifest(config.section(cfg, name), module.inputs(config.task_view(cfg), run_dir))
+    wanted = manifest(config.section(cfg, name), module.inputs(cfg, run_dir))
     status = check_manifest(run_dir / name, wanted, force)
     if status == "same" and (run_dir / name / module.OUTPUT).exists():
         status = "done"
@@ -100,7 +100,7 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
     # crashed the process): its chunk loops stop at their next chunk, a stage without chunks
     # when it is done, and the call then ends as an interrupted one.
     with runio.stop_on_interrupt(say, at="this chunk, or at the end of this stage") as stop:
-        record = module.run(config.task_view(cfg), run_dir, say=say)
+        record = module.run(cfg, run_dir, say=say)
         stop.check()
     return record
 

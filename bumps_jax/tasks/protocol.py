@@ -76,6 +76,11 @@ class Task:
     # env's noise off) describe its config.
     env_class: type[ContextualEnv]
     stages: tuple[str, ...]  # the stages it runs, a subset of STAGE_ORDER in that order
+    # Its config tree but `preset` and `task`: `env` and a section per stage (`pipeline.sections`),
+    # at the `paper` preset's values, plus what its plug-ins read.
+    sections: Callable[[], ml_collections.ConfigDict]
+    presets: Mapping[str, dict]  # preset name -> dotted overrides of `sections()` ("tiny": CPU size)
+    validate: Callable[[ml_collections.ConfigDict], None]  # its own checks of a whole config, after the stages'
     report: Report
     expert_start: ExpertStart | None = None  # None: experts start from a fresh policy
     # The meta-policies' inputs normalised by the dataset's statistics (False: the observation as

@@ -16,6 +16,7 @@ _TASKS = {
     "cheetah_vel": "bumps_jax.tasks.cheetah_vel.task",  # HalfCheetah-Vel: run at a velocity (m/s)
 }
 TASKS = tuple(_TASKS)
+DEFAULT = "kick"  # the task a command runs without --task
 
 
 def check_task(name: str) -> str:

@@ -102,8 +102,8 @@ def make_fresh_init(trainer: ppo.Trainer):
 
 
 def compile_programs(cfg, env=None, mesh=None) -> Compiled:
-    """The experts' programs for a pipeline config (its task's `experts` section and env,
-    `config.task_view`); compiled on first call."""
+    """The experts' programs for a pipeline config (its task's `experts` section and env); compiled
+    on first call."""
     start = tasks.get(cfg.task).expert_start
     env = env or tasks.make_env(cfg.task, cfg.env)
     mesh = mesh or sharding.device_mesh(impl=env.config.impl)

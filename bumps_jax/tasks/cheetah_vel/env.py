@@ -175,6 +175,11 @@ def _reward_ctrl(action: jax.Array) -> jax.Array:
     return -jnp.sum(jnp.square(action))
 
 
+def n_steps_of(cfg: ml_collections.ConfigDict) -> int:
+    """Control steps of one episode under env config `cfg`."""
+    return int(cfg.episode_steps)
+
+
 class CheetahVelEnv(task_env.ContextualEnv):
     """The half-cheetah runs at a target forward velocity (m/s).
 
@@ -186,6 +191,7 @@ class CheetahVelEnv(task_env.ContextualEnv):
     default_config = staticmethod(default_config)
     resolved = staticmethod(resolved)
     noise_free = staticmethod(noise_free)
+    n_steps_of = staticmethod(n_steps_of)
 
     UNIT = "m/s"
     ACHIEVED = "mean_forward_vel"

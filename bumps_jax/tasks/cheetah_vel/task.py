@@ -1,13 +1,16 @@
 """HalfCheetah-Vel as a BUMPS task: experts from fresh policies, states normalised for the nets."""
 
 from bumps_jax.report import tables
-from bumps_jax.tasks.cheetah_vel import env
+from bumps_jax.tasks.cheetah_vel import config, env
 from bumps_jax.tasks.protocol import Report, Task
 
 TASK = Task(
     name="cheetah_vel",
     env_class=env.CheetahVelEnv,
     stages=("experts", "meta", "filter", "baseline"),
+    sections=config.sections,
+    presets=config.PRESETS,
+    validate=config.validate,
     report=Report(
         experts=tables.task_experts_markdown,
         table1=tables.task_table1_markdown,

@@ -144,6 +144,11 @@ def check_targets(targets, task_range) -> np.ndarray:
     return task_env.check_targets(targets, task_range, "m")
 
 
+def n_steps_of(cfg: ml_collections.ConfigDict) -> int:
+    """Control steps of one episode under env config `cfg`."""
+    return int(round(cfg.horizon_s / cfg.ctrl_dt))
+
+
 class KickEnv(task_env.ContextualEnv):
     """The NAO kicks a ball to a target distance.
 
@@ -155,6 +160,7 @@ class KickEnv(task_env.ContextualEnv):
     default_config = staticmethod(default_config)
     resolved = staticmethod(resolved)
     noise_free = staticmethod(noise_free)
+    n_steps_of = staticmethod(n_steps_of)
 
     def __init__(self, config=None, config_overrides: dict | None = None):
         self.config = make_config(config, config_overrides)

@@ -1,7 +1,7 @@
 """The kick as a BUMPS task: its env, its experts' start, its own prior stage and its report."""
 
 from bumps_jax.report import tables
-from bumps_jax.tasks.kick import env
+from bumps_jax.tasks.kick import config, env
 from bumps_jax.tasks.kick.start import KeyframeStart
 from bumps_jax.tasks.protocol import Report, Task
 
@@ -9,6 +9,9 @@ TASK = Task(
     name="kick",
     env_class=env.KickEnv,
     stages=("prior", "experts", "meta", "filter", "heldout", "baseline"),
+    sections=config.sections,
+    presets=config.PRESETS,
+    validate=config.validate,
     own_stages={"prior": "bumps_jax.tasks.kick.prior"},
     expert_start=KeyframeStart(),
     normalise_meta_inputs=False,  # (phase, normalised target) are in [0, 1] already

@@ -1,0 +1,105 @@
+"""The stages' config sections at their defaults (the paper's sizes): what every task's tree holds.
+
+A task's `config.sections()` builds its tree from these, giving its own contexts and sizes and
+adding the sections and keys its plug-ins read (the kick's prior, its experts' starting kicks).
+Each leaf's comment says what it does.
+"""
+
+from __future__ import annotations
+
+import ml_collections
+from ml_collections import FieldReference
+
+from bumps_jax.algo import ppo_config
+
+
+def experts(tasks) -> ml_collections.ConfigDict:
+    """One PPO expert per training context."""
+    cfg = ml_collections.ConfigDict()
+    cfg.tasks = tuple(tasks)  # the training contexts, one expert each
+    cfg.seed = 0  # the experts' PPO seed
+    cfg.updates_per_chunk = 25  # speed and logging only: PPO updates per compiled chunk
+    cfg.keep_checkpoints = 3  # checkpoints kept while training (disk only)
+    cfg.ppo = ppo_config.default_config()  # PPO's hyperparameters and budget per expert
+    cfg.eval = ml_collections.ConfigDict()  # every expert on its own context
+    cfg.eval.repetitions = 100  # noisy episodes per expert
+    cfg.eval.seed = 1  # noise of that evaluation
+    return cfg
+
+
+def meta(eval_tasks) -> ml_collections.ConfigDict:
+    """Behaviour cloning into the contextual meta-policies, and their unfiltered evaluation."""
+    cfg = ml_collections.ConfigDict()
+    # name -> (hidden layers, width): the paper's two meta-policies.
+    cfg.nets = ml_collections.ConfigDict({"meta_4x256": (4, 256), "meta_11x128": (11, 128)})
+    cfg.dataset = ml_collections.ConfigDict()  # the experts' rollouts the nets are cloned from
+    cfg.dataset.repetitions = 1  # rollouts per expert; 1 records them noise-free (the paper)
+    cfg.dataset.seed = 0  # noise of those rollouts (with repetitions > 1)
+    cfg.train = ml_collections.ConfigDict()  # behaviour cloning (`bc.make_trainer`: every net in one program)
+    cfg.train.learning_rate = 3e-4  # Adam, times decay_rate every decay_every epochs
+    cfg.train.decay_rate = 0.8  # factor on the rate every decay_every epochs
+    cfg.train.decay_every = 5000  # epochs
+    cfg.train.batch_size = 128  # pairs per gradient step
+    cfg.train.epochs = 150_000  # passes over the dataset
+    cfg.train.chunk = 2500  # speed and logging only: epochs per host sync (progress, CSV, checkpoint)
+    cfg.train.n_seeds = 1  # initialisations trained side by side; seed 0 is the table's row
+    cfg.train.seed = 0  # initialisation and shuffling seed
+    cfg.eval = ml_collections.ConfigDict()  # the unfiltered evaluation (Table 1)
+    cfg.eval.tasks = tuple(eval_tasks)  # the test contexts
+    cfg.eval.repetitions = 100  # noisy episodes per net per test context
+    cfg.eval.seed = 1  # noise of that evaluation
+    return cfg
+
+
+def filtering(tasks, context_range, context_step, high_context_step, width) -> ml_collections.ConfigDict:
+    """Policy filtering over sampled contexts (Table 2)."""
+    cfg = ml_collections.ConfigDict()
+    cfg.tasks = tuple(tasks)  # the test contexts filtered (Table 2)
+    cfg.context_range = tuple(context_range)  # sampled contexts form a grid over this range ...
+    cfg.context_step = context_step  # ... of this step
+    cfg.high_context_step = high_context_step  # the "high sample rate" variant's step
+    cfg.width = width  # a test context's candidates are the contexts within +- width of it
+    # "fixed": every candidate context gets `selection_repetitions` rollouts. "halving":
+    # successive halving: every candidate gets halving_rungs[0] rollouts, each task's best
+    # `halving_keep` fraction of its candidates goes on to the next rung's total, and so on; the
+    # scores at a rung use all of a context's rollouts so far.
+    cfg.selection = "halving"
+    cfg.selection_repetitions = 10  # noisy rollouts per sampled context ("fixed")
+    cfg.halving_rungs = (2, 8, 32, 100)  # rollouts per surviving context after each rung ("halving")
+    cfg.halving_keep = 0.25  # fraction of a task's candidates that goes on to the next rung ("halving")
+    cfg.eval_repetitions = 100  # fresh noisy rollouts of each task's chosen context
+    cfg.seed = 0  # split into independent selection and evaluation noise
+    cfg.net_seed = 0  # which initialisation of a meta-policy ensemble is filtered
+    # Speed only: episodes per device per program call, one compiled program for every batch
+    # (None: one call, and one compile, per batch size).
+    cfg.block = FieldReference(4096, field_type=int)
+    return cfg
+
+
+def baseline(ppo: ml_collections.ConfigDict, eval_tasks, sample_task_range) -> ml_collections.ConfigDict:
+    """The multi-task PPO baseline (the paper's Figure 1): one contextual policy for every context."""
+    cfg = ml_collections.ConfigDict()
+    cfg.seeds = 6  # independent runs, trained side by side
+    cfg.updates_per_chunk = 25  # speed and logging only: PPO updates per compiled chunk
+    cfg.keep_checkpoints = 3  # checkpoints kept while training (disk only)
+    cfg.eval_tasks = tuple(eval_tasks)  # where each seed's policy is evaluated
+    cfg.eval_repetitions = 100  # noisy episodes per test context
+    cfg.eval_seed = 7  # noise of that evaluation
+    cfg.ppo = ppo  # PPO's settings and budget per seed
+    cfg.ppo.sample_task_range = tuple(sample_task_range)  # each episode draws its context from U[low, high]
+    # A second arm: the same seeds at this policy learning rate, trained beside the first
+    # (ppo.learning_rate) in one program; None: the first arm only.
+    cfg.extra_learning_rate = FieldReference(1e-5, field_type=float)
+    return cfg
+
+
+def heldout(targets, seed: int) -> ml_collections.ConfigDict:
+    """An evaluation on contexts no other stage uses (`evaluate --heldout`, or `--dev`)."""
+    cfg = ml_collections.ConfigDict()
+    cfg.targets = tuple(targets)  # the contexts evaluated
+    cfg.seed = seed  # noise of these episodes (selection and fresh); no other section uses it
+    cfg.repetitions = 100  # fresh noisy episodes per context and variant
+    # Filtering a context: candidates are filter.context_range / context_step's grid and the
+    # context itself within +- filter.width, each rolled out this many times on its own episodes.
+    cfg.selection_repetitions = 10
+    return cfg
