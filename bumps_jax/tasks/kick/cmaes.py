@@ -29,10 +29,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from bumps_jax.algo import sharding
-from bumps_jax.pipeline import runio, validation
+from bumps_jax.pipeline import runio
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 from bumps_jax.tasks.kick import scoring as kick_scoring
+from bumps_jax.tasks.kick.config import TUNE_KEEPS
 
 PROGRESS_FIELDS = ("generation", "best_fitness", "mean_fitness", "best_so_far", "valid_fraction", "seconds")
 
@@ -380,8 +381,8 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     kick_scoring.check_count("restarts", tune_cfg.restarts)
     K = int(tune_cfg.restarts)
     keep = tune_cfg.get("keep", "run")
-    if keep not in validation.TUNE_KEEPS:
-        raise ValueError(f"tune keep must be one of {validation.TUNE_KEEPS}, got {keep!r}")
+    if keep not in TUNE_KEEPS:
+        raise ValueError(f"tune keep must be one of {TUNE_KEEPS}, got {keep!r}")
     _check_pool(env, per_device * (K + 1) * E, "the tuning's fresh scoring (tasks x (restarts + 1) x eval_repetitions)")
     search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json, midpoint_weight)
     leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
