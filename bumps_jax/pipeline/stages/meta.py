@@ -125,11 +125,13 @@ def save_dataset(path, data: bc.Dataset) -> Path:
     tmp = path.with_name(path.name + ".tmp.npz")
     np.savez(tmp, **data._asdict())
     tmp.replace(path)
+    runio.write_file_checksum(path)
     return path
 
 
 def load_dataset(path) -> bc.Dataset:
-    """The bc.Dataset saved by `save_dataset`."""
+    """The bc.Dataset saved by `save_dataset`; CorruptError (a ValueError) naming it if its bytes changed."""
+    runio.verify_file_checksum(path)
     with np.load(path) as f:
         return bc.Dataset(**{name: f[name] for name in bc.Dataset._fields})
 
@@ -139,9 +141,13 @@ def dataset(cfg, run_dir: Path, say=print) -> bc.Dataset:
     trained experts now (and saved)."""
     path = Path(run_dir) / "meta" / "dataset.npz"
     if path.exists():
-        data = load_dataset(path)
-        say(f"dataset: {path} ({len(data.obs)} pairs, reused)")
-        return data
+        try:
+            data = load_dataset(path)
+        except runio.CorruptError as err:  # this stage's own intermediate: recorded again
+            say(f"dataset: {err}; recording it again")
+        else:
+            say(f"dataset: {path} ({len(data.obs)} pairs, reused)")
+            return data
     t0 = time.perf_counter()
     family = experts_stage.load_family(cfg, run_dir)
     reps = cfg.meta.dataset.repetitions

@@ -1,0 +1,141 @@
+"""Fault injection: what a damaged artifact, a second writer, a Ctrl-C or a bad value does. Each
+fault must give one clear line naming what is wrong (or fall back, saying so), never a silently
+wrong result."""
+
+import shutil
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bumps_jax.pipeline import policies, runio
+
+# -- checksums ---------------------------------------------------------------------------------
+
+
+def flip_bytes(path: Path, n: int = 64) -> None:
+    """Invert `n` bytes in the middle of `path` (its length unchanged)."""
+    data = bytearray(path.read_bytes())
+    start = max(0, len(data) // 2 - n // 2)
+    for i in range(start, min(len(data), start + n)):
+        data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def largest_file(directory: Path) -> Path:
+    files = [p for p in directory.rglob("*") if p.is_file() and p.name != runio.CHECKSUMS]
+    return max(files, key=lambda p: p.stat().st_size)
+
+
+class Said(list):
+    """A `say` that keeps its lines."""
+
+    def __call__(self, line="", **kwargs):
+        self.append(str(line))
+
+
+def counting_loop() -> runio.ChunkedTraining:
+    """A chunked 'training' of a (64,) vector: chunk k adds 1 to it; its state is checkpointed."""
+    fresh = {"w": jnp.zeros(64), "n": jnp.array(0)}
+    return runio.ChunkedTraining(
+        init=lambda: fresh,
+        chunk=lambda s: ({"w": s["w"] + 1.0, "n": s["n"] + 1}, {}),
+        abstract=fresh,
+        updates=lambda s: int(s["n"]),
+        rows=lambda before, m: [{"update": before}],
+        line=lambda m, update, eta: f"update {update}",
+        fields=("update",),
+    )
+
+
+def test_a_flipped_checkpoint_falls_back_to_an_older_one_saying_which_file(tmp_path):
+    said = Said()
+    runio.train_in_chunks(tmp_path, counting_loop(), 3, keep=3, say=said)
+    newest = tmp_path / "checkpoints" / "3"
+    assert (newest / runio.CHECKSUMS).is_file()
+    bad = largest_file(newest)
+    flip_bytes(bad)
+    said.clear()
+    out = runio.train_in_chunks(tmp_path, counting_loop(), 5, keep=3, say=said)
+    corrupt = [line for line in said if "corrupt" in line]
+    assert len(corrupt) == 1 and bad.name in corrupt[0] and "checksum mismatch" in corrupt[0]
+    assert any("resumed from update 2" in line for line in said)
+    np.testing.assert_array_equal(np.asarray(out["state"]["w"]), np.full(64, 5.0))  # as uninterrupted
+    assert (tmp_path / "checkpoints" / "3.corrupt").is_dir()
+
+
+def test_a_truncated_checkpoint_names_its_reason_not_a_repr(tmp_path):
+    said = Said()
+    runio.train_in_chunks(tmp_path, counting_loop(), 2, keep=3, say=said)
+    for p in (tmp_path / "checkpoints" / "2").rglob("*"):  # no checksums: the old version's case
+        if p.name == runio.CHECKSUMS:
+            p.unlink()
+    bad = largest_file(tmp_path / "checkpoints" / "2")
+    bad.write_bytes(bad.read_bytes()[:10])
+    said.clear()
+    out = runio.train_in_chunks(tmp_path, counting_loop(), 3, keep=3, say=said)
+    unreadable = [line for line in said if "unreadable" in line]
+    assert len(unreadable) == 1 and "<bound method" not in unreadable[0]
+    assert int(out["state"]["n"]) == 3
+
+
+def test_sealed_directory_and_file_name_the_changed_file(tmp_path):
+    folder = tmp_path / "final_params"
+    (folder / "d").mkdir(parents=True)
+    (folder / "d" / "a").write_bytes(bytes(range(256)))
+    runio.write_checksums(folder)
+    assert runio.verify_checksums(folder)
+    assert runio.file_hash(folder) == runio.file_hash(folder)  # the manifest is not content
+    flip_bytes(folder / "d" / "a")
+    with pytest.raises(runio.CorruptError, match=r"final_params/d/a: checksum mismatch"):
+        runio.verify_checksums(folder)
+    data = tmp_path / "dataset.npz"
+    np.savez(data, x=np.arange(100))
+    runio.write_file_checksum(data)
+    assert runio.verify_file_checksum(data)
+    flip_bytes(data)
+    with pytest.raises(runio.CorruptError, match=r"dataset.npz: checksum mismatch"):
+        runio.verify_file_checksum(data)
+
+
+def test_a_finished_stage_keeps_its_checkpoints_until_the_newest_verifies(tmp_path):
+    runio.train_in_chunks(tmp_path, counting_loop(), 2, keep=3, say=lambda *a, **k: None)
+    flip_bytes(largest_file(tmp_path / "checkpoints" / "2"))
+    with pytest.raises(runio.CorruptError):
+        runio.keep_newest_checkpoint(tmp_path / "checkpoints")
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["0", "1", "2"]
+
+
+# -- shipped policies ----------------------------------------------------------------------------
+
+
+def test_the_committed_policies_carry_their_checksums():
+    manifest = runio.read_json(policies.ASSET_DIR / policies.MANIFEST)
+    for entry in [*manifest["nets"].values(), manifest["experts"]]:
+        assert entry["sha256"] == runio.sha256_of(policies.ASSET_DIR / entry["file"])
+
+
+@pytest.mark.parametrize("fault", ["truncated", "empty", "swapped"])
+def test_a_damaged_shipped_policy_is_named(tmp_path, fault):
+    shipped = tmp_path / "policies"
+    shutil.copytree(policies.ASSET_DIR, shipped)
+    target = shipped / "meta_4x256.msgpack"
+    if fault == "truncated":
+        target.write_bytes(target.read_bytes()[:1000])
+    elif fault == "empty":
+        target.write_bytes(b"")
+    else:
+        other = shipped / "meta_11x128.msgpack"
+        a, b = target.read_bytes(), other.read_bytes()
+        target.write_bytes(b)
+        other.write_bytes(a)
+    with pytest.raises(ValueError, match=r"meta_4x256.msgpack: its sha256 is not the one policies.json records"):
+        policies.load(shipped)
+    if fault == "swapped":  # a manifest from before the checksums: the nets' shapes still tell
+        manifest = runio.read_json(shipped / policies.MANIFEST)
+        for entry in [*manifest["nets"].values(), manifest["experts"]]:
+            entry.pop("sha256")
+        runio.write_json(shipped / policies.MANIFEST, manifest)
+        with pytest.raises(ValueError, match=r"meta_4x256.msgpack: holds no layer of width 256"):
+            policies.load(shipped)
