@@ -14,6 +14,7 @@ physics step or backend does not kick the same under another.
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 from typing import NamedTuple
 
@@ -73,14 +74,12 @@ def write(cfg, run_dir: str | Path, dest: str | Path) -> list[Path]:
     for net in meta_stage.NETS:
         depth, width = table1["config"]["nets"][net]
         _, params = bc.load_policy(run_dir / "meta" / net, depth, width, train_cfg)
-        path = dest / f"{net}.msgpack"
-        path.write_bytes(_serialize(jax.tree.map(lambda a: a[net_seed], params)))
-        nets[net] = {"depth": int(depth), "width": int(width), "file": path.name}
+        path = runio.write_bytes(dest / f"{net}.msgpack", _serialize(jax.tree.map(lambda a: a[net_seed], params)))
+        nets[net] = {"depth": int(depth), "width": int(width), "file": path.name, "sha256": runio.sha256_of(path)}
         nets[net].update(bc.obs_norm_fields(obs_norm))  # the fixed map in front of the first layer
         written.append(path)
     family = experts_stage.load_family(cfg, run_dir)
-    path = dest / "experts.msgpack"
-    path.write_bytes(_serialize(family.params))
+    path = runio.write_bytes(dest / "experts.msgpack", _serialize(family.params))
     written.append(path)
     keep = ("context_range", "context_step", "width", "selection_repetitions", "net_seed")
     manifest = {
@@ -91,6 +90,7 @@ def write(cfg, run_dir: str | Path, dest: str | Path) -> list[Path]:
         "nets": nets,
         "experts": {
             "file": "experts.msgpack",
+            "sha256": runio.sha256_of(path),
             "tasks_m": [float(t) for t in family.tasks],
             "ppo_policy": {k: cfg.experts.ppo[k] for k in ("policy_hidden", "normalize_observations")},
         },
@@ -108,6 +108,16 @@ def write(cfg, run_dir: str | Path, dest: str | Path) -> list[Path]:
         manifest["heldout_choices"] = {"targets_m": record["targets_m"], "chosen_contexts": record["chosen_contexts"]}
     written.append(runio.write_json(dest / MANIFEST, manifest))
     return written
+
+
+def seal(directory: str | Path = ASSET_DIR) -> Path:
+    """Record each shipped file's sha256 in `directory`'s policies.json (as `write` does), for a
+    directory shipped before policies carried them; `load` checks them."""
+    directory = Path(directory)
+    manifest = runio.read_json(directory / MANIFEST, "a shipped-policies manifest")
+    for entry in [*manifest["nets"].values(), manifest["experts"]]:
+        entry["sha256"] = runio.sha256_of(directory / entry["file"])
+    return runio.write_json(directory / MANIFEST, manifest)
 
 
 def env_config(manifest: dict, overrides: dict | None = None) -> ml_collections.ConfigDict:
@@ -152,14 +162,31 @@ def load(directory: str | Path = ASSET_DIR, env_cfg=None) -> Shipped:
     if env_cfg is not None:
         env_records.check_same_env(manifest.get("env"), env_cfg, f"the shipped policies in {directory}")
 
-    def read(name):
-        path = directory / name
+    def read(entry):
+        path = directory / entry["file"]
         if not path.is_file():
-            raise ValueError(f"{path}: missing from the shipped policies: {HOW_TO_MAKE}")
-        return serialization.msgpack_restore(path.read_bytes())
+            raise ValueError(f"{runio.shown(path)}: missing from the shipped policies: {HOW_TO_MAKE}")
+        data = path.read_bytes()
+        if "sha256" in entry and hashlib.sha256(data).hexdigest() != entry["sha256"]:
+            raise ValueError(
+                f"{runio.shown(path)}: its sha256 is not the one {MANIFEST} records ({len(data)} bytes): "
+                "the file is damaged, truncated or another policy's; restore it from the repository"
+            )
+        try:
+            return serialization.msgpack_restore(data)
+        except Exception as err:  # noqa: BLE001 (msgpack raises several kinds)
+            raise ValueError(f"{runio.shown(path)}: not a shipped policy ({runio.error_reason(err)})") from None
 
-    nets = {net: read(entry["file"]) for net, entry in manifest["nets"].items()}
-    return Shipped(manifest, nets, read(manifest["experts"]["file"]))
+    nets = {net: read(entry) for net, entry in manifest["nets"].items()}
+    shipped = Shipped(manifest, nets, read(manifest["experts"]))
+    for net, entry in manifest["nets"].items():  # a file of another net (no checksum to tell)
+        width = {np.shape(leaf)[-1] for leaf in jax.tree.leaves(nets[net])}
+        if int(entry["width"]) not in width:
+            raise ValueError(
+                f"{runio.shown(directory / entry['file'])}: holds no layer of width {entry['width']} "
+                f"({net} in {MANIFEST}): another net's file?"
+            )
+    return shipped
 
 
 class Kicks(NamedTuple):
