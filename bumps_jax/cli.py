@@ -51,6 +51,11 @@ OTHER = {
 }
 
 
+# The commands besides the stages that read a finished run and write into its directory: under
+# its lock, as the stages are, and refused at once where the directory does not exist.
+NEEDS_RUN = ("evaluate", "publish", "report", "video")
+
+
 def parse_overrides(groups, section: str | None = None) -> dict:
     """[['a.b=1', 'c=[1, 2]'], ['d=x']] -> {'a.b': 1, 'c': (1, 2), 'd': 'x'}. With a stage's
     `section`, a key that names no top-level section of the tree is read inside that section."""
@@ -166,7 +171,12 @@ def dispatch(args) -> None:
     # One command at a time writes stages into a run directory; with --distributed every host runs
     # the same command into the same directory, by design.
     lock = contextlib.nullcontext() if args.distributed else runio.run_lock(run_dir)
+    if args.command in NEEDS_RUN:
+        if not Path(run_dir).is_dir():  # refused before the lock would create it
+            raise ValueError(f"no run directory {str(run_dir)!r}: run its stages first (e.g. python -m bumps_jax demo)")
     if section:
+        if not Path(run_dir).is_dir():  # a stage's missing inputs refused before the lock creates the directory
+            pipeline.plan(section, cfg, Path(run_dir))
         with lock:
             pipeline.run_stage(section, cfg, run_dir, force=args.force)
     elif args.command in PIPELINES:
@@ -181,7 +191,9 @@ def dispatch(args) -> None:
     else:
         from bumps_jax.pipeline import commands  # noqa: PLC0415
 
-        commands.run(args.command, cfg, run_dir, args)
+        writes = args.command in NEEDS_RUN or (args.command == "render" and args.out is None)
+        with lock if writes else contextlib.nullcontext():
+            commands.run(args.command, cfg, run_dir, args)
 
 
 def main(argv=None) -> None:

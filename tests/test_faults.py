@@ -139,3 +139,29 @@ def test_a_damaged_shipped_policy_is_named(tmp_path, fault):
         runio.write_json(shipped / policies.MANIFEST, manifest)
         with pytest.raises(ValueError, match=r"meta_4x256.msgpack: holds no layer of width 256"):
             policies.load(shipped)
+
+
+# -- one writer per run directory ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "command", [["evaluate", "--heldout"], ["evaluate", "--dev"], ["publish"], ["demo"], ["train-experts"], ["report"]]
+)
+def test_every_command_that_writes_a_run_directory_takes_its_lock(tmp_path, command):
+    from bumps_jax import cli
+
+    with runio.run_lock(tmp_path), pytest.raises(SystemExit) as exit_:
+        cli.main([*command, "--run-dir", str(tmp_path)])
+    assert "is in use by another process" in str(exit_.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".lock"]
+
+
+@pytest.mark.parametrize("command", [["evaluate", "--heldout"], ["publish"], ["filter"], ["meta-train"]])
+def test_a_missing_run_directory_is_refused_and_not_made(tmp_path, command):
+    from bumps_jax import cli
+
+    missing = tmp_path / "doesnotexist"
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([*command, "--run-dir", str(missing)])
+    assert str(exit_.value).startswith("error: ") and "\n" not in str(exit_.value)
+    assert not missing.exists()
