@@ -215,7 +215,10 @@ def main(argv=None) -> None:
     except ValueError as err:  # bad config values, missing or stale inputs: one clear line
         sys.exit(f"error: {err}")
     except (KeyboardInterrupt, runio.Interrupted):  # the checkpoints are the state
-        sys.exit(f"interrupted: rerun the same command to resume {run_dir} from its last checkpoint")
+        sys.exit(
+            f"interrupted: rerun the same command to resume {run_dir} from what it saved (the stage in flight's "
+            "last chunk or search generation; the stages before it are done)"
+        )
 
 
 if __name__ == "__main__":

@@ -165,3 +165,48 @@ def test_a_missing_run_directory_is_refused_and_not_made(tmp_path, command):
         cli.main([*command, "--run-dir", str(missing)])
     assert str(exit_.value).startswith("error: ") and "\n" not in str(exit_.value)
     assert not missing.exists()
+
+
+# -- Ctrl-C ----------------------------------------------------------------------------------------
+
+
+def test_a_search_stopped_by_ctrl_c_resumes_after_its_last_generation(tmp_path, monkeypatch):
+    """The prior's CMA-ES searches save their state after every generation: Ctrl-C stops one after
+    the generation in flight, and the rerun ends exactly where an uninterrupted search does."""
+    import os
+    import signal
+
+    from bumps_jax.tasks.kick import cmaes
+    from bumps_jax.tasks.kick import keyframes as kick_model
+
+    def cost_fn(params, keys, target, extra):
+        return (params[:, 0] - target) ** 2 + params[:, 1] ** 2, {"valid": jnp.ones(keys.shape)}
+
+    from bumps_jax.algo import sharding
+
+    search = cmaes.make_search(cost_fn, 8, 2, 1.0, sharding.device_mesh())
+    x0 = np.asarray(kick_model.DEFAULT_PARAMS, np.float32)[None]
+    free = np.ones((1, kick_model.N_PARAMS), bool)
+    whole = cmaes.run_search(search, x0, [14.0], free, 5, 3, say=lambda m: None)
+    state = tmp_path / "search.npz"
+
+    def press_at_gen_2(gen, stats):
+        if gen == 1:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    said = Said()
+    with pytest.raises(runio.Interrupted):
+        cmaes.run_search(search, x0, [14.0], free, 5, 3, say=said, resume_path=state, on_generation=press_at_gen_2)
+    assert sum("gen " in line for line in said) == 2 and state.is_file()
+    said.clear()
+    resumed = []
+    again = cmaes.run_search(search, x0, [14.0], free, 5, 3, say=said, resume_path=state,
+                             on_resume=lambda done, history: resumed.append((done, len(history))))  # fmt: skip
+    assert resumed == [(2, 2)] and "resumed after generation 2" in said[0]
+    np.testing.assert_array_equal(again.mean, whole.mean)
+    np.testing.assert_array_equal(again.best, whole.best)
+    np.testing.assert_array_equal(again.history["best"], whole.history["best"])
+    # another search (here: another target) does not resume this one's state
+    said.clear()
+    cmaes.run_search(search, x0, [15.0], free, 1, 3, say=said, resume_path=state)
+    assert "holds another search's state" in said[0]

@@ -518,36 +518,40 @@ class _StopFlag:
             raise Interrupted()
 
 
+_ACTIVE_FLAG: list = []  # the stop flag of the outermost `stop_on_interrupt` now open
+
+
 @contextlib.contextmanager
 def stop_on_interrupt(say=print, at: str = "this chunk"):
     """A chunk loop that Ctrl-C stops cleanly: SIGINT only sets a flag, which the loop reads between
     chunks (`flag.check()`), so the interrupt never lands inside JAX, Warp or orbax (where it can be
-    swallowed or crash the process); a second Ctrl-C stops at once. `at`: where the loop stops, as
-    the message says it. Inside another one (a stage's guard around its chunk loops) it shares the
-    outer flag, so an interrupt either catches stops the loop at its next chunk. Outside the main
-    thread it changes nothing."""
-    previous = signal.getsignal(signal.SIGINT)
-    outer = getattr(previous, "stop_flag", None)
-    if outer is not None:
-        yield outer
+    swallowed or crash the process). A second Ctrl-C stops the process at once (SIGINT's default
+    action: a compiled program in flight would hold a Python exception back until it returns),
+    losing only the work since the last checkpoint. `at`: where the loop stops, as the message
+    says it. Inside another one (a stage's guard around its chunk loops) it shares the outer flag,
+    also after that flag was set, so an interrupt either catches stops the inner loop at its next
+    chunk. Outside the main thread it changes nothing."""
+    if _ACTIVE_FLAG:
+        yield _ACTIVE_FLAG[-1]
         return
     flag = _StopFlag()
 
     def handler(signum, frame):
-        if flag.requested:
-            raise KeyboardInterrupt
         flag.requested = True
-        say(f"\ninterrupt: stopping after {at} (Ctrl-C again to stop at once)", flush=True)
+        signal.signal(signal.SIGINT, signal.SIG_DFL)  # the next Ctrl-C ends the process at once
+        say(f"\ninterrupt: stopping after {at}, saving it (Ctrl-C again to stop at once, losing it)", flush=True)
 
     handler.stop_flag = flag
     try:
-        signal.signal(signal.SIGINT, handler)
+        previous = signal.signal(signal.SIGINT, handler)
     except ValueError:  # not the main thread
         yield flag
         return
+    _ACTIVE_FLAG.append(flag)
     try:
         yield flag
     finally:
+        _ACTIVE_FLAG.pop()
         signal.signal(signal.SIGINT, previous)
 
 
