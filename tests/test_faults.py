@@ -210,3 +210,74 @@ def test_a_search_stopped_by_ctrl_c_resumes_after_its_last_generation(tmp_path, 
     said.clear()
     cmaes.run_search(search, x0, [15.0], free, 1, 3, say=said, resume_path=state)
     assert "holds another search's state" in said[0]
+
+
+# -- config checks, staleness, records -------------------------------------------------------------
+
+
+@pytest.mark.parametrize("command", ["kick-prior", "train-experts"])
+def test_a_physics_step_that_does_not_divide_the_control_step_is_named_before_any_write(tmp_path, command):
+    from bumps_jax import cli
+
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([command, "--run-dir", str(tmp_path / "run"), "--set", "env.physics_dt=0.003"])
+    assert str(exit_.value).startswith("error: env.physics_dt 0.003 does not divide env.ctrl_dt 0.02")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_stage_refused_before_writing_leaves_no_manifest(tmp_path, monkeypatch):
+    import types
+
+    from bumps_jax import config
+    from bumps_jax.pipeline import runner
+
+    def refuse(cfg, run_dir, say=print):
+        raise ValueError("refused")
+
+    fake = types.SimpleNamespace(OUTPUT="out.json", inputs=lambda cfg, run_dir: {}, run=refuse)
+    monkeypatch.setattr(runner, "stage_module", lambda name: fake)
+    with pytest.raises(ValueError, match="refused"):
+        runner.run_stage("experts", config.make_config("tiny"), tmp_path)
+    assert not (tmp_path / "experts").exists()  # a corrected rerun is a new stage, not a stale one
+
+
+def test_knobs_that_change_no_result_leave_a_finished_stage_current(tmp_path):
+    from bumps_jax import config
+    from bumps_jax.pipeline import runner
+
+    def wanted(**overrides):
+        return runner.manifest(config.section(config.make_config("tiny", overrides), "experts"), {}, tmp_path)
+
+    stage = tmp_path / "experts"
+    runner.write_manifest(stage, wanted())
+    (stage / "progress.csv").write_text("")
+    assert runner.check_manifest(stage, wanted(**{"experts.keep_checkpoints": 5})) == "same"
+    chunk = wanted(**{"experts.updates_per_chunk": 1})
+    assert runner.check_manifest(stage, chunk, finished=True) == "same"
+    with pytest.raises(runner.StaleRunError, match="experts.updates_per_chunk"):  # a resume keeps its chunks
+        runner.check_manifest(stage, chunk, finished=False)
+    with pytest.raises(runner.StaleRunError, match="experts.seed"):
+        runner.check_manifest(stage, wanted(**{"experts.seed": 9}), finished=True)
+
+
+def test_records_name_paths_inside_the_run_directory_relative_to_it(tmp_path):
+    from bumps_jax.pipeline import runner
+    from bumps_jax.pipeline.stages import meta
+
+    record = tmp_path / "elsewhere" / "run" / "experts" / "experts.json"
+    record.parent.mkdir(parents=True)
+    record.write_text("{}")
+    wanted = runner.manifest(
+        {}, {"experts": record, "start": policies.ASSET_DIR / policies.MANIFEST}, record.parents[1]
+    )
+    assert wanted["inputs"]["experts"]["path"] == "experts/experts.json"
+    assert wanted["inputs"]["start"]["path"] == "assets/policies/policies.json"
+    row, _ = meta.experts_row({"accuracy_mean": 1.0}, record)
+    assert row["source"] == "experts/experts.json"
+
+
+def test_a_phase_clock_adds_up_every_process(tmp_path):
+    path = tmp_path / "wall.json"
+    runio.write_json(path, {"seconds": 3.5})  # a killed process's seconds up to its last save
+    clock = runio.CarriedClock(path)
+    assert 3.5 <= clock.save() < 10.0 and runio.read_json(path)["seconds"] >= 3.5

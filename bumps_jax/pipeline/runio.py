@@ -126,6 +126,18 @@ def shown(path: str | os.PathLike) -> str:
         return str(path)
 
 
+def recorded_path(path: str | os.PathLike, run_dir: str | os.PathLike | None = None) -> str:
+    """`path` as a record keeps it: relative to `run_dir` where it lies inside it, else relative
+    to the repository (a committed asset), else as `shown`."""
+    resolved = Path(path).resolve()
+    for base in ([Path(run_dir)] if run_dir is not None else []) + [Path(__file__).resolve().parents[2]]:
+        try:
+            return resolved.relative_to(base.resolve()).as_posix()
+        except ValueError:
+            continue
+    return shown(path)
+
+
 def write_json(path: str | os.PathLike, payload: dict) -> Path:
     """Strict JSON (no NaN), written atomically (temp file + rename): a killed run never leaves half a file."""
     return write_text(path, json.dumps(json_safe(payload), indent=2, allow_nan=False) + "\n")
@@ -506,6 +518,27 @@ class Clock:
         if done <= d0:
             return elapsed
         return f"{elapsed}, ETA {_seconds((now - t0) / (done - d0) * left)}"
+
+
+class CarriedClock:
+    """Seconds a phase took over every process that ran it: what earlier processes recorded in
+    `path` (up to their last `save`, e.g. a progress line after a checkpoint) plus this one's.
+    A killed process loses only the time since its last save."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path, self.start = Path(path), time.perf_counter()
+        try:
+            self.before = float(read_json(self.path).get("seconds", 0.0)) if self.path.is_file() else 0.0
+        except ValueError:
+            self.before = 0.0
+
+    def seconds(self) -> float:
+        return self.before + time.perf_counter() - self.start
+
+    def save(self) -> float:
+        seconds = self.seconds()
+        write_json(self.path, {"seconds": seconds})
+        return seconds
 
 
 class _StopFlag:

@@ -67,7 +67,7 @@ def experts_row(record: dict, path) -> tuple[dict, dict | None]:
             "tasks": [r["target_m"] for r in record["per_task"]],
             "error_mean_m": [r["error_mean_m"] for r in record["per_task"]],
         }
-    return {**row, "source": str(path)}, per_task
+    return {**row, "source": Path(path).relative_to(Path(path).parents[1]).as_posix()}, per_task  # in the run dir
 
 
 def per_task_list(tasks, summary: dict) -> list[dict]:
@@ -217,18 +217,30 @@ def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict,
     for name in names:
         say(f"{name}: {m.nets[name][0]} x {m.nets[name][1]}, {m.train.epochs} epochs, {m.train.n_seeds} seed(s)")
     states, seconds = {}, {}
+
+    def timed(clock):  # each progress line (after a checkpoint) records the training seconds so far
+        def say_and_save(*args, **kwargs):
+            clock.save()
+            say(*args, **kwargs)
+
+        return say_and_save
+
+    # Training seconds over every process (a killed call's up to its last progress line), compiling
+    # and checkpoints included.
     if m.trainer == "separate":
         for name, model in models.items():
-            t0 = time.perf_counter()
-            states[name] = bc.train(model, data, m.train, stage_dir / name, say)
-            seconds[name] = time.perf_counter() - t0  # compiling and checkpoints included
+            clock = runio.CarriedClock(stage_dir / name / "train_wall_time.json")
+            states[name] = bc.train(model, data, m.train, stage_dir / name, timed(clock))
+            seconds[name] = clock.save()
         return models, states, seconds
     say(f"{', '.join(names)}: trained stacked in one loop ({m.trainer})")
-    t0 = time.perf_counter()
+    clock = runio.CarriedClock(stage_dir / "train_wall_time.json")
     backward = "batched" if m.trainer == "stacked_batched" else "autodiff"
     trainer = bc_stacked.make_stacked_trainer(models, m.train, len(data.obs), data.obs.shape[-1], backward)
-    states = bc.train_nets(models, data, m.train, {name: stage_dir / name for name in names}, say, trainer=trainer)
-    return models, states, dict.fromkeys(names, time.perf_counter() - t0)
+    states = bc.train_nets(
+        models, data, m.train, {name: stage_dir / name for name in names}, timed(clock), trainer=trainer
+    )
+    return models, states, dict.fromkeys(names, clock.save())
 
 
 def evaluate_net(cfg, name: str, model: bc.MetaPolicy, state: bc.TrainState, env, grids: dict, say=print) -> dict:
