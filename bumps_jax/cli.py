@@ -11,7 +11,8 @@ sections: `--task cheetah_vel --set experts.seed=3` sets `cheetah_vel.experts.se
 `experts.ppo.learning_rate=1e-5`; a stage's own keys may drop their section
 (`train-experts --set ppo.learning_rate=1e-5`). Values are JSON (numbers, lists, true/false,
 null), else plain strings; each is checked against the type of its leaf. The only module that
-parses arguments or touches the process environment.
+parses arguments (the GL backend of the rendering commands is chosen in `bumps_jax/__init__`,
+before mujoco is imported).
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -50,6 +50,9 @@ OTHER = {
     "kick": "kick to a target with the shipped meta-policy (assets/policies/): filter a context, then N noisy kicks",
 }
 
+
+# Commands that take only their own options (`kick` runs the shipped policies under their own config).
+OWN_OPTIONS_ONLY = ("kick",)
 
 # The commands besides the stages that read a finished run and write into its directory: under
 # its lock, as the stages are, and refused at once where the directory does not exist.
@@ -97,43 +100,51 @@ def build_parser() -> argparse.ArgumentParser:
     helps = {**{k: v[1] for k, v in STAGE_COMMANDS.items()}, **{k: v[2] for k, v in PIPELINES.items()}, **OTHER}
     for name, help_text in helps.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
-        presets = (PIPELINES[name][1],) if name in PIPELINES else ("tiny", "paper")
-        p.add_argument("--preset", default=presets[0], help=f"one of {presets} (default {presets[0]})")
-        p.add_argument(
-            "--run-dir",
-            default=None,
-            type=Path,
-            help="default: runs/<preset> (runs/demo for demo); another task's: runs/<task>/<preset>",
-        )
-        p.add_argument("--task", default=None, help="the contextual task: kick (default) or cheetah_vel (config: task)")
-        p.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
-                       help="config overrides (JSON values); may be repeated")  # fmt: skip
-        p.add_argument("--force", action="store_true",
-                       help="recompute a stage whose outputs were made under another config or inputs, "
-                            "and every stage after it")  # fmt: skip
-        p.add_argument("--distributed", action="store_true", help="one process per host of a multi-host job")
-        if name in PIPELINES:
-            every = ", ".join(PIPELINES[name][0])
-            p.add_argument("--stages", nargs="+", default=None, metavar="STAGE",
-                           help=f"only these of its stages, in its order (default: all of {every}); the run "
-                                "directory's timings and report count them as one more call")  # fmt: skip
-        if name in ("render", "video"):
-            p.add_argument("--out", default=None, help="the picture's path")
-        if name == "showcase":
-            p.add_argument("--episodes", type=int, default=16)
-        if name == "evaluate":
-            p.add_argument("--heldout", action="store_true", help="the held-out targets and seed (config: heldout)")
-            p.add_argument("--dev", action="store_true",
-                           help="the development targets and seed (config: dev), for design choices")  # fmt: skip
+        if name in OWN_OPTIONS_ONLY:  # the shipped policies' own config: no preset, run directory or --set
+            p.set_defaults(preset="tiny", run_dir=None, task=None, set=[], force=False, distributed=False)
+        else:
+            add_run_options(p, name)
         if name == "kick":
             p.add_argument("--target", type=float, required=True, help="target distance (m)")
             p.add_argument("--kicks", type=int, default=16, help="noisy kicks at the chosen context (default 16)")
             p.add_argument("--net", default="meta_4x256", help="meta_4x256 (default) or meta_11x128")
-            p.add_argument("--gif", default=None, help="also render one kick to this GIF")
+            p.add_argument("--gif", default=None, help="also render one of the printed kicks to this GIF")
             p.add_argument("--selection-reps", type=int, default=4, help="noisy kicks per candidate context")
             p.add_argument("--seed", type=int, default=0, help="noise of the selection and the kicks")
             p.add_argument("--policies", type=Path, default=None, help="shipped policies (default: assets/policies)")
     return parser
+
+
+def add_run_options(p, name: str) -> None:
+    """The options of a command that runs the pipeline's config in a run directory."""
+    presets = (PIPELINES[name][1],) if name in PIPELINES else ("tiny", "paper")
+    p.add_argument("--preset", default=presets[0], help=f"one of {presets} (default {presets[0]})")
+    p.add_argument(
+        "--run-dir",
+        default=None,
+        type=Path,
+        help="default: runs/<preset> (runs/demo for demo); another task's: runs/<task>/<preset>",
+    )
+    p.add_argument("--task", default=None, help="the contextual task: kick (default) or cheetah_vel (config: task)")
+    p.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="config overrides (JSON values); may be repeated")  # fmt: skip
+    p.add_argument("--force", action="store_true",
+                   help="recompute a stage whose outputs were made under another config or inputs, "
+                        "and every stage after it")  # fmt: skip
+    p.add_argument("--distributed", action="store_true", help="one process per host of a multi-host job")
+    if name in PIPELINES:
+        every = ", ".join(PIPELINES[name][0])
+        p.add_argument("--stages", nargs="+", default=None, metavar="STAGE",
+                       help=f"only these of its stages, in its order (default: all of {every}); the run "
+                            "directory's timings and report count them as one more call")  # fmt: skip
+    if name in ("render", "video"):
+        p.add_argument("--out", default=None, help="the picture's path")
+    if name == "showcase":
+        p.add_argument("--episodes", type=int, default=16)
+    if name == "evaluate":
+        p.add_argument("--heldout", action="store_true", help="the held-out targets and seed (config: heldout)")
+        p.add_argument("--dev", action="store_true",
+                       help="the development targets and seed (config: dev), for design choices")  # fmt: skip
 
 
 def default_run_dir(command: str, preset: str, task: str = "kick") -> Path:
@@ -198,11 +209,7 @@ def dispatch(args) -> None:
 
 def main(argv=None) -> None:
     args = build_parser().parse_args(argv)
-    if args.command in ("render", "video") or getattr(args, "gif", None):
-        # Offscreen rendering needs a GL backend before mujoco loads one: EGL unless told
-        # otherwise. Only here: with MUJOCO_GL set, importing mujoco loads that GL library, and
-        # a host without one could then not even simulate.
-        os.environ.setdefault("MUJOCO_GL", "egl")
+    # (Offscreen rendering's GL backend is chosen before mujoco is imported: `bumps_jax._choose_gl`.)
     from bumps_jax.pipeline import runio  # noqa: PLC0415
 
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task or "kick")

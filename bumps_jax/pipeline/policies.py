@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import ml_collections
@@ -139,10 +139,10 @@ def env_config(manifest: dict, overrides: dict | None = None) -> ml_collections.
 
 def kick_env_config(manifest: dict, overrides: dict | None, n_kicks: int, n_devices: int = 1):
     """The env config `kick` runs: the policies' own (`env_config`), with Warp's contact pool sized
-    to the command's batch of `n_kicks` episodes per device unless `overrides` set it. The pool is
+    to the command's block of KICK_BLOCK episodes per device (whatever `n_kicks`) unless `overrides` set it. The pool is
     a capacity, not physics (records do not compare it); on a CPU every slot of a pool sized for
     the training run's thousands of episodes costs time at every step (half of `kick`'s time)."""
-    pool = {"warp_contacts": kick_env.CONTACTS_PER_EPISODE * int(n_kicks) * int(n_devices)}
+    pool = {"warp_contacts": kick_env.CONTACTS_PER_EPISODE * KICK_BLOCK * int(n_devices)}  # a block's episodes
     return env_config(manifest, {**pool, **(overrides or {})})
 
 
@@ -189,6 +189,11 @@ def load(directory: str | Path = ASSET_DIR, env_cfg=None) -> Shipped:
     return shipped
 
 
+# Episodes per device of one compiled call of `filtered_kicks` (its selection and its kicks): fixed,
+# so that few kicks cost no more calls than many (a block of --kicks 2 made the selection 8x the calls).
+KICK_BLOCK = 16
+
+
 class Kicks(NamedTuple):
     """What `filtered_kicks` found and measured."""
 
@@ -198,6 +203,7 @@ class Kicks(NamedTuple):
     distance: np.ndarray  # (N,) m, where each kick's ball came to rest along the kick line
     final_error: np.ndarray  # (N,) m, its distance to the target
     valid: np.ndarray  # (N,) bool
+    keys: Any = None  # (N,) each kick's noise key: a kick replayed with its key is that kick
 
 
 def filtered_kicks(
@@ -219,14 +225,15 @@ def filtered_kicks(
     program = meta_programs.meta_grid(env_cfg, entry["depth"], entry["width"], mesh, obs_norm=obs_norm)
     params = jax.tree.map(lambda a: np.asarray(a)[None], shipped.nets[net])
     sel_key, eval_key = filtering.noise_keys(seed)
-    block = int(n_kicks)  # one compiled program serves the selection and the kicks
+    block = KICK_BLOCK * mesh.size  # one compiled program serves the selection and the kicks
     sel = filtering.filter_policy(
         program, params, contexts, targets, f["width"], selection_repetitions, sel_key,
         task_range=task_range, block=block, multiple=mesh.size,
     )  # fmt: skip
     context = float(sel.contexts[sel.chosen[0]])
     m = filtering.evaluate_chosen(program, params, [context], targets, n_kicks, eval_key, block, mesh.size)
-    return Kicks(context, sel.contexts, sel.scores[0], m["distance"][0], m["final_error"][0], m["valid"][0] > 0)
+    keys = filtering.stage_keys(eval_key, 1, n_kicks)  # evaluate_chosen's keys, kick by kick
+    return Kicks(context, sel.contexts, sel.scores[0], m["distance"][0], m["final_error"][0], m["valid"][0] > 0, keys)
 
 
 def describe(shipped: Shipped, net: str, target: float, kicks: Kicks, wall_s: float | None = None) -> list[str]:
