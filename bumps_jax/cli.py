@@ -48,6 +48,7 @@ OTHER = {
     "evaluate": "evaluate a finished run (experts, meta and filter done) on the held-out (--heldout) or "
     "development (--dev) targets",
     "kick": "kick to a target with the shipped meta-policy (assets/policies/): filter a context, then N noisy kicks",
+    "config": "print every config key (--set KEY=VALUE) with its value under --preset, --task and --set",
 }
 
 
@@ -94,12 +95,52 @@ def task_overrides(overrides: dict) -> dict:
     return {(f"{task}.{k}" if k.split(".")[0] in own else k): v for k, v in overrides.items()}
 
 
-def build_parser() -> argparse.ArgumentParser:
+def flat_keys(tree: dict, prefix: str = "") -> dict:
+    """{dotted key: value} of every leaf of a nested dict."""
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(flat_keys(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def config_keys_text(sections) -> str:
+    """The keys of the config's `sections` with the tiny preset's values (and the paper's where
+    they differ): what --set takes, for a command's --help and the `config` command."""
+    from bumps_jax import config  # noqa: PLC0415
+
+    tiny, paper = (flat_keys(config.make_config(p).to_dict()) for p in ("tiny", "paper"))
+    lines = ["config keys (--set KEY=VALUE), with the tiny preset's value (and the paper preset's where it differs):"]
+    for key, value in tiny.items():
+        if key.split(".")[0] in sections:
+            other = paper.get(key, value)
+            lines.append(
+                f"  {key} = {json.dumps(value)}" + ("" if other == value else f"   (paper: {json.dumps(other)})")
+            )
+    return "\n".join(lines)
+
+
+def build_parser(with_keys: bool = False) -> argparse.ArgumentParser:
+    """The command line's parser; `with_keys`: each stage's --help lists its config keys (it builds
+    the config: only when help is asked for)."""
     parser = argparse.ArgumentParser(prog="python -m bumps_jax", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     helps = {**{k: v[1] for k, v in STAGE_COMMANDS.items()}, **{k: v[2] for k, v in PIPELINES.items()}, **OTHER}
     for name, help_text in helps.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
+        epilog = None
+        if with_keys and name in STAGE_COMMANDS:
+            epilog = config_keys_text((STAGE_COMMANDS[name][0],)) + "\n  env.*: python -m bumps_jax config"
+        elif with_keys and name not in OWN_OPTIONS_ONLY:
+            epilog = "config keys (--set KEY=VALUE) with their values: python -m bumps_jax config"
+        p = sub.add_parser(
+            name,
+            help=help_text,
+            description=help_text,
+            epilog=epilog,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         if name in OWN_OPTIONS_ONLY:  # the shipped policies' own config: no preset, run directory or --set
             p.set_defaults(preset="tiny", run_dir=None, task=None, set=[], force=False, distributed=False)
         else:
@@ -172,12 +213,16 @@ def dispatch(args) -> None:
 
     known = (PIPELINES[args.command][1],) if args.command in PIPELINES else ("tiny", "paper")
     if args.preset not in known:
-        raise ValueError(f"{args.command} runs the {known[0]!r} preset only, got --preset {args.preset!r}")
+        raise ValueError(f"--preset {args.preset!r}: {args.command} takes {' or '.join(map(repr, known))}")
     section = STAGE_COMMANDS.get(args.command, (None,))[0]
     overrides = parse_overrides(args.set, section)
     if args.task is not None:
         overrides = {"task": args.task, **overrides}
     cfg = config.make_config(args.preset, task_overrides(overrides))
+    if args.command == "config":
+        for key, value in flat_keys(cfg.to_dict()).items():
+            print(f"{key} = {json.dumps(value)}")
+        return
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, cfg.task)
     # One command at a time writes stages into a run directory; with --distributed every host runs
     # the same command into the same directory, by design.
@@ -208,7 +253,8 @@ def dispatch(args) -> None:
 
 
 def main(argv=None) -> None:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(with_keys=any(a in ("-h", "--help") for a in argv)).parse_args(argv)
     # (Offscreen rendering's GL backend is chosen before mujoco is imported: `bumps_jax._choose_gl`.)
     from bumps_jax.pipeline import runio  # noqa: PLC0415
 

@@ -281,3 +281,67 @@ def test_a_phase_clock_adds_up_every_process(tmp_path):
     runio.write_json(path, {"seconds": 3.5})  # a killed process's seconds up to its last save
     clock = runio.CarriedClock(path)
     assert 3.5 <= clock.save() < 10.0 and runio.read_json(path)["seconds"] >= 3.5
+
+
+# -- the command line ------------------------------------------------------------------------------
+
+
+def test_kick_takes_only_its_own_options(capsys):
+    from bumps_jax import cli
+
+    with pytest.raises(SystemExit):
+        cli.main(["kick", "--help"])
+    text = capsys.readouterr().out
+    for option in ("--preset", "--run-dir", "--task", "--force", "--distributed", "--set"):
+        assert option not in text
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["kick", "--target", "12", "--preset", "paper"])
+    assert exit_.value.code == 2 and "unrecognized arguments: --preset paper" in capsys.readouterr().err
+
+
+def test_help_lists_the_stages_config_keys_and_a_bad_key_names_the_nearest(capsys):
+    from bumps_jax import cli
+
+    with pytest.raises(SystemExit):
+        cli.main(["train-experts", "--help"])
+    assert "experts.updates_per_chunk = 2   (paper: 25)" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["train-experts", "--set", "experts.updates_per_chunks=3"])
+    assert "did you mean experts.updates_per_chunk" in str(exit_.value)
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["train-experts", "--preset", "nope"])
+    assert str(exit_.value) == "error: --preset 'nope': train-experts takes 'tiny' or 'paper'"
+
+
+@pytest.mark.parametrize(
+    ("argv", "libraries", "chosen"),
+    [
+        (["kick", "--target", "12", "--gif", "k.gif"], {"EGL", "OSMesa"}, "egl"),
+        (["render"], {"OSMesa"}, "osmesa"),
+        (["render"], set(), None),  # none found: left unset, the command says so before its work
+        (["kick", "--target", "12"], {"EGL"}, None),  # no rendering: no GL library loaded
+        (["train-experts"], {"EGL"}, None),
+    ],
+)
+def test_the_gl_backend_is_chosen_only_for_rendering_commands(monkeypatch, argv, libraries, chosen):
+    import ctypes.util
+    import sys
+
+    import bumps_jax
+
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    monkeypatch.setattr(sys, "orig_argv", ["python", "-m", "bumps_jax", *argv])
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: f"lib{name}.so" if name in libraries else None)
+    bumps_jax._choose_gl()
+    import os
+
+    assert os.environ.get("MUJOCO_GL") == chosen
+    monkeypatch.setenv("MUJOCO_GL", "glfw")  # the user's choice is never overridden
+    bumps_jax._choose_gl()
+    assert os.environ["MUJOCO_GL"] == "glfw"
+
+
+def test_kick_blocks_do_not_depend_on_the_number_of_kicks():
+    manifest = runio.read_json(policies.ASSET_DIR / policies.MANIFEST)
+    pools = {policies.kick_env_config(manifest, None, n).warp_contacts for n in (1, 2, 16, 64)}
+    assert len(pools) == 1
