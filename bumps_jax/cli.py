@@ -10,7 +10,8 @@
 `experts.ppo.learning_rate=1e-5`; a stage's own keys may drop their section
 (`train-experts --set ppo.learning_rate=1e-5`). Values are JSON (numbers, lists, true/false,
 null), else plain strings; each is checked against the type of its leaf. The only module that
-parses arguments or touches the process environment.
+parses arguments (the GL backend of the rendering commands is chosen in `bumps_jax/__init__`,
+before mujoco is imported).
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -47,7 +47,16 @@ OTHER = {
     "evaluate": "evaluate a finished run (experts, meta and filter done) on the held-out (--heldout) or "
     "development (--dev) targets",
     "kick": "kick to a target with the shipped meta-policy (assets/policies/): filter a context, then N noisy kicks",
+    "config": "print every config key (--set KEY=VALUE) with its value under --preset, --task and --set",
 }
+
+
+# Commands that take only their own options (`kick` runs the shipped policies under their own config).
+OWN_OPTIONS_ONLY = ("kick",)
+
+# The commands besides the stages that read a finished run and write into its directory: under
+# its lock, as the stages are, and refused at once where the directory does not exist.
+NEEDS_RUN = ("evaluate", "publish", "report", "video")
 
 
 def parse_overrides(groups, section: str | None = None, task: str | None = None) -> dict:
@@ -72,49 +81,97 @@ def parse_overrides(groups, section: str | None = None, task: str | None = None)
     return out
 
 
-def build_parser() -> argparse.ArgumentParser:
+def flat_keys(tree: dict, prefix: str = "") -> dict:
+    """{dotted key: value} of every leaf of a nested dict."""
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(flat_keys(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def config_keys_text(sections, task: str = "kick") -> str:
+    """The keys of `task`'s config `sections` with the tiny preset's values (and the paper's where
+    they differ): what --set takes, for a command's --help and the `config` command."""
+    from bumps_jax import config  # noqa: PLC0415
+
+    tiny, paper = (flat_keys(config.make_config(p, {"task": task}).to_dict()) for p in ("tiny", "paper"))
+    lines = ["config keys (--set KEY=VALUE), with the tiny preset's value (and the paper preset's where it differs):"]
+    for key, value in tiny.items():
+        if key.split(".")[0] in sections:
+            other = paper.get(key, value)
+            lines.append(
+                f"  {key} = {json.dumps(value)}" + ("" if other == value else f"   (paper: {json.dumps(other)})")
+            )
+    return "\n".join(lines)
+
+
+def build_parser(with_keys: bool = False) -> argparse.ArgumentParser:
+    """The command line's parser; `with_keys`: each stage's --help lists its config keys (it builds
+    the config: only when help is asked for)."""
     parser = argparse.ArgumentParser(prog="python -m bumps_jax", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     helps = {**{k: v[1] for k, v in STAGE_COMMANDS.items()}, **{k: v[2] for k, v in PIPELINES.items()}, **OTHER}
     for name, help_text in helps.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
-        presets = (PIPELINES[name][1],) if name in PIPELINES else ("tiny", "paper")
-        p.add_argument("--preset", default=presets[0], help=f"one of {presets} (default {presets[0]})")
-        p.add_argument(
-            "--run-dir",
-            default=None,
-            type=Path,
-            help="default: runs/<preset> (runs/demo for demo); another task's: runs/<task>/<preset>",
+        epilog = None
+        if with_keys and name in STAGE_COMMANDS:
+            epilog = config_keys_text((STAGE_COMMANDS[name][0],)) + "\n  env.*: python -m bumps_jax config"
+        elif with_keys and name not in OWN_OPTIONS_ONLY:
+            epilog = "config keys (--set KEY=VALUE) with their values: python -m bumps_jax config"
+        p = sub.add_parser(
+            name,
+            help=help_text,
+            description=help_text,
+            epilog=epilog,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
         )
-        p.add_argument("--task", default=None, help="the contextual task: kick (default) or cheetah_vel (config: task)")
-        p.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
-                       help="config overrides (JSON values); may be repeated")  # fmt: skip
-        p.add_argument("--force", action="store_true",
-                       help="recompute a stage whose outputs were made under another config or inputs, "
-                            "and every stage after it")  # fmt: skip
-        p.add_argument("--distributed", action="store_true", help="one process per host of a multi-host job")
-        if name in PIPELINES:
-            every = ", ".join(PIPELINES[name][0])
-            p.add_argument("--stages", nargs="+", default=None, metavar="STAGE",
-                           help=f"only these of its stages, in its order (default: all of {every}); the run "
-                                "directory's timings and report count them as one more call")  # fmt: skip
-        if name in ("render", "video"):
-            p.add_argument("--out", default=None, help="the picture's path")
-        if name == "showcase":
-            p.add_argument("--episodes", type=int, default=16)
-        if name == "evaluate":
-            p.add_argument("--heldout", action="store_true", help="the held-out targets and seed (config: heldout)")
-            p.add_argument("--dev", action="store_true",
-                           help="the development targets and seed (config: dev), for design choices")  # fmt: skip
+        if name in OWN_OPTIONS_ONLY:  # the shipped policies' own config: no preset, run directory or --set
+            p.set_defaults(preset="tiny", run_dir=None, task=None, set=[], force=False, distributed=False)
+        else:
+            add_run_options(p, name)
         if name == "kick":
             p.add_argument("--target", type=float, required=True, help="target distance (m)")
             p.add_argument("--kicks", type=int, default=16, help="noisy kicks at the chosen context (default 16)")
             p.add_argument("--net", default="meta_4x256", help="meta_4x256 (default) or meta_11x128")
-            p.add_argument("--gif", default=None, help="also render one kick to this GIF")
+            p.add_argument("--gif", default=None, help="also render one of the printed kicks to this GIF")
             p.add_argument("--selection-reps", type=int, default=4, help="noisy kicks per candidate context")
             p.add_argument("--seed", type=int, default=0, help="noise of the selection and the kicks")
             p.add_argument("--policies", type=Path, default=None, help="shipped policies (default: assets/policies)")
     return parser
+
+
+def add_run_options(p, name: str) -> None:
+    """The options of a command that runs the pipeline's config in a run directory."""
+    presets = (PIPELINES[name][1],) if name in PIPELINES else ("tiny", "paper")
+    p.add_argument("--preset", default=presets[0], help=f"one of {presets} (default {presets[0]})")
+    p.add_argument(
+        "--run-dir",
+        default=None,
+        type=Path,
+        help="default: runs/<preset> (runs/demo for demo); another task's: runs/<task>/<preset>",
+    )
+    p.add_argument("--task", default=None, help="the contextual task: kick (default) or cheetah_vel (config: task)")
+    p.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="config overrides (JSON values); may be repeated")  # fmt: skip
+    p.add_argument("--force", action="store_true",
+                   help="recompute a stage whose outputs were made under another config or inputs, "
+                        "and every stage after it")  # fmt: skip
+    p.add_argument("--distributed", action="store_true", help="one process per host of a multi-host job")
+    if name in PIPELINES:
+        every = ", ".join(PIPELINES[name][0])
+        p.add_argument("--stages", nargs="+", default=None, metavar="STAGE",
+                       help=f"only these of its stages, in its order (default: all of {every}); the run "
+                            "directory's timings and report count them as one more call")  # fmt: skip
+    if name in ("render", "video"):
+        p.add_argument("--out", default=None, help="the picture's path")
+    if name == "showcase":
+        p.add_argument("--episodes", type=int, default=16)
+    if name == "evaluate":
+        p.add_argument("--heldout", action="store_true", help="the held-out targets and seed (config: heldout)")
+        p.add_argument("--dev", action="store_true",
+                       help="the development targets and seed (config: dev), for design choices")  # fmt: skip
 
 
 def default_run_dir(command: str, preset: str, task: str | None = None) -> Path:
@@ -145,7 +202,7 @@ def dispatch(args) -> None:
 
     known = (PIPELINES[args.command][1],) if args.command in PIPELINES else ("tiny", "paper")
     if args.preset not in known:
-        raise ValueError(f"{args.command} runs the {known[0]!r} preset only, got --preset {args.preset!r}")
+        raise ValueError(f"--preset {args.preset!r}: {args.command} takes {' or '.join(map(repr, known))}")
     section = STAGE_COMMANDS.get(args.command, (None,))[0]
     if args.task is not None:
         from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
@@ -155,11 +212,20 @@ def dispatch(args) -> None:
     if args.task is not None:
         overrides = {"task": args.task, **overrides}
     cfg = config.make_config(args.preset, overrides)
+    if args.command == "config":
+        for key, value in flat_keys(cfg.to_dict()).items():
+            print(f"{key} = {json.dumps(value)}")
+        return
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, cfg.task)
     # One command at a time writes stages into a run directory; with --distributed every host runs
     # the same command into the same directory, by design.
     lock = contextlib.nullcontext() if args.distributed else runio.run_lock(run_dir)
+    if args.command in NEEDS_RUN:
+        if not Path(run_dir).is_dir():  # refused before the lock would create it
+            raise ValueError(f"no run directory {str(run_dir)!r}: run its stages first (e.g. python -m bumps_jax demo)")
     if section:
+        if not Path(run_dir).is_dir():  # a stage's missing inputs refused before the lock creates the directory
+            pipeline.plan(section, cfg, Path(run_dir))
         with lock:
             pipeline.run_stage(section, cfg, run_dir, force=args.force)
     elif args.command in PIPELINES:
@@ -174,16 +240,15 @@ def dispatch(args) -> None:
     else:
         from bumps_jax.pipeline import commands  # noqa: PLC0415
 
-        commands.run(args.command, cfg, run_dir, args)
+        writes = args.command in NEEDS_RUN or (args.command == "render" and args.out is None)
+        with lock if writes else contextlib.nullcontext():
+            commands.run(args.command, cfg, run_dir, args)
 
 
 def main(argv=None) -> None:
-    args = build_parser().parse_args(argv)
-    if args.command in ("render", "video") or getattr(args, "gif", None):
-        # Offscreen rendering needs a GL backend before mujoco loads one: EGL unless told
-        # otherwise. Only here: with MUJOCO_GL set, importing mujoco loads that GL library, and
-        # a host without one could then not even simulate.
-        os.environ.setdefault("MUJOCO_GL", "egl")
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(with_keys=any(a in ("-h", "--help") for a in argv)).parse_args(argv)
+    # (Offscreen rendering's GL backend is chosen before mujoco is imported: `bumps_jax._choose_gl`.)
     from bumps_jax.pipeline import runio  # noqa: PLC0415
 
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task)
@@ -196,7 +261,10 @@ def main(argv=None) -> None:
     except ValueError as err:  # bad config values, missing or stale inputs: one clear line
         sys.exit(f"error: {err}")
     except (KeyboardInterrupt, runio.Interrupted):  # the checkpoints are the state
-        sys.exit(f"interrupted: rerun the same command to resume {run_dir} from its last checkpoint")
+        sys.exit(
+            f"interrupted: rerun the same command to resume {run_dir} from what it saved (the stage in flight's "
+            "last chunk or search generation; the stages before it are done)"
+        )
 
 
 if __name__ == "__main__":

@@ -72,14 +72,30 @@ def set_leaf(cfg: ml_collections.ConfigDict, key: str, value) -> None:
     node = cfg
     for i, part in enumerate(parents):
         if not isinstance(node, ml_collections.ConfigDict) or part not in node:
-            raise ValueError(f"unknown config key {key!r} (no section {'.'.join(parents[: i + 1])!r})")
+            raise ValueError(
+                f"unknown config key {key!r} (no section {'.'.join(parents[: i + 1])!r}){_nearest(cfg, key)}"
+            )
         node = node[part]
     if not isinstance(node, ml_collections.ConfigDict) or leaf not in node:
-        raise ValueError(f"unknown config key {key!r}")
+        raise ValueError(f"unknown config key {key!r}{_nearest(cfg, key)}")
     if isinstance(node[leaf], ml_collections.ConfigDict):
         raise ValueError(f"config key {key!r} is a section; set one of its keys: {sorted(node[leaf])}")
     optional = isinstance(node._fields.get(leaf), FieldReference)  # declared with a type: may be null
     node[leaf] = coerce(key, value, node.get_type(leaf), node[leaf], optional)
+
+
+def _nearest(cfg: ml_collections.ConfigDict, key: str) -> str:
+    """'; did you mean ...' naming the valid dotted keys nearest `key` (or its last part), else ''."""
+    import difflib  # noqa: PLC0415
+
+    def leaves(node, prefix=""):
+        for k, v in node.items():
+            yield from leaves(v, f"{prefix}{k}.") if isinstance(v, ml_collections.ConfigDict) else [f"{prefix}{k}"]
+
+    keys = list(leaves(cfg))
+    near = difflib.get_close_matches(key, keys, n=3, cutoff=0.6)
+    near += [k for k in keys if k.rsplit(".", 1)[-1] == key.rsplit(".", 1)[-1] and k not in near][: 3 - len(near)]
+    return f"; did you mean {', '.join(near)}?" if near else "; python -m bumps_jax config lists every key"
 
 
 def coerce(key: str, value, kind: type, current, optional: bool = False):

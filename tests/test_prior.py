@@ -84,8 +84,10 @@ class StandIns:
         monkeypatch.setattr(kick_scoring, "evaluate_kick", self.evaluate_kick)
         monkeypatch.setattr(kick_scoring, "sweep", self.sweep)
 
-    def optimise(self, env, start, target, free_params, cfg, csv_path=None, mesh=None, say=print, label=""):
-        self.calls.append({"target": target, "start": np.asarray(start).copy(), "free": tuple(free_params)})
+    def optimise(self, env, start, target, free_params, cfg, csv_path=None, mesh=None, say=print, label="",
+                 resume_path=None):  # fmt: skip
+        self.calls.append({"target": target, "start": np.asarray(start).copy(), "free": tuple(free_params),
+                           "resume_path": resume_path})  # fmt: skip
         csv_path.write_text("generation\n0\n")
         params = np.asarray(start, np.float32).copy()
         params[kick_model.PARAM_NAMES.index("lean")] = target
@@ -139,7 +141,7 @@ def test_the_stage_writes_the_record_later_stages_start_from(tmp_path, monkeypat
     assert (out / prior.START).read_bytes() == asset.read_bytes()
 
 
-def test_a_rerun_reuses_finished_anchors_and_restarts_an_unfinished_one(tmp_path, monkeypatch, asset):
+def test_a_rerun_reuses_finished_anchors_and_resumes_an_unfinished_one(tmp_path, monkeypatch, asset):
     stand_ins, cfg = StandIns(monkeypatch), config.make_config("tiny")
     first = prior.run(cfg, tmp_path, say=lambda m: None)
     out = tmp_path / "prior"
@@ -151,7 +153,7 @@ def test_a_rerun_reuses_finished_anchors_and_restarts_an_unfinished_one(tmp_path
     assert again["reused_anchors"] == ["short", "main"] and again["anchors"] == first["anchors"]
     text = "\n".join(lines)
     assert "anchor main (12 m) reused" in text and "anchor short (6 m) reused" in text
-    assert "anchor long (21 m): its unfinished search restarts from generation 0" in text
+    assert stand_ins.calls[0]["resume_path"] == out / "search_long.npz"  # its search resumes from there
 
 
 def test_a_rerun_starts_from_the_runs_own_start_after_the_asset_changes(tmp_path, monkeypatch, asset):

@@ -67,9 +67,19 @@ def validate_physics(cfg: ml_collections.ConfigDict, int_keys=()) -> None:
 
 
 def validate_physics_dt(cfg: ml_collections.ConfigDict) -> None:
-    """ValueError if env.physics_dt is set outside (0, ctrl_dt]."""
+    """ValueError if env.physics_dt is set outside (0, ctrl_dt], or does not divide ctrl_dt (checked
+    with the config, before a stage writes anything, not when an env is built)."""
     if cfg.physics_dt is not None and not 0 < cfg.physics_dt <= cfg.ctrl_dt:
         raise ValueError(f"env.physics_dt must be in (0, ctrl_dt {cfg.ctrl_dt}], got {cfg.physics_dt!r}")
+    if cfg.physics_dt is not None and cfg.ctrl_dt > 0:
+        n = round(cfg.ctrl_dt / cfg.physics_dt)
+        if not math.isclose(n * cfg.physics_dt, cfg.ctrl_dt, rel_tol=1e-6):
+            steps = [cfg.ctrl_dt / k for k in range(1, 2000) if float(f"{cfg.ctrl_dt / k:.3g}") == cfg.ctrl_dt / k]
+            near = sorted(steps, key=lambda dt: abs(dt - cfg.physics_dt))[:2]
+            raise ValueError(
+                f"env.physics_dt {cfg.physics_dt!r} does not divide env.ctrl_dt {cfg.ctrl_dt} into whole physics "
+                f"steps; the nearest that do: {', '.join(f'{dt:g}' for dt in sorted(near))}"
+            )
 
 
 def check_targets(targets, task_range, unit: str = "m") -> np.ndarray:

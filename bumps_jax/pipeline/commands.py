@@ -67,6 +67,7 @@ def render(cfg, run_dir: Path, args) -> None:
 
     out = Path(args.out) if args.out else run_dir / "stance.png"
     runio.check_writable(out.parent)
+    render_mod.check_gl()
     print(f"wrote {render_mod.stance_picture(out)}")
 
 
@@ -83,6 +84,7 @@ def video(cfg, run_dir: Path, args) -> None:
     obs_norm = meta_stage.run_obs_norm(run_dir)
     out = Path(args.out) if args.out else run_dir / "filtered_kicks.gif"
     runio.check_writable(out.parent)
+    render.check_gl()
     tasks, chosen = np.asarray(table2["tasks"]), np.asarray(table2["chosen_contexts"]["filtered_4x256"])
     picks = sorted({int(np.argmin(np.abs(tasks - t))) for t in (8.0, 12.0, 16.0)})
     depth, width = cfg.meta.nets["meta_4x256"]
@@ -158,18 +160,23 @@ def kick(cfg, run_dir: Path, args) -> None:
 
     target = float(kick_env.check_targets([args.target], tuple(env_cfg.task_range))[0])
     if args.gif:
+        from bumps_jax.tasks.kick import render  # noqa: PLC0415
+
         runio.check_writable(Path(args.gif).parent)
+        render.check_gl()  # before the kicks, not after them
     shipped = policies.load(directory, env_cfg)
     out = policies.filtered_kicks(shipped, args.net, target, args.kicks, env_cfg, args.selection_reps, args.seed)
     for line in policies.describe(shipped, args.net, target, out, time.perf_counter() - t0):
         print(line)
     if args.gif:
         from bumps_jax.algo import bc  # noqa: PLC0415
-        from bumps_jax.tasks.kick import render  # noqa: PLC0415
 
         entry = shipped.manifest["nets"][args.net]
         model = bc.MetaPolicy(entry["depth"], entry["width"], obs_norm=bc.obs_norm_of_record(entry))
         apply_fn = bc.policy_apply(model)
         env = kick_env.KickEnv(env_cfg)
-        path = render.kick_gif(args.gif, env, apply_fn, shipped.nets[args.net], [out.context], [target], args.seed)
-        print(f"wrote {path}")
+        # the printed kick nearest their median resting distance, replayed with its own noise
+        shown = int(np.argmin(np.abs(out.distance - np.median(out.distance))))
+        path = render.kick_gif(args.gif, env, apply_fn, shipped.nets[args.net], [out.context], [target],
+                               keys=out.keys[shown : shown + 1])  # fmt: skip
+        print(f"wrote {path}: kick {shown + 1} of the {len(out.distance)} above ({out.distance[shown]:.2f} m)")

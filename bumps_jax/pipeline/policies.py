@@ -14,8 +14,9 @@ physics step or backend does not kick the same under another.
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import ml_collections
@@ -73,14 +74,12 @@ def write(cfg, run_dir: str | Path, dest: str | Path) -> list[Path]:
     for net in meta_stage.NETS:
         depth, width = table1["config"]["nets"][net]
         _, params = bc.load_policy(run_dir / "meta" / net, depth, width, train_cfg)
-        path = dest / f"{net}.msgpack"
-        path.write_bytes(_serialize(jax.tree.map(lambda a: a[net_seed], params)))
-        nets[net] = {"depth": int(depth), "width": int(width), "file": path.name}
+        path = runio.write_bytes(dest / f"{net}.msgpack", _serialize(jax.tree.map(lambda a: a[net_seed], params)))
+        nets[net] = {"depth": int(depth), "width": int(width), "file": path.name, "sha256": runio.sha256_of(path)}
         nets[net].update(bc.obs_norm_fields(obs_norm))  # the fixed map in front of the first layer
         written.append(path)
     family = experts_stage.load_family(cfg, run_dir)
-    path = dest / "experts.msgpack"
-    path.write_bytes(_serialize(family.params))
+    path = runio.write_bytes(dest / "experts.msgpack", _serialize(family.params))
     written.append(path)
     keep = ("context_range", "context_step", "width", "selection_repetitions", "net_seed")
     manifest = {
@@ -91,6 +90,7 @@ def write(cfg, run_dir: str | Path, dest: str | Path) -> list[Path]:
         "nets": nets,
         "experts": {
             "file": "experts.msgpack",
+            "sha256": runio.sha256_of(path),
             "tasks_m": [float(t) for t in family.tasks],
             "ppo_policy": {k: cfg.experts.ppo[k] for k in ("policy_hidden", "normalize_observations")},
         },
@@ -108,6 +108,16 @@ def write(cfg, run_dir: str | Path, dest: str | Path) -> list[Path]:
         manifest["heldout_choices"] = {"targets_m": record["targets_m"], "chosen_contexts": record["chosen_contexts"]}
     written.append(runio.write_json(dest / MANIFEST, manifest))
     return written
+
+
+def seal(directory: str | Path = ASSET_DIR) -> Path:
+    """Record each shipped file's sha256 in `directory`'s policies.json (as `write` does), for a
+    directory shipped before policies carried them; `load` checks them."""
+    directory = Path(directory)
+    manifest = runio.read_json(directory / MANIFEST, "a shipped-policies manifest")
+    for entry in [*manifest["nets"].values(), manifest["experts"]]:
+        entry["sha256"] = runio.sha256_of(directory / entry["file"])
+    return runio.write_json(directory / MANIFEST, manifest)
 
 
 def env_config(manifest: dict, overrides: dict | None = None) -> ml_collections.ConfigDict:
@@ -129,10 +139,10 @@ def env_config(manifest: dict, overrides: dict | None = None) -> ml_collections.
 
 def kick_env_config(manifest: dict, overrides: dict | None, n_kicks: int, n_devices: int = 1):
     """The env config `kick` runs: the policies' own (`env_config`), with Warp's contact pool sized
-    to the command's batch of `n_kicks` episodes per device unless `overrides` set it. The pool is
+    to the command's block of KICK_BLOCK episodes per device (whatever `n_kicks`) unless `overrides` set it. The pool is
     a capacity, not physics (records do not compare it); on a CPU every slot of a pool sized for
     the training run's thousands of episodes costs time at every step (half of `kick`'s time)."""
-    pool = {"warp_contacts": kick_env.CONTACTS_PER_EPISODE * int(n_kicks) * int(n_devices)}
+    pool = {"warp_contacts": kick_env.CONTACTS_PER_EPISODE * KICK_BLOCK * int(n_devices)}  # a block's episodes
     return env_config(manifest, {**pool, **(overrides or {})})
 
 
@@ -153,14 +163,36 @@ def load(directory: str | Path = ASSET_DIR, env_cfg=None) -> Shipped:
         what = f"the shipped policies in {directory}"
         env_records.check_same_env(manifest.get("env"), env_cfg, what, kick_env.resolved)
 
-    def read(name):
-        path = directory / name
+    def read(entry):
+        path = directory / entry["file"]
         if not path.is_file():
-            raise ValueError(f"{path}: missing from the shipped policies: {HOW_TO_MAKE}")
-        return serialization.msgpack_restore(path.read_bytes())
+            raise ValueError(f"{runio.shown(path)}: missing from the shipped policies: {HOW_TO_MAKE}")
+        data = path.read_bytes()
+        if "sha256" in entry and hashlib.sha256(data).hexdigest() != entry["sha256"]:
+            raise ValueError(
+                f"{runio.shown(path)}: its sha256 is not the one {MANIFEST} records ({len(data)} bytes): "
+                "the file is damaged, truncated or another policy's; restore it from the repository"
+            )
+        try:
+            return serialization.msgpack_restore(data)
+        except Exception as err:  # noqa: BLE001 (msgpack raises several kinds)
+            raise ValueError(f"{runio.shown(path)}: not a shipped policy ({runio.error_reason(err)})") from None
 
-    nets = {net: read(entry["file"]) for net, entry in manifest["nets"].items()}
-    return Shipped(manifest, nets, read(manifest["experts"]["file"]))
+    nets = {net: read(entry) for net, entry in manifest["nets"].items()}
+    shipped = Shipped(manifest, nets, read(manifest["experts"]))
+    for net, entry in manifest["nets"].items():  # a file of another net (no checksum to tell)
+        width = {np.shape(leaf)[-1] for leaf in jax.tree.leaves(nets[net])}
+        if int(entry["width"]) not in width:
+            raise ValueError(
+                f"{runio.shown(directory / entry['file'])}: holds no layer of width {entry['width']} "
+                f"({net} in {MANIFEST}): another net's file?"
+            )
+    return shipped
+
+
+# Episodes per device of one compiled call of `filtered_kicks` (its selection and its kicks): fixed,
+# so that few kicks cost no more calls than many (a block of --kicks 2 made the selection 8x the calls).
+KICK_BLOCK = 16
 
 
 class Kicks(NamedTuple):
@@ -172,6 +204,7 @@ class Kicks(NamedTuple):
     distance: np.ndarray  # (N,) m, where each kick's ball came to rest along the kick line
     final_error: np.ndarray  # (N,) m, its distance to the target
     valid: np.ndarray  # (N,) bool
+    keys: Any = None  # (N,) each kick's noise key: a kick replayed with its key is that kick
 
 
 def filtered_kicks(
@@ -194,7 +227,7 @@ def filtered_kicks(
     program = meta_programs.meta_grid(env_cfg, entry["depth"], entry["width"], mesh, "kick", obs_norm)
     params = jax.tree.map(lambda a: np.asarray(a)[None], shipped.nets[net])
     sel_key, eval_key = filtering.noise_keys(seed)
-    block = int(n_kicks)  # one compiled program serves the selection and the kicks
+    block = KICK_BLOCK * mesh.size  # one compiled program serves the selection and the kicks
     sel = filtering.filter_policy(
         program, params, contexts, targets, f["width"], selection_repetitions, sel_key,
         task_range=task_range, block=block, multiple=mesh.size,
@@ -202,7 +235,8 @@ def filtered_kicks(
     )  # fmt: skip
     context = float(sel.contexts[sel.chosen[0]])
     m = filtering.evaluate_chosen(program, params, [context], targets, n_kicks, eval_key, block, mesh.size)
-    return Kicks(context, sel.contexts, sel.scores[0], m["distance"][0], m["final_error"][0], m["valid"][0] > 0)
+    keys = filtering.stage_keys(eval_key, 1, n_kicks)  # evaluate_chosen's keys, kick by kick
+    return Kicks(context, sel.contexts, sel.scores[0], m["distance"][0], m["final_error"][0], m["valid"][0] > 0, keys)
 
 
 def describe(shipped: Shipped, net: str, target: float, kicks: Kicks, wall_s: float | None = None) -> list[str]:

@@ -127,6 +127,18 @@ def shown(path: str | os.PathLike) -> str:
         return str(path)
 
 
+def recorded_path(path: str | os.PathLike, run_dir: str | os.PathLike | None = None) -> str:
+    """`path` as a record keeps it: relative to `run_dir` where it lies inside it, else relative
+    to the repository (a committed asset), else as `shown`."""
+    resolved = Path(path).resolve()
+    for base in ([Path(run_dir)] if run_dir is not None else []) + [Path(__file__).resolve().parents[2]]:
+        try:
+            return resolved.relative_to(base.resolve()).as_posix()
+        except ValueError:
+            continue
+    return shown(path)
+
+
 def write_json(path: str | os.PathLike, payload: dict) -> Path:
     """Strict JSON (no NaN), written atomically (temp file + rename): a killed run never leaves half a file."""
     return write_text(path, json.dumps(json_safe(payload), indent=2, allow_nan=False) + "\n")
@@ -137,6 +149,16 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
+    tmp.replace(path)
+    return path
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """`data` into `path`, atomically (temp file + rename), as `write_text`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
     tmp.replace(path)
     return path
 
@@ -171,11 +193,87 @@ def file_hash(path: str | os.PathLike) -> str:
     """sha256 of a file, or of every file under a directory (names and contents)."""
     path = Path(path)
     h = hashlib.sha256()
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    # (a directory's checksum manifest is not its content: a fingerprint does not change when it is added)
+    files = sorted(p for p in path.rglob("*") if p.is_file() and p.name != CHECKSUMS) if path.is_dir() else [path]
     for p in files:
         h.update(p.relative_to(path).as_posix().encode() if path.is_dir() else b"")
         h.update(p.read_bytes())
     return h.hexdigest()[:16]
+
+
+CHECKSUMS = "checksums.json"  # a directory artifact's sha256 of each of its files
+FILE_CHECKSUM = ".sha256"  # a file artifact's sha256, in <file>.sha256 beside it
+
+
+class CorruptError(ValueError):
+    """An artifact's bytes differ from the checksum written with it (or it lacks a file it had)."""
+
+
+def sha256_of(path: str | os.PathLike) -> str:
+    """The full sha256 (hex) of one file's bytes."""
+    h = hashlib.sha256()
+    with Path(path).open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def write_checksums(directory: str | os.PathLike) -> Path:
+    """Seal a finished directory artifact (a checkpoint step, final_params): the sha256 of every
+    file under it into directory/checksums.json, written atomically, for `verify_checksums`."""
+    directory = Path(directory)
+    files = sorted(p for p in directory.rglob("*") if p.is_file() and p.name != CHECKSUMS)
+    return write_json(
+        directory / CHECKSUMS, {"sha256": {p.relative_to(directory).as_posix(): sha256_of(p) for p in files}}
+    )
+
+
+def verify_checksums(directory: str | os.PathLike) -> bool:
+    """True if every file `write_checksums` sealed under `directory` holds the bytes it had;
+    False if the directory carries no checksums (written by an older version); CorruptError naming
+    the first file that differs or is missing."""
+    directory = Path(directory)
+    path = directory / CHECKSUMS
+    if not path.is_file():
+        return False
+    try:
+        sums = json.loads(path.read_text())["sha256"]
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
+        raise CorruptError(f"{shown(path)}: unreadable checksums") from None
+    for name, digest in sums.items():
+        file = directory / name
+        if not file.is_file():
+            raise CorruptError(f"{shown(file)}: missing (its checksum is in {CHECKSUMS})")
+        if sha256_of(file) != digest:
+            raise CorruptError(f"{shown(file)}: checksum mismatch (its bytes changed since it was written)")
+    return True
+
+
+def write_file_checksum(path: str | os.PathLike) -> Path:
+    """Seal a finished file artifact (a dataset): its sha256 into <path>.sha256, atomically."""
+    path = Path(path)
+    return write_text(path.with_name(path.name + FILE_CHECKSUM), f"{sha256_of(path)}  {path.name}\n")
+
+
+def verify_file_checksum(path: str | os.PathLike) -> bool:
+    """True if `path` matches its <path>.sha256; False if it has none (an older version's);
+    CorruptError naming the file if it differs."""
+    path = Path(path)
+    sealed = path.with_name(path.name + FILE_CHECKSUM)
+    if not sealed.is_file():
+        return False
+    digest = sealed.read_text().split()[0] if sealed.read_text().strip() else ""
+    if not path.is_file() or sha256_of(path) != digest:
+        raise CorruptError(f"{shown(path)}: checksum mismatch (its bytes differ from {sealed.name})")
+    return True
+
+
+def error_reason(err: BaseException) -> str:
+    """One short line for an exception from a library: its message's first line, or its type's
+    name where the message is empty or a repr (pybind11's `<bound method ...>`)."""
+    text = str(err).strip()
+    line = text.splitlines()[0][:160] if text else ""
+    return line if line and not line.startswith("<") else type(err).__name__
 
 
 def fingerprint(payload) -> str:
@@ -289,22 +387,61 @@ def checkpoint_manager(directory: Path, keep: int, read_only: bool = False):
     when complete, so a run killed mid-save leaves the previous checkpoint as the latest."""
     import orbax.checkpoint as ocp  # noqa: PLC0415
 
+    manager_class = _sealed_manager_class()
     if not read_only:
         options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True)
-        return ocp.CheckpointManager(Path(directory).resolve(), options=options)
+        return manager_class(Path(directory).resolve(), options=options)
     # Orbax logs a warning for every read-only manager; reading a policy is not worth one.
     absl_logger = logging.getLogger("absl")
     level = absl_logger.level
     absl_logger.setLevel(logging.ERROR)
     try:
-        return ocp.CheckpointManager(Path(directory).resolve(), options=ocp.CheckpointManagerOptions(read_only=True))
+        return manager_class(Path(directory).resolve(), options=ocp.CheckpointManagerOptions(read_only=True))
     finally:
         absl_logger.setLevel(level)
 
 
+_SEALED_MANAGER = None
+
+
+def _sealed_manager_class():
+    """orbax's CheckpointManager whose steps carry checksums: a step is sealed (`write_checksums`)
+    once its write has finished (`wait_until_finished`, `close`), and `restore` verifies a step
+    first (CorruptError naming the file whose bytes changed: a flipped bit never resumes)."""
+    global _SEALED_MANAGER  # noqa: PLW0603 (one class, made on first use: orbax loads lazily)
+    if _SEALED_MANAGER is None:
+        import orbax.checkpoint as ocp  # noqa: PLC0415
+
+        class SealedCheckpointManager(ocp.CheckpointManager):
+            def save(self, step, *args, **kwargs):
+                saved = super().save(step, *args, **kwargs)
+                self.__dict__.setdefault("_unsealed", []).append(int(step))
+                return saved
+
+            def wait_until_finished(self):
+                super().wait_until_finished()
+                for step in self.__dict__.pop("_unsealed", []):
+                    if (Path(self.directory) / str(step)).is_dir():
+                        write_checksums(Path(self.directory) / str(step))
+
+            def close(self):
+                self.wait_until_finished()
+                super().close()
+
+            def restore(self, step, *args, **kwargs):
+                verify_checksums(Path(self.directory) / str(step))
+                return super().restore(step, *args, **kwargs)
+
+        _SEALED_MANAGER = SealedCheckpointManager
+    return _SEALED_MANAGER
+
+
 def keep_newest_checkpoint(directory: Path) -> None:
-    """Remove every numbered checkpoint under `directory` but the newest (a finished stage's)."""
+    """Remove every numbered checkpoint under `directory` but the newest (a finished stage's), once
+    the newest is verified (`verify_checksums`): CorruptError naming its bad file, and nothing removed."""
     steps = sorted(int(p.name) for p in Path(directory).iterdir() if p.name.isdigit()) if directory.exists() else []
+    if steps:
+        verify_checksums(Path(directory) / str(steps[-1]))
     for step in steps[:-1]:
         shutil.rmtree(Path(directory) / str(step))
 
@@ -332,13 +469,20 @@ def restore_latest_common(managers: dict, restore_args: dict, say=print) -> tupl
             break
         step, restored = max(common), {}
         for name, manager in managers.items():
+            path = Path(manager.directory) / str(step)
             try:
+                if not verify_checksums(path):
+                    say(f"checkpoint {shown(path)} carries no checksums (an older version's): restoring it unverified")
                 restored[name] = manager.restore(step, args=restore_args[name])
             except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
-                path = Path(manager.directory) / str(step)
-                reason = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
-                say(f"checkpoint {path} is unreadable ({reason}); trying an older one")
-                shutil.move(str(path), str(path.with_name(f"{step}.corrupt")))
+                if isinstance(err, CorruptError):
+                    say(f"corrupt checkpoint {shown(path)}: {err}; set aside as {step}.corrupt, trying an older one")
+                else:
+                    say(f"checkpoint {shown(path)} is unreadable ({error_reason(err)}); set aside as {step}.corrupt, "
+                        "trying an older one")  # fmt: skip
+                aside = path.with_name(f"{step}.corrupt")
+                shutil.rmtree(aside, ignore_errors=True)  # an earlier one set aside at this step
+                shutil.move(str(path), str(aside))
                 manager.reload()
                 step, restored = None, None
                 break
@@ -377,6 +521,27 @@ class Clock:
         return f"{elapsed}, ETA {_seconds((now - t0) / (done - d0) * left)}"
 
 
+class CarriedClock:
+    """Seconds a phase took over every process that ran it: what earlier processes recorded in
+    `path` (up to their last `save`, e.g. a progress line after a checkpoint) plus this one's.
+    A killed process loses only the time since its last save."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path, self.start = Path(path), time.perf_counter()
+        try:
+            self.before = float(read_json(self.path).get("seconds", 0.0)) if self.path.is_file() else 0.0
+        except ValueError:
+            self.before = 0.0
+
+    def seconds(self) -> float:
+        return self.before + time.perf_counter() - self.start
+
+    def save(self) -> float:
+        seconds = self.seconds()
+        write_json(self.path, {"seconds": seconds})
+        return seconds
+
+
 class _StopFlag:
     def __init__(self):
         self.requested = False
@@ -387,36 +552,40 @@ class _StopFlag:
             raise Interrupted()
 
 
+_ACTIVE_FLAG: list = []  # the stop flag of the outermost `stop_on_interrupt` now open
+
+
 @contextlib.contextmanager
 def stop_on_interrupt(say=print, at: str = "this chunk"):
     """A chunk loop that Ctrl-C stops cleanly: SIGINT only sets a flag, which the loop reads between
     chunks (`flag.check()`), so the interrupt never lands inside JAX, Warp or orbax (where it can be
-    swallowed or crash the process); a second Ctrl-C stops at once. `at`: where the loop stops, as
-    the message says it. Inside another one (a stage's guard around its chunk loops) it shares the
-    outer flag, so an interrupt either catches stops the loop at its next chunk. Outside the main
-    thread it changes nothing."""
-    previous = signal.getsignal(signal.SIGINT)
-    outer = getattr(previous, "stop_flag", None)
-    if outer is not None:
-        yield outer
+    swallowed or crash the process). A second Ctrl-C stops the process at once (SIGINT's default
+    action: a compiled program in flight would hold a Python exception back until it returns),
+    losing only the work since the last checkpoint. `at`: where the loop stops, as the message
+    says it. Inside another one (a stage's guard around its chunk loops) it shares the outer flag,
+    also after that flag was set, so an interrupt either catches stops the inner loop at its next
+    chunk. Outside the main thread it changes nothing."""
+    if _ACTIVE_FLAG:
+        yield _ACTIVE_FLAG[-1]
         return
     flag = _StopFlag()
 
     def handler(signum, frame):
-        if flag.requested:
-            raise KeyboardInterrupt
         flag.requested = True
-        say(f"\ninterrupt: stopping after {at} (Ctrl-C again to stop at once)", flush=True)
+        signal.signal(signal.SIGINT, signal.SIG_DFL)  # the next Ctrl-C ends the process at once
+        say(f"\ninterrupt: stopping after {at}, saving it (Ctrl-C again to stop at once, losing it)", flush=True)
 
     handler.stop_flag = flag
     try:
-        signal.signal(signal.SIGINT, handler)
+        previous = signal.signal(signal.SIGINT, handler)
     except ValueError:  # not the main thread
         yield flag
         return
+    _ACTIVE_FLAG.append(flag)
     try:
         yield flag
     finally:
+        _ACTIVE_FLAG.pop()
         signal.signal(signal.SIGINT, previous)
 
 

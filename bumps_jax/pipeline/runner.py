@@ -54,8 +54,8 @@ def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]
     status: "new", "same" (resume), "done" (its record exists) or "forced"."""
     tasks.check_stage(cfg.task, name)
     module = stage_module(name, cfg.task)
-    wanted = manifest(config.section(cfg, name), module.inputs(cfg, run_dir))
-    status = check_manifest(run_dir / name, wanted, force)
+    wanted = manifest(config.section(cfg, name), module.inputs(cfg, run_dir), run_dir)
+    status = check_manifest(run_dir / name, wanted, force, finished=(run_dir / name / module.OUTPUT).exists())
     if status == "same" and (run_dir / name / module.OUTPUT).exists():
         status = "done"
     return wanted, status
@@ -100,9 +100,20 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
     # crashed the process): its chunk loops stop at their next chunk, a stage without chunks
     # when it is done, and the call then ends as an interrupted one.
     with runio.stop_on_interrupt(say, at="this chunk, or at the end of this stage") as stop:
-        record = module.run(cfg, run_dir, say=say)
+        try:
+            record = module.run(cfg, run_dir, say=say)
+        except ValueError:
+            _forget_empty_stage(run_dir / name)
+            raise
         stop.check()
     return record
+
+
+def _forget_empty_stage(stage_dir: Path) -> None:
+    """Remove the manifest of a stage refused before it wrote anything else: a corrected rerun
+    is then a new stage, not a stale one."""
+    if all(p.name == MANIFEST for p in stage_dir.iterdir()):
+        shutil.rmtree(stage_dir)
 
 
 def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> dict:
@@ -182,26 +193,41 @@ class StaleRunError(ValueError):
     """A run directory holds outputs of another config or other inputs than this call's."""
 
 
-def manifest(section: dict, inputs: dict[str, str | Path]) -> dict:
+def manifest(section: dict, inputs: dict[str, str | Path], run_dir: Path | None = None) -> dict:
     """What a stage's outputs depend on: its config (`config.section`) and its input files'
-    fingerprints (name -> path), under the manifest's schema (`MANIFEST_SCHEMA`)."""
+    fingerprints (name -> path), under the manifest's schema (`MANIFEST_SCHEMA`). A path is recorded
+    relative to `run_dir` where it lies inside it (`runio.recorded_path`): a record never says where
+    the run directory happened to be."""
     return {
         "schema": MANIFEST_SCHEMA,
         "config": section,
         "inputs": {
-            name: {"path": runio.shown(path), "sha256": runio.file_hash(path)} for name, path in sorted(inputs.items())
+            name: {"path": runio.recorded_path(path, run_dir), "sha256": runio.file_hash(path)}
+            for name, path in sorted(inputs.items())
         },
     }
 
 
-def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
+# Config keys that change no result: how many checkpoints are kept, always; the chunk sizes (updates
+# or epochs between checkpoints) once the stage has finished (a resumed run's checkpoints lie on its
+# own chunks' bounds, so an unfinished stage keeps its chunk size).
+NO_RESULT_KEYS = (".keep_checkpoints",)
+NO_RESULT_ONCE_FINISHED = (".updates_per_chunk", ".train.chunk")
+
+
+def _changes_no_result(key: str, finished: bool) -> bool:
+    return key.endswith(NO_RESULT_KEYS) or (finished and key.endswith(NO_RESULT_ONCE_FINISHED))
+
+
+def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, finished: bool = False) -> str:
     """Compare a stage directory's manifest with `wanted` before the stage runs.
 
     Returns "new" (nothing there yet), "same" (its outputs belong to this config and inputs: reuse
     or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
     StaleRunError naming the differing keys and the two ways on. Warp's buffer sizes
-    (`env.warp_contacts`, `env.warp_constraints_per_world`) are not compared. A manifest without
-    `MANIFEST_SCHEMA` (an older version's) is refused in one line, whatever it holds.
+    (`env.warp_contacts`, `env.warp_constraints_per_world`) are not compared, nor keys that change
+    no result (`NO_RESULT_KEYS`; `NO_RESULT_ONCE_FINISHED` where the stage has `finished`). A
+    manifest without `MANIFEST_SCHEMA` (an older version's) is refused in one line, whatever it holds.
     """
     from bumps_jax.pipeline import records as env_records  # noqa: PLC0415
 
@@ -230,7 +256,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False) -> str:
             {"config": have.get("config", {}), "inputs": _hashes(have.get("inputs", {}))},
             {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
         )
-        diff = [key for key in diff if not _capacity(key)]
+        diff = [key for key in diff if not _capacity(key) and not _changes_no_result(key, finished)]
         if not diff:
             return "same"
     if force:

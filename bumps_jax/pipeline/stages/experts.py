@@ -220,6 +220,7 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
     if out["finished"]:
         with ocp.StandardCheckpointer() as checkpointer:  # leaving the context waits for the write
             checkpointer.save((stage_dir / "final_params").resolve(), expert_params(out["state"]), force=True)
+        runio.write_checksums(stage_dir / "final_params")
     return out
 
 
@@ -228,6 +229,7 @@ def load_final_params(stage_dir: Path, programs: Compiled, n_tasks: int) -> Expe
     import orbax.checkpoint as ocp  # noqa: PLC0415
 
     final = (Path(stage_dir) / "final_params").resolve()
+    runio.verify_checksums(final)  # CorruptError (a ValueError) naming a changed file
     try:
         with ocp.StandardCheckpointer() as checkpointer:  # closed on leaving: no thread outlives the read
             return checkpointer.restore(final, expert_params(abstract_state(programs, n_tasks)))
@@ -280,7 +282,8 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         params, wall = expert_params(out["state"]), out["wall_s"]
     record = evaluate_experts(cfg, stage_dir, params, programs, wall, say)
     # The record and final_params hold everything later stages read: the training checkpoints
-    # (most of a paper run directory's size) go.
+    # (most of a paper run directory's size) go, once final_params is verified.
+    runio.verify_checksums(stage_dir / "final_params")
     start = tasks.get(cfg.task).expert_start
     for scratch in ("checkpoints", *(() if start is None else start.scratch())):
         shutil.rmtree(stage_dir / scratch, ignore_errors=True)

@@ -99,6 +99,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     env = meta_programs.stage_env(cfg.env, cfg.task)
     unit, sizes = env.UNIT, (env.context_observation_size, env.action_size)
     obs_norm = meta_stage.run_obs_norm(run_dir)
+    pace, done = runio.Clock(len(VARIANTS)), 0  # progress over the variants, with an ETA from their pace
     for net in meta_stage.NETS:
         depth, width = cfg.meta.nets[net]
         _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train, *sizes, obs_norm)
@@ -106,7 +107,12 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         grid = meta_programs.meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)  # one program per architecture
         for name in (v for v, (n, _) in VARIANTS.items() if n == net):
             contexts = grids[VARIANTS[name][1]]
+            say(f"filter: variant {done + 1}/{len(VARIANTS)} {name} ({len(contexts)} contexts x {len(targets)} "
+                f"tasks){'' if done == 0 else ', ' + pace.tick(done)}", flush=True)  # fmt: skip
             out = filter_variant(cfg, grid, params, contexts, mesh.size)
+            done += 1
+            if done == 1:
+                pace.tick(done)  # the first variant compiles: the ETA counts from the second
             selections[name], evals[name], rows[name], timings[name] = out
             rel = rows[name]["rel_error_mean"]
             say(

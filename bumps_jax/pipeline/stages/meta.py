@@ -65,7 +65,7 @@ def experts_row(record: dict, path) -> tuple[dict, dict | None]:
             "tasks": [r["target_m"] for r in record["per_task"]],
             "error_mean_m": [r["error_mean_m"] for r in record["per_task"]],
         }
-    return {**row, "source": str(path)}, per_task
+    return {**row, "source": Path(path).relative_to(Path(path).parents[1]).as_posix()}, per_task  # in the run dir
 
 
 def per_task_list(tasks, summary: dict) -> list[dict]:
@@ -123,11 +123,13 @@ def save_dataset(path, data: bc.Dataset) -> Path:
     tmp = path.with_name(path.name + ".tmp.npz")
     np.savez(tmp, **data._asdict())
     tmp.replace(path)
+    runio.write_file_checksum(path)
     return path
 
 
 def load_dataset(path) -> bc.Dataset:
-    """The bc.Dataset saved by `save_dataset`."""
+    """The bc.Dataset saved by `save_dataset`; CorruptError (a ValueError) naming it if its bytes changed."""
+    runio.verify_file_checksum(path)
     with np.load(path) as f:
         return bc.Dataset(**{name: f[name] for name in bc.Dataset._fields})
 
@@ -137,9 +139,13 @@ def dataset(cfg, run_dir: Path, say=print) -> bc.Dataset:
     trained experts now (and saved)."""
     path = Path(run_dir) / "meta" / "dataset.npz"
     if path.exists():
-        data = load_dataset(path)
-        say(f"dataset: {path} ({len(data.obs)} pairs, reused)")
-        return data
+        try:
+            data = load_dataset(path)
+        except runio.CorruptError as err:  # this stage's own intermediate: recorded again
+            say(f"dataset: {err}; recording it again")
+        else:
+            say(f"dataset: {path} ({len(data.obs)} pairs, reused)")
+            return data
     t0 = time.perf_counter()
     family = experts_stage.load_family(cfg, run_dir)
     reps = cfg.meta.dataset.repetitions
@@ -188,9 +194,19 @@ def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict,
     for name in names:
         say(f"{name}: {m.nets[name][0]} x {m.nets[name][1]}, {m.train.epochs} epochs, {m.train.n_seeds} seed(s)")
     say(f"{', '.join(names)}: trained stacked in one loop")
-    t0 = time.perf_counter()
-    states = bc.train_nets(models, data, m.train, {name: stage_dir / name for name in names}, say)
-    return models, states, dict.fromkeys(names, time.perf_counter() - t0)
+
+    def timed(clock):  # each progress line (after a checkpoint) records the training seconds so far
+        def say_and_save(*args, **kwargs):
+            clock.save()
+            say(*args, **kwargs)
+
+        return say_and_save
+
+    # Training seconds over every process (a killed call's up to its last progress line), compiling
+    # and checkpoints included; the nets share one loop, so each shows its whole time.
+    clock = runio.CarriedClock(stage_dir / "train_wall_time.json")
+    states = bc.train_nets(models, data, m.train, {name: stage_dir / name for name in names}, timed(clock))
+    return models, states, dict.fromkeys(names, clock.save())
 
 
 def evaluate_net(cfg, name: str, model: bc.MetaPolicy, state: bc.TrainState, env, grids: dict, say=print) -> dict:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import hashlib
+import json
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -151,7 +152,7 @@ def family_search(env, mesh, population: int, repetitions: int, sigma_init: floa
 
 def run_search(search: Search, x0, targets, free, generations: int, seed, extra=None, say=print,
                label: str = "cma-es", on_generation=None, leash=None, centre_fn=None,
-               extra_fn=None) -> Result:  # fmt: skip
+               extra_fn=None, resume_path=None, on_resume=None, resume_key: str = "") -> Result:  # fmt: skip
     """Run T searches for `generations` generations from key(seed) (seed: an int or a JAX key).
 
     seed may also be a list of K seeds: the searches are then K runs of T / K searches each (run
@@ -168,6 +169,11 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
     (None: `extra`, fixed).
     on_generation(gen, stats) is called on the host after each generation with `Stats` of (T,)
     numpy arrays.
+    resume_path: a file (.npz) where the search's state is saved after every generation, and
+    from which a rerun of the same search resumes (ending exactly where an uninterrupted one
+    would); with it, Ctrl-C stops the search after the generation in flight, its state saved.
+    on_resume(done, history) is then called once with the generations already done (0: fresh).
+    resume_key: what else the search's path depends on (its cost's settings), as text.
     """
     x0 = kick_model.clip_params(jnp.asarray(x0, jnp.float32))
     if x0.shape[1:] != search.shape:
@@ -206,33 +212,113 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
         means = x0[:n] + scale[:n] * carry.es.mean[:n].reshape(x0[:n].shape)
         return sharding.place(sharding.pad(jnp.asarray(fn(means), jnp.float32), T), search.mesh)
 
-    for gen in range(generations):
-        key, gen_keys = draw(key)
-        if centre_fn is not None:
-            centre = follow(centre_fn, carry)
-        if extra_fn is not None:
-            extra = follow(extra_fn, carry)
-        carry, stats = search.step(
-            *sharding.place((carry, gen_keys), search.mesh), x0, targets, scale, extra, leash, centre,
-        )  # fmt: skip
-        stats = Stats(*(np.asarray(s) for s in sharding.unpad(tuple(stats), n)))
-        if stats.overflow.max() > 0:  # dropped contacts: every cost of this generation is wrong
-            raise RuntimeError(
-                f"{label} gen {gen + 1}: the physics ran out of contact slots in "
-                f"{stats.overflow.max():.0%} of a search's episodes; raise env.warp_contacts"
-            )
-        history.append(stats)
-        if on_generation is not None:
-            on_generation(gen, stats)
-        say(f"{label} gen {gen + 1}/{generations}  best cost {stats.best.mean():.3f} (worst search "
-            f"{stats.best.max():.3f})  population mean {stats.mean.mean():.3f}  valid {stats.valid.mean():.2f}  "
-            f"{pace.tick(gen + 1)}")  # fmt: skip
+    first = 0
+    if resume_path is not None:
+        identity = _search_identity(
+            x0,
+            targets,
+            scale,
+            extra,
+            leash,
+            key,
+            generations,
+            search.es_params,
+            np.frombuffer(resume_key.encode(), np.uint8),
+        )
+        first, carry, key, history = _read_search_state(resume_path, identity, carry, key, say, label)
+        if on_resume is not None:
+            on_resume(first, history)
+    # With its state saved after every generation, Ctrl-C stops the search after the one in flight.
+    guard = contextlib.nullcontext() if resume_path is None else runio.stop_on_interrupt(say, at="this generation")
+    with guard as stop:
+        for gen in range(first, generations):
+            key, gen_keys = draw(key)
+            if centre_fn is not None:
+                centre = follow(centre_fn, carry)
+            if extra_fn is not None:
+                extra = follow(extra_fn, carry)
+            carry, stats = search.step(
+                *sharding.place((carry, gen_keys), search.mesh), x0, targets, scale, extra, leash, centre,
+            )  # fmt: skip
+            stats = Stats(*(np.asarray(s) for s in sharding.unpad(tuple(stats), n)))
+            if stats.overflow.max() > 0:  # dropped contacts: every cost of this generation is wrong
+                raise RuntimeError(
+                    f"{label} gen {gen + 1}: the physics ran out of contact slots in "
+                    f"{stats.overflow.max():.0%} of a search's episodes; raise env.warp_contacts"
+                )
+            history.append(stats)
+            if resume_path is not None:
+                _write_search_state(resume_path, identity, gen + 1, carry, key, history)
+            if on_generation is not None:
+                on_generation(gen, stats)
+            say(f"{label} gen {gen + 1}/{generations}  best cost {stats.best.mean():.3f} (worst search "
+                f"{stats.best.max():.3f})  population mean {stats.mean.mean():.3f}  valid {stats.valid.mean():.2f}  "
+                f"{pace.tick(gen + 1)}")  # fmt: skip
+            if stop is not None:
+                stop.check()
     es, best_cost, best = sharding.unpad(tuple(carry), n)
     mean = kick_model.clip_params(x0[:n] + scale[:n] * es.mean.reshape(x0[:n].shape))
     names = Stats._fields
     hist = {k: np.asarray([getattr(s, k) for s in history]).reshape(generations, n) for k in names}
     return Result(np.asarray(mean), np.asarray(best), np.asarray(best_cost), hist,
                   key if isinstance(seed, list | tuple) else key[0])  # fmt: skip
+
+
+def _search_identity(*parts) -> str:
+    """A hash of what a search's path depends on (starts, targets, free mask, costs' extras,
+    leash, seed key, generations, CMA-ES settings): a saved state resumes only the same search."""
+    h = hashlib.sha256()
+    for leaf in jax.tree.leaves(parts):
+        if isinstance(leaf, jax.Array) and jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):
+            leaf = jax.random.key_data(leaf)
+        arr = np.asarray(leaf)
+        h.update(str((arr.dtype, arr.shape)).encode())
+        h.update(arr.tobytes())
+    return h.hexdigest()
+
+
+def _state_leaves(carry, key) -> list:
+    return [np.asarray(x) for x in jax.tree.leaves(carry)] + [np.asarray(jax.random.key_data(key))]
+
+
+def _write_search_state(path, identity: str, done: int, carry, key, history) -> None:
+    """A search's state after `done` generations, written atomically (temp file + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    leaves = {f"leaf_{i}": x for i, x in enumerate(_state_leaves(carry, key))}
+    stats = {f"stats_{k}": np.asarray([getattr(s, k) for s in history]) for k in Stats._fields}
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, identity=np.asarray(identity), done=np.asarray(done), **leaves, **stats)
+    tmp.replace(path)
+
+
+def _read_search_state(path, identity: str, carry, key, say, label) -> tuple:
+    """(generations done, carry, key, history) saved at `path` for this search (`identity`), else
+    (0, carry, key, []) with the reason said: no file, another search's, or unreadable."""
+    path = Path(path)
+    if not path.is_file():
+        return 0, carry, key, []
+    fresh = _state_leaves(carry, key)
+    try:
+        with np.load(path) as f:
+            if str(f["identity"]) != identity:
+                say(f"{label}: {runio.shown(path)} holds another search's state; starting from generation 0")
+                return 0, carry, key, []
+            leaves = [f[f"leaf_{i}"] for i in range(len(fresh))]
+            done = int(f["done"])
+            stats = {k: f[f"stats_{k}"] for k in Stats._fields}
+    except Exception as err:  # noqa: BLE001 (a truncated or damaged file: zip, pickle or key errors)
+        say(f"{label}: {runio.shown(path)} is unreadable ({runio.error_reason(err)}); starting from generation 0")
+        return 0, carry, key, []
+    if any(a.shape != b.shape or a.dtype != b.dtype for a, b in zip(leaves, fresh, strict=True)):
+        say(f"{label}: {runio.shown(path)} holds a state of other shapes; starting from generation 0")
+        return 0, carry, key, []
+    treedef = jax.tree.structure(carry)
+    carry = jax.tree.unflatten(treedef, [jnp.asarray(x) for x in leaves[:-1]])
+    key = jax.random.wrap_key_data(jnp.asarray(leaves[-1]), impl=jax.random.key_impl(key))
+    history = [Stats(*(stats[k][g] for k in Stats._fields)) for g in range(done)]
+    say(f"{label}: resumed after generation {done} from {runio.shown(path)}")
+    return done, carry, key, history
 
 
 def split_runs(result: Result, runs: int) -> list[Result]:
@@ -266,13 +352,16 @@ def per_run(fn, runs: int, searches: int):
 # -- what the stages call ------------------------------------------------------------------------
 
 
-def optimise(env, start, target: float, free_params, cfg, csv_path=None, mesh=None, say=print, label="") -> dict:
+def optimise(env, start, target: float, free_params, cfg, csv_path=None, mesh=None, say=print, label="",
+             resume_path=None) -> dict:  # fmt: skip
     """One search (T = 1 of the driver) for the kick that rests at `target` m.
 
     start: params (14,); free_params: names of the parameters it moves (the rest stay at start);
     cfg: population_size, generations, repetitions, sigma_init, seed and fitness weights (the
     prior's config section). csv_path: a per-generation progress CSV (`PROGRESS_FIELDS`), begun
-    anew. Returns {"params": best candidate (14,), "best_cost", "mean_params": final mean (14,),
+    anew (or, resumed, kept to the generations done). resume_path: the search's state after every
+    generation, resumed by a rerun and stopped by Ctrl-C after a generation (`run_search`).
+    Returns {"params": best candidate (14,), "best_cost", "mean_params": final mean (14,),
     "history": Stats field -> (generations,)}.
     """
     start = np.asarray(start, np.float32)
@@ -286,14 +375,24 @@ def optimise(env, start, target: float, free_params, cfg, csv_path=None, mesh=No
     search = kick_search(env, mesh, int(cfg.population_size), int(cfg.repetitions), float(cfg.sigma_init),
                          kick_scoring.fitness_json_of(cfg.fitness))  # fmt: skip
     free = np.array([n in free_params for n in kick_model.PARAM_NAMES])
-    on_generation = None
+    on_generation = on_resume = None
     if csv_path is not None:
         csv_path = Path(csv_path)
         csv_path.parent.mkdir(parents=True, exist_ok=True)
-        runio.trim_csv(csv_path, PROGRESS_FIELDS, "generation", -1)  # a search always restarts at 0
         on_generation = _progress_writer(csv_path)
+
+        def on_resume(done, history):  # the rows of the generations done stay; later ones are redone
+            runio.trim_csv(csv_path, PROGRESS_FIELDS, "generation", done - 1)
+            on_generation.best = min([np.inf, *(float(s.best[0]) for s in history)])
+
+        if resume_path is None:
+            on_resume(0, [])
+    settings = {k: cfg[k] for k in ("population_size", "repetitions", "sigma_init", "seed")}
+    resume_key = json.dumps([settings, kick_scoring.fitness_json_of(cfg.fitness), kick_env.resolved(env.config)],
+                            sort_keys=True, default=str)  # fmt: skip
     result = run_search(search, start[None], [target], free[None], int(cfg.generations), int(cfg.seed),
-                        say=say, label=label or f"kick {target:g} m", on_generation=on_generation)  # fmt: skip
+                        say=say, label=label or f"kick {target:g} m", on_generation=on_generation,
+                        resume_path=resume_path, on_resume=on_resume, resume_key=resume_key)  # fmt: skip
     return {
         "params": result.best[0],
         "best_cost": float(result.best_cost[0]),
@@ -304,15 +403,16 @@ def optimise(env, start, target: float, free_params, cfg, csv_path=None, mesh=No
 
 def _progress_writer(path: Path):
     """on_generation for one search: appends a row of PROGRESS_FIELDS per generation."""
-    state = {"best": np.inf, "t": time.perf_counter()}
+    state = {"t": time.perf_counter()}
 
     def write(gen, stats):
         now = time.perf_counter()
-        state["best"] = min(state["best"], float(stats.best[0]))
-        row = [gen, float(stats.best[0]), float(stats.mean[0]), state["best"], float(stats.valid[0]), now - state["t"]]
+        write.best = min(write.best, float(stats.best[0]))
+        row = [gen, float(stats.best[0]), float(stats.mean[0]), write.best, float(stats.valid[0]), now - state["t"]]
         state["t"] = now
         runio.append_csv(path, PROGRESS_FIELDS, [dict(zip(PROGRESS_FIELDS, row, strict=True))])
 
+    write.best = np.inf  # the best so far (a resumed search starts it from the generations done)
     return write
 
 

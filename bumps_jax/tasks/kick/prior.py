@@ -4,14 +4,16 @@ the reachable range, then a sweep of the blended family over strength.
     run_dir/prior/
       start_prior.json        the kick record the search started from, copied on the first call
       progress_<anchor>.csv   one row per CMA-ES generation of each anchor's search
+      search_<anchor>.npz     an unfinished search's state after its last generation
       anchor_<anchor>.json    each anchor's kick and evaluation, written when its search ends
       kick_prior.json         the stage's record (OUTPUT)
       kick_prior_timing.json  its wall times
       kick_prior_asset.json   the prior record the later stages start from
       kick_sweep.png          resting distance against strength
 
-A rerun reuses every finished anchor and restarts an unfinished one from generation 0; it starts
-from the run's own start_prior.json, whatever assets/ holds by then.
+A rerun reuses every finished anchor and resumes an unfinished search after its last generation
+(its state in search_<anchor>.npz, saved after each one; Ctrl-C stops it there); it starts from
+the run's own start_prior.json, whatever assets/ holds by then.
 """
 
 from __future__ import annotations
@@ -121,14 +123,12 @@ def _anchor(stage_dir: Path, name: str, target: float, start, free, p, env, mesh
     if found is not None and np.array_equal(np.asarray(found["start"], np.float32), start):
         say(f"prior: anchor {name} ({target:g} m) reused from the finished search in {path}")
         return {**found, "params": np.asarray(found["params"], np.float32), "reused": True}
-    csv_path = stage_dir / f"progress_{name}.csv"
+    csv_path, state_path = stage_dir / f"progress_{name}.csv", stage_dir / f"search_{name}.npz"
     if found is not None:
         say(f"prior: anchor {name} ({target:g} m) was searched from another start; it restarts from generation 0")
-    elif csv_path.exists():
-        say(f"prior: anchor {name} ({target:g} m): its unfinished search restarts from generation 0")
     t0 = time.perf_counter()
     out = cmaes.optimise(env, start, target, tuple(free), p, csv_path=csv_path, mesh=mesh, say=say,
-                         label=f"prior {name} {target:g} m")  # fmt: skip
+                         label=f"prior {name} {target:g} m", resume_path=state_path)  # fmt: skip
     search_s = time.perf_counter() - t0
     evaluation = kick_scoring.evaluate_kick(env, out["params"], target, p.fitness, p.eval_repetitions, mesh=mesh)
     found = {
@@ -143,6 +143,7 @@ def _anchor(stage_dir: Path, name: str, target: float, start, free, p, env, mesh
         "wall_s": time.perf_counter() - t0,
     }
     runio.write_json(path, found)
+    state_path.unlink(missing_ok=True)  # the finished search's state: its anchor file holds what is read
     say(f"prior: anchor {name} ({target:g} m) done: error {evaluation['mean_error']:.2f} m, valid "
         f"{evaluation['valid_fraction']:.2f} ({path})")  # fmt: skip
     return {**found, "params": np.asarray(found["params"], np.float32), "reused": False}

@@ -11,6 +11,25 @@ from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import scene
 
 
+def check_gl() -> None:
+    """ValueError in one line, before any long work, if MuJoCo cannot open an offscreen GL context
+    (the backend MUJOCO_GL named when mujoco was imported: `bumps_jax._choose_gl`)."""
+    import os  # noqa: PLC0415
+
+    backend = os.environ.get("MUJOCO_GL")
+    try:
+        model = mujoco.MjModel.from_xml_string("<mujoco/>")
+        with mujoco.Renderer(model, height=8, width=8) as renderer:
+            renderer.update_scene(mujoco.MjData(model))
+            renderer.render()
+    except Exception as err:  # noqa: BLE001 (GLFW, EGL and OSMesa fail in many ways)
+        reason = str(err).strip().splitlines()[0][:120] if str(err).strip() else type(err).__name__
+        raise ValueError(
+            f"cannot render offscreen (MUJOCO_GL={backend or 'unset'}: {reason}): this host needs an EGL or "
+            "OSMesa library; set MUJOCO_GL=egl or MUJOCO_GL=osmesa to the one it has"
+        ) from None
+
+
 def _camera(lookat, distance=1.1, azimuth=215.0, elevation=-18.0) -> mujoco.MjvCamera:
     cam = mujoco.MjvCamera()
     cam.lookat[:] = lookat
@@ -117,8 +136,10 @@ def kick_frames(env, qpos, rest_xy, target_xy, label: str, fps: int, width: int,
     return frames
 
 
-def kick_gif(path, env, apply_fn, params, contexts, targets, seed: int = 0, fps: int = 20, size=(400, 300)) -> Path:
-    """A GIF of one noisy kick per (context, target), panels side by side. Returns the path."""
+def kick_gif(path, env, apply_fn, params, contexts, targets, seed: int = 0, fps: int = 20, size=(400, 300),
+             keys=None) -> Path:  # fmt: skip
+    """A GIF of one noisy kick per (context, target), panels side by side. Returns the path.
+    keys: each kick's noise key (default: split from `seed`), e.g. a kick already measured."""
     import jax
     import numpy as np
     from PIL import Image
@@ -126,7 +147,7 @@ def kick_gif(path, env, apply_fn, params, contexts, targets, seed: int = 0, fps:
     if len(contexts) != len(targets) or len(targets) == 0:
         raise ValueError(f"need as many contexts as targets (at least one), got {len(contexts)} and {len(targets)}")
     run = kick_states_fn(env, apply_fn)
-    keys = jax.random.split(jax.random.key(seed), len(targets))
+    keys = jax.random.split(jax.random.key(seed), len(targets)) if keys is None else keys
     ball = env.ids.ball_qpos
     panels = []
     for context, target, key in zip(contexts, targets, keys, strict=True):
