@@ -9,7 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax.pipeline import policies, runio
+from bumps_jax.pipeline import runio
+from bumps_jax.tasks.kick import policies
 
 # -- checksums ---------------------------------------------------------------------------------
 

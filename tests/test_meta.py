@@ -16,8 +16,8 @@ from rollout_memo import RolloutMemo
 
 from bumps_jax import cli, config
 from bumps_jax.algo import bc, evaluate, filtering
-from bumps_jax.pipeline import policies, runio
 from bumps_jax.pipeline import programs as meta_programs
+from bumps_jax.pipeline import runio
 from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.pipeline.stages import filter as filter_stage
@@ -26,6 +26,7 @@ from bumps_jax.pipeline.stages import meta as meta_stage
 from bumps_jax.report import publish, tables
 from bumps_jax.report import summary as report
 from bumps_jax.tasks.kick import env as kick_env
+from bumps_jax.tasks.kick import policies
 
 
 def quiet(*args, **kwargs):

@@ -1,4 +1,5 @@
-"""The commands besides the stages: report, publish, render, video, showcase, evaluate, kick.
+"""The commands besides the stages that every task has: report, publish, evaluate; a task's own
+(`Task.commands`: the kick's render, video, showcase and kick) are found through it.
 
 Each takes the pipeline config, the run directory and the parsed arguments; each checks its
 inputs (with their paths) before any long work.
@@ -8,14 +9,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from bumps_jax.pipeline import runio
 
 
 def run(command: str, cfg, run_dir: Path, args) -> None:
-    commands = {"report": report, "publish": publish, "render": render, "video": video, "showcase": showcase,
-                "evaluate": evaluate, "kick": kick}  # fmt: skip
+    """Run `command`: one of every task's, else one of the config's task's own."""
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
+
+    commands = {"report": report, "publish": publish, "evaluate": evaluate, **tasks.get(cfg.task).commands}
+    if command not in commands:
+        raise ValueError(f"the {cfg.task} task has no {command} command; it has {', '.join(sorted(commands))}")
     commands[command](cfg, Path(run_dir), args)
 
 
@@ -47,7 +50,7 @@ def publish(cfg, run_dir: Path, args) -> None:
             f"not published: {runio.shown(run_dir)} has not finished {', '.join(missing)} (no {records}); "
             "rerun the same reproduce to finish it"
         )
-    if cfg.task != "kick":
+    if not tasks.get(cfg.task).report.paper_rows:  # another task's records go to results/<task>/
         for path in publish_mod.publish_task(run_dir, cfg.task):
             print(f"wrote {path}")
         return
@@ -60,61 +63,6 @@ def publish(cfg, run_dir: Path, args) -> None:
         print(f"{run_dir} is a {made_with.preset} run: publishing it with the {made_with.preset} preset's config")
     for path in publish_mod.publish(run_dir, cfg=made_with):
         print(f"wrote {path}")
-
-
-def render(cfg, run_dir: Path, args) -> None:
-    from bumps_jax.tasks.kick import render as render_mod  # noqa: PLC0415
-
-    out = Path(args.out) if args.out else run_dir / "stance.png"
-    runio.check_writable(out.parent)
-    render_mod.check_gl()
-    print(f"wrote {render_mod.stance_picture(out)}")
-
-
-def video(cfg, run_dir: Path, args) -> None:
-    """A GIF of filtered kicks of a finished run: the (4, 256) net at the test tasks nearest 8, 12, 16 m."""
-    import jax  # noqa: PLC0415
-
-    from bumps_jax.algo import bc  # noqa: PLC0415
-    from bumps_jax.pipeline.stages import meta as meta_stage  # noqa: PLC0415
-    from bumps_jax.tasks.kick import env as kick_env  # noqa: PLC0415
-    from bumps_jax.tasks.kick import render  # noqa: PLC0415
-
-    table2 = runio.read_json(run_dir / "filter" / "table2.json", "run the filter stage first")
-    obs_norm = meta_stage.run_obs_norm(run_dir)
-    out = Path(args.out) if args.out else run_dir / "filtered_kicks.gif"
-    runio.check_writable(out.parent)
-    render.check_gl()
-    tasks, chosen = np.asarray(table2["tasks"]), np.asarray(table2["chosen_contexts"]["filtered_4x256"])
-    picks = sorted({int(np.argmin(np.abs(tasks - t))) for t in (8.0, 12.0, 16.0)})
-    depth, width = cfg.meta.nets["meta_4x256"]
-    apply_fn, params = bc.load_policy(run_dir / "meta" / "meta_4x256", depth, width, cfg.meta.train, obs_norm=obs_norm)
-    params = jax.tree.map(lambda a: a[cfg.filter.net_seed], params)
-    env = kick_env.KickEnv(cfg.env)
-    path = render.kick_gif(out, env, apply_fn, params, chosen[picks], tasks[picks])
-    print(f"wrote {path}")
-
-
-def showcase(cfg, run_dir: Path, args) -> None:
-    """A batch of noisy episodes of the committed prior's main kick: the scene and env at a glance."""
-    import jax  # noqa: PLC0415
-    import jax.numpy as jnp  # noqa: PLC0415
-
-    from bumps_jax.algo import rollout  # noqa: PLC0415
-    from bumps_jax.tasks.kick import env as kick_env  # noqa: PLC0415
-    from bumps_jax.tasks.kick import keyframes as kick_model  # noqa: PLC0415
-
-    if args.episodes < 1:
-        raise ValueError(f"--episodes must be a positive integer, got {args.episodes}")
-    record = kick_model.load_record(kick_model.ASSET, env_cfg=cfg.env)
-    env = kick_env.KickEnv(cfg.env)
-    table = kick_model.action_tables(kick_model.clip_params(record["params"])[None], env.n_steps, env.dt)
-    keys = jax.random.split(jax.random.key(0), args.episodes)[None]
-    target = jnp.full((1,), 12.0)
-    out = rollout.matched_fn(env, rollout.table_policy)(table, target, target, keys)
-    print(f"{args.episodes} noisy kicks of the committed 12 m prior:")
-    print(f"  resting distance {np.mean(out['distance']):.2f} +- {np.std(out['distance']):.2f} m")
-    print(f"  final error      {np.mean(out['final_error']):.2f} m, valid {np.mean(out['valid']):.2f}")
 
 
 def evaluate(cfg, run_dir: Path, args) -> None:
@@ -131,52 +79,3 @@ def evaluate(cfg, run_dir: Path, args) -> None:
         return
     heldout.run(cfg, run_dir, section="dev")  # its inputs checked, then run_dir/dev made writable
     print(f"wrote {run_dir / 'dev' / 'dev.json'}")
-
-
-def kick(cfg, run_dir: Path, args) -> None:
-    """Kick to --target with a shipped meta-policy: filter a context, then --kicks noisy kicks."""
-    import time  # noqa: PLC0415
-
-    from bumps_jax import config  # noqa: PLC0415
-    from bumps_jax.pipeline import policies  # noqa: PLC0415
-
-    t0 = time.perf_counter()
-    for name, value in (("--kicks", args.kicks), ("--selection-reps", args.selection_reps)):
-        if value < 1:
-            raise ValueError(f"{name} must be a positive integer, got {value}")
-    directory = args.policies or policies.ASSET_DIR
-    if not (Path(directory) / policies.MANIFEST).is_file():
-        raise ValueError(f"no shipped policies in {directory}: {policies.HOW_TO_MAKE}")
-    manifest = runio.read_json(Path(directory) / policies.MANIFEST, "a shipped-policies manifest")
-    # The policies' own physics, with only the env keys the user set on the command line.
-    env_overrides = {k.removeprefix("env."): v for k, v in config.overrides_of(cfg).items() if k.startswith("env.")}
-    from bumps_jax.algo import sharding  # noqa: PLC0415
-
-    n_devices = sharding.device_mesh(impl=policies.env_config(manifest, env_overrides).impl).size
-    env_cfg = policies.kick_env_config(manifest, env_overrides, args.kicks, n_devices)
-    if args.net not in manifest.get("nets", {}):
-        raise ValueError(f"--net {args.net!r}: the shipped nets are {sorted(manifest.get('nets', {}))}")
-    from bumps_jax.tasks.kick import env as kick_env  # noqa: PLC0415
-
-    target = float(kick_env.check_targets([args.target], tuple(env_cfg.task_range))[0])
-    if args.gif:
-        from bumps_jax.tasks.kick import render  # noqa: PLC0415
-
-        runio.check_writable(Path(args.gif).parent)
-        render.check_gl()  # before the kicks, not after them
-    shipped = policies.load(directory, env_cfg)
-    out = policies.filtered_kicks(shipped, args.net, target, args.kicks, env_cfg, args.selection_reps, args.seed)
-    for line in policies.describe(shipped, args.net, target, out, time.perf_counter() - t0):
-        print(line)
-    if args.gif:
-        from bumps_jax.algo import bc  # noqa: PLC0415
-
-        entry = shipped.manifest["nets"][args.net]
-        model = bc.MetaPolicy(entry["depth"], entry["width"], obs_norm=bc.obs_norm_of_record(entry))
-        apply_fn = bc.policy_apply(model)
-        env = kick_env.KickEnv(env_cfg)
-        # the printed kick nearest their median resting distance, replayed with its own noise
-        shown = int(np.argmin(np.abs(out.distance - np.median(out.distance))))
-        path = render.kick_gif(args.gif, env, apply_fn, shipped.nets[args.net], [out.context], [target],
-                               keys=out.keys[shown : shown + 1])  # fmt: skip
-        print(f"wrote {path}: kick {shown + 1} of the {len(out.distance)} above ({out.distance[shown]:.2f} m)")

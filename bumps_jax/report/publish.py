@@ -8,12 +8,12 @@ import shutil
 from pathlib import Path
 
 from bumps_jax import config
-from bumps_jax.pipeline import policies, runio
+from bumps_jax.pipeline import runio
 from bumps_jax.report import readme as readme_table
 from bumps_jax.report import summary as report
 from bumps_jax.report import task_report as report_task
 from bumps_jax.tasks import registry as tasks
-from bumps_jax.tasks.cheetah_vel import table as cheetah_table
+from bumps_jax.tasks.kick import policies
 
 POLICIES = "assets/policies"  # the shipped policies (`policies.write`)
 # What `publish` copies from a finished paper run into the repository: run file -> committed path.
@@ -105,8 +105,9 @@ def write_report(run_dir: str | Path) -> Path:
 
 
 def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list[Path]:
-    """Copy a finished run of `task` (not the kick) into results/<task>/ (`TASK_PUBLISHED`); for
-    HalfCheetah-Vel, then regenerate our rows of its comparison with the published results."""
+    """Copy a finished run of `task` (one without the paper's rows) into results/<task>/
+    (`TASK_PUBLISHED`), then regenerate the task's blocks beside others' published results
+    (`Report.published_blocks`)."""
     run_dir, root = Path(run_dir), Path(root)
     if not any((run_dir / rel).exists() for rel in TASK_PUBLISHED if rel.endswith(".json")):
         raise ValueError(f"{run_dir} holds no stage results to publish")
@@ -119,9 +120,5 @@ def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list
             dest.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(run_dir / rel, dest)
             written.append(dest)
-    if task == "cheetah_vel":
-        if (root / cheetah_table.DOC).exists():
-            written.append(cheetah_table.write(root))  # our rows beside the published results
-        if (root / "README.md").exists():
-            written.append(cheetah_table.write_readme(root))
-    return written
+    blocks = tasks.get(task).report.published_blocks  # the task's rows beside others' published results
+    return written + ([] if blocks is None else blocks(root))

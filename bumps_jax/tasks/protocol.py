@@ -60,6 +60,9 @@ class Report:
     # The experts' record's key holding their starts scored as the experts are (a Table 1 row
     # before PPO); None: no such row.
     start_row: str | None = None
+    # Regenerates the repository's blocks that set its published records beside others' (root ->
+    # the files written); None: none.
+    published_blocks: Callable[[Path], list[Path]] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,6 +90,9 @@ class Task:
     # it is, when it is in [0, 1] already).
     normalise_meta_inputs: bool = True
     own_stages: Mapping[str, str] = dataclasses.field(default_factory=dict)  # stage -> module (the kick's prior)
+    # Commands of its own beside every task's (report, publish, evaluate): name ->
+    # fn(cfg, run_dir, parsed arguments) (the kick's render, video, showcase and kick).
+    commands: Mapping[str, Callable] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         unknown = [s for s in self.stages if s not in STAGE_ORDER]

@@ -103,6 +103,13 @@ def write(root: str | Path = ".") -> Path:
     return runio.replace_block(Path(root) / DOC, BEGIN, END, block(root), "generated rows")
 
 
+def publish(root: str | Path = ".") -> list[Path]:
+    """Our rows beside the published meta-RL results, in their doc and in README, where they exist."""
+    root = Path(root)
+    written = [write(root)] if (root / DOC).exists() else []
+    return written + ([write_readme(root)] if (root / "README.md").exists() else [])
+
+
 def readme_lines(root: str | Path = ".") -> list[str]:
     """README's sentences on the published HalfCheetah-Vel run (stage time, the nets unfiltered and
     filtered beside their experts, the baseline), every number a record's; none without a record."""

@@ -1,7 +1,7 @@
 """HalfCheetah-Vel as a BUMPS task: experts from fresh policies, states normalised for the nets."""
 
 from bumps_jax.report import tables
-from bumps_jax.tasks.cheetah_vel import config, env
+from bumps_jax.tasks.cheetah_vel import config, env, table
 from bumps_jax.tasks.protocol import Report, Task
 
 TASK = Task(
@@ -16,5 +16,6 @@ TASK = Task(
         table1=tables.task_table1_markdown,
         table2=tables.task_table2_markdown,
         axes=("target velocity (m/s)", "mean velocity error (m/s)", "achieved mean velocity (m/s)"),
+        published_blocks=table.publish,
     ),
 )
