@@ -278,7 +278,12 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
 
     # The loader the meta stage uses rebuilds the same experts from the run directory alone.
     want = experts.expert_params(whole["state"])
-    _same_trees(experts.load_final_params(tmp_path / "whole" / "experts", programs, 2), want)
+    # What the experts' record says of their policy rebuilds them: no trainer is made to read them.
+    policy = experts.policy_record(cfg.experts.ppo, programs.env)
+    assert policy["obs_size"] == programs.env.observation_size and policy["policy_hidden"] == [64, 64]
+    runio.write_json(tmp_path / "whole" / "experts" / "experts.json", {"policy": policy})
+    monkeypatch.setattr(experts, "compile_programs", lambda *a, **k: pytest.fail("a trainer was built to read"))
+    _same_trees(experts.load_final_params(tmp_path / "whole" / "experts", policy, 2), want)
     fam = experts.load_family(cfg, tmp_path / "whole")
     assert list(fam.tasks) == [8.0, 12.0]
     _same_trees(fam.params, want)

@@ -22,11 +22,13 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import ml_collections
 import numpy as np
 
 from bumps_jax import config
 from bumps_jax.algo import evaluate, ppo, sharding
 from bumps_jax.pipeline import runio
+from bumps_jax.pipeline.records import jsonable
 from bumps_jax.tasks import registry as tasks
 
 OUTPUT = "experts.json"
@@ -224,25 +226,56 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
     return out
 
 
-def load_final_params(stage_dir: Path, programs: Compiled, n_tasks: int) -> ExpertParams:
-    """The ExpertParams (N, ...) saved under stage_dir/final_params; ValueError naming it if unreadable."""
+# What rebuilds an expert's policy besides the env's sizes: its PPO networks' keys.
+POLICY_KEYS = ("policy_hidden", "value_hidden", "normalize_observations", "init_log_std")
+
+
+def policy_record(ppo_cfg, env) -> dict:
+    """The experts' policy as their record describes it: observation and action sizes and the PPO
+    networks' architecture (`POLICY_KEYS`), all a reader needs to rebuild it."""
+    shape = {"obs_size": int(env.observation_size), "action_size": int(env.action_size)}
+    return {**shape, **{k: jsonable(ppo_cfg[k]) for k in POLICY_KEYS}}
+
+
+def policy_networks(policy: dict):
+    """The PPO networks of a `policy_record`."""
+    arch = ml_collections.ConfigDict({k: tuple(v) if isinstance(v, list) else v for k, v in policy.items()})
+    return ppo.make_networks(arch, policy["obs_size"], policy["action_size"])
+
+
+def abstract_params(policy: dict, n_tasks: int) -> ExpertParams:
+    """The ExpertParams (N, ...) shapes and dtypes of `n_tasks` experts of a `policy_record`."""
+    networks = policy_networks(policy)
+    one = jax.eval_shape(
+        lambda: ExpertParams(ppo.init_normalizer(policy["obs_size"]), networks.policy_network.init(jax.random.key(0)))
+    )
+    return jax.tree.map(lambda a: jax.ShapeDtypeStruct((n_tasks, *a.shape), a.dtype), one)
+
+
+def load_final_params(stage_dir: Path, policy: dict, n_tasks: int) -> ExpertParams:
+    """The ExpertParams (N, ...) saved under stage_dir/final_params, of experts of a `policy_record`;
+    ValueError naming it if unreadable."""
     import orbax.checkpoint as ocp  # noqa: PLC0415
 
     final = (Path(stage_dir) / "final_params").resolve()
     runio.verify_checksums(final)  # CorruptError (a ValueError) naming a changed file
     try:
         with ocp.StandardCheckpointer() as checkpointer:  # closed on leaving: no thread outlives the read
-            return checkpointer.restore(final, expert_params(abstract_state(programs, n_tasks)))
+            return checkpointer.restore(final, abstract_params(policy, n_tasks))
     except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
         reason = type(err).__name__
         raise ValueError(f"{final}: cannot read the trained experts ({reason}); rerun train-experts") from None
 
 
 def load_family(cfg, run_dir: Path) -> Family:
-    """The trained experts of a run, for behaviour cloning and replays."""
-    programs = compile_programs(cfg)
-    params = load_final_params(Path(run_dir) / "experts", programs, len(cfg.experts.tasks))
-    return Family(task_expert_policy(cfg, programs), params, np.asarray(cfg.experts.tasks, np.float64))
+    """The trained experts of a run, for behaviour cloning and replays: rebuilt from their record
+    (`policy_record`) and final_params, not from the trainer that made them; `cfg` gives the env."""
+    stage_dir = Path(run_dir) / "experts"
+    record = runio.read_json(stage_dir / OUTPUT, "the experts' record: run train-experts first")
+    env = tasks.make_env(cfg.task, cfg.env)
+    policy = record.get("policy") or policy_record(cfg.experts.ppo, env)  # a record from before it was kept
+    params = load_final_params(stage_dir, policy, len(cfg.experts.tasks))
+    return Family(expert_policy(policy_networks(policy), env), params, np.asarray(cfg.experts.tasks, np.float64))
 
 
 def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compiled, wall_s: float, say=print) -> dict:
@@ -262,6 +295,7 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
     record["env_steps_total"] = int(sum(known))  # per expert, the parts that are known
     record.update(runio.provenance(cfg.preset, wall_s + time.perf_counter() - start, config.resolved_env(cfg)))
     record.update(task=cfg.task, unit=task.unit, eval_repetitions=int(e.eval.repetitions))
+    record["policy"] = policy_record(e.ppo, programs.env)  # what rebuilds the experts from final_params
     runio.write_text(stage_dir / "experts.md", task.report.experts(record))
     runio.write_json(stage_dir / OUTPUT, record)
     return record
@@ -274,7 +308,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     n = len(cfg.experts.tasks)
     if (stage_dir / "final_params").exists():  # trained; a previous call stopped before its evaluation
         say(f"experts already trained ({stage_dir / 'final_params'}): evaluating them")
-        params = load_final_params(stage_dir, programs, n)
+        params = load_final_params(stage_dir, policy_record(cfg.experts.ppo, programs.env), n)
         clock = runio.read_json(stage_dir / "wall_time.json") if (stage_dir / "wall_time.json").exists() else {}
         wall = max([0.0, *map(float, clock.values())])
     else:
