@@ -41,6 +41,7 @@ from bumps_jax.tasks import registry as tasks
 from bumps_jax.tasks.cheetah_vel import config as cheetah_config
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick.targets import DEV_TARGETS, HELDOUT_TARGETS
+from bumps_jax.tasks.point_goal import config as point_goal_config
 
 
 def _prior() -> ml_collections.ConfigDict:
@@ -268,6 +269,7 @@ def default_config() -> ml_collections.ConfigDict:
     cfg.heldout = _heldout()
     cfg.dev = _dev()
     cfg.cheetah_vel = cheetah_config.sections(_meta(), _filter())
+    cfg.point_goal = point_goal_config.sections(_meta(), _filter())
     return cfg
 
 
@@ -361,6 +363,7 @@ PRESETS: dict[str, dict] = {
         "dev.repetitions": 2,
         "dev.selection_repetitions": 2,
         **cheetah_config.TINY,
+        **point_goal_config.TINY,
     },
 }
 

@@ -53,6 +53,10 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
         )
     if cfg.task == "cheetah_vel":
         cheetah_vel(cfg.cheetah_vel, "cheetah_vel.")
+    if cfg.task == "point_goal":
+        from bumps_jax.tasks.point_goal import config as point_goal_config  # noqa: PLC0415
+
+        point_goal_config.validate(cfg.point_goal, "point_goal.")
 
 
 def cheetah_vel(c, prefix: str) -> None:
