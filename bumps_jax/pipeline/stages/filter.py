@@ -190,12 +190,10 @@ def plot_error_vs_target(path, curves: dict, labels=("target", "mean final error
     fig, ax = plt.subplots(figsize=(7, 4))
     vector = False
     for name, (targets, err) in curves.items():
-        x = np.asarray(targets, dtype=float)
-        if x.ndim > 1:
-            x, vector = np.linalg.norm(x, axis=-1), True
-            order = np.argsort(x)
-            x, err = x[order], np.asarray(err, dtype=float)[order]
-        ax.plot(x, np.asarray(err, dtype=float), marker=".", label=name)
+        x, style = np.asarray(targets, dtype=float), "-"
+        if x.ndim > 1:  # points, not a curve: targets of one norm lie apart
+            x, vector, style = np.linalg.norm(x, axis=-1), True, "none"
+        ax.plot(x, np.asarray(err, dtype=float), marker=".", linestyle=style, label=name)
     ax.set_xlabel(f"|{labels[0]}|" if vector else labels[0])
     ax.set_ylabel(labels[1])
     ax.grid(alpha=0.3)
