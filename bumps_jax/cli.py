@@ -1,6 +1,6 @@
 """Every command of the pipeline from one command line.
 
-    python -m bumps_jax <command> [--preset tiny|paper] [--task kick|cheetah_vel] [--run-dir D]
+    python -m bumps_jax <command> [--preset tiny|paper] [--task kick|cheetah_vel|point_goal] [--run-dir D]
                                   [--set KEY=VALUE ...] [--force]
 
 `--task` picks the contextual task (the config's `task`: the kick by default), whose tree the
@@ -152,7 +152,7 @@ def add_run_options(p, name: str) -> None:
         type=Path,
         help="default: runs/<preset> (runs/demo for demo); another task's: runs/<task>/<preset>",
     )
-    p.add_argument("--task", default=None, help="the contextual task: kick (default) or cheetah_vel (config: task)")
+    p.add_argument("--task", default=None, help="the contextual task (config: task): kick (default), cheetah_vel, ...")
     p.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
                    help="config overrides (JSON values); may be repeated")  # fmt: skip
     p.add_argument("--force", action="store_true",

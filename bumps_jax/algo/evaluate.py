@@ -61,12 +61,13 @@ def evaluate_experts(env: task_env.ContextualEnv, apply_fn, params, tasks, n_rep
                      keys=None) -> dict:  # fmt: skip
     """Each expert on its own task, `n_reps` noisy kicks each, in one vmapped program.
 
-    params: a pytree with a leading task axis (N, ...); tasks: (N,) m; keys: (N, n_reps) episode
-    keys (default: `rollout.repetition_keys(seed, N, n_reps)`). Returns the final metrics as
-    numpy arrays of shape (N, n_reps).
+    params: a pytree with a leading task axis (N, ...); tasks: (N,) m, or (N, K) for a vector
+    context (`env.CONTEXT_SIZE` K > 1); keys: (N, n_reps) episode keys (default:
+    `rollout.repetition_keys(seed, N, n_reps)`). Returns the final metrics as numpy arrays of
+    shape (N, n_reps).
     """
     tasks = np.asarray(tasks, np.float32)
-    if tasks.ndim != 1 or len(tasks) == 0:
+    if tasks.ndim != len(task_env.context_shape(getattr(env, "CONTEXT_SIZE", 1))) + 1 or len(tasks) == 0:
         raise ValueError(f"tasks must be a non-empty 1-d list of distances, got {tasks!r}")
     if n_reps < 1:
         raise ValueError(f"n_reps must be >= 1, got {n_reps!r}")
@@ -93,15 +94,15 @@ def experts_record(tasks, metrics: dict, env_steps: int) -> dict:
 
 def tasks_record(tasks, metrics: dict) -> dict:
     """A Table 1 row of one policy per task (`table_row`) with its per-task list, from final
-    metrics of shape (n_tasks, n_reps) (`evaluate_experts`)."""
+    metrics of shape (n_tasks, n_reps) (`evaluate_experts`). A vector context is a list."""
     per_task = summarise_tasks(metrics)
     row = table_row(per_task)
     rel = per_task.get("rel_error_mean")  # None: the task reports no relative error
     return {
-        "tasks_m": [float(t) for t in tasks],
+        "tasks_m": [task_env.context_json(t) for t in tasks],
         "per_task": [
             {
-                "target_m": float(t),
+                "target_m": task_env.context_json(t),
                 "accuracy": float(per_task["accuracy"][i]),
                 "error_mean_m": float(per_task["error_mean_m"][i]),
                 "error_std_m": float(per_task["error_std_m"][i]),

@@ -4,7 +4,9 @@ task, each task's choice, and the blocked rollouts that feed them.
 A meta-policy asked for context c does not kick exactly c metres. Filtering fixes the map:
 sample contexts over the task range, roll every sampled contextual policy out R times, and
 for each test task deploy the context whose rollouts rest closest to the task's target,
-among candidates within +- `width` m of the task (the task's own context is always one).
+among candidates within +- `width` m of the task (the task's own context is always one). A
+vector context (a goal position, K numbers) samples a K-D grid over the box of the task range,
+and a task's candidates are the contexts within Euclidean distance `width` of it.
 
 The dynamics do not depend on the target, only the scoring does: each candidate context is
 rolled out once (C x R episodes) and its resting points, as the env reports them (`distance`
@@ -31,34 +33,53 @@ from bumps_jax.algo import evaluate, sharding
 
 
 def check_width(width) -> float:
-    """The neighbourhood half-width (m) as a float, or ValueError naming it."""
+    """The neighbourhood's radius (m) as a float, or ValueError naming it."""
     if not np.isfinite(width) or width <= 0:
         raise ValueError(f"width must be > 0 m, got {width!r}")
     return float(width)
 
 
 def check_contexts(contexts, task_range) -> np.ndarray:
-    """Contexts (C,) as a float array, or ValueError: empty, or naming one outside `task_range`."""
+    """Contexts (C,) as a float array, or ValueError: empty, or naming one outside `task_range`.
+    Vector contexts (C, K) stay (C, K), each coordinate checked against the range (a box)."""
     arr = np.atleast_1d(np.asarray(contexts, np.float64))
     if arr.size == 0:
         raise ValueError("no contexts: give at least one context to filter over")
     lo, hi = task_range
     bad = ~np.isfinite(arr) | (arr < lo - 1e-9) | (arr > hi + 1e-9)
     if bad.any():
-        raise ValueError(f"context {arr[bad][0]!r} m is outside the task range [{lo}, {hi}] m")
+        first = arr[bad.reshape(len(arr), -1).any(axis=1)][0]
+        raise ValueError(f"context {first!r} m is outside the task range [{lo}, {hi}] m")
     return arr
 
 
-def context_grid(low: float, high: float, step: float) -> np.ndarray:
-    """low, low + step, ..., up to high (inclusive within rounding): (n,) m."""
+def context_grid(low: float, high: float, step: float, size: int = 1) -> np.ndarray:
+    """low, low + step, ..., up to high (inclusive within rounding): (n,) m. size K > 1: the
+    K-D grid of those values along every axis of the box [low, high]^K, row-major: (n^K, K)."""
     n = int(np.floor((high - low) / step + 1e-6)) + 1
-    return np.round(low + step * np.arange(n), 6)
+    axis = np.round(low + step * np.arange(n), 6)
+    if size == 1:
+        return axis
+    return np.stack(np.meshgrid(*[axis] * size, indexing="ij"), axis=-1).reshape(-1, size)
 
 
 def candidate_contexts(tasks, sampled) -> np.ndarray:
-    """The sampled contexts plus every task's own context, sorted and unique: (C,) m."""
-    both = np.concatenate([np.asarray(sampled, np.float64), np.asarray(tasks, np.float64)])
-    return np.unique(np.round(both, 6))
+    """The sampled contexts plus every task's own context, sorted and unique: (C,) m; vector
+    contexts (C, K), sorted row by row."""
+    sampled = np.asarray(sampled, np.float64)
+    both = np.concatenate([sampled, np.asarray(tasks, np.float64).reshape(-1, *sampled.shape[1:])])
+    if both.ndim == 1:
+        return np.unique(np.round(both, 6))
+    return np.unique(np.round(both, 6), axis=0)
+
+
+def context_gaps(contexts, tasks) -> np.ndarray:
+    """(T, C) distance of each context from each task: |c - t| for scalars (C,) and (T,), the
+    Euclidean distance for vectors (C, K) and (T, K)."""
+    contexts, tasks = np.asarray(contexts, np.float64), np.asarray(tasks, np.float64)
+    if contexts.ndim == 1:
+        return np.abs(contexts[None, :] - tasks[:, None])
+    return np.linalg.norm(contexts[None, :, :] - tasks.reshape(-1, 1, contexts.shape[1]), axis=-1)
 
 
 def noise_keys(seed: int) -> tuple[jax.Array, jax.Array]:
@@ -76,12 +97,13 @@ def stage_keys(key, n: int, reps: int) -> jax.Array:
 
 
 def candidate_mask(contexts, tasks, width, task_range) -> np.ndarray:
-    """(T, C) bool: context c is a candidate of task t (within +- width of it). Every task's own
-    context must be among `contexts` (`candidate_contexts`)."""
+    """(T, C) bool: context c is a candidate of task t (within distance `width` of it: +- width
+    for scalars, a ball for vectors; `context_gaps`). Every task's own context must be among
+    `contexts` (`candidate_contexts`)."""
     width = check_width(width)
     contexts = check_contexts(contexts, task_range)
     tasks = np.asarray(tasks, np.float64)
-    gap = np.abs(contexts[None, :] - tasks[:, None])
+    gap = context_gaps(contexts, tasks)
     own = (gap < 1e-6).any(axis=1)
     if not own.all():
         raise ValueError(f"task {tasks[~own][0]!r} m has no own context among the candidates")
@@ -168,7 +190,8 @@ def scoring(env) -> dict:
     (T,)) -> (T, C, R) by `env.error_against`, "achieved": the metric holding what an episode achieved}."""
 
     def errors(metrics: dict, tasks) -> np.ndarray:
-        return env.error_against(metrics, np.asarray(tasks, np.float64)[:, None, None])
+        tasks = np.asarray(tasks, np.float64)  # (T,) or (T, K)
+        return env.error_against(metrics, tasks.reshape(len(tasks), 1, 1, *tasks.shape[1:]))
 
     return {"errors": errors, "achieved": env.ACHIEVED}
 
@@ -176,7 +199,7 @@ def scoring(env) -> dict:
 class Selection(NamedTuple):
     """One net's filtering: candidates, their rollouts, and each task's choice."""
 
-    contexts: np.ndarray  # (C,) candidate contexts (m)
+    contexts: np.ndarray  # (C,) candidate contexts (m); (C, K) for a vector context
     # (C, R) what each rollout achieved: the env's `ACHIEVED` metric (the kick's resting distance
     # along the kick line, m; the cheetah's mean velocity, m/s)
     distance: np.ndarray
@@ -234,7 +257,7 @@ def table2_row(metrics: dict, n_contexts: int, best_score, rollouts: int) -> dic
 
 def run_blocked(grid, params, contexts, targets, keys, block: int | None, multiple: int = 1) -> dict:
     """Episodes of one policy (a `rollout.grid_fn` program, params a stack of P = 1) for flat
-    contexts (B,), targets (B,), keys (B,): metrics of (B,).
+    contexts (B,), targets (B,), keys (B,): metrics of (B,). Vector contexts and targets: (B, K).
 
     block None: one program call for the batch, rounded up to a multiple of `multiple` (the
     devices a sharded grid splits over); else calls of exactly `block` x `multiple` episodes,
@@ -272,7 +295,7 @@ def filter_policy(
         return _halving_policy(grid, params, contexts, tasks, width, key, task_range, block, multiple, rungs, keep,
                                errors, achieved)  # fmt: skip
     C, R = len(contexts), int(repetitions)
-    flat_ctx = np.repeat(contexts, R)
+    flat_ctx = np.repeat(contexts, R, axis=0)
     m = run_blocked(grid, params, flat_ctx, flat_ctx, stage_keys(key, C, R), block, multiple)
     m = {k: v.reshape(C, R, *v.shape[1:]) for k, v in m.items()}
     scores = errors(m, tasks).mean(axis=-1)  # (T, C)
@@ -301,7 +324,7 @@ def _halving_policy(grid, params, contexts, tasks, width, key, task_range, block
 
     def errors_of(index, start, stop):
         r = stop - start
-        flat_ctx = np.repeat(contexts[index], r)
+        flat_ctx = np.repeat(contexts[index], r, axis=0)
         m = run_blocked(grid, params, flat_ctx, flat_ctx, keys[index, start:stop].reshape(-1), block, multiple)
         m = {k: v.reshape(len(index), r, *v.shape[1:]) for k, v in m.items()}
         if start == 0:
@@ -314,9 +337,9 @@ def _halving_policy(grid, params, contexts, tasks, width, key, task_range, block
 
 
 def evaluate_chosen(grid, params, chosen_contexts, tasks, repetitions, key, block=None, multiple: int = 1) -> dict:
-    """Fresh noisy episodes of each task's chosen context (T,): metrics of (T, repetitions)."""
+    """Fresh noisy episodes of each task's chosen context (T,) (vectors: (T, K)): metrics of (T, repetitions)."""
     tasks = np.asarray(tasks, np.float64)
     T, R = len(tasks), int(repetitions)
-    flat_ctx, flat_tasks = np.repeat(np.asarray(chosen_contexts), R), np.repeat(tasks, R)
+    flat_ctx, flat_tasks = np.repeat(np.asarray(chosen_contexts), R, axis=0), np.repeat(tasks, R, axis=0)
     m = run_blocked(grid, params, flat_ctx, flat_tasks, stage_keys(key, T, R), block, multiple)
     return {k: v.reshape(T, R, *v.shape[1:]) for k, v in m.items()}

@@ -227,12 +227,14 @@ def rollout(ctx: _Context, normalizer, policy_params, target, rng):
     """
     rng_reset, rng_steps = jax.random.split(rng)
     keys = jax.random.split(rng_reset, ctx.config.num_envs)
+    # A vector context (env.CONTEXT_SIZE K > 1): targets (B, K), each coordinate from U[low, high].
+    shape = (ctx.config.num_envs, *task_env.context_shape(getattr(ctx.env, "CONTEXT_SIZE", 1)))
     if ctx.config.sample_task_range is None:
-        targets = jnp.broadcast_to(target, (ctx.config.num_envs,))
+        targets = jnp.broadcast_to(target, shape)
     else:
         low, high = ctx.config.sample_task_range
         rng_task = jax.random.fold_in(rng_reset, 1)
-        targets = jax.random.uniform(rng_task, (ctx.config.num_envs,), minval=low, maxval=high)
+        targets = jax.random.uniform(rng_task, shape, minval=low, maxval=high)
     env_state = jax.vmap(ctx.env.reset)(keys, targets)
     body = functools.partial(_env_step, ctx, normalizer, policy_params)
     carry, data = jax.lax.scan(body, _RolloutCarry(env_state, rng_steps), None, ctx.env.n_steps)

@@ -1,7 +1,8 @@
 """The shared base of the pipeline's contextual tasks (the kick, HalfCheetah-Vel).
 
 A contextual task is a brax-style env whose `reset(rng, target)` takes the task's parameter (the
-context: a distance in m, a velocity in m/s) and whose final metrics score the episode against it:
+context: a distance in m, a velocity in m/s, or a vector of `CONTEXT_SIZE` numbers such as a goal
+position) and whose final metrics score the episode against it:
 
     final_error   the episode's error against its target, in the context's unit (final at `done`)
     valid         1 for an episode the pipeline counts (no fall, no physics overflow, ...), else 0
@@ -82,14 +83,49 @@ def validate_physics_dt(cfg: ml_collections.ConfigDict) -> None:
             )
 
 
-def check_targets(targets, task_range, unit: str = "m") -> np.ndarray:
-    """Targets as a float array, or ValueError naming the first one outside `task_range` (in `unit`)."""
+def check_targets(targets, task_range, unit: str = "m", size: int = 1) -> np.ndarray:
+    """Targets as a float array, or ValueError naming the first one outside `task_range` (in `unit`).
+
+    size 1: scalar contexts, any shape. size K > 1: vector contexts (..., K), each coordinate in
+    [low, high] of `task_range` (a box); a last axis of another length raises."""
     arr = np.asarray(targets, dtype=np.float64)
+    if size > 1 and (arr.ndim == 0 or arr.shape[-1] != size):
+        raise ValueError(f"targets must be vectors of {size} numbers ({unit}), got shape {arr.shape}")
     lo, hi = task_range
     bad = ~np.isfinite(arr) | (arr < lo - 1e-9) | (arr > hi + 1e-9)
     if bad.any():
+        if size > 1:
+            row = arr.reshape(-1, size)[bad.reshape(-1, size).any(axis=1)][0]
+            raise ValueError(f"target {format_context(row)} {unit} is outside the task range [{lo}, {hi}] {unit}")
         raise ValueError(f"target {float(arr[bad].flat[0])!r} {unit} is outside the task range [{lo}, {hi}] {unit}")
     return arr
+
+
+# -- contexts of any shape: a scalar (size 1, the kick's and the cheetah's) or a vector (size K) --
+
+
+def context_shape(size: int) -> tuple[int, ...]:
+    """The shape of one context: () for size 1, (K,) for size K > 1."""
+    return () if size == 1 else (int(size),)
+
+
+def as_contexts(values, size: int = 1) -> np.ndarray:
+    """Contexts as a float64 array of N contexts: (N,) for size 1, (N, K) for size K > 1."""
+    return np.asarray(values, np.float64).reshape(-1, *context_shape(size))
+
+
+def context_json(context):
+    """One context as records carry it: a float (size 1) or a list of floats (size K)."""
+    arr = np.asarray(context, np.float64)
+    return float(arr) if arr.ndim == 0 else [float(v) for v in arr]
+
+
+def format_context(context, spec: str = ".3g") -> str:
+    """One context as text: `1.2` (size 1) or `(0.5, -0.3)` (size K), each number by `spec`."""
+    arr = np.asarray(context, np.float64)
+    if arr.ndim == 0:
+        return format(float(arr), spec)
+    return "(" + ", ".join(format(float(v), spec) for v in arr) + ")"
 
 
 class ContextualEnv(Env):
@@ -101,6 +137,7 @@ class ContextualEnv(Env):
     `n_steps_of(env_config)` (an episode's control steps)."""
 
     UNIT = "m"  # the context's unit
+    CONTEXT_SIZE = 1  # numbers in one context: 1, a scalar (); K > 1, a vector (K,) (a goal position)
     ACHIEVED = "distance"  # the final metric holding what an episode achieved, in UNIT (plots)
     contacts_per_episode: int  # the most contacts one episode makes: Warp's pool holds this per episode
 
@@ -132,11 +169,13 @@ class ContextualEnv(Env):
 
     # -- the context -----------------------------------------------------------------------
     def check_targets(self, targets) -> np.ndarray:
-        """Targets as a float array, or ValueError naming the first one outside the task range."""
-        return check_targets(targets, self.config.task_range, self.UNIT)
+        """Targets as a float array, or ValueError naming the first one outside the task range
+        (vectors (..., CONTEXT_SIZE) for a vector context)."""
+        return check_targets(targets, self.config.task_range, self.UNIT, self.CONTEXT_SIZE)
 
     def normalise_context(self, context):
-        """A target or context as the policy sees it: 0 at the task range's low end, 1 at its high."""
+        """A target or context as the policy sees it: 0 at the task range's low end, 1 at its high
+        (each coordinate of a vector context)."""
         lo, hi = self.config.task_range
         return (context - lo) / (hi - lo)
 
@@ -153,7 +192,7 @@ class ContextualEnv(Env):
     def error_against(self, metrics: dict, targets) -> np.ndarray:
         """Final errors of finished episodes against other targets: metrics (host arrays of shape
         S, as the env reports them) with targets broadcasting against S, e.g. (T, 1, 1) against
-        (C, R) -> (T, C, R)."""
+        (C, R) -> (T, C, R); a vector context's targets carry its last axis: (T, 1, 1, K)."""
         raise NotImplementedError
 
 

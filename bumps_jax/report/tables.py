@@ -7,6 +7,7 @@ beside ours wherever the paper reported the same row.
 from __future__ import annotations
 
 from bumps_jax.algo.evaluate import ACCURACY_THRESHOLD
+from bumps_jax.envs import base as task_env
 
 # The paper's Table 1 (SimSpark): accuracy mean, std; error mean, std (m).
 PAPER_TABLE1 = {
@@ -57,9 +58,11 @@ def experts_markdown(record: dict) -> str:
 
 
 def per_task_rows(per_task: list[dict], target_format: str = ".1f", digits: int = 2) -> list[str]:
-    """An experts record's per-task rows: target, accuracy, error mean and std (`digits` each)."""
+    """An experts record's per-task rows: target (a vector context's as `(x, y)`), accuracy, error
+    mean and std (`digits` each)."""
     return [
-        f"| {row['target_m']:{target_format}} | {row['accuracy']:.2f} | {num(row['error_mean_m'], digits)} "
+        f"| {task_env.format_context(row['target_m'], target_format)} | {row['accuracy']:.2f} "
+        f"| {num(row['error_mean_m'], digits)} "
         f"| {num(row['error_std_m'], digits)} |"
         for row in per_task
     ]

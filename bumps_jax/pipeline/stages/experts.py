@@ -27,6 +27,7 @@ import numpy as np
 
 from bumps_jax import config
 from bumps_jax.algo import evaluate, ppo, sharding
+from bumps_jax.envs import base as task_env
 from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.records import jsonable
 from bumps_jax.tasks import registry as tasks
@@ -55,7 +56,7 @@ class Family(NamedTuple):
 
     apply_fn: Any  # (params of one expert, contextual obs) -> action: `expert_policy`
     params: Any
-    tasks: np.ndarray  # (E,) targets (the task's unit)
+    tasks: np.ndarray  # (E,) targets (the task's unit); (E, K) for a vector context
 
 
 def expert_params(state: ppo.TrainState) -> ExpertParams:
@@ -86,8 +87,8 @@ class Compiled(NamedTuple):
     env: Any  # the task's env (task_env.ContextualEnv)
     trainer: ppo.Trainer
     mesh: Any
-    # (rngs (N, 2), targets (N,), starts (N, K)) -> (TrainState (N, ...), losses (N, steps)); K: the
-    # size of the task's expert start, 0 for a fresh policy (no losses then)
+    # (rngs (N, 2), targets (N,) (or (N, C) for a vector context), starts (N, K)) -> (TrainState
+    # (N, ...), losses (N, steps)); K: the size of the task's expert start, 0 for a fresh policy
     init: Any
     chunk: Any  # (TrainState (N, ...), targets (N,)) -> (TrainState, UpdateMetrics (N, chunk))
     start_size: int  # K above
@@ -142,7 +143,8 @@ def task_rngs(seed: int, n_tasks: int) -> jax.Array:
 
 def abstract_state(programs: Compiled, n_tasks: int):
     """The TrainState (N, ...) shapes and dtypes, for restoring checkpoints."""
-    args = (task_rngs(0, n_tasks), jnp.zeros(n_tasks), jnp.zeros((n_tasks, programs.start_size)))
+    shape = task_env.context_shape(programs.env.CONTEXT_SIZE)
+    args = (task_rngs(0, n_tasks), jnp.zeros((n_tasks, *shape)), jnp.zeros((n_tasks, programs.start_size)))
     return jax.eval_shape(functools.partial(run_init, programs), *args)[0]
 
 
@@ -164,7 +166,7 @@ def chunk_rows(first_update, metrics: ppo.UpdateMetrics, tasks, steps_per_update
     for i, target in enumerate(tasks):
         for j in range(m.episode_return.shape[1]):
             update = int(first_update) + j + 1
-            row = {"update": update, "env_steps": update * steps_per_update, fields[2]: float(target)}
+            row = {"update": update, "env_steps": update * steps_per_update, fields[2]: task_env.context_json(target)}
             rows.append({**row, **{k: float(getattr(m, k)[i, j]) for k in ppo.UpdateMetrics._fields}})
     return rows
 
@@ -177,14 +179,15 @@ def progress_line(tasks, metrics: ppo.UpdateMetrics, update: int, total: int, et
     worst = int(np.argmax(err))
     return (
         f"update {update}/{total}  return {m.episode_return[:, -1].mean():8.2f}  final error {err.mean():.2f} {unit}"
-        f" (worst {err[worst]:.2f} {unit} at {tasks[worst]:.1f} {unit})  valid {m.valid[:, -1].mean():.2f}  {eta}"
+        f" (worst {err[worst]:.2f} {unit} at {task_env.format_context(tasks[worst], '.1f')} {unit})"
+        f"  valid {m.valid[:, -1].mean():.2f}  {eta}"
     )
 
 
 def initial_state(cfg, run_dir: Path, programs: Compiled, say=print):
     """The experts' TrainState (N, ...) before PPO, from the task's expert start (fresh policies
     without one): written as checkpoint 0."""
-    targets = np.asarray(cfg.experts.tasks, np.float32)
+    targets = np.asarray(cfg.experts.tasks, np.float32)  # (E,), or (E, K) for a vector context
     start = tasks.get(cfg.task).expert_start
     if start is None:
         starts = np.zeros((len(targets), 0))
@@ -204,7 +207,7 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
     import orbax.checkpoint as ocp  # noqa: PLC0415
 
     stage_dir = run_dir / "experts"
-    tasks = tuple(float(t) for t in cfg.experts.tasks)
+    tasks = task_env.as_contexts(cfg.experts.tasks, programs.env.CONTEXT_SIZE)  # (E,) or (E, K)
     targets = jnp.asarray(tasks, jnp.float32)
     total = programs.trainer.n_updates
     unit = programs.env.UNIT

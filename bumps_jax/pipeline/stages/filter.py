@@ -18,6 +18,7 @@ import numpy as np
 
 from bumps_jax import config
 from bumps_jax.algo import bc, evaluate, filtering, sharding
+from bumps_jax.envs import base as task_env
 from bumps_jax.pipeline import programs as meta_programs
 from bumps_jax.pipeline import records as env_records
 from bumps_jax.pipeline import runio
@@ -60,14 +61,15 @@ def inputs(cfg, run_dir: Path) -> dict:
 
 
 def filter_variant(cfg, grid, params, contexts, mesh_size: int):
-    """Selection over `contexts` (C,) and the fresh evaluation of each task's choice:
-    (filtering.Selection, metrics of (T, R), Table 2 row, timings)."""
+    """Selection over `contexts` (C,) (vectors: (C, K)) and the fresh evaluation of each task's
+    choice: (filtering.Selection, metrics of (T, R), Table 2 row, timings)."""
     f = cfg.filter
-    targets = np.asarray(f.tasks, np.float64)
+    env = meta_programs.stage_env(cfg.env, cfg.task)
+    targets = task_env.as_contexts(f.tasks, env.CONTEXT_SIZE)
     sel_key, eval_key = filtering.noise_keys(f.seed)
     t0 = time.perf_counter()
     rungs = tuple(f.halving_rungs) if f.selection == "halving" else None
-    scoring = filtering.scoring(meta_programs.stage_env(cfg.env, cfg.task))
+    scoring = filtering.scoring(env)
     sel = filtering.filter_policy(
         grid, params, contexts, targets, f.width, f.selection_repetitions, sel_key,
         task_range=tuple(cfg.env.task_range), block=f.block, multiple=mesh_size, rungs=rungs, keep=f.halving_keep,
@@ -89,14 +91,14 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     run_dir = Path(run_dir)
     inputs(cfg, run_dir)
     f, stage_dir = cfg.filter, run_dir / "filter"
-    targets = np.asarray(f.tasks, np.float64)
+    env = meta_programs.stage_env(cfg.env, cfg.task)
+    targets = task_env.as_contexts(f.tasks, env.CONTEXT_SIZE)  # (T,), or (T, K) for a vector context
     mesh = sharding.device_mesh(impl=cfg.env.impl)  # a mesh of one on a single device: the same program
-    grids = {
-        "low": filtering.candidate_contexts(targets, filtering.context_grid(*f.context_range, f.context_step)),
-        "high": filtering.candidate_contexts(targets, filtering.context_grid(*f.context_range, f.high_context_step)),
+    grids = {  # a vector context's grid spans the box context_range^K
+        name: filtering.candidate_contexts(targets, filtering.context_grid(*f.context_range, step, env.CONTEXT_SIZE))
+        for name, step in (("low", f.context_step), ("high", f.high_context_step))
     }
     selections, evals, rows, timings = {}, {}, {}, {}
-    env = meta_programs.stage_env(cfg.env, cfg.task)
     unit, sizes = env.UNIT, (env.context_observation_size, env.action_size)
     obs_norm = meta_stage.run_obs_norm(run_dir)
     pace, done = runio.Clock(len(VARIANTS)), 0  # progress over the variants, with an ETA from their pace
@@ -184,16 +186,21 @@ def unfiltered_curves(table1: dict) -> dict:
 
 
 def plot_error_vs_target(path, curves: dict, labels=("target", "mean final error")) -> Path:
-    """Final error vs target. curves: name -> (targets (n,), mean error (n,)); labels: (x, y) axis names."""
+    """Final error vs target. curves: name -> (targets (n,), mean error (n,)); labels: (x, y) axis
+    names. Vector targets (n, K) are placed by their Euclidean norm."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     fig, ax = plt.subplots(figsize=(7, 4))
+    vector = False
     for name, (targets, err) in curves.items():
-        ax.plot(targets, np.asarray(err, dtype=float), marker=".", label=name)
-    ax.set_xlabel(labels[0])
+        x, style = np.asarray(targets, dtype=float), "-"
+        if x.ndim > 1:  # points, not a curve: targets of one norm lie apart
+            x, vector, style = np.linalg.norm(x, axis=-1), True, "none"
+        ax.plot(x, np.asarray(err, dtype=float), marker=".", linestyle=style, label=name)
+    ax.set_xlabel(f"|{labels[0]}|" if vector else labels[0])
     ax.set_ylabel(labels[1])
     ax.grid(alpha=0.3)
     ax.legend()
@@ -202,7 +209,8 @@ def plot_error_vs_target(path, curves: dict, labels=("target", "mean final error
 
 def plot_context_map(path, maps: dict, task_range, labels=("context (m)", "achieved distance (m)")) -> Path:
     """Achieved distance (or the task's achieved quantity) vs context. maps: name -> (contexts (C,),
-    achieved (C, R)); labels: (x, y) axis names."""
+    achieved (C, R)); labels: (x, y) axis names. Vector contexts (C, K) with achieved (C, R, K):
+    an arrow from each context to its mean achieved point, in the first two coordinates."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
@@ -210,6 +218,15 @@ def plot_context_map(path, maps: dict, task_range, labels=("context (m)", "achie
 
     fig, ax = plt.subplots(figsize=(6, 5))
     lo, hi = task_range
+    if any(np.ndim(c) > 1 for c, _ in maps.values()):
+        for i, (name, (contexts, achieved)) in enumerate(maps.items()):
+            c, a = np.asarray(contexts)[:, :2], np.nanmean(np.asarray(achieved, dtype=float), axis=1)[:, :2]
+            ax.quiver(c[:, 0], c[:, 1], a[:, 0] - c[:, 0], a[:, 1] - c[:, 1], angles="xy", scale_units="xy",
+                      scale=1, width=0.003, color=f"C{i}", label=name)  # fmt: skip
+        ax.set(xlim=(lo, hi), ylim=(lo, hi), aspect="equal", title=f"{labels[0]} -> mean {labels[1]}")
+        ax.grid(alpha=0.3)
+        ax.legend()
+        return runio.save_figure(fig, path)
     ax.plot([lo, hi], [lo, hi], "k--", lw=1, label="achieved = context")
     for name, (contexts, distance) in maps.items():
         d = np.asarray(distance)

@@ -23,6 +23,7 @@ import numpy as np
 
 from bumps_jax import config
 from bumps_jax.algo import bc, evaluate, rollout
+from bumps_jax.envs import base as task_env
 from bumps_jax.pipeline import records as env_records
 from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts as experts_stage
@@ -72,7 +73,7 @@ def per_task_list(tasks, summary: dict) -> list[dict]:
     """A row's per-task list [{target_m, accuracy, error_mean_m}] from `evaluate.summarise_tasks`."""
     return [
         {
-            "target_m": float(t),
+            "target_m": task_env.context_json(t),
             "accuracy": float(summary["accuracy"][i]),
             "error_mean_m": float(summary["error_mean_m"][i]),
         }
@@ -99,7 +100,8 @@ def dataset_env(cfg):
 
 def collect_dataset(env, family, repetitions: int, seed: int = 0) -> tuple[bc.Dataset, dict]:
     """Roll each expert out `repetitions` (K) times on its own task: (bc.Dataset of E * K * T
-    pairs, final metrics of (E, K)). family: (apply_fn, params stacked over E, tasks (E,) m)."""
+    pairs, final metrics of (E, K)). family: (apply_fn, params stacked over E, tasks (E,) m, or
+    (E, C) for a vector context, whose Dataset.task is then (N, C))."""
     targets = env.check_targets(family.tasks).astype(np.float32)
     if repetitions < 1:
         raise ValueError(f"repetitions must be >= 1, got {repetitions!r}")
@@ -107,7 +109,8 @@ def collect_dataset(env, family, repetitions: int, seed: int = 0) -> tuple[bc.Da
     keys = rollout.repetition_keys(seed, len(targets), repetitions)
     metrics, (obs, actions) = program(family.params, targets, targets, keys)  # (E, K, T, ...)
     n = obs.shape[0] * obs.shape[1] * obs.shape[2]
-    task = np.broadcast_to(targets[:, None, None], obs.shape[:3]).reshape(n)
+    rest = targets.shape[1:]  # () for a scalar context, (C,) for a vector one
+    task = np.broadcast_to(targets.reshape(-1, 1, 1, *rest), obs.shape[:3] + rest).reshape(n, *rest)
     data = bc.Dataset(
         obs=np.asarray(obs, np.float32).reshape(n, obs.shape[-1]),
         actions=np.asarray(actions, np.float32).reshape(n, actions.shape[-1]),
@@ -177,7 +180,8 @@ def run_obs_norm(run_dir: Path) -> tuple | None:
 
 
 def evaluate_unfiltered(grid, params, tasks, repetitions: int, seed: int) -> dict:
-    """Metrics (P, n_tasks, R) of each stacked policy (P, ...) on each task (n_tasks,) with context = target."""
+    """Metrics (P, n_tasks, R) of each stacked policy (P, ...) on each task (n_tasks,) (vectors:
+    (n_tasks, K)) with context = target."""
     tasks = np.asarray(tasks, np.float32)
     out = grid(params, tasks, tasks, rollout.repetition_keys(seed, len(tasks), repetitions))
     return {k: np.asarray(v) for k, v in out.items()}
@@ -248,7 +252,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     record_path = inputs(cfg, run_dir)["experts"]
     data = dataset(cfg, run_dir, say)
     env, e = tasks.make_env(cfg.task, cfg.env), cfg.meta.eval
-    rows, per_task = {}, {"tasks": [float(t) for t in e.tasks]}
+    rows, per_task = {}, {"tasks": [task_env.context_json(t) for t in e.tasks]}
     experts_record = runio.read_json(record_path)
     rows["experts"], experts_per_task = experts_row(experts_record, record_path)
     if experts_per_task:
