@@ -419,9 +419,11 @@ def _sealed_manager_class():
                 return saved
 
             def wait_until_finished(self):
+                import jax  # noqa: PLC0415
+
                 super().wait_until_finished()
-                for step in self.__dict__.pop("_unsealed", []):
-                    if (Path(self.directory) / str(step)).is_dir():
+                for step in self.__dict__.pop("_unsealed", []):  # (one host seals a multi-host step)
+                    if jax.process_index() == 0 and (Path(self.directory) / str(step)).is_dir():
                         write_checksums(Path(self.directory) / str(step))
 
             def close(self):

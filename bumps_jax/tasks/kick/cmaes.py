@@ -491,12 +491,16 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     seed = jax.random.key(int(tune_cfg.seed))
     seeds = [seed if k == 0 else jax.random.fold_in(seed, k) for k in range(K)]  # run k's own key
 
+    def state_path(runs: list[int]) -> Path | None:  # a batch's search state after each generation
+        return None if keep_dir is None else Path(keep_dir) / f"tuning_runs_{'_'.join(str(k + 1) for k in runs)}.npz"
+
     def tune(runs: list[int], label: str) -> list[tuple[Result, float]]:  # the runs `runs` as one batch
         m, t0 = len(runs), time.perf_counter()
         result = run_search(
             search, np.tile(starts, (m, 1)), np.tile(targets, m), np.ones((m * T, kick_model.N_PARAMS), bool),
             int(generations), [seeds[k] for k in runs], say=say, label=label, leash=leash,
             centre_fn=per_run(centre_fn, m, T), extra_fn=per_run(extra_fn, m, T),
+            resume_path=state_path(runs), resume_key=fingerprint,
         )  # fmt: skip
         took = (time.perf_counter() - t0) / m  # a batch's time, shared evenly by its runs
         return [(r, took) for r in split_runs(result, m)]
@@ -514,8 +518,9 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
         # every run left in one batch: its searches side by side in each physics call
         most = sharding.padded_size(len(left) * T, mesh) // mesh.size * P * R
         _check_pool(env, most, f"the {len(left)} tuning runs batched (runs x tasks x population x repetitions)")
-    # With runs kept, Ctrl-C stops after the run (or batch) in flight (its files written).
-    guard = contextlib.nullcontext() if keep_dir is None else runio.stop_on_interrupt(say, at="this tuning run")
+    # With runs kept, Ctrl-C stops after the generation in flight (the search's state saved, resumed
+    # by a rerun) or between runs (their files written).
+    guard = contextlib.nullcontext() if keep_dir is None else runio.stop_on_interrupt(say, at="this generation")
     with guard as stop:
         for batch in [left] if batched else [[k] for k in left]:
             if batched:
@@ -526,6 +531,8 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
                 done[k] = (result, took)
                 if paths[k] is not None:
                     write_tuning_run(paths[k], fingerprint, result, took)
+            if state_path(batch) is not None:  # its runs are kept whole now
+                state_path(batch).unlink(missing_ok=True)
             still = [k for k in left if k not in done]
             if still:  # the later runs compile nothing: each takes about as long as the last
                 say(f"{label} done in {took:.0f} s; ETA of the other runs {len(still) * took:.0f} s")

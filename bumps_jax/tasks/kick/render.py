@@ -113,8 +113,8 @@ def kick_frames(env, qpos, rest_xy, target_xy, label: str, fps: int, width: int,
     end = np.array(qpos[-1], np.float64)
     start_xy = end[ball : ball + 2].copy()
     n_roll = int(ROLL_SECONDS / ROLL_SPEEDUP * fps)
-    for i in range(1, n_roll + 1):
-        frac = 1.0 - np.exp(-c * ROLL_SECONDS * i / n_roll)
+    for i in range(1, n_roll + 1):  # the last frame at the resting point itself
+        frac = (1.0 - np.exp(-c * ROLL_SECONDS * i / n_roll)) / (1.0 - np.exp(-c * ROLL_SECONDS))
         q = end.copy()
         q[ball : ball + 2] = start_xy + frac * (np.asarray(rest_xy) - start_xy)
         poses.append(q)
@@ -155,7 +155,8 @@ def kick_gif(path, env, apply_fn, params, contexts, targets, seed: int = 0, fps:
         qpos, rest = np.asarray(qpos), np.asarray(rest)
         start = qpos[0][ball : ball + 2]
         error = float(np.linalg.norm(rest - (start + np.array([target, 0.0]))))
-        label = f"target {target:.1f} m, context {context:.2f} m: error {error:.2f} m"
+        rests = float(rest[0] - start[0])  # along the kick line, as `kick` prints each kick
+        label = f"target {target:.1f} m, context {context:.2f} m: rests at {rests:.2f} m, error {error:.2f} m"
         target_xy = start + np.array([target, 0.0])
         panels.append(kick_frames(env, qpos, rest, target_xy, label, fps, *size))
     n = max(len(p) for p in panels)
