@@ -28,9 +28,8 @@ import jax
 import numpy as np
 
 from benchmarks.bench import bc_inputs
-from bumps_jax import cli, config
+from bumps_jax import cli, config, runio
 from bumps_jax.algo import bc
-from bumps_jax.pipeline import runio
 
 # The options `--program-options graphs` gives the chunk's program: XLA's default command-buffer
 # kinds plus while loops and conditionals (CUDA graphs around the loop), with concurrent regions;

@@ -38,9 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks import scene_bench
-from bumps_jax import cli, config
+from bumps_jax import cli, config, runio
 from bumps_jax.algo import bc, filtering, rollout, sharding
-from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts
 from bumps_jax.tasks.kick import cmaes, starting_kicks
 from bumps_jax.tasks.kick import env as kick_env

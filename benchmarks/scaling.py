@@ -37,8 +37,7 @@ import time
 from pathlib import Path
 
 from benchmarks import bench
-from bumps_jax import cli, config
-from bumps_jax.pipeline import runio
+from bumps_jax import cli, config, runio
 
 # Each measured work and the record's key of its rate (`bench.Work.amount` per second).
 WORKS = {"experts": "experts_env_steps_per_s", "filter": "filter_rollouts_per_s"}

@@ -22,10 +22,9 @@ import numpy as np
 from mujoco import mjx
 
 from benchmarks import c_replay
-from bumps_jax import cli, config
+from bumps_jax import cli, config, runio
 from bumps_jax.algo import rollout
 from bumps_jax.envs import physics
-from bumps_jax.pipeline import runio
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 from bumps_jax.tasks.kick import scene

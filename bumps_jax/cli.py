@@ -196,8 +196,10 @@ def pipeline_stages(command: str, chosen) -> tuple[str, ...]:
 
 def dispatch(args) -> None:
     """Run one parsed command; ValueError for every user mistake."""
-    from bumps_jax import config  # noqa: PLC0415
-    from bumps_jax.pipeline import runio  # noqa: PLC0415
+    from bumps_jax import (
+        config,  # noqa: PLC0415
+        runio,  # noqa: PLC0415
+    )
     from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
 
     known = (PIPELINES[args.command][1],) if args.command in PIPELINES else ("tiny", "paper")
@@ -249,7 +251,7 @@ def main(argv=None) -> None:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser(with_keys=any(a in ("-h", "--help") for a in argv)).parse_args(argv)
     # (Offscreen rendering's GL backend is chosen before mujoco is imported: `bumps_jax._choose_gl`.)
-    from bumps_jax.pipeline import runio  # noqa: PLC0415
+    from bumps_jax import runio  # noqa: PLC0415
 
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task)
     try:

@@ -29,7 +29,7 @@ import math
 import ml_collections
 from ml_collections import FieldReference
 
-from bumps_jax.pipeline.records import differing_keys, jsonable
+from bumps_jax.records import differing_keys, jsonable
 from bumps_jax.tasks import registry as tasks
 
 PRESETS = ("tiny", "paper")

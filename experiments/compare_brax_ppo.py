@@ -71,10 +71,9 @@ import scipy.stats
 from brax import envs as brax_envs
 from jax.experimental.compilation_cache import compilation_cache as cc
 
-from bumps_jax import cli, config
+from bumps_jax import cli, config, runio
+from bumps_jax import records as env_records
 from bumps_jax.algo import ppo, ppo_config, rollout
-from bumps_jax.pipeline import records as env_records
-from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model

@@ -22,8 +22,7 @@ import sys
 from pathlib import Path
 from typing import NamedTuple
 
-from bumps_jax import config
-from bumps_jax.pipeline import runio
+from bumps_jax import config, runio
 from bumps_jax.report import tables
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -21,8 +21,7 @@ import mujoco
 import numpy as np
 
 from benchmarks import c_replay
-from bumps_jax import cli, config
-from bumps_jax.pipeline import runio
+from bumps_jax import cli, config, runio
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import scene, starting_kicks
 

@@ -24,9 +24,8 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import config
+from bumps_jax import config, runio
 from bumps_jax.algo import rollout
-from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import meta as meta_stage
 from bumps_jax.report import publish
 from bumps_jax.tasks import registry as tasks

@@ -22,9 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bumps_jax import cli, config
+from bumps_jax import cli, config, runio
 from bumps_jax.algo import evaluate
-from bumps_jax.pipeline import runio
 from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.pipeline.stages import experts
 from bumps_jax.tasks.kick import env as kick_env

@@ -18,9 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import cli, config
+from bumps_jax import cli, config, runio
 from bumps_jax.algo import rollout
-from bumps_jax.pipeline import runio
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 from bumps_jax.tasks.kick import starting_kicks

@@ -33,11 +33,10 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from bumps_jax import config
+from bumps_jax import config, runio
 
 # Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds
 from bumps_jax.algo import rollout, sharding
-from bumps_jax.pipeline import runio
 from bumps_jax.tasks.kick import cmaes, starting_kicks
 
 # Starting kicks besides the committed prior's anchors: a straighter kicking leg that winds

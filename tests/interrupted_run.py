@@ -5,9 +5,8 @@ import sys
 
 import numpy as np
 
-from bumps_jax import config
+from bumps_jax import config, runio
 from bumps_jax.algo import bc
-from bumps_jax.pipeline import runio
 
 
 def main(out_dir: str) -> None:

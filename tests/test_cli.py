@@ -6,9 +6,8 @@ import sys
 
 import pytest
 
-from bumps_jax import cli, config
-from bumps_jax.pipeline import records as env_records
-from bumps_jax.pipeline import runio
+from bumps_jax import cli, config, runio
+from bumps_jax import records as env_records
 from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.tasks.kick import env as kick_env
 

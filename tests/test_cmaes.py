@@ -398,7 +398,7 @@ def test_a_stopped_tuning_resumes_at_its_next_run(env, monkeypatch, tmp_path):
     import os  # noqa: PLC0415
     import signal  # noqa: PLC0415
 
-    from bumps_jax.pipeline import runio  # noqa: PLC0415
+    from bumps_jax import runio  # noqa: PLC0415
 
     common = dict(fitness=FITNESS, say=lambda *a, **k: None)
     _stand_in_tuning(monkeypatch)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from brax.training.agents.ppo import train as brax_ppo
 
-from bumps_jax.pipeline import runio
+from bumps_jax import runio
 from experiments import brax_compat
 from experiments import compare_brax_ppo as cmp
 

@@ -13,9 +13,8 @@ import pytest
 from rollout_memo import digest
 from tiny_experts import N_STEPS, pipeline_config
 
-from bumps_jax import config
+from bumps_jax import config, runio
 from bumps_jax.algo import rollout
-from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts
 from bumps_jax.tasks.kick import cmaes, starting_kicks
 from bumps_jax.tasks.kick import keyframes as kick_model

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax.pipeline import runio
+from bumps_jax import runio
 from bumps_jax.tasks.kick import policies
 
 # -- checksums ---------------------------------------------------------------------------------

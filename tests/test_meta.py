@@ -14,10 +14,9 @@ import pytest
 import stand_ins
 from rollout_memo import RolloutMemo
 
-from bumps_jax import cli, config
+from bumps_jax import cli, config, runio
 from bumps_jax.algo import bc, evaluate, filtering
 from bumps_jax.pipeline import programs as meta_programs
-from bumps_jax.pipeline import runio
 from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.pipeline.stages import filter as filter_stage

@@ -12,8 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from bumps_jax import config
-from bumps_jax.pipeline import runio
+from bumps_jax import config, runio
 from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.report import publish
 from bumps_jax.report import summary as report

@@ -6,8 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from bumps_jax import config
-from bumps_jax.pipeline import runio
+from bumps_jax import config, runio
 from bumps_jax.report import publish, tables
 from bumps_jax.report import readme as readme_table
 from bumps_jax.report import summary as report

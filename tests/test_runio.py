@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from bumps_jax.pipeline import runio
+from bumps_jax import runio
 from bumps_jax.pipeline import runner as pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -144,7 +144,7 @@ def test_nets_resume_from_the_newest_step_all_hold_and_drop_the_steps_past_it(tm
 
 def test_a_run_directory_in_use_by_another_process_is_refused_in_one_line(tmp_path):
     hold = (
-        "import sys, time; from bumps_jax.pipeline import runio\n"
+        "import sys, time; from bumps_jax import runio\n"
         "with runio.run_lock(sys.argv[1]):\n print('held', flush=True); time.sleep(60)"
     )
     proc = subprocess.Popen([sys.executable, "-c", hold, str(tmp_path)], stdout=subprocess.PIPE, text=True)

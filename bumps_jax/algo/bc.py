@@ -31,8 +31,8 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
+from bumps_jax import runio
 from bumps_jax.algo import ppo
-from bumps_jax.pipeline import runio
 
 # Gradient steps per iteration of the compiled epoch loop (lax.scan's unroll; at most an epoch's):
 # the same steps on the same batches in fewer loop iterations.

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bumps_jax.pipeline import runio
+from bumps_jax import runio
 
 
 def run(command: str, cfg, run_dir: Path, args) -> None:

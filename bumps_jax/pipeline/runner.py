@@ -23,8 +23,7 @@ import shutil
 import time
 from pathlib import Path
 
-from bumps_jax import config
-from bumps_jax.pipeline import runio
+from bumps_jax import config, runio
 from bumps_jax.tasks import registry as tasks
 from bumps_jax.tasks.protocol import STAGE_ORDER
 
@@ -229,7 +228,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, finished:
     no result (`NO_RESULT_KEYS`; `NO_RESULT_ONCE_FINISHED` where the stage has `finished`). A
     manifest without `MANIFEST_SCHEMA` (an older version's) is refused in one line, whatever it holds.
     """
-    from bumps_jax.pipeline import records as env_records  # noqa: PLC0415
+    from bumps_jax import records as env_records  # noqa: PLC0415
 
     path = stage_dir / MANIFEST
     if not path.exists():
@@ -277,7 +276,7 @@ def _capacity(key: str) -> bool:
     """Is dotted `key` one of Warp's buffer sizes (`env_records.CAPACITY_KEYS`)? They change no
     physics, so a run resumes under another size (a smaller GPU, a larger batch); too small a
     buffer is refused before any work, or its episodes are marked invalid, never silently wrong."""
-    from bumps_jax.pipeline.records import CAPACITY_KEYS  # noqa: PLC0415
+    from bumps_jax.records import CAPACITY_KEYS  # noqa: PLC0415
 
     return any(key == f"config.env.{k}" for k in CAPACITY_KEYS)
 

@@ -7,13 +7,11 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from bumps_jax import config
-from bumps_jax.pipeline import runio
+from bumps_jax import config, runio
 from bumps_jax.report import readme as readme_table
 from bumps_jax.report import summary as report
 from bumps_jax.report import task_report as report_task
 from bumps_jax.tasks import registry as tasks
-from bumps_jax.tasks.kick import policies
 
 POLICIES = "assets/policies"  # the shipped policies (`policies.write`)
 # What `publish` copies from a finished paper run into the repository: run file -> committed path.
@@ -57,8 +55,8 @@ TASK_PUBLISHED = {
 def publish(run_dir: str | Path, root: str | Path = ".", cfg=None) -> list[Path]:
     """Copy a finished paper run's results, tables and figures into results/ and docs/, and its
     kick prior into assets/; with `cfg` (the run's config) and a finished filter stage, ship its
-    policies into assets/policies/ (`policies.write`). Then rebuild docs/results.md and README's
-    results table. Returns the paths written."""
+    policies into assets/policies/ (the task's `Report.ship_policies`: the kick's `policies.write`).
+    Then rebuild docs/results.md and README's results table. Returns the paths written."""
     run_dir, root = Path(run_dir), Path(root)
     written = []
     for rel, dest in PUBLISHED.items():
@@ -68,8 +66,9 @@ def publish(run_dir: str | Path, root: str | Path = ".", cfg=None) -> list[Path]
             written.append(root / dest)
     if not any(p.suffix == ".json" for p in written):
         raise ValueError(f"{run_dir} holds no stage results to publish")
-    if cfg is not None and (run_dir / "filter" / "table2.json").exists():
-        written += policies.write(cfg, run_dir, root / POLICIES)
+    ship = None if cfg is None else tasks.get(cfg.task).report.ship_policies
+    if ship is not None and (run_dir / "filter" / "table2.json").exists():
+        written += ship(cfg, run_dir, root / POLICIES)
     written.append(report.write_committed(root))
     if (root / "README.md").exists():
         written.append(readme_table.write_readme(root))

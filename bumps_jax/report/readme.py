@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bumps_jax.pipeline import runio
+from bumps_jax import runio
 from bumps_jax.report import tables
 from bumps_jax.report.summary import COMMITTED, load, physics_step, stages_elsewhere
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bumps_jax.pipeline import records as env_records
+from bumps_jax import records as env_records
 from bumps_jax.report import tables
 
 STAGES = {

@@ -63,6 +63,9 @@ class Report:
     # Regenerates the repository's blocks that set its published records beside others' (root ->
     # the files written); None: none.
     published_blocks: Callable[[Path], list[Path]] | None = None
+    # Ships a finished run's meta-policies for use without the run: (cfg, run_dir, dest) -> the
+    # files written (the kick's `policies.write`); None: nothing is shipped.
+    ship_policies: Callable | None = None
 
 
 @dataclasses.dataclass(frozen=True)

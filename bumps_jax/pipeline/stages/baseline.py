@@ -25,10 +25,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import config
+from bumps_jax import config, runio
 from bumps_jax.algo import evaluate, ppo, rollout
 from bumps_jax.envs import base as task_env
-from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.tasks import registry as tasks
 

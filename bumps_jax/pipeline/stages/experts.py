@@ -25,11 +25,10 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from bumps_jax import config
+from bumps_jax import config, runio
 from bumps_jax.algo import evaluate, ppo, sharding
 from bumps_jax.envs import base as task_env
-from bumps_jax.pipeline import runio
-from bumps_jax.pipeline.records import jsonable
+from bumps_jax.records import jsonable
 from bumps_jax.tasks import registry as tasks
 
 OUTPUT = "experts.json"

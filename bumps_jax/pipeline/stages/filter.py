@@ -16,12 +16,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from bumps_jax import config
+from bumps_jax import config, runio
+from bumps_jax import records as env_records
 from bumps_jax.algo import bc, evaluate, filtering, sharding
 from bumps_jax.envs import base as task_env
 from bumps_jax.pipeline import programs as meta_programs
-from bumps_jax.pipeline import records as env_records
-from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import meta as meta_stage
 from bumps_jax.report import tables
 from bumps_jax.tasks import registry as tasks

@@ -28,11 +28,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import config
+from bumps_jax import config, runio
+from bumps_jax import records as env_records
 from bumps_jax.algo import bc, evaluate, filtering, rollout, sharding
 from bumps_jax.pipeline import programs as meta_programs
-from bumps_jax.pipeline import records as env_records
-from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.pipeline.stages import filter as filter_stage
 from bumps_jax.pipeline.stages import meta as meta_stage

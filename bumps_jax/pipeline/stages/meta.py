@@ -21,11 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bumps_jax import config
+from bumps_jax import config, runio
+from bumps_jax import records as env_records
 from bumps_jax.algo import bc, evaluate, rollout
 from bumps_jax.envs import base as task_env
-from bumps_jax.pipeline import records as env_records
-from bumps_jax.pipeline import runio
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.tasks import registry as tasks
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bumps_jax.pipeline import runio
+from bumps_jax import runio
 from bumps_jax.report.summary import load
 
 DOC = "docs/cheetah_vel_published.md"

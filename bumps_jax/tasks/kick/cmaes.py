@@ -29,8 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from bumps_jax import runio
 from bumps_jax.algo import sharding
-from bumps_jax.pipeline import runio
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 from bumps_jax.tasks.kick import scoring as kick_scoring

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bumps_jax.pipeline import runio
+from bumps_jax import runio
 
 
 def render(cfg, run_dir: Path, args) -> None:

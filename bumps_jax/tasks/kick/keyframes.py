@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax.pipeline import records as env_records
+from bumps_jax import records as env_records
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import scene
 
@@ -254,7 +254,7 @@ def make_record(params, prior_cfg, env: dict, evaluation: dict, **extra) -> dict
 
 
 def save_record(record: dict, path: str | Path) -> Path:
-    from bumps_jax.pipeline import runio  # noqa: PLC0415
+    from bumps_jax import runio  # noqa: PLC0415
 
     return runio.write_json(path, record)
 
@@ -265,7 +265,7 @@ def load_record(path: str | Path = ASSET, env_cfg=None) -> dict:
     ValueError naming the path if it is missing, not a prior of this format, or (with `env_cfg`)
     made under another env config.
     """
-    from bumps_jax.pipeline import runio  # noqa: PLC0415
+    from bumps_jax import runio  # noqa: PLC0415
 
     record = runio.read_json(path, "a kick prior record")
     if record.get("format_version") != FORMAT_VERSION:

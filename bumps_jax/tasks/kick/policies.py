@@ -22,9 +22,9 @@ import jax
 import ml_collections
 import numpy as np
 
+from bumps_jax import records as env_records
+from bumps_jax import runio
 from bumps_jax.algo import filtering
-from bumps_jax.pipeline import records as env_records
-from bumps_jax.pipeline import runio
 from bumps_jax.tasks.kick import env as kick_env
 
 FORMAT_VERSION = 1

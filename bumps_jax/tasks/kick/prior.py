@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bumps_jax import runio
 from bumps_jax.algo import sharding
-from bumps_jax.pipeline import runio
 from bumps_jax.tasks.kick import cmaes
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model

@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from bumps_jax import runio
 from bumps_jax.algo import bc
-from bumps_jax.pipeline import runio
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes, starting_kicks
 from bumps_jax.tasks.kick import prior as prior_stage

@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from bumps_jax import runio
 from bumps_jax.algo import evaluate, rollout
-from bumps_jax.pipeline import runio
 
 # The strengths `bc.common_start_strength` sweeps its one kick over to place each task's copy.
 from bumps_jax.tasks.kick import env as kick_env

@@ -1,7 +1,7 @@
 """The kick as a BUMPS task: its env, its experts' start, its own prior stage and its report."""
 
 from bumps_jax.report import tables
-from bumps_jax.tasks.kick import commands, config, env
+from bumps_jax.tasks.kick import commands, config, env, policies
 from bumps_jax.tasks.kick.start import KeyframeStart
 from bumps_jax.tasks.protocol import Report, Task
 
@@ -23,5 +23,6 @@ TASK = Task(
         axes=("target distance (m)", "mean final error (m)", "achieved distance (m)"),
         paper_rows=True,
         start_row="starting_kicks",
+        ship_policies=policies.write,
     ),
 )

@@ -75,7 +75,7 @@ def provenance(preset: str, wall_s: float, env: dict, command: str | None = None
 def command_line() -> str:
     """How this process was started, as a user would type it (no absolute paths)."""
     script = Path(sys.argv[0]).resolve()
-    package = Path(__file__).resolve().parents[1]
+    package = Path(__file__).resolve().parent
     if script.parent == package:  # python -m bumps_jax[.module]
         head = "python -m bumps_jax" + ("" if script.stem == "__main__" else f".{script.stem}")
     elif sys.argv[0] in ("-c", ""):
@@ -131,7 +131,7 @@ def recorded_path(path: str | os.PathLike, run_dir: str | os.PathLike | None = N
     """`path` as a record keeps it: relative to `run_dir` where it lies inside it, else relative
     to the repository (a committed asset), else as `shown`."""
     resolved = Path(path).resolve()
-    for base in ([Path(run_dir)] if run_dir is not None else []) + [Path(__file__).resolve().parents[2]]:
+    for base in ([Path(run_dir)] if run_dir is not None else []) + [Path(__file__).resolve().parents[1]]:
         try:
             return resolved.relative_to(base.resolve()).as_posix()
         except ValueError:
