@@ -180,7 +180,7 @@ def bench_tuning(cfg, mesh, generations: int) -> dict:
     targets = np.asarray(e.tasks, np.float32)
     starts = np.tile(np.asarray(kick_model.load_record(kick_model.ASSET)["params"], np.float32), (len(targets), 1))
     fitness_json = kick_scoring.fitness_json_of(cfg.prior.fitness)
-    leash, centre_fn = cmaes.tuning_leash(starts, targets, float(e.tune.start_leash), float(e.tune.neighbour_leash))
+    leash, centre_fn = cmaes.tuning_leash(targets, float(e.tune.neighbour_leash))
     out = {}
     for label, k in (("", 1), ("_batched", runs)):
         env = kick_env.KickEnv(derived(cfg, {"env.warp_contacts": cfg.env.warp_contacts * k}).env)

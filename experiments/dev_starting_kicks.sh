@@ -21,29 +21,25 @@
 #   FROM=ARM experiments/dev_starting_kicks.sh ARM2 ...   (ARM2 starts from ARM's finished experts, copied
 #        once into its own run directory: for arms that differ from ARM only in meta.* settings, e.g.
 #        FROM=<arm> ... <arm>,meta.train.batch_size=256; any other difference and the experts stage refuses them as stale)
-#   ARM: parts joined by commas, e.g. per_task | family | family12 | start_leash=<w> | neighbour_leash=<w>
-#        | midpoint_weight=<w> | repetitions=<n> (noisy kicks per CMA-ES candidate) | restarts=<n> (runs of the
-#          whole tuning, the best kept) | keep=task (each task its cheapest run's kick) | keep=chain (the runs'
-#          kicks chosen together with the neighbour leash) | polish_generations=<n> (one more tuning
-#          from the mixed kicks) | polish_sigma=<s> (its initial step) | env.<key>=<value> | meta.<key>=<value>
-#        | main_start,neighbour_leash=<w>,generations=<n>,seed=<n> (main_start: every task starts from the main kick)
-#        | paper_budget (the preset's PPO and BC budgets, then filtering)
+#   ARM: parts joined by commas, e.g. per_task (the reference alone) | neighbour_leash=<w> | generations=<n>
+#        | repetitions=<n> (noisy kicks per CMA-ES candidate) | restarts=<n> (runs of the whole tuning, in one
+#          batch; more than one: the runs' kicks chosen together with the neighbour leash)
+#        | polish_generations=<n> (one more tuning from the chosen kicks) | env.<key>=<value> | meta.<key>=<value>
+#        | long_start (every task starts from the prior's long kick at the strength where it rests nearest
+#          its target) | seed=<n> | paper_budget (the preset's PPO and BC budgets, then filtering)
 #        | ppo_updates=<n> (the experts' PPO cut to n updates: with paper_budget, nets cloned at the full
 #          BC budget from cheap experts, for arms that differ in meta.* only; one update leaves them
 #          about 0.1 m worse than their starting kicks)
-#        | start=<anchor>[,spread] (every task starts from that prior anchor; spread: each at the strength
-#          where that kick rests nearest its target)
+#   (The records of arms this script no longer takes, e.g. family or start=long,spread, stay in
+#   experiments/results/dev_starting_kicks/; docs/decisions.md says what they decided.)
 set -euo pipefail
 tasks=$(python3 -c 'print("[" + ",".join(f"{7.05 + 0.1 * i:.2f}" for i in range(110)) + "]")')
 # The comparison's reference (arm per_task): every task from the best of its blended kick and the
 # prior's anchors, tuned on its own; each arm's parts change it.
 short_budget=(experts.ppo.total_env_steps=480000 experts.updates_per_chunk=25 meta.train.epochs=30000)
 common=("meta.eval.tasks=$tasks" "filter.tasks=$tasks"
-        experts.tune.scheme=per_task experts.bc.per_task_strength=true experts.tune.anchor_starts=true
-        experts.tune.start_leash=0 experts.tune.neighbour_leash=0 experts.tune.midpoint_weight=0
-        experts.bc.common_start=main experts.bc.common_start_strength=false
-        experts.tune.restarts=1 experts.tune.keep=run experts.tune.polish_generations=0
-        experts.tune.polish_sigma=2.0)
+        experts.bc.per_task_strength=true experts.tune.anchor_starts=true experts.tune.neighbour_leash=0
+        experts.tune.restarts=1 experts.tune.polish_generations=0)
 # Copy the arm's finished records (experts, table1, table2) out of its run directory; called after
 # every stage, so an arm stopped part way keeps the records of the stages it finished.
 copy_records() {
@@ -87,13 +83,9 @@ for arm in "$@"; do
   IFS=, read -ra parts <<< "$arm"
   for part in "${parts[@]}"; do
     case "$part" in
-      per_task) sets+=(experts.tune.scheme=per_task) ;;
-      family) sets+=(experts.tune.scheme=family) ;;
-      family12) sets+=(experts.tune.scheme=family experts.tune.knots=12) ;;
-      start_leash=*|neighbour_leash=*|midpoint_weight=*|generations=*|repetitions=*|restarts=*|keep=*|polish_generations=*|polish_sigma=*) sets+=("experts.tune.$part") ;;
-      main_start) sets+=(experts.bc.per_task_strength=false) ;;
-      start=*) sets+=(experts.bc.per_task_strength=false "experts.bc.common_start=${part#start=}") ;;
-      spread) sets+=(experts.bc.common_start_strength=true) ;;
+      per_task) ;;
+      neighbour_leash=*|generations=*|repetitions=*|restarts=*|polish_generations=*) sets+=("experts.tune.$part") ;;
+      long_start) sets+=(experts.bc.per_task_strength=false) ;;
       seed=*) seed=${part#seed=} ;;
       paper_budget) budget=(); stages=${STAGES:-train-experts meta-train filter} ;;
       ppo_updates=*) n=${part#ppo_updates=}  # n updates of the paper preset's 256 episodes x 75 steps, one chunk

@@ -48,8 +48,7 @@ def test_a_stage_reads_its_own_keys_without_their_section():
         ("filter", "net_seed=5", r"filter.net_seed 5 names no network: meta.train.n_seeds is 1"),
         ("filter", "nope=1", r"unknown config key 'filter.nope'"),
         ("kick-prior", "env.impl=torch", r"env.impl must be one of"),
-        ("train-experts", "bc.common_start=longest", r"experts.bc.common_start must be one of \('short', 'main'"),
-        ("train-experts", "bc.common_start_strength=true", r"experts.bc.common_start and common_start_strength apply"),
+        ("train-experts", "tune.scheme=family", r"unknown config key 'experts.tune.scheme'"),
     ],
 )
 def test_wrong_values_are_one_line_before_any_work(tmp_path, command, item, named):  # defect 6

@@ -63,8 +63,6 @@ def test_a_leash_holds_a_search_near_its_start():
                               leash=[0.0, 2.0], say=lambda msg: None)  # fmt: skip
     np.testing.assert_allclose(result.mean[:, 0], [15.0, 14.0], atol=0.25)
     np.testing.assert_allclose(result.mean[:, 1], x0[:, 1], atol=0.25)
-    with pytest.raises(ValueError, match="experts.tune.start_leash must be a number >= 0, got -1.0"):
-        config.make_config("tiny", {"experts.tune.start_leash": -1.0})
 
 
 def test_a_neighbour_leash_pulls_tasks_into_a_chain():
@@ -78,54 +76,14 @@ def test_a_neighbour_leash_pulls_tasks_into_a_chain():
     free = np.zeros((3, kick_model.N_PARAMS), bool)
     free[:, 0] = True
     targets = [13.0, 17.0, 13.0]
-    leash, centre_fn = cmaes.tuning_leash(x0, [7.0, 8.0, 9.0], 0.0, 1.0)
+    leash, centre_fn = cmaes.tuning_leash([7.0, 8.0, 9.0], 1.0)
     result = cmaes.run_search(_toy_search(), x0, targets, free, 80, seed=0, extra=x0[:, 1],
                               leash=leash, centre_fn=centre_fn, say=lambda msg: None)  # fmt: skip
     np.testing.assert_allclose(result.mean[:, 0], [14.33, 15.67, 14.33], atol=0.3)
     np.testing.assert_array_equal(result.mean[:, 1:], x0[:, 1:])
     with pytest.raises(ValueError, match="experts.tune.neighbour_leash must be a number >= 0, got -0.5"):
         config.make_config("tiny", {"experts.tune.neighbour_leash": -0.5})
-    with pytest.raises(ValueError, match=r"'family' has no per-task tuning knobs: set experts.tune.neighbour_leash=0$"):
-        config.make_config("tiny", {"experts.tune.scheme": "family", "experts.tune.neighbour_leash": 1.0})
-    # the paper preset uses three of the per-task knobs: all are named at once
-    expected = "set experts.tune.restarts=1, experts.tune.polish_generations=0, experts.tune.neighbour_leash=0$"
-    with pytest.raises(ValueError, match=expected):
-        config.make_config("paper", {"experts.tune.scheme": "family"})
-
-
-def test_each_task_meets_its_neighbours_in_target_order():
-    """`neighbour_partners`: rows lower and upper neighbour, each params, target, present; the
-    first and last task's missing neighbour is their own kick, absent."""
-    params = jnp.arange(3.0)[:, None] + jnp.zeros((3, kick_model.N_PARAMS)) + kick_model.PARAM_LOW
-    partners = np.asarray(cmaes.neighbour_partners(params, [9.0, 7.0, 8.0]))  # order: rows 1, 2, 0
-    assert partners.shape == (3, 2, kick_model.N_PARAMS + 2)
-    np.testing.assert_allclose(partners[:, :, -2], [[8.0, 9.0], [7.0, 8.0], [7.0, 9.0]])  # targets
-    np.testing.assert_allclose(partners[:, :, -1], [[1, 0], [0, 1], [1, 1]])  # present
-    np.testing.assert_allclose(partners[:, :, 0] - kick_model.PARAM_LOW[0], [[2, 0], [1, 2], [1, 0]])
-    with pytest.raises(ValueError, match="experts.tune.midpoint_weight must be a number >= 0, got -1"):
-        config.make_config("tiny", {"experts.tune.midpoint_weight": -1})
-
-
-def test_the_chain_cost_adds_the_kicks_halfway_to_the_neighbours(env):
-    """With no neighbour the chain cost is the kick's own cost; a neighbour with the candidate's
-    own kick and target makes a halfway kick that is the candidate itself on the same episodes,
-    so the cost becomes (1 + weight) x its own; a neighbour with another kick changes it."""
-    main = kick_model.load_record()["params"]
-    slow = main.copy()
-    slow[kick_model.PARAM_NAMES.index("strength")] = 0.1
-    chain = kick_scoring.chain_cost(env, kick_scoring.weights(kick_scoring.fitness_json_of(FITNESS)), 0.5)
-    keys = jax.random.split(jax.random.key(0), 2).reshape(1, 2)
-
-    def row(kick, present):
-        return np.concatenate([kick, [12.0, present]]).astype(np.float32)
-
-    extras = jnp.stack([np.stack([row(main, 0), row(main, 0)]), np.stack([row(main, 1), row(main, 1)]),
-                        np.stack([row(main, 1), row(main, 0)]), np.stack([row(slow, 1), row(main, 0)])])  # fmt: skip
-    costs = np.asarray(jax.jit(jax.vmap(lambda extra: chain(main[None], keys, 12.0, extra)[0][0]))(extras))
-    alone = costs[0]
-    # equal up to float32: the same episodes, compiled inside another program
-    np.testing.assert_allclose(costs[1:3], [1.5 * alone, 1.5 * alone], rtol=1e-4)
-    assert abs(costs[3] - 1.5 * alone) > 0.05 * alone, costs
+    assert cmaes.tuning_leash([7.0, 8.0, 9.0], 0.0) == (0.0, None)
 
 
 def test_a_generation_whose_physics_dropped_contacts_stops_the_search():
@@ -166,9 +124,7 @@ TUNE = ml_collections.ConfigDict(
         "repetitions": 2,
         "eval_repetitions": 2,
         "seed": 0,
-        "start_leash": 0.0,
         "neighbour_leash": 0.0,
-        "midpoint_weight": 0.0,
         "restarts": 1,
     }
 )
@@ -252,18 +208,18 @@ STARTS = np.tile(kick_model.DEFAULT_PARAMS, (2, 1)).astype(np.float32)  # lean 1
 RESTARTS_3 = ml_collections.ConfigDict({**TUNE.to_dict(), "restarts": 3, "seed": 5})
 
 
-def test_restarts_run_the_tuning_from_independent_keys_and_keep_one_run_whole(env, monkeypatch):
-    """restarts = 3: three runs of the search (the first from the key restarts = 1 uses), then
-    the start and every run's kick scored on the same fresh episodes; the run kept is the one of
-    `keep_best_run`, whole."""
+def test_restarts_run_the_tuning_from_independent_keys_in_one_batch(env, monkeypatch):
+    """restarts = 3: three runs of the search in one batch (the first from the key restarts = 1
+    uses), then the start and every run's kick scored on the same fresh episodes; each task's kick
+    is chosen among them (`chain_choice`; leash 0 here: each task its cheapest)."""
     keys = _stand_in_tuning(monkeypatch)
     said = []
     out = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, fitness=FITNESS, say=said.append)
-    assert [line.split(" done")[0] for line in said] == ["tuning run 1/3", "tuning run 2/3"]  # with an ETA
-    assert all("ETA of the other runs" in line for line in said)
+    assert not said  # one batch: no run waits for another
     # run 0: tasks 0.5 | 2.0 -> kept 0.5, 1.0; run 1: 0.0, 0.0; run 2: 2.0, 0.5 -> kept 1.0, 0.5
     np.testing.assert_allclose(out["restart_costs"], [0.75, 0.0, 0.75])
-    assert out["restart"] == 1 and out["improved"].tolist() == [True, True]
+    assert out["keep"] == "chain" and out["restart"] is None and out["runs_kept"].tolist() == [2, 2]
+    assert out["improved"].tolist() == [True, True] and len(out["run_seconds"]) == 3
     np.testing.assert_allclose(out["params"][:, LEAN], [14.0, 14.0])
     np.testing.assert_allclose(out["start_cost"], [1.0, 1.0])
     np.testing.assert_array_equal(keys[0], jax.random.key_data(jax.random.key(5)))  # run 0: restarts = 1's key
@@ -271,36 +227,14 @@ def test_restarts_run_the_tuning_from_independent_keys_and_keep_one_run_whole(en
     assert out["episodes"] == 2 * (3 * 2 * TUNE.population_size * TUNE.repetitions + 4 * TUNE.eval_repetitions)
 
 
-def test_keep_task_mixes_runs_each_task_its_cheapest_kick(env, monkeypatch):
-    """keep "task": each task keeps the cheapest of its start and its kick in every run (fresh cost
-    |lean - 14|, start 1.0): task 0 run 1's, task 1 run 3's, task 2 its start; keep "run" keeps one
-    run whole, each task the better of its start and that run's kick."""
-    moves = {0: [+1.0, -1.0, -1.5], 1: [+0.5, +0.5, -1.5], 2: [-1.0, +1.0, -1.5]}
-    _stand_in_tuning(monkeypatch, moves=moves)
-    starts = np.tile(kick_model.DEFAULT_PARAMS, (3, 1)).astype(np.float32)
-    targets, quiet = [8.0, 10.0, 12.0], dict(fitness=FITNESS, say=lambda *a, **k: None)
-    by_task = ml_collections.ConfigDict({**RESTARTS_3.to_dict(), "keep": "task"})
-    out = cmaes.tune_for_tasks(env, targets, starts, by_task, 2, 0.5, **quiet)
-    assert out["runs_kept"].tolist() == [1, 3, 0] and out["restart"] is None
-    np.testing.assert_allclose(out["params"][:, LEAN], [14.0, 14.0, 13.0])
-    np.testing.assert_allclose(out["tuned_cost"], [0.0, 0.0, 2.5])
-    assert out["improved"].tolist() == [True, True, False]
-    whole = cmaes.tune_for_tasks(env, targets, starts, RESTARTS_3, 2, 0.5, **quiet)
-    # run means of min(start, kick): run 0 (0, 1, 1), run 1 (0.5, 0.5, 1), run 2 (1, 0, 1): all three
-    # tie at 2/3, and a tie keeps the first run
-    assert whole["restart"] == 0 and whole["runs_kept"].tolist() == [1, 0, 0]
-    np.testing.assert_allclose(whole["params"][:, LEAN], [14.0, 13.0, 13.0])
-    with pytest.raises(ValueError, match=r"keep must be one of \('run', 'task', 'chain'\), got 'all'"):
-        cmaes.tune_for_tasks(env, targets, starts, ml_collections.ConfigDict({**TUNE.to_dict(), "keep": "all"}),
-                             2, 0.5, **quiet)  # fmt: skip
-    with pytest.raises(ValueError, match=r"experts.tune.keep must be one of \('run', 'task', 'chain'\), got 'all'"):
-        config.make_config("tiny", {"experts.tune.keep": "all"})
-    with pytest.raises(ValueError, match="polish_generations applies with experts.tune.keep 'task' or 'chain'"):
+def test_one_run_is_kept_whole_and_the_polish_needs_several():
+    """restarts = 1: each task the better of its start and its tuned kick ("keep" "run"); the
+    polish applies only where kicks are chosen among several runs."""
+    assert cmaes.keep_best_run([[1.0, 0.5], [1.0, 2.0]])[1].tolist() == [True, False]
+    with pytest.raises(ValueError, match=r"polish_generations applies with experts.tune.restarts > 1"):
         config.make_config("tiny", {"experts.tune.polish_generations": 5})
     with pytest.raises(ValueError, match="polish_generations must be an integer >= 0, got -1"):
-        config.make_config("tiny", {"experts.tune.keep": "task", "experts.tune.polish_generations": -1})
-    with pytest.raises(ValueError, match="experts.tune.polish_sigma must be > 0, got 0.0"):
-        config.make_config("tiny", {"experts.tune.keep": "task", "experts.tune.polish_sigma": 0.0})
+        config.make_config("tiny", {"experts.tune.restarts": 2, "experts.tune.polish_generations": -1})
 
 
 def _brute_force_chain(costs, kicks, targets, leash):
@@ -337,21 +271,21 @@ def test_the_chain_choice_is_the_least_cost_of_every_assignment():
         cmaes.chain_choice(np.ones((3, 2)), np.ones((3, 2, 13)), [7.0, 7.5, 8.0], 1.0)
 
 
-def test_keep_chain_takes_a_dearer_kick_where_the_cheapest_breaks_the_chain(env, monkeypatch):
-    """keep "chain" in the tuning (fresh cost |lean - 14|, start lean 13): the middle task's
-    cheapest kick (run 2's, lean 14, cost 0) sits 0.8 from its neighbours' (lean 13.2 in every run),
-    which at neighbour leash 10 costs 10 x 3 x 0.8**2 / 14 = 1.37 over the three tasks' leashes;
-    the chain takes its run-1 kick (lean 13.25, cost 0.75) instead, keep "task" the cheapest."""
+def test_the_chain_takes_a_dearer_kick_where_the_cheapest_breaks_it(env, monkeypatch):
+    """Several runs, kicks chosen as a chain (fresh cost |lean - 14|, start lean 13): the middle
+    task's cheapest kick (run 2's, lean 14, cost 0) sits 0.8 from its neighbours' (lean 13.2 in
+    every run), which at neighbour leash 10 costs 10 x 3 x 0.8**2 / 14 = 1.37 over the three tasks'
+    leashes; the chain takes its run-1 kick (lean 13.25, cost 0.75) instead, at leash 0 the cheapest."""
     moves = {0: [+0.2, +0.25, +0.2], 1: [+0.2, +1.0, +0.2], 2: [+0.2, +0.25, +0.2]}  # from lean 13
     _stand_in_tuning(monkeypatch, moves=moves)
     starts = np.tile(kick_model.DEFAULT_PARAMS, (3, 1)).astype(np.float32)
     targets, quiet = [8.0, 10.0, 12.0], dict(fitness=FITNESS, say=lambda *a, **k: None)
 
-    def tune(keep):
-        cfg = ml_collections.ConfigDict({**RESTARTS_3.to_dict(), "neighbour_leash": 10.0, "keep": keep})
+    def tune(leash):
+        cfg = ml_collections.ConfigDict({**RESTARTS_3.to_dict(), "neighbour_leash": leash})
         return cmaes.tune_for_tasks(env, targets, starts, cfg, 2, 0.5, **quiet)
 
-    by_task, chain = tune("task"), tune("chain")
+    by_task, chain = tune(0.0), tune(10.0)
     assert by_task["runs_kept"][1] == 2 and chain["runs_kept"][1] == 1 and chain["restart"] is None
     np.testing.assert_allclose(chain["params"][:, LEAN], [13.2, 13.25, 13.2], rtol=1e-6)
     np.testing.assert_allclose(by_task["params"][1, LEAN], 14.0)
@@ -376,14 +310,13 @@ def test_the_polish_tunes_the_mixed_kicks_once_more_from_a_key_of_its_own(env, m
     monkeypatch.setattr(cmaes, "run_search", run_search)
     steps = []  # the initial CMA-ES step each search is made with
     monkeypatch.setattr(cmaes, "kick_search", lambda env, mesh, pop, reps, sigma, *a, **k: steps.append(sigma))
-    cfg = config.make_config("tiny", {"experts.tune.keep": "task", "experts.tune.polish_generations": 3,
-                                      "experts.tune.polish_sigma": 0.25,
-                                      "experts.tune.restarts": 2, "experts.tune.seed": 5})  # fmt: skip
+    cfg = config.make_config("tiny", {"experts.tune.polish_generations": 3, "experts.tune.restarts": 2,
+                                      "experts.tune.seed": 5})  # fmt: skip
     mixed = np.tile(kick_model.DEFAULT_PARAMS, (2, 1)).astype(np.float32)
     mixed[:, LEAN] = [13.0, 14.0]  # fresh costs 1.0 and 0.0
     kicks, record, episodes = starting_kicks.polish(env, [8.0, 12.0], mixed, cfg, say=lambda *a, **k: None)
     assert [g for g, _ in seen] == [3] and record["generations"] == 3
-    assert steps == [0.25] and record["sigma"] == 0.25  # the polish's own step, not tune.sigma_init
+    assert steps == [0.25] and record["sigma"] == starting_kicks.POLISH_SIGMA == 0.25  # not tune.sigma_init
     assert all((seen[0][1] != np.asarray(jax.random.key_data(_run_key(k)))).any() for k in range(2))
     np.testing.assert_allclose(kicks[:, LEAN], [14.0, 14.0])  # task 0 polished, task 1 kept its own
     assert record["improved"] == [True, False]
@@ -391,10 +324,11 @@ def test_the_polish_tunes_the_mixed_kicks_once_more_from_a_key_of_its_own(env, m
     assert episodes == 2 * (3 * tune.population_size * tune.repetitions + 2 * tune.eval_repetitions)
 
 
-def test_a_stopped_tuning_resumes_at_its_next_run(env, monkeypatch, tmp_path):
-    """With keep_dir, each finished run is kept: Ctrl-C during run 1 stops the tuning once that
-    run is written; the rerun reads it and runs only runs 2 and 3, ending as an uninterrupted
-    tuning does. Runs kept from other starts are not read."""
+def test_a_stopped_tuning_resumes_with_the_runs_not_kept(env, monkeypatch, tmp_path):
+    """With keep_dir, each finished run is kept: Ctrl-C during the batch stops the tuning once its
+    runs are written; a rerun reads them and ends as an uninterrupted tuning does; with runs 2 and
+    3 gone it plays only those, as one batch, each from its own run's key. Runs kept from other
+    starts are not read. A batch larger than the contact pool is refused before anything runs."""
     import os  # noqa: PLC0415
     import signal  # noqa: PLC0415
 
@@ -407,18 +341,24 @@ def test_a_stopped_tuning_resumes_at_its_next_run(env, monkeypatch, tmp_path):
     keys = _stand_in_tuning(monkeypatch, during_run=lambda k: k == 0 and os.kill(os.getpid(), signal.SIGINT))
     with pytest.raises(runio.Interrupted):
         cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, keep_dir=tmp_path, **common)
-    assert len(keys) == 1 and sorted(p.name for p in tmp_path.iterdir()) == ["tuning_run_1.json"]
+    assert len(keys) == 3 and sorted(p.name for p in tmp_path.iterdir()) == [f"tuning_run_{k}.json" for k in (1, 2, 3)]
 
     keys = _stand_in_tuning(monkeypatch)
     said = []
     out = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, keep_dir=tmp_path,
                                **{**common, "say": said.append})  # fmt: skip
-    assert [k.tobytes() for k in keys] == [np.asarray(jax.random.key_data(_run_key(k))).tobytes() for k in (1, 2)]
-    assert said[0].startswith("tuning run 1/3: read from")
+    assert not keys and said[0].startswith("tuning run 1/3: read from")
     first = json.loads((tmp_path / "tuning_run_1.json").read_text())["seconds"]
     assert out["run_seconds"][0] == first and len(out["run_seconds"]) == 3  # run 1's time as it ran
     for name in ("params", "start_cost", "tuned_cost", "improved", "history", "restart", "restart_costs"):
         np.testing.assert_array_equal(out[name], whole[name])
+
+    (tmp_path / "tuning_run_2.json").unlink()
+    (tmp_path / "tuning_run_3.json").unlink()
+    keys = _stand_in_tuning(monkeypatch)
+    resumed = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, keep_dir=tmp_path, **common)
+    assert [k.tobytes() for k in keys] == [np.asarray(jax.random.key_data(_run_key(k))).tobytes() for k in (1, 2)]
+    np.testing.assert_array_equal(resumed["params"], whole["params"])
     assert len(list(tmp_path.iterdir())) == 3
 
     keys = _stand_in_tuning(monkeypatch)  # other starts: every run again
@@ -427,33 +367,6 @@ def test_a_stopped_tuning_resumes_at_its_next_run(env, monkeypatch, tmp_path):
     cmaes.tune_for_tasks(env, [8.0, 12.0], other, RESTARTS_3, 2, 0.5, keep_dir=tmp_path, **common)
     assert len(keys) == 3
 
-
-def test_batched_restarts_are_the_runs_one_after_another(env, monkeypatch, tmp_path):
-    """batch_restarts: the runs not yet kept play as one batch, each from its own run's key (a
-    run kept in keep_dir is read, not run again), and the tuning ends as the runs one after
-    another do; a batch larger than the contact pool is refused before anything runs."""
-    common = dict(fitness=FITNESS, say=lambda *a, **k: None)
-    _stand_in_tuning(monkeypatch)
-    apart = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, **common)
-    batch = ml_collections.ConfigDict({**RESTARTS_3.to_dict(), "batch_restarts": True})
-    keys = _stand_in_tuning(monkeypatch)
-    said = []
-    together = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, batch, 2, 0.5, **{**common, "say": said.append})
-    assert [k.tobytes() for k in keys] == [np.asarray(jax.random.key_data(_run_key(k))).tobytes() for k in range(3)]
-    assert not said  # one batch: no run waits for another
-    for name in ("params", "start_cost", "tuned_cost", "improved", "history", "restart", "restart_costs"):
-        np.testing.assert_array_equal(together[name], apart[name])
-    assert together["episodes"] == apart["episodes"] and len(together["run_seconds"]) == 3
-
-    _stand_in_tuning(monkeypatch)
-    cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, keep_dir=tmp_path, **common)
-    (tmp_path / "tuning_run_2.json").unlink()
-    (tmp_path / "tuning_run_3.json").unlink()
-    keys = _stand_in_tuning(monkeypatch)
-    resumed = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, batch, 2, 0.5, keep_dir=tmp_path, **common)
-    assert [k.tobytes() for k in keys] == [np.asarray(jax.random.key_data(_run_key(k))).tobytes() for k in (1, 2)]
-    np.testing.assert_array_equal(resumed["params"], apart["params"])
-
     class SmallPool:  # the env with a contact pool of 2 x 4 x 2 episodes: one run's tuning, not three
         max_episodes, contacts_per_episode = 16, 12
 
@@ -461,9 +374,10 @@ def test_batched_restarts_are_the_runs_one_after_another(env, monkeypatch, tmp_p
             return getattr(env, name)
 
     keys = _stand_in_tuning(monkeypatch)
-    cmaes.tune_for_tasks(SmallPool(), [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, **common)  # apart: fits
+    one = ml_collections.ConfigDict({**RESTARTS_3.to_dict(), "restarts": 1})
+    cmaes.tune_for_tasks(SmallPool(), [8.0, 12.0], STARTS, one, 2, 0.5, **common)  # one run: fits
     with pytest.raises(ValueError, match="the 3 tuning runs batched .* plays 48 in one physics call"):
-        cmaes.tune_for_tasks(SmallPool(), [8.0, 12.0], STARTS, batch, 2, 0.5, **common)
+        cmaes.tune_for_tasks(SmallPool(), [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, **common)
 
 
 def test_runs_batched_in_one_search_draw_each_runs_own_random_numbers():
@@ -473,7 +387,7 @@ def test_runs_batched_in_one_search_draw_each_runs_own_random_numbers():
     targets = np.array([10.0, 12.0, 14.0], np.float32)
     x0 = np.tile(kick_model.DEFAULT_PARAMS, (3, 1)).astype(np.float32)
     free = np.ones((3, kick_model.N_PARAMS), bool)
-    leash, centre_fn = cmaes.tuning_leash(x0, targets, 0.1, 0.5)
+    leash, centre_fn = cmaes.tuning_leash(targets, 0.5)
     extra = np.array([1.0, 2.0, 3.0], np.float32)
     quiet = dict(say=lambda m: None, leash=leash)
     alone = [cmaes.run_search(search, x0, targets, free, 3, s, extra=extra, centre_fn=centre_fn, **quiet)
@@ -557,67 +471,13 @@ def test_best_starts_picks_the_candidate_that_kicks_nearest(env):
     assert costs[0, 1] < costs[0, 0] and costs[1, 0] < costs[1, 1]
 
 
-def test_a_search_over_knots_moves_each_knot_on_its_own():
-    """The driver over a (2, 14) solution (a family's knots): the toy cost pulls knot 0's first
-    param to the target and knot 1's to `extra`; the other 26 numbers are fixed."""
-
-    def cost_fn(params, keys, target, extra):
-        cost = (params[:, 0, 0] - target) ** 2 + (params[:, 1, 0] - extra) ** 2
-        return cost, {"valid": jnp.ones(keys.shape)}
-
-    search = cmaes.make_search(cost_fn, 8, 2, 1.0, sharding.device_mesh(), shape=(2, kick_model.N_PARAMS))
-    x0 = np.tile(kick_model.DEFAULT_PARAMS, (1, 2, 1)).astype(np.float32)
-    free = np.zeros_like(x0, bool)
-    free[:, :, 0] = True
-    result = cmaes.run_search(search, x0, [15.0], free, 40, seed=0, extra=[10.0], say=lambda m: None)
-    assert result.mean.shape == result.best.shape == (1, 2, kick_model.N_PARAMS)
-    np.testing.assert_allclose(result.best[0, :, 0], [15.0, 10.0], atol=0.2)
-    np.testing.assert_array_equal(result.best[0, :, 1:], x0[0, :, 1:])
-    with pytest.raises(ValueError, match=r"\(T, 2, 14\)"):
-        cmaes.run_search(search, x0[:, 0], [15.0], free[:, 0], 1, seed=0, say=lambda m: None)
-
-
-def test_tuning_a_family_rejects_bad_inputs_before_compiling(env):
-    knots = np.array([8.0, 12.0])
-    start = np.tile(kick_model.DEFAULT_PARAMS, (2, 1))
-    with pytest.raises(ValueError, match="start_knots"):
-        cmaes.tune_family(env, [8.0, 12.0], knots, start[:1], TUNE, 1, 0.5, fitness=FITNESS)
-    with pytest.raises(ValueError, match="increase"):
-        cmaes.tune_family(env, [8.0, 12.0], knots[::-1], start, TUNE, 1, 0.5, fitness=FITNESS)
-    with pytest.raises(ValueError, match="40.0"):
-        cmaes.tune_family(env, [8.0, 40.0], knots, start, TUNE, 1, 0.5, fitness=FITNESS)
-    with pytest.raises(ValueError, match="generations"):
-        cmaes.tune_family(env, [8.0, 12.0], knots, start, TUNE, -1, 0.5, fitness=FITNESS)
-
-
-def test_a_tiny_family_tuning_keeps_or_improves_its_start(env):
-    """One CMA-ES over a three-knot contextual kick, scored on two tasks between the knots. The
-    tasks' kicks are the family's at their targets, and the family kept is the better of start
-    and tuned on the fresh episodes (2 tasks x 2 candidates x 2 kicks: the program
-    `test_best_starts_picks_the_candidate_that_kicks_nearest` compiled)."""
-    record = kick_model.load_record()
-    knots = np.array([7.0, 10.0, 13.0])
-    table = kick_model.calibration(record)
-    start = np.stack([np.asarray(kick_model.kick_for(record["anchors"], table, k)) for k in knots])
-    targets = [8.0, 12.0]
-    # One generation (a physics call of seconds on a CPU), then the fresh episodes.
-    out = cmaes.tune_family(env, targets, knots, start, TUNE, 1, 0.5, fitness=FITNESS, say=lambda m: None)
-    assert out["history"].shape == (1,) and out["episodes"] == 1 * 4 * 2 * 2 + 2 * 2 * 2
-    kept = out["tuned_cost"] if out["improved"] else out["start_cost"]
-    assert kept.mean() <= out["start_cost"].mean() and np.all(np.isfinite(kept))
-    expected = [np.asarray(kick_model.family_params(out["knot_params"], knots, t)) for t in targets]
-    np.testing.assert_allclose(out["params"], expected, rtol=1e-6)
-    if not out["improved"]:
-        np.testing.assert_allclose(out["knot_params"], start, rtol=1e-6)
-
-
 def test_the_batched_tuning_is_handed_a_contact_pool_for_every_run(monkeypatch):
-    """starting_kicks gives the tuning, with batch_restarts, an env whose pool holds restarts x
-    env.warp_contacts (built once per size), one run after another the env as configured; the
-    pool's size is no part of a kept run's fingerprint, so runs kept either way are read either way."""
+    """starting_kicks gives the tuning an env whose pool holds restarts x env.warp_contacts (built
+    once per size); the pool's size is no part of a kept run's fingerprint, so a run kept alone is
+    read in a batch and the other way round."""
     from bumps_jax.tasks.kick import starting_kicks  # noqa: PLC0415
 
-    cfg = config.make_config("tiny", {"experts.tune.restarts": 3, "experts.tune.batch_restarts": True})
+    cfg = config.make_config("tiny", {"experts.tune.restarts": 3})
     targets = np.asarray(cfg.experts.tasks, np.float32)
     starts = np.tile(kick_model.DEFAULT_PARAMS, (len(targets), 1)).astype(np.float32)
     monkeypatch.setattr(starting_kicks, "kept_starts", lambda *a, **k: (starts, {}, 0))
@@ -627,12 +487,12 @@ def test_the_batched_tuning_is_handed_a_contact_pool_for_every_run(monkeypatch):
         pools.append(env.config.warp_contacts)
         n = len(targets)
         return {"params": starts, "start_cost": np.ones(n), "tuned_cost": np.ones(n), "improved": np.zeros(n, bool),
-                "history": np.zeros((1, n)), "episodes": 0}  # fmt: skip
+                "history": np.zeros((1, n)), "restart": None, "restart_costs": [1.0] * 3, "keep": "chain",
+                "runs_kept": np.zeros(n, int), "run_seconds": [0.0] * 3, "episodes": 0}  # fmt: skip
 
     monkeypatch.setattr(cmaes, "tune_for_tasks", tune_for_tasks)
     starting_kicks.starting_kicks(cfg, {}, say=lambda *a, **k: None)
-    apart = config.make_config("tiny", {"experts.tune.restarts": 3})
-    starting_kicks.starting_kicks(apart, {}, say=lambda *a, **k: None)
+    starting_kicks.starting_kicks(config.make_config("tiny"), {}, say=lambda *a, **k: None)  # one run
     assert pools == [3 * cfg.env.warp_contacts, cfg.env.warp_contacts]
     assert starting_kicks.tune_env(cfg, 3) is starting_kicks.tune_env(cfg, 3)
     fingerprints = {

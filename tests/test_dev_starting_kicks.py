@@ -52,9 +52,11 @@ def test_an_arm_from_another_starts_from_its_experts(tmp_path):
     stages = [line.split()[2] for line in (tmp_path / "calls").read_text().splitlines() if "--run-dir" in line]
     assert stages == ["train-experts", "meta-train"]
     assert "meta.train.batch_size=256" in (tmp_path / "calls").read_text()
-    missing = subprocess.run([str(SCRIPT), "family,meta.train.batch_size=256"], cwd=tmp_path,
-                             env={**env, "FROM": "family"}, capture_output=True, text=True, timeout=120)  # fmt: skip
-    assert missing.returncode == 2 and "FROM=family: no finished experts in runs/dev_family/experts" in missing.stderr
+    missing = subprocess.run([str(SCRIPT), "long_start,meta.train.batch_size=256"], cwd=tmp_path,
+                             env={**env, "FROM": "long_start"}, capture_output=True, text=True,
+                             timeout=120)  # fmt: skip
+    assert missing.returncode == 2
+    assert "FROM=long_start: no finished experts in runs/dev_long_start/experts" in missing.stderr
 
 
 def test_a_bad_arm_part_is_one_line(tmp_path):

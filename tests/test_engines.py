@@ -151,17 +151,16 @@ def test_one_ppo_update_over_two_tasks_runs_on_warp(warp):
     assert all(np.isfinite(np.asarray(v)).all() for v in metrics)
 
 
-def test_the_tuning_with_halfway_kicks_fits_the_pool_of_the_search_alone(warp, anchors):
-    """The halfway kicks play after the candidates' own, not beside them: a pool that holds one
-    generation's own episodes (2 tasks x 2 candidates x 1) is enough, and no contact is dropped.
-    A pool one episode smaller is refused in one line before anything compiles."""
-    tune = {"population_size": 2, "repetitions": 1, "eval_repetitions": 1, "midpoint_weight": 1.0}
+def test_the_tuning_fits_the_pool_of_one_generation(warp, anchors):
+    """A pool that holds one generation's episodes (2 tasks x 2 candidates x 1) is enough, and no
+    contact is dropped. A pool one episode smaller is refused in one line before anything compiles."""
+    tune = {"population_size": 2, "repetitions": 1, "eval_repetitions": 1}
     tune = config.make_config("tiny", {f"experts.tune.{k}": v for k, v in tune.items()})
     fitness = config.make_config("tiny").prior.fitness
     starts = np.stack([anchors[MAIN]] * 2)
     out = cmaes.tune_for_tasks(warp_env(contacts=12 * 4), [11.0, 12.0], starts, tune.experts.tune, 1, 0.5,
                                fitness=fitness, say=lambda m: None)  # fmt: skip
-    assert np.isfinite(out["tuned_cost"]).all() and out["episodes"] == 2 * (1 * 2 * 1 * 3 + 2 * 1)
+    assert np.isfinite(out["tuned_cost"]).all() and out["episodes"] == 2 * (1 * 2 * 1 + 2 * 1)
     with pytest.raises(ValueError, match="env.warp_contacts 36 holds 3 episodes, but the tuning") as err:
         cmaes.tune_for_tasks(warp_env(contacts=12 * 3), [11.0, 12.0], starts, tune.experts.tune, 1, 0.5,
                              fitness=fitness, say=lambda m: None)  # fmt: skip

@@ -38,12 +38,6 @@ def programs(expert_programs):
         ({"experts.bc.steps": 0}, "bc.steps"),
         ({"experts.ppo.total_env_steps": 0}, "total_env_steps"),
         ({"experts.ppo.num_envs": 5}, "num_minibatches 2 must divide experts.ppo.num_envs 5"),
-        ({"experts.tune.scheme": "joint"}, "experts.tune.scheme .* 'joint'"),
-        ({"experts.tune.knots": 1}, "experts.tune.knots .* 1"),
-        (
-            {"experts.tune.scheme": "family", "experts.tasks": (9.0, 9.0)},
-            r"two distinct experts.tasks, got \(9.0, 9.0\)",
-        ),
     ],
 )
 def test_bad_config_names_the_value(overrides, named):
@@ -80,25 +74,20 @@ def test_starting_kicks_read_the_runs_prior(tmp_path):
     expected = np.tile(kick_model.DEFAULT_PARAMS, (len(cfg.experts.tasks), 1))
     committed, _ = starting_kicks.starting_kicks(cfg, kick_model.load_record(), say=lambda *a, **k: None)
     assert not np.allclose(committed, expected)  # else the test could not tell the two apart
-    for per_task in (True, False):
-        cfg = pipeline_config(**{"experts.bc.per_task_strength": per_task})
-        own = kick_model.load_record(kick_start.prior_path(tmp_path), env_cfg=cfg.env)
-        kicks, _ = starting_kicks.starting_kicks(cfg, own, say=lambda *a, **k: None)
-        np.testing.assert_allclose(kicks, expected, rtol=1e-6)
+    cfg = pipeline_config(**{"experts.bc.per_task_strength": True})
+    own = kick_model.load_record(kick_start.prior_path(tmp_path), env_cfg=cfg.env)
+    kicks, _ = starting_kicks.starting_kicks(cfg, own, say=lambda *a, **k: None)
+    np.testing.assert_allclose(kicks, expected, rtol=1e-6)
 
 
-def test_one_anchor_starts_every_task_at_its_own_strength(monkeypatch):
-    """Without per-task strength, `bc.common_start` names the kick every task starts from; with
-    `bc.common_start_strength` each task's copy differs only in its strength, read from a noisy
-    sweep of that kick's strength. The physics is a stand-in here (rest = 30 m x strength), so
-    nothing compiles and each task's strength is known: its target / 30."""
+def test_without_per_task_strength_every_task_starts_from_the_long_kick_at_its_own_strength(monkeypatch):
+    """Without per-task strength every task starts from the prior's long kick, each copy differing
+    only in its strength, read from a noisy sweep of that kick's strength. The physics is a
+    stand-in here (rest = 30 m x strength), so nothing compiles and each task's strength is known:
+    its target / 30."""
     tasks = (8.0, 12.0, 16.0)
     record = kick_model.load_record()
     long_kick = record["anchors"][kick_model.ANCHORS.index("long")]
-    one = {"experts.tasks": tasks, "experts.bc.per_task_strength": False, "experts.bc.common_start": "long"}
-    kicks, info = starting_kicks.starting_kicks(pipeline_config(**one), record, say=lambda *a, **k: None)
-    np.testing.assert_array_equal(kicks, np.tile(long_kick, (3, 1)))
-    assert info["common_start"] == "long" and info["episodes"] == 0
     strength = kick_model.PARAM_NAMES.index("strength")
     played = []
 
@@ -108,35 +97,15 @@ def test_one_anchor_starts_every_task_at_its_own_strength(monkeypatch):
         return {"distance": rest, "lateral": 0 * rest, "valid": 1 + 0 * rest, "fallen": 0 * rest}
 
     monkeypatch.setattr(starting_kicks.kick_scoring, "replay", stand_in)
-    cfg = pipeline_config(**one, **{"experts.bc.common_start_strength": True})
+    cfg = pipeline_config(**{"experts.tasks": tasks, "experts.bc.per_task_strength": False})
     kicks, info = starting_kicks.starting_kicks(cfg, record, say=lambda *a, **k: None)
     others = np.arange(kick_model.N_PARAMS) != strength
     n = len(starting_kicks.COMMON_START_STRENGTHS)
     np.testing.assert_array_equal(played[0][:, others], np.tile(long_kick[others], (n, 1)))  # one kick swept
     np.testing.assert_array_equal(kicks[:, others], np.tile(long_kick[others], (3, 1)))
     np.testing.assert_allclose(kicks[:, strength], np.asarray(tasks) / 30.0, rtol=1e-5)
-    assert len(info["common_start_sweep"]) == n and info["episodes"] == n * cfg.experts.tune.eval_repetitions
-
-
-def test_family_starting_kicks_are_the_prior_family_between_knots():
-    """Scheme "family", no tuning (nothing compiled): the prior's blended kicks at 3 knots over
-    the tasks' range make the contextual kick; each task's kick is it at the task's target."""
-    tasks = (8.0, 9.0, 12.0, 13.5)
-    cfg = pipeline_config(**{"experts.tune.scheme": "family", "experts.tune.knots": 3, "experts.tasks": tasks})
-    record = kick_model.load_record()
-    kicks, info = starting_kicks.starting_kicks(cfg, record, say=lambda *a, **k: None)
-    assert info["scheme"] == "family" and info["knots_m"] == [8.0, 10.75, 13.5] and info["episodes"] == 0
-    table = kick_model.calibration(record)
-    at_knots = np.stack([np.asarray(kick_model.kick_for(record["anchors"], table, k)) for k in info["knots_m"]])
-    np.testing.assert_allclose(info["knot_params"], at_knots, rtol=1e-6)
-    expected = [np.asarray(kick_model.family_params(at_knots, info["knots_m"], t)) for t in tasks]
-    np.testing.assert_allclose(kicks, expected, rtol=1e-6)
-    assert info["smoothness"] == kick_model.largest_jump(kicks, tasks)
-    # The per-task scheme's kicks at the same tasks: the blend at each task's own strength.
-    per_task, per_task_info = starting_kicks.starting_kicks(pipeline_config(**{"experts.tasks": tasks}), record,
-                                                     say=lambda *a, **k: None)  # fmt: skip
-    np.testing.assert_allclose(per_task[[0, 3]], kicks[[0, 3]], rtol=1e-6)  # the end knots are tasks
-    assert per_task_info["scheme"] == "per_task" and "knot_params" not in per_task_info
+    assert info["common_start"] == "long" and len(info["common_start_sweep"]) == n
+    assert info["episodes"] == n * cfg.experts.tune.eval_repetitions
 
 
 def test_kept_starts_are_read_back_bit_for_bit_under_the_same_config(monkeypatch, tmp_path):

@@ -17,7 +17,6 @@ from bumps_jax import config
 from bumps_jax.algo import ppo, ppo_config
 from bumps_jax.pipeline.stages import experts
 from bumps_jax.tasks.kick import keyframes as kick_model
-from bumps_jax.tasks.kick import starting_kicks
 
 N_STEPS = 75
 
@@ -282,7 +281,6 @@ def test_tiny_ppo_improves_return():
             "env.impl": "jax",
             "env.solver_iterations": None,
             "experts.tasks": (16.0,),
-            "experts.bc.per_task_strength": False,  # the one 12 m kick, ~4 m short of 16 m
             "experts.ppo.num_envs": 16,
             "experts.ppo.num_minibatches": 4,
             "experts.ppo.num_epochs": 4,
@@ -294,7 +292,7 @@ def test_tiny_ppo_improves_return():
     )
     programs = experts.compile_programs(cfg)
     frozen = kick_model.load_record(Path(__file__).parent / "data" / "kick_prior_h200.json")
-    kicks, _ = starting_kicks.starting_kicks(cfg, frozen, say=lambda *a, **k: None)
+    kicks = frozen["anchors"][None, kick_model.ANCHORS.index("main")]  # the one 12 m kick, ~4 m short of 16 m
     tasks = jnp.asarray(cfg.experts.tasks)
     state, _ = experts.run_init(programs, experts.task_rngs(cfg.experts.seed, 1), tasks, kicks)
     _, metrics = experts.run_chunk(programs, state, tasks)

@@ -15,10 +15,11 @@ from bumps_jax.tasks import registry as tasks
 # (`pipeline.check_manifest`); a change of the tree's layout comes with a new
 # `pipeline.MANIFEST_SCHEMA`. Re-pinned when the losing arms' knobs left the tree (schema 2), and
 # when every section came to name its task (the kick's values unchanged: the pins without it held).
+# experts: the old pins' sections less the deleted losing-arm knobs (tune.scheme ... bc.common_start_strength).
 KICK_SECTIONS = {
     "tiny": {
         "prior": "c77d5ee26ce79ab481bb9e662a761800766d5204f5cb12fa5c4abe3858fe232d",
-        "experts": "a26d07dbb2615e465aeeee0bf073ab7c2685c05f8612d89e48055365d13bd0f7",
+        "experts": "f0296a2c6baa1e33c32353ff41740a126f388b5e6930fd8e61951cb368ad692f",
         "meta": "c31ba242d420911a21c719be714c6c0a9918a88b2ce264eefd0223fce6f637ac",
         "filter": "25192c3f5983701f519587d2751b13a476b2d74c42985a855c0b5b6af8b77757",
         "heldout": "8bc6c1a9635b8e095e776cb3f006cb4378154fa4e755b89594bbe5768cd7ad0d",
@@ -26,7 +27,7 @@ KICK_SECTIONS = {
     },
     "paper": {
         "prior": "60e55d10a9447f32ad888a955a4228849515451ee277be74d5ef7aef6bed3d2d",
-        "experts": "f66b2ea8eb909cbd53d1ad64afa63da8cf3c725015165493531a2c45317603cd",
+        "experts": "09c1bb73a36a203a230cae681fc237b2412b1651be073a6f9131ecc7c743d3d6",
         "meta": "834c238fff5fba0f7d17f26daa7839143042a938df1a0ff0b73e11ea835f4b62",
         "filter": "28c68bd2e8a7fcbf5c7ee90aaf6dd5164a9097f322b524f9bfbfa020d98004c8",
         "heldout": "be6b478575aee78b6124528e9ff0987742791f2d5f312e8a448e5bb78a1b1e53",

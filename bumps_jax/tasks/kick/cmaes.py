@@ -34,7 +34,6 @@ from bumps_jax.algo import sharding
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 from bumps_jax.tasks.kick import scoring as kick_scoring
-from bumps_jax.tasks.kick.config import TUNE_KEEPS
 
 PROGRESS_FIELDS = ("generation", "best_fitness", "mean_fitness", "best_so_far", "valid_fraction", "seconds")
 
@@ -61,18 +60,17 @@ class Search(NamedTuple):
 
     es: Any
     es_params: Any
-    # jitted (Carry, keys (T,), x0 (T, *shape), targets (T,), scale (T, *shape), extra (T,), leash (T,),
-    # centre (T, *shape)) -> (Carry, Stats)
+    # jitted (Carry, keys (T,), x0 (T, 14), targets (T,), scale (T, 14), extra (T,), leash (T,),
+    # centre (T, 14)) -> (Carry, Stats)
     step: Any
     mesh: Any
-    shape: tuple = (kick_model.N_PARAMS,)  # one search's solution: a kick (14,), or a family's knots (K, 14)
 
 
 class Result(NamedTuple):
     """Where T searches ended (host arrays, padding dropped)."""
 
-    mean: np.ndarray  # (T, *shape) params at each search's final CMA-ES mean
-    best: np.ndarray  # (T, *shape) each search's best candidate over all generations
+    mean: np.ndarray  # (T, 14) params at each search's final CMA-ES mean
+    best: np.ndarray  # (T, 14) each search's best candidate over all generations
     best_cost: np.ndarray  # (T,) its mean cost in the generation that drew it
     history: dict  # Stats field -> (generations, T)
     key: jax.Array  # the driver's PRNG key after the last generation
@@ -81,24 +79,20 @@ class Result(NamedTuple):
 # -- the driver --------------------------------------------------------------------------------
 
 
-def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, mesh,
-                shape: tuple = (kick_model.N_PARAMS,)) -> Search:  # fmt: skip
+def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, mesh) -> Search:
     """One CMA-ES generation of T searches as a jitted program split over `mesh`.
 
-    cost_fn(params (P, *shape), keys (P, R), target (), extra ()) -> (mean cost (P,), metrics of
-    (..., R) holding "valid"), e.g. `kick_cost` (shape (14,): one kick) or `family_cost` (shape
-    (K, 14): a family's knots). Searches step in z space of `kick_model.PARAM_SCALE` units along
-    the last axis, starting at z = 0 with step `sigma_init`. A search's `leash` adds leash x the
+    cost_fn(params (P, 14), keys (P, R), target (), extra ()) -> (mean cost (P,), metrics of
+    (..., R) holding "valid"), e.g. `kick_cost`. Searches step in z space of
+    `kick_model.PARAM_SCALE` units, starting at z = 0 with step `sigma_init`. A search's `leash` adds leash x the
     mean over its free parameters of the squared distance, in scale units, of the candidate from
     the search's `centre` params to every candidate's cost (0: the cost alone), so that CMA-ES
     ranks candidates far from the centre lower; Stats and the best cost include it.
     """
     from evosax.algorithms import CMA_ES  # noqa: PLC0415 (heavy import, only needed here)
 
-    P, R, shape = int(population), int(repetitions), tuple(int(n) for n in shape)
-    if not shape or shape[-1] != kick_model.N_PARAMS:
-        raise ValueError(f"a search's solution shape must end in {kick_model.N_PARAMS} kick params, got {shape}")
-    es = CMA_ES(population_size=P, solution=jnp.zeros(shape))
+    P, R = int(population), int(repetitions)
+    es = CMA_ES(population_size=P, solution=jnp.zeros(kick_model.N_PARAMS))
     es_params = es.default_params.replace(std_init=jnp.asarray(sigma_init))
 
     def generation(carry: Carry, key, x0, target, scale, extra, leash, centre):
@@ -108,9 +102,8 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
         params = kick_model.clip_params(x0 + scale * z)
         cost, metrics = cost_fn(params, keys, target, extra)
         free = scale > 0
-        axes = tuple(range(1, z.ndim))
         off = jnp.where(free, (x0 + scale * z - centre) / jnp.where(free, scale, 1.0), 0.0)
-        away = jnp.sum(off * off, axis=axes) / jnp.maximum(jnp.sum(free), 1)
+        away = jnp.sum(off * off, axis=1) / jnp.maximum(jnp.sum(free), 1)
         cost = cost + leash * away
         es_state, _ = es.tell(tell_key, z, cost, es_state, es_params)
         i = jnp.argmin(cost)
@@ -124,35 +117,20 @@ def make_search(cost_fn, population: int, repetitions: int, sigma_init: float, m
         return carry, Stats(jnp.min(cost), jnp.mean(cost), jnp.mean(metrics["valid"]), overflow)
 
     step = sharding.over_batch(jax.vmap(generation), mesh, (True,) * 8)
-    return Search(es, es_params, step, mesh, shape)
+    return Search(es, es_params, step, mesh)
 
 
 @functools.lru_cache(maxsize=8)
-def kick_search(env, mesh, population: int, repetitions: int, sigma_init: float, fitness_json: str,
-                midpoint_weight: float = 0.0) -> Search:  # fmt: skip
-    """`make_search` of `kick_cost` (with `midpoint_weight` > 0: `chain_cost`, its extra the
-    neighbours of `neighbour_partners`), kept per settings: the prior's three anchors, or a
-    resumed tuning in the same process, compile it once (about a minute on a CPU)."""
-    fitness = kick_scoring.weights(fitness_json)
-    if midpoint_weight > 0:
-        cost = kick_scoring.chain_cost(env, fitness, midpoint_weight)
-    else:
-        cost = kick_scoring.kick_cost(env, fitness)
+def kick_search(env, mesh, population: int, repetitions: int, sigma_init: float, fitness_json: str) -> Search:
+    """`make_search` of `kick_cost`, kept per settings: the prior's three anchors, or a resumed
+    tuning in the same process, compile it once (about a minute on a CPU)."""
+    cost = kick_scoring.kick_cost(env, kick_scoring.weights(fitness_json))
     return make_search(cost, population, repetitions, sigma_init, mesh)
-
-
-@functools.lru_cache(maxsize=4)
-def family_search(env, mesh, population: int, repetitions: int, sigma_init: float, fitness_json: str,
-                  knots: tuple, targets: tuple) -> Search:  # fmt: skip
-    """`make_search` of `family_cost` (one search's solution: the (K, 14) knot params), kept per
-    settings."""
-    cost = kick_scoring.family_cost(env, kick_scoring.weights(fitness_json), knots, targets)
-    return make_search(cost, population, repetitions, sigma_init, mesh, shape=(len(knots), kick_model.N_PARAMS))
 
 
 def run_search(search: Search, x0, targets, free, generations: int, seed, extra=None, say=print,
                label: str = "cma-es", on_generation=None, leash=None, centre_fn=None,
-               extra_fn=None, resume_path=None, on_resume=None, resume_key: str = "") -> Result:  # fmt: skip
+               resume_path=None, on_resume=None, resume_key: str = "") -> Result:  # fmt: skip
     """Run T searches for `generations` generations from key(seed) (seed: an int or a JAX key).
 
     seed may also be a list of K seeds: the searches are then K runs of T / K searches each (run
@@ -160,13 +138,11 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
     of runs plays the random numbers of the runs one after another; `Result.key` is then (K,), the
     runs' keys (`split_runs`).
 
-    x0: (T, *search.shape) starts; targets: (T,) m; free: (T, *search.shape) bool, the parameters
-    each search moves; extra: (T,) numbers handed to the cost (default 0); leash: (T,) each
-    search's cost per squared scale unit from its centre (`make_search`; default 0).
-    centre_fn(means (T, *shape)) -> (T, *shape): each search's centre for the next generation
-    from every search's current CMA-ES mean params (None: each search's start, fixed).
-    extra_fn(means (T, *shape)) -> (T, ...): likewise each search's extra for the next generation
-    (None: `extra`, fixed).
+    x0: (T, 14) starts; targets: (T,) m; free: (T, 14) bool, the parameters each search moves;
+    extra: (T,) numbers handed to the cost (default 0); leash: (T,) each search's cost per
+    squared scale unit from its centre (`make_search`; default 0).
+    centre_fn(means (T, 14)) -> (T, 14): each search's centre for the next generation from every
+    search's current CMA-ES mean params (None: each search's start, fixed).
     on_generation(gen, stats) is called on the host after each generation with `Stats` of (T,)
     numpy arrays.
     resume_path: a file (.npz) where the search's state is saved after every generation, and
@@ -176,8 +152,8 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
     resume_key: what else the search's path depends on (its cost's settings), as text.
     """
     x0 = kick_model.clip_params(jnp.asarray(x0, jnp.float32))
-    if x0.shape[1:] != search.shape:
-        raise ValueError(f"starts must have shape (T, {', '.join(map(str, search.shape))}), got {x0.shape}")
+    if x0.shape[1:] != (kick_model.N_PARAMS,):
+        raise ValueError(f"starts must have shape (T, {kick_model.N_PARAMS}), got {x0.shape}")
     n = x0.shape[0]
     targets = jnp.asarray(targets, jnp.float32)
     scale = jnp.where(jnp.asarray(free, bool), jnp.asarray(kick_model.PARAM_SCALE, jnp.float32), 0.0)
@@ -199,7 +175,7 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
         return pair[:, 0], sharding.pad(per_search, T)
 
     key, init_keys = draw(key)
-    init = jax.vmap(lambda k: search.es.init(k, jnp.zeros(search.shape), search.es_params))
+    init = jax.vmap(lambda k: search.es.init(k, jnp.zeros(kick_model.N_PARAMS), search.es_params))
     carry = Carry(init(init_keys), jnp.full(T, jnp.inf, jnp.float32), x0)
     # CMA-ES starts some fields weakly typed and returns them strongly typed: fix the types now
     # so that the generation program compiles once, not twice.
@@ -209,7 +185,7 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
     history, pace = [], runio.Clock(generations)
 
     def follow(fn, carry):  # fn of every search's current CMA-ES mean params, padded and placed
-        means = x0[:n] + scale[:n] * carry.es.mean[:n].reshape(x0[:n].shape)
+        means = x0[:n] + scale[:n] * carry.es.mean[:n]
         return sharding.place(sharding.pad(jnp.asarray(fn(means), jnp.float32), T), search.mesh)
 
     first = 0
@@ -235,8 +211,6 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
             key, gen_keys = draw(key)
             if centre_fn is not None:
                 centre = follow(centre_fn, carry)
-            if extra_fn is not None:
-                extra = follow(extra_fn, carry)
             carry, stats = search.step(
                 *sharding.place((carry, gen_keys), search.mesh), x0, targets, scale, extra, leash, centre,
             )  # fmt: skip
@@ -257,7 +231,7 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
             if stop is not None:
                 stop.check()
     es, best_cost, best = sharding.unpad(tuple(carry), n)
-    mean = kick_model.clip_params(x0[:n] + scale[:n] * es.mean.reshape(x0[:n].shape))
+    mean = kick_model.clip_params(x0[:n] + scale[:n] * es.mean)
     names = Stats._fields
     hist = {k: np.asarray([getattr(s, k) for s in history]).reshape(generations, n) for k in names}
     return Result(np.asarray(mean), np.asarray(best), np.asarray(best_cost), hist,
@@ -336,9 +310,9 @@ def split_runs(result: Result, runs: int) -> list[Result]:
 
 
 def per_run(fn, runs: int, searches: int):
-    """`run_search`'s centre_fn or extra_fn `fn` (of one run's means (searches, ...)) for `runs`
-    runs batched as runs x searches: each run's block of means is its own chain, `fn` of that
-    block alone. None stays None."""
+    """`run_search`'s centre_fn `fn` (of one run's means (searches, 14)) for `runs` runs batched
+    as runs x searches: each run's block of means is its own chain, `fn` of that block alone.
+    None stays None."""
     if fn is None or runs == 1:
         return fn
 
@@ -425,42 +399,33 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     the better of its start and its final CMA-ES mean on `eval_repetitions` fresh noisy episodes
     shared by both, so a task's kick never gets worse than its start.
 
-    With tune_cfg.start_leash > 0 each search's candidates pay that much per squared scale unit
-    of mean distance from their task's start (`make_search`): neighbouring tasks that start alike
-    stay alike. With tune_cfg.neighbour_leash > 0 they pay that much per squared scale unit of
-    mean distance from the midpoint of their neighbouring tasks' current CMA-ES means (one
-    neighbour at either end of the sorted targets), so the tasks move as a chain: a kick between
-    two tasks' kicks is near both. The two leashes add up (one quadratic about their weighted
-    centre). With tune_cfg.midpoint_weight > 0 a candidate also pays that much times the mean cost
-    of the kicks halfway between it and its neighbouring tasks' current CMA-ES means
-    (`kick_scoring.chain_cost`: two more episodes per episode). The keep-the-better rule compares
-    the kicks' costs alone.
+    With tune_cfg.neighbour_leash > 0 each search's candidates pay that much per squared scale
+    unit of mean distance from the midpoint of their neighbouring tasks' current CMA-ES means (one
+    neighbour at either end of the sorted targets; `make_search`), so the tasks move as a chain: a
+    kick between two tasks' kicks is near both. The keep-the-better rule compares the kicks' costs
+    alone.
 
     With tune_cfg.restarts = K > 1 the whole tuning runs K times from independent CMA-ES keys
-    (the first the one restarts = 1 uses), and the tuning keeps one of them whole: the run whose
-    tasks, each the better of its start and its tuned kick, cost least in the mean over tasks on
-    the same fresh episodes. Kicks are never mixed between runs, so a chain stays one chain. With
-    tune_cfg.keep = "task" (default "run") each task keeps instead the cheapest on those episodes
-    of its start and its kick in every run: runs are mixed, a task never worse than in any run.
-    With "chain" the tasks' choices among the same kicks are made together (`chain_choice`): the
-    fresh costs plus the neighbour leash between the chosen kicks, the tuning's own objective, so a
-    task takes a slightly dearer kick where the cheapest one would break the chain.
-
-    With tune_cfg.batch_restarts the runs play as one batch of K x T searches (each physics call K
+    (the first the one restarts = 1 uses), as one batch of K x T searches (each physics call K
     runs' episodes: `env`'s contact pool must hold them), each run from its own key as alone
-    (`run_search`), so batching changes the schedule, not the runs; off, one run after another.
+    (`run_search`), so batching changes the schedule, not the runs. Each task's kick is then
+    chosen among its start and its kick in every run, the tasks' choices made together
+    (`chain_choice`, "keep" "chain"): the fresh costs plus the neighbour leash between the chosen
+    kicks, the tuning's own objective, so a task takes a slightly dearer kick where the cheapest
+    one would break the chain. With K = 1 ("keep" "run") each task keeps the better of its start
+    and its tuned kick.
 
     keep_dir: where each finished run is kept (`tuning_run_<k>.json`, with a fingerprint of
     everything it depends on): a rerun with the same inputs reads the runs it finds there instead
-    of running them again (batched or not), and Ctrl-C stops between runs (batches). None keeps
-    nothing.
+    of running them again (the runs left play as one batch), and Ctrl-C stops after the generation
+    in flight. None keeps nothing.
 
     Returns {"params": (T, 14), "start_cost": (T,), "tuned_cost": (T,), "improved": (T,) bool,
     "history": (generations, T) best cost per generation, "restart": the run kept,
-    "restart_costs": (K,) each run's mean cost over tasks, "runs_kept": (T,) int, each task's kick
-    from run k (1..K) or its start (0), "run_seconds": (K,) (a batch's time shared evenly by its
-    runs), "episodes": int}; with keep "task" or
-    "chain" "restart" is None and "history" the first run's.
+    "restart_costs": (K,) each run's mean cost over tasks (`keep_best_run`), "runs_kept": (T,)
+    int, each task's kick from run k (1..K) or its start (0), "run_seconds": (K,) (a batch's time
+    shared evenly by its runs), "keep": "run" or "chain", "episodes": int}; with K > 1 "restart"
+    is None and "history" the first run's.
     """
     targets = np.asarray(targets, np.float32)
     starts = np.asarray(kick_model.clip_params(jnp.asarray(starts, jnp.float32)))
@@ -477,16 +442,12 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     per_device = sharding.padded_size(T, mesh) // mesh.size  # searches each device plays at once
     _check_pool(env, per_device * P * R, "the tuning (tasks x population x repetitions)")
     fitness_json = kick_scoring.fitness_json_of(fitness)
-    midpoint_weight = float(tune_cfg.midpoint_weight)
     kick_scoring.check_count("restarts", tune_cfg.restarts)
     K = int(tune_cfg.restarts)
-    keep = tune_cfg.get("keep", "run")
-    if keep not in TUNE_KEEPS:
-        raise ValueError(f"tune keep must be one of {TUNE_KEEPS}, got {keep!r}")
+    keep = "chain" if K > 1 else "run"  # one run kept whole; among several, the chain's choice
     _check_pool(env, per_device * (K + 1) * E, "the tuning's fresh scoring (tasks x (restarts + 1) x eval_repetitions)")
-    search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json, midpoint_weight)
-    leash, centre_fn = tuning_leash(starts, targets, float(tune_cfg.start_leash), float(tune_cfg.neighbour_leash))
-    extra_fn = (lambda means: neighbour_partners(means, targets)) if midpoint_weight > 0 else None
+    search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json)
+    leash, centre_fn = tuning_leash(targets, float(tune_cfg.neighbour_leash))
     fingerprint = tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, fitness_json, mesh.size)
     seed = jax.random.key(int(tune_cfg.seed))
     seeds = [seed if k == 0 else jax.random.fold_in(seed, k) for k in range(K)]  # run k's own key
@@ -499,7 +460,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
         result = run_search(
             search, np.tile(starts, (m, 1)), np.tile(targets, m), np.ones((m * T, kick_model.N_PARAMS), bool),
             int(generations), [seeds[k] for k in runs], say=say, label=label, leash=leash,
-            centre_fn=per_run(centre_fn, m, T), extra_fn=per_run(extra_fn, m, T),
+            centre_fn=per_run(centre_fn, m, T),
             resume_path=state_path(runs), resume_key=fingerprint,
         )  # fmt: skip
         took = (time.perf_counter() - t0) / m  # a batch's time, shared evenly by its runs
@@ -513,7 +474,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
             say(f"{'tuning' if K == 1 else f'tuning run {k + 1}/{K}'}: read from {runio.shown(path)}")
             done[k] = kept
     left = [k for k in range(K) if k not in done]
-    batched = bool(tune_cfg.get("batch_restarts", False)) and len(left) > 1
+    batched = len(left) > 1
     if batched:
         # every run left in one batch: its searches side by side in each physics call
         most = sharding.padded_size(len(left) * T, mesh) // mesh.size * P * R
@@ -549,8 +510,6 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     best, improved, run_costs = keep_best_run(costs)
     if keep == "run":
         kept = np.where(improved, best + 1, 0)  # (T,) 0: the start
-    elif keep == "task":
-        kept = np.argmin(costs, 1)
     else:  # "chain": the choices that cost least with the neighbour leash between them
         kept = chain_choice(costs, np.asarray(kicks), targets, float(tune_cfg.neighbour_leash))
     tasks = np.arange(T)
@@ -564,8 +523,8 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
         "restart_costs": run_costs.tolist(),
         "runs_kept": kept,
         "run_seconds": seconds,  # each run's time, the first's compile included, kept runs' as they took
-        # every episode played: with the halfway kicks, three per candidate's episode
-        "episodes": int(T * (K * generations * P * R * (3 if midpoint_weight > 0 else 1) + (K + 1) * E)),
+        "keep": keep,
+        "episodes": int(T * (K * generations * P * R + (K + 1) * E)),  # every episode played
     }
 
 
@@ -574,7 +533,7 @@ def tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, 
     whatever the number of runs; nor the contact pool's size, which holds one run or a batch of
     them and stops a search that overflows it): the env, tasks, starts, search settings, cost and
     device count."""
-    keys = ("population_size", "repetitions", "seed", "start_leash", "neighbour_leash", "midpoint_weight")
+    keys = ("population_size", "repetitions", "seed", "neighbour_leash")
     physics = {k: v for k, v in kick_env.resolved(env.config).items() if k != "warp_contacts"}
     payload = {
         "env": physics,
@@ -682,20 +641,6 @@ def neighbours(targets) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     return order[np.maximum(rank - 1, 0)], order[np.minimum(rank + 1, len(order) - 1)], has_lower, has_upper
 
 
-def neighbour_partners(params: jax.Array, targets) -> jax.Array:
-    """(T, 2, 16): for each task its lower and upper neighbour (`neighbours`), each as its params
-    (14, clipped to the bounds), its target and 1, or the task's own params and target and 0
-    where it has none: `chain_cost`'s extra."""
-    targets = np.asarray(targets, np.float32)
-    lower, upper, has_lower, has_upper = neighbours(targets)
-    params = kick_model.clip_params(jnp.asarray(params, jnp.float32))
-
-    def row(index, present):
-        return jnp.concatenate([params[index], targets[index][:, None], present[:, None].astype(np.float32)], 1)
-
-    return jnp.stack([row(lower, has_lower), row(upper, has_upper)], 1)
-
-
 def neighbour_midpoints(params: jax.Array, targets) -> jax.Array:
     """(T, 14): for each task the mean of its neighbours' params (T, 14) (`neighbours`; the first
     and last task's one neighbour counts twice; a lone task is its own)."""
@@ -704,76 +649,14 @@ def neighbour_midpoints(params: jax.Array, targets) -> jax.Array:
     return 0.5 * (params[lower] + params[upper])
 
 
-def tuning_leash(starts, targets, to_start: float, to_neighbours: float):
-    """(leash, centre_fn) of `run_search` for the per-task tuning's two leashes: `to_start` per
-    squared scale unit from each task's start (T, 14), `to_neighbours` from the midpoint of its
-    neighbours' current means in the order of `targets` (T,). Their sum is one quadratic about
-    the weighted mean of the two centres (the constant left over ranks no candidate)."""
-    total = to_start + to_neighbours
+def tuning_leash(targets, to_neighbours: float):
+    """(leash, centre_fn) of `run_search` for the per-task tuning's neighbour leash: `to_neighbours`
+    per squared scale unit from the midpoint of each task's neighbours' current means in the order
+    of `targets` (T,); 0: no leash (centre_fn None)."""
     if to_neighbours == 0.0:
-        return to_start, None
-    starts = jnp.asarray(starts, jnp.float32)
+        return 0.0, None
 
-    def centre_fn(means):
-        return (to_start * starts + to_neighbours * neighbour_midpoints(means, targets)) / total
-
-    return total, centre_fn
-
-
-def tune_family(env, targets, knots, start_knots, tune_cfg, generations: int, sigma_init: float, *, fitness,
-                mesh=None, say=print) -> dict:  # fmt: skip
-    """ONE CMA-ES over a contextual kick scored on every task at once (`family_cost`).
-
-    targets: (T,) m, the tasks; knots: (K,) m, increasing; start_knots: (K, 14) the family's params
-    at the knots. tune_cfg: population_size, repetitions, eval_repetitions, seed
-    (`cfg.experts.tune`); fitness: the cost weights (`cfg.prior.fitness`). The result is the
-    better family, start or final CMA-ES mean, by the mean over tasks of each task's cost on
-    `eval_repetitions` fresh noisy episodes (the same for both; `tune_for_tasks`' rule for a whole
-    family), so the family never gets worse than its start on those episodes.
-
-    Returns {"params": (T, 14) each task's kick, "knot_params": (K, 14), "start_cost": (T,),
-    "tuned_cost": (T,), "improved": bool, "history": (generations,) best cost per generation,
-    "episodes": int}.
-    """
-    targets = np.asarray(targets, np.float32)
-    knots = np.asarray(knots, np.float32)
-    start_knots = np.asarray(kick_model.clip_params(jnp.asarray(start_knots, jnp.float32)))
-    if targets.ndim != 1 or knots.ndim != 1 or len(knots) < 2 or start_knots.shape != (len(knots), kick_model.N_PARAMS):
-        raise ValueError(f"need targets (T,), knots (K >= 2,) and start_knots (K, {kick_model.N_PARAMS}), got "
-                         f"{targets.shape}, {knots.shape} and {start_knots.shape}")  # fmt: skip
-    if not np.all(np.diff(knots) > 0):
-        raise ValueError(f"knots must increase, got {knots.tolist()}")
-    if isinstance(generations, bool) or not isinstance(generations, int | np.integer) or generations < 0:
-        raise ValueError(f"generations must be an integer >= 0, got {generations!r}")
-    _check_search(env, targets, tune_cfg.population_size, tune_cfg.repetitions, sigma_init, 1)
-    kick_env.check_targets(knots.tolist(), env.config.task_range)
-    kick_scoring.check_count("eval_repetitions", tune_cfg.eval_repetitions)
-    mesh = mesh or sharding.device_mesh(impl=env.config.impl)
-    P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
-    _check_pool(env, P * R * T, "the family tuning (population x repetitions x tasks)")
-    fitness_json = kick_scoring.fitness_json_of(fitness)
-    search = family_search(env, mesh, P, R, float(sigma_init), fitness_json, tuple(knots.tolist()),
-                           tuple(targets.tolist()))  # fmt: skip
-    result = run_search(search, start_knots[None], targets[:1], np.ones((1, *start_knots.shape), bool),
-                        int(generations), int(tune_cfg.seed), say=say, label="family tuning")  # fmt: skip
-    members = jax.vmap(jax.vmap(kick_model.family_params, in_axes=(None, None, 0)), in_axes=(0, None, None))
-    pair = np.asarray(members(jnp.stack([start_knots, result.mean[0]]), knots, targets))  # (2, T, 14)
-    key = result.key
-    keys = jnp.broadcast_to(jax.random.split(jax.random.fold_in(key, 1), E), (2, E) + key.shape)
-    padded = sharding.pad((jnp.asarray(pair.transpose(1, 0, 2)), jnp.asarray(targets)), sharding.padded_size(T, mesh))
-    costs = np.asarray(
-        sharding.unpad(kick_scoring.cost_program(env, mesh, fitness_json)(padded[0], keys, padded[1]), T)
-    )
-    improved = bool(costs[:, 1].mean() < costs[:, 0].mean())
-    return {
-        "params": pair[int(improved)],
-        "knot_params": np.asarray(result.mean[0] if improved else start_knots),
-        "start_cost": costs[:, 0],
-        "tuned_cost": costs[:, 1],
-        "improved": improved,
-        "history": result.history["best"][:, 0],
-        "episodes": int(generations * P * R * T + 2 * E * T),
-    }
+    return to_neighbours, lambda means: neighbour_midpoints(means, targets)
 
 
 def _check_pool(env, episodes: int, what: str) -> None:

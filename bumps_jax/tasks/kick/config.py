@@ -12,7 +12,7 @@ code's keyframe kick):
   - the experts' start: every task's keyframe kick from the prior's long kick at its own
     strength, then tuned by CMA-ES as one chain (`experts.bc`, `experts.tune`): four tuning
     runs (`tune.restarts` 4) whose kicks are chosen together with the neighbour leash, then a
-    20-generation polish (`tune.polish_*`); the paper cloned no tuned kicks;
+    20-generation polish (`tune.polish_generations`); the paper cloned no tuned kicks;
   - the meta-policies read (phase, normalised target) in [0, 1], not (time step, target m);
     the paper's BC learning rate is printed as 3^-6, ours is 3e-4 (the original code's);
   - filtering by successive halving (`filter.selection`), not a fixed number of rollouts per
@@ -36,8 +36,6 @@ from bumps_jax.tasks.kick.targets import DEV_TARGETS, HELDOUT_TARGETS
 
 # The paper preset's held-out set must hold at least this many targets.
 HELDOUT_MIN_TARGETS = 50
-TUNE_SCHEMES = ("per_task", "family")  # experts.tune.scheme
-TUNE_KEEPS = ("run", "task", "chain")  # experts.tune.keep
 
 
 def prior() -> ml_collections.ConfigDict:
@@ -77,15 +75,10 @@ def experts() -> ml_collections.ConfigDict:
     cfg.bc.learning_rate = 1e-2  # peak Adam rate of that cloning
     # Where each task's starting kick begins, before tuning: True, the prior's family at the
     # task's calibrated strength (with `tune.anchor_starts`, the best of that and the prior's
-    # anchors); False, one kick (`common_start`) for every task, so that the tuned kicks are one family.
+    # anchors); False, the prior's long kick for every task, each copy at the strength at which it
+    # rests nearest the task's target (read from a noisy sweep of its strength,
+    # `tune.eval_repetitions` episodes per strength), so that the tuned kicks are one family.
     cfg.bc.per_task_strength = False
-    # With per_task_strength False: the prior's anchor every task starts from (`kick_model.ANCHORS`).
-    cfg.bc.common_start = "long"
-    # With per_task_strength False: True sets each task's copy of that kick to the strength at
-    # which it rests nearest the task's target (read from a noisy sweep of its strength,
-    # `tune.eval_repetitions` episodes per strength), so that the tasks start spread over their
-    # targets as one kick; False keeps the kick's own strength for every task.
-    cfg.bc.common_start_strength = True
     cfg.tune = ml_collections.ConfigDict()  # CMA-ES on every task's starting kick, all at once
     cfg.tune.generations = 60  # 0: clone the (blended or anchor) kick as it is
     cfg.tune.sigma_init = 2.0  # in PARAM_SCALE units around each task's start
@@ -93,45 +86,24 @@ def experts() -> ml_collections.ConfigDict:
     cfg.tune.repetitions = 8  # noisy kicks per candidate per generation
     cfg.tune.eval_repetitions = 32  # fresh kicks choosing between start and tuned
     cfg.tune.seed = 0  # CMA-ES seed of the tuning
-    # "per_task" only: independent runs of the whole tuning (different CMA-ES keys); the one whose
-    # kicks cost least over all tasks on fresh episodes is kept whole. Each run costs a tuning.
+    # Independent runs of the whole tuning (different CMA-ES keys), played as one batch (each
+    # physics call holds every run's episodes; the tuning's env gets a contact pool restarts x
+    # env.warp_contacts), each run from its own key as it would alone. 1: that run is kept, each
+    # task the better of its start and its kick; > 1: each task's kick is chosen among its start
+    # and its kicks in every run together with its neighbours' (fresh costs plus the neighbour
+    # leash, `cmaes.chain_choice`). Each run costs a tuning.
     cfg.tune.restarts = 1
-    # restarts > 1 only: True plays the runs as one batch (each physics call holds every run's
-    # episodes; the tuning's env gets a contact pool restarts x env.warp_contacts), each run from
-    # its own key as it would alone: the same runs, sooner where the device has room to spare.
-    cfg.tune.batch_restarts = False
-    # With restarts > 1, what is kept: "run", the run above whole (one chain); "task", each task
-    # the cheapest on those fresh episodes of its start and its kick in every run (runs mixed);
-    # "chain", the same kicks chosen together: fresh costs plus the neighbour leash between them.
-    cfg.tune.keep = "run"
-    # keep "task" or "chain" only: generations of one more tuning from the mixed kicks (the same
-    # leashes, its own key), each task again keeping the better of the two; 0: none. It re-joins
-    # the chain where neighbouring tasks came from different runs.
+    # restarts > 1 only: generations of one more tuning from the kicks chosen among the runs (the
+    # same leash, its own key, initial step `POLISH_SIGMA` of starting_kicks), each task again
+    # keeping the better of the two; 0: none. It re-joins the chain where neighbouring tasks came
+    # from different runs.
     cfg.tune.polish_generations = 0
-    # keep "task" or "chain" only: the polish's initial CMA-ES step (PARAM_SCALE units); 2.0 is
-    # the tuning's own sigma_init, the step the polish took before this knob existed.
-    cfg.tune.polish_sigma = 2.0
     # Start each task from the best of its blended kick and the prior's three anchors.
     cfg.tune.anchor_starts = True
-    # "per_task": one CMA-ES per task on its own kick. "family": one CMA-ES over a contextual
-    # kick, every parameter linear in the target between `knots` evenly spaced knots over the
-    # tasks' range, started from the (blended or anchor) kicks at the knots and scored on every
-    # task at once. Which one the paper run uses is open (docs/decisions.md).
-    cfg.tune.scheme = "per_task"
-    cfg.tune.knots = 5  # knots of the "family" scheme's contextual kick (>= 2)
-    # "per_task" only: cost per squared PARAM_SCALE unit of a candidate's mean distance from its
-    # task's start, added to its kick cost during the search (0: the kick cost alone). > 0 keeps
-    # tuned kicks near their starts, so tasks that start from the same kick stay one family.
-    cfg.tune.start_leash = 0.0
-    # "per_task" only: cost per squared PARAM_SCALE unit of a candidate's mean distance from the
-    # midpoint of its neighbouring tasks' current means, added during the search (0: none). > 0
-    # tunes the tasks as a chain, so that a kick between two tasks' kicks is near both.
+    # Cost per squared PARAM_SCALE unit of a candidate's mean distance from the midpoint of its
+    # neighbouring tasks' current means, added during the search (0: none). > 0 tunes the tasks as
+    # a chain, so that a kick between two tasks' kicks is near both.
     cfg.tune.neighbour_leash = 1.0
-    # "per_task" only: weight of the mean cost of the kicks halfway between a candidate and its
-    # neighbouring tasks' current means (their joint trajectories mixed 50/50, played at the
-    # middle target), added during the search (0: none; > 0 triples the tuning's episodes). > 0
-    # tunes the tasks so that what a meta-policy plays between two of them still kicks.
-    cfg.tune.midpoint_weight = 0.0
     cfg.ppo.num_envs = 256  # episodes per update (19,200 steps; the paper: 4,096)
     cfg.ppo.num_minibatches = 16  # 16 episodes = 1,200 steps each (the paper: 1,024)
     cfg.ppo.num_epochs = 30  # passes over each update's batch
@@ -165,16 +137,11 @@ def sections() -> ml_collections.ConfigDict:
 # so the whole pipeline runs on a CPU in minutes.
 PRESETS: dict[str, dict] = {
     "paper": {
-        # The starting kicks tuned four times (independent CMA-ES keys), each task's kick chosen
-        # among the runs together with its neighbours' (the leash), then a 20-generation polish
-        # at a step of 0.25.
+        # The starting kicks tuned four times (independent CMA-ES keys, one batch), each task's
+        # kick chosen among the runs together with its neighbours' (the leash), then a
+        # 20-generation polish.
         "experts.tune.restarts": 4,
-        "experts.tune.keep": "chain",
         "experts.tune.polish_generations": 20,
-        "experts.tune.polish_sigma": 0.25,
-        # Those four runs played as one batch (each physics call all four runs' episodes): the
-        # same runs, sooner; speed only.
-        "experts.tune.batch_restarts": True,
     },
     "tiny": {
         # Warp's contact pool sized to the tiny batches (on a CPU unused slots cost every step).
@@ -195,8 +162,6 @@ PRESETS: dict[str, dict] = {
         # Each task starts from the prior's family at its own strength, untied to its neighbours
         # (one generation cannot carry one kick to 8 and 16 m).
         "experts.bc.per_task_strength": True,
-        "experts.bc.common_start": "main",
-        "experts.bc.common_start_strength": False,
         "experts.tune.neighbour_leash": 0.0,
         "experts.ppo.num_envs": 8,
         "experts.ppo.num_minibatches": 2,
@@ -312,50 +277,20 @@ def experts_section(e) -> None:
     """The experts' starting kicks: their cloning (`experts.bc`) and tuning (`experts.tune`)."""
     positive_ints(e.bc, "experts.bc.", ("steps",))
     positive_floats(e.bc, "experts.bc.", ("learning_rate",))
-    if e.bc.common_start not in kick_model.ANCHORS:
-        raise ValueError(f"experts.bc.common_start must be one of {kick_model.ANCHORS}, got {e.bc.common_start!r}")
-    if e.bc.per_task_strength and (e.bc.common_start != "main" or e.bc.common_start_strength):
-        raise ValueError(
-            "experts.bc.common_start and common_start_strength apply when every task starts from one kick: "
-            "set experts.bc.per_task_strength to false"
-        )
     positive_ints(e.tune, "experts.tune.", ("repetitions", "eval_repetitions", "population_size", "restarts"))
-    if e.tune.keep not in TUNE_KEEPS:
-        raise ValueError(f"experts.tune.keep must be one of {TUNE_KEEPS}, got {e.tune.keep!r}")
-    if not isinstance(e.tune.batch_restarts, bool):
-        raise ValueError(f"experts.tune.batch_restarts must be true or false, got {e.tune.batch_restarts!r}")
     polish = e.tune.polish_generations
     if isinstance(polish, bool) or not isinstance(polish, int) or polish < 0:
         raise ValueError(f"experts.tune.polish_generations must be an integer >= 0, got {polish!r}")
-    if polish > 0 and e.tune.keep == "run":
-        raise ValueError(
-            "experts.tune.polish_generations applies with experts.tune.keep 'task' or 'chain'; set it to 0"
-        )
+    if polish > 0 and e.tune.restarts == 1:
+        raise ValueError("experts.tune.polish_generations applies with experts.tune.restarts > 1; set it to 0")
     if isinstance(e.tune.generations, bool) or e.tune.generations < 0:
         raise ValueError(f"experts.tune.generations must be an integer >= 0, got {e.tune.generations!r}")
     if e.tune.population_size < 2:
         raise ValueError(f"experts.tune.population_size must be >= 2 for CMA-ES, got {e.tune.population_size}")
-    positive_floats(e.tune, "experts.tune.", ("sigma_init", "polish_sigma"))
-    if e.tune.scheme not in TUNE_SCHEMES:
-        raise ValueError(f"experts.tune.scheme must be one of {TUNE_SCHEMES}, got {e.tune.scheme!r}")
-    for name in ("start_leash", "neighbour_leash", "midpoint_weight"):
-        weight = e.tune[name]
-        if isinstance(weight, bool) or not isinstance(weight, int | float) or not weight >= 0:
-            raise ValueError(f"experts.tune.{name} must be a number >= 0, got {weight!r}")
-    if e.tune.scheme == "family":
-        # The per-task knobs that are on, each named with the value that turns it off: all in one
-        # line, so that switching a preset that uses several of them (the paper's) takes one try.
-        off = {"restarts": 1, "polish_generations": 0, "start_leash": 0.0, "neighbour_leash": 0.0,
-               "midpoint_weight": 0.0}  # fmt: skip
-        on = [f"experts.tune.{k}={v:g}" for k, v in off.items() if e.tune[k] != v]
-        if on:
-            raise ValueError(f"experts.tune.scheme 'family' has no per-task tuning knobs: set {', '.join(on)}")
-    if isinstance(e.tune.knots, bool) or e.tune.knots < 2:
-        raise ValueError(f"experts.tune.knots must be an integer >= 2, got {e.tune.knots!r}")
-    if e.tune.scheme == "family" and len(set(e.tasks)) < 2:
-        raise ValueError(
-            f"experts.tune.scheme 'family' needs at least two distinct experts.tasks, got {tuple(e.tasks)}"
-        )
+    positive_floats(e.tune, "experts.tune.", ("sigma_init",))
+    weight = e.tune.neighbour_leash
+    if isinstance(weight, bool) or not isinstance(weight, int | float) or not weight >= 0:
+        raise ValueError(f"experts.tune.neighbour_leash must be a number >= 0, got {weight!r}")
 
 
 def heldout_section(h, preset: str, name: str = "heldout") -> None:

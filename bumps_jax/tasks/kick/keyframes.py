@@ -173,33 +173,6 @@ def kick_for(anchors, table, target) -> jax.Array:
     return blend_params(anchors, strength)
 
 
-# -- a contextual kick: one family of the target distance --------------------------------------
-
-
-def knot_targets(low: float, high: float, n_knots: int) -> np.ndarray:
-    """(K,) m: n_knots >= 2 evenly spaced targets from low to high, where a contextual kick's
-    parameters are given (`family_params`)."""
-    if isinstance(n_knots, bool) or not isinstance(n_knots, int | np.integer) or n_knots < 2:
-        raise ValueError(f"a kick family needs n_knots >= 2, got {n_knots!r}")
-    if not np.isfinite(low) or not np.isfinite(high) or not low < high:
-        raise ValueError(f"a kick family's knots need low < high, got {low!r} and {high!r}")
-    return np.linspace(float(low), float(high), int(n_knots))
-
-
-def family_params(knot_params, knots, target) -> jax.Array:
-    """The contextual kick's params (14,) at `target` m, clipped into the bounds.
-
-    knot_params: (K, 14) the params at the knots (K,) m, increasing; every parameter is linear in
-    the target between neighbouring knots and held at the end knots' values outside them.
-    Jittable in every argument; vmap over targets for a family of tasks.
-    """
-    knot_params = jnp.asarray(knot_params, jnp.float32)
-    knots = jnp.asarray(knots, jnp.float32)
-    target = jnp.asarray(target, jnp.float32)
-    column = jax.vmap(lambda values: jnp.interp(target, knots, values), in_axes=1)
-    return clip_params(column(knot_params))
-
-
 def largest_jump(params, targets) -> dict:
     """The roughness of a family of kicks: the largest change of one parameter between kicks of
     neighbouring targets, in `PARAM_SCALE` units.

@@ -1,6 +1,6 @@
-"""Keyframe kicks scored by replaying them in the env: the costs CMA-ES minimises (one kick, or a
-contextual family of kicks over many tasks), their compiled programs, and the replays the stages
-report (a kick's evaluation, the family sweep, each task's best starting kick).
+"""Keyframe kicks scored by replaying them in the env: the cost CMA-ES minimises, its compiled
+programs, and the replays the stages report (a kick's evaluation, the family sweep, each task's
+best starting kick).
 
 Every episode is `rollout.episode_fn` playing the kick's action table (`rollout.table_policy`);
 batches of kicks are split over a device mesh (`sharding.over_batch`). Candidates compared with
@@ -20,8 +20,6 @@ import numpy as np
 
 from bumps_jax.algo import rollout, sharding
 from bumps_jax.tasks.kick import env as kick_env
-
-# -- costs -------------------------------------------------------------------------------------
 from bumps_jax.tasks.kick import keyframes as kick_model
 
 # -- costs -------------------------------------------------------------------------------------
@@ -35,61 +33,6 @@ def kick_cost(env: kick_env.KickEnv, fitness):
     def cost_fn(params, keys, target, extra):
         metrics = episodes(kick_model.action_tables(params, env.n_steps, env.dt), target, target, keys)
         return jnp.mean(kick_model.fitness(metrics, target, fitness), axis=1), metrics
-
-    return cost_fn
-
-
-def chain_cost(env: kick_env.KickEnv, fitness, midpoint_weight: float):
-    """`kick_cost` plus `midpoint_weight` x the mean cost of the kicks halfway between the
-    candidate and its neighbouring tasks' kicks: fn(params (P, 14), keys (P, R), target, extra
-    (2, 16)) -> (mean cost (P,), the candidates' own metrics of (P, R)).
-
-    extra's two rows are the lower and the upper neighbour: its params (14), its target (m) and
-    1 where it exists, else 0 (the first and the last task have one neighbour). A halfway kick
-    plays the candidate's and the neighbour's joint trajectories mixed 50/50 at the middle of the
-    two targets, on the candidate's own episodes: what a meta-policy between two training tasks
-    plays at best. A candidate that kicks well alone but not mixed with its neighbours ranks low.
-    """
-    n_params = kick_model.N_PARAMS
-    # the candidates, each on its own keys
-    episodes = jax.vmap(rollout.over_reps(rollout.episode_fn(env, rollout.table_policy)), in_axes=(0, None, None, 0))
-
-    def cost_fn(params, keys, target, extra):
-        tables = kick_model.action_tables(params, env.n_steps, env.dt)  # (P, n_steps, 22)
-        neighbours = kick_model.action_tables(extra[:, :n_params], env.n_steps, env.dt)  # (2, n_steps, 22)
-        kicks = jnp.stack([tables, *(0.5 * (tables + neighbours[i]) for i in range(2))])  # (3, P, n_steps, 22)
-        goals = jnp.concatenate([jnp.reshape(target, (1,)), 0.5 * (target + extra[:, n_params])])  # (3,)
-        # the candidate's own kicks, then the halfway kicks down and up, on the same keys: one
-        # after another, so that a physics call holds no more episodes than the search alone
-        # (Warp's contact pool is sized for that) and the episode compiles once
-        metrics = jax.lax.map(lambda kg: episodes(kg[0], kg[1], kg[1], keys), (kicks, goals))  # (3, P, R)
-        costs = jnp.mean(kick_model.fitness(metrics, goals[:, None, None], fitness), axis=2).T  # (P, 3)
-        present = extra[:, n_params + 1]
-        halfway = jnp.sum(costs[:, 1:] * present, axis=1) / jnp.maximum(jnp.sum(present), 1.0)
-        return costs[:, 0] + midpoint_weight * halfway, {k: v[0] for k, v in metrics.items()}
-
-    return cost_fn
-
-
-def family_cost(env: kick_env.KickEnv, fitness, knots, targets):
-    """The cost of a contextual kick over many tasks: fn(knot params (P, K, 14), keys (P, R),
-    target, extra) -> (mean cost (P,), metrics of (P, T, R)).
-
-    Each candidate's kick for task t is `kick_model.family_params` at targets[t] (T,) m between
-    `knots` (K,) m; its cost is the mean over tasks of `kick_cost`'s per-task cost, every task on
-    R noisy episodes of its own (the candidate's keys folded with the task's index: the same for
-    every candidate, independent across tasks). `target` and `extra` are unused.
-    """
-    knots, targets = jnp.asarray(knots, jnp.float32), jnp.asarray(targets, jnp.float32)
-    per_task = jax.vmap(kick_cost(env, fitness), in_axes=(1, 0, 0, None), out_axes=(1, 1))
-    fold = jax.vmap(lambda i, keys: jax.vmap(jax.vmap(lambda k: jax.random.fold_in(k, i)))(keys), in_axes=(0, None))
-    kicks_of = jax.vmap(lambda knot_params: jax.vmap(kick_model.family_params, in_axes=(None, None, 0))(
-        knot_params, knots, targets))  # fmt: skip
-
-    def cost_fn(knot_params, keys, target, extra):
-        task_keys = fold(jnp.arange(targets.shape[0]), keys)  # (T, P, R)
-        costs, metrics = per_task(kicks_of(knot_params), task_keys, targets, extra)  # (P, T), (P, T, R)
-        return jnp.mean(costs, axis=1), metrics
 
     return cost_fn
 

@@ -1,9 +1,8 @@
 """The keyframe kicks the kick's experts start from, before behaviour cloning and PPO.
 
 `starting_kicks` makes each task's kick from the kick prior's record (`prior_kicks`), tuned by
-CMA-ES per task or as one contextual family; `evaluate_starting_kicks` scores them (and the
-kicks halfway between neighbours) as the
-experts are scored; `read_starting_kicks` reads them back from a run's starting_kicks.json.
+CMA-ES per task; `evaluate_starting_kicks` scores them (and the kicks halfway between neighbours)
+as the experts are scored; `read_starting_kicks` reads them back from a run's starting_kicks.json.
 """
 
 from __future__ import annotations
@@ -18,16 +17,16 @@ import numpy as np
 
 from bumps_jax import runio
 from bumps_jax.algo import evaluate, rollout
-
-# The strengths `bc.common_start_strength` sweeps its one kick over to place each task's copy.
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
-
-# The strengths `bc.common_start_strength` sweeps its one kick over to place each task's copy.
 from bumps_jax.tasks.kick import scoring as kick_scoring
 
-# The strengths `bc.common_start_strength` sweeps its one kick over to place each task's copy.
+# Without `bc.per_task_strength`: the prior's anchor every task starts from.
+COMMON_START = "long"
+# The strengths that anchor is swept over to place each task's copy.
 COMMON_START_STRENGTHS = np.linspace(0.1, 1.0, 19)
+# The polish's initial CMA-ES step (PARAM_SCALE units; `tune.polish_generations`).
+POLISH_SIGMA = 0.25
 
 
 def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray, dict, int]:
@@ -36,18 +35,16 @@ def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray,
 
     The family at each target's calibrated strength, or with `tune.anchor_starts` the best of
     that and the prior's anchors on `tune.eval_repetitions` noisy kicks at the target. Without
-    `bc.per_task_strength`: one anchor (`bc.common_start`) for every target, with
-    `bc.common_start_strength` each copy at the strength where that kick rests nearest its target.
+    `bc.per_task_strength`: the anchor `COMMON_START` for every target, each copy at the strength
+    where that kick rests nearest its target.
     """
     e = cfg.experts
     targets = np.asarray(targets, np.float32)
     info = {"start_targets_m": targets.tolist()}
     if not e.bc.per_task_strength:
-        kick = np.asarray(record["anchors"][kick_model.ANCHORS.index(e.bc.common_start)], np.float32)
+        kick = np.asarray(record["anchors"][kick_model.ANCHORS.index(COMMON_START)], np.float32)
         starts = np.tile(kick, (len(targets), 1))
-        info["common_start"] = e.bc.common_start
-        if not e.bc.common_start_strength:
-            return starts, info, 0
+        info["common_start"] = COMMON_START
         reps = int(e.tune.eval_repetitions)
         rows = kick_scoring.strength_sweep(env, kick, COMMON_START_STRENGTHS, float(cfg.prior.target), reps)
         table = kick_model.calibration({"sweep": rows})
@@ -88,54 +85,35 @@ def tune_env(cfg, runs: int = 1) -> kick_env.KickEnv:
 def starting_kicks(cfg, record: dict, say=print, keep_dir=None) -> tuple[np.ndarray, dict]:
     """The keyframe kick (T, 14) each expert clones, and a record of how it was made.
 
-    Scheme "per_task": each task's `prior_kicks` start, then with `tune.generations` > 0 one
-    CMA-ES per task (`cmaes.tune_for_tasks`). Scheme "family": the `prior_kicks` at
-    `tune.knots` knots over the tasks' range make a contextual kick (`kick_model.family_params`),
-    then with `tune.generations` > 0 one CMA-ES over it scored on every task
-    (`cmaes.tune_family`); each task's kick is the family's at its target. The record counts
-    every episode the kicks cost (`episodes`) and the largest jump between neighbouring tasks'
-    kicks (`smoothness`, `kick_model.largest_jump`).
+    Each task's `prior_kicks` start, then with `tune.generations` > 0 one CMA-ES per task
+    (`cmaes.tune_for_tasks`, its `tune.restarts` runs in one batch), then with
+    `tune.polish_generations` > 0 the `polish`. The record counts every episode the kicks cost
+    (`episodes`) and the largest jump between neighbouring tasks' kicks (`smoothness`,
+    `kick_model.largest_jump`).
 
-    keep_dir (scheme "per_task"): where the starts and each finished tuning run are kept, so that
-    a stopped tuning resumes at its next run (`cmaes.tune_for_tasks`); None keeps nothing.
+    keep_dir: where the starts and each finished tuning run are kept, so that a stopped tuning
+    resumes at its next run (`cmaes.tune_for_tasks`); None keeps nothing.
     """
     from bumps_jax.tasks.kick import cmaes  # noqa: PLC0415
 
     e = cfg.experts
     targets = np.asarray(e.tasks, np.float32)
     env = tune_env(cfg)
-    info = {"tasks_m": targets.tolist(), "scheme": e.tune.scheme, "tuned": False}
-    family = e.tune.scheme == "family"
-    if family:
-        knots = kick_model.knot_targets(float(targets.min()), float(targets.max()), e.tune.knots)
-        knot_params, start_info, episodes = prior_kicks(cfg, record, knots, env, say)
-        members = jax.vmap(kick_model.family_params, in_axes=(None, None, 0))
-        starts = np.asarray(members(jnp.asarray(knot_params), jnp.asarray(knots), jnp.asarray(targets)))
-        info.update(knots_m=knots.tolist(), knot_params=np.asarray(knot_params).tolist())
-    else:
-        starts, start_info, episodes = kept_starts(cfg, record, targets, env, say, keep_dir)
+    info = {"tasks_m": targets.tolist(), "tuned": False}
+    starts, start_info, episodes = kept_starts(cfg, record, targets, env, say, keep_dir)
     info.update(start_info)
     if e.tune.generations > 0:
         t0 = time.perf_counter()
-        common = dict(fitness=cfg.prior.fitness, say=say)
-        if family:
-            out = cmaes.tune_family(env, targets, knots, knot_params, e.tune, e.tune.generations,
-                                    e.tune.sigma_init, **common)  # fmt: skip
-            info["knot_params"] = out["knot_params"].tolist()
-        else:
-            runs = int(e.tune.restarts) if e.tune.batch_restarts else 1  # runs in one physics call
-            out = cmaes.tune_for_tasks(tune_env(cfg, runs), targets, starts, e.tune, e.tune.generations,
-                                       e.tune.sigma_init, keep_dir=keep_dir, **common)  # fmt: skip
+        out = cmaes.tune_for_tasks(tune_env(cfg, int(e.tune.restarts)), targets, starts, e.tune, e.tune.generations,
+                                   e.tune.sigma_init, keep_dir=keep_dir, fitness=cfg.prior.fitness,
+                                   say=say)  # fmt: skip
         starts = out["params"]
         episodes += out["episodes"]
-        improved = out["improved"].tolist() if isinstance(out["improved"], np.ndarray) else out["improved"]
-        info.update(tuned=True, start_cost=out["start_cost"], tuned_cost=out["tuned_cost"], improved=improved,
-                    history_best_cost=out["history"])  # fmt: skip
-        if "restart_costs" in out:  # the per-task scheme's runs and what was kept of them
-            info.update(restart=out["restart"], restart_costs=out["restart_costs"], keep=e.tune.keep,
-                        runs_kept=np.asarray(out["runs_kept"]).tolist(), run_seconds=out["run_seconds"],
-                        batch_restarts=bool(e.tune.batch_restarts))  # fmt: skip
-        if not family and e.tune.polish_generations > 0:
+        info.update(tuned=True, start_cost=out["start_cost"], tuned_cost=out["tuned_cost"],
+                    improved=np.asarray(out["improved"]).tolist(), history_best_cost=out["history"],
+                    restart=out["restart"], restart_costs=out["restart_costs"], keep=out["keep"],
+                    runs_kept=np.asarray(out["runs_kept"]).tolist(), run_seconds=out["run_seconds"])  # fmt: skip
+        if e.tune.polish_generations > 0:
             starts, info["polish"], polish_episodes = polish(env, targets, starts, cfg, keep_dir, say)
             episodes += polish_episodes
         # this call's tuning time; with runs read back from keep_dir, `run_seconds` has each run's own
@@ -147,11 +125,11 @@ def starting_kicks(cfg, record: dict, say=print, keep_dir=None) -> tuple[np.ndar
 
 
 def polish(env, targets, kicks, cfg, keep_dir=None, say=print) -> tuple[np.ndarray, dict, int]:
-    """`tune.polish_generations` of one more per-task tuning from `kicks` (T, 14), runs mixed by
-    `tune.keep` = "task" or "chain", at the initial step `tune.polish_sigma`: the same leash
-    weights (a start leash pulls toward the mixed kicks), so the chain re-joins where neighbours
-    came from different runs; one run from its own key, each task keeping the better of its kick
-    and the polished one on fresh episodes. Returns (kicks, record, episodes)."""
+    """`tune.polish_generations` of one more per-task tuning from `kicks` (T, 14), chosen among the
+    runs (`tune.restarts` > 1), at the initial step `POLISH_SIGMA`: the same neighbour leash, so the
+    chain re-joins where neighbours came from different runs; one run from its own key, each task
+    keeping the better of its kick and the polished one on fresh episodes. Returns (kicks, record,
+    episodes)."""
     import ml_collections  # noqa: PLC0415
 
     from bumps_jax.tasks.kick import cmaes  # noqa: PLC0415
@@ -159,13 +137,13 @@ def polish(env, targets, kicks, cfg, keep_dir=None, say=print) -> tuple[np.ndarr
     tune = cfg.experts.tune
     # its own CMA-ES key: the seed moved far past any run's (runs fold their index into tune.seed)
     seed = int(tune.seed) + 1_000_003
-    one = ml_collections.ConfigDict({**tune.to_dict(), "restarts": 1, "keep": "run", "seed": seed})
-    out = cmaes.tune_for_tasks(env, targets, kicks, one, int(tune.polish_generations), float(tune.polish_sigma),
+    one = ml_collections.ConfigDict({**tune.to_dict(), "restarts": 1, "seed": seed})
+    out = cmaes.tune_for_tasks(env, targets, kicks, one, int(tune.polish_generations), POLISH_SIGMA,
                                fitness=cfg.prior.fitness, say=say,
                                keep_dir=None if keep_dir is None else Path(keep_dir) / "polish")  # fmt: skip
     record = {
         "generations": int(tune.polish_generations),
-        "sigma": float(tune.polish_sigma),
+        "sigma": POLISH_SIGMA,
         "start_cost": out["start_cost"],
         "tuned_cost": out["tuned_cost"],
         "improved": np.asarray(out["improved"]).tolist(),
