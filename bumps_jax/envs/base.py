@@ -83,6 +83,18 @@ def validate_physics_dt(cfg: ml_collections.ConfigDict) -> None:
             )
 
 
+def validate_episode(cfg: ml_collections.ConfigDict, int_keys=()) -> None:
+    """`validate_physics`, then a finite `task_range` with low < high, `ctrl_dt` > 0 and the physics
+    step (`validate_physics_dt`): ValueError naming the first bad value."""
+    validate_physics(cfg, int_keys)
+    lo, hi = cfg.task_range
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ValueError(f"env.task_range must be finite with low < high, got {tuple(cfg.task_range)}")
+    if not cfg.ctrl_dt > 0:
+        raise ValueError(f"env.ctrl_dt must be > 0, got {cfg.ctrl_dt!r}")
+    validate_physics_dt(cfg)
+
+
 def check_targets(targets, task_range, unit: str = "m", size: int = 1) -> np.ndarray:
     """Targets as a float array, or ValueError naming the first one outside `task_range` (in `unit`).
 

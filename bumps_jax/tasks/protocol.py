@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import ml_collections
 import numpy as np
@@ -82,11 +82,11 @@ class Task:
     # env's noise off) describe its config.
     env_class: type[ContextualEnv]
     stages: tuple[str, ...]  # the stages it runs, a subset of STAGE_ORDER in that order
-    # Its config tree but `preset` and `task`: `env` and a section per stage (`pipeline.sections`),
-    # at the `paper` preset's values, plus what its plug-ins read.
-    sections: Callable[[], ml_collections.ConfigDict]
-    presets: Mapping[str, dict]  # preset name -> dotted overrides of `sections()` ("tiny": CPU size)
-    validate: Callable[[ml_collections.ConfigDict], None]  # its own checks of a whole config, after the stages'
+    # Its config (its folder's `config` module): `sections()`, its tree but `preset` and `task`
+    # (`env` and a section per stage, `pipeline.sections`, at the `paper` preset's values, plus what
+    # its plug-ins read); `PRESETS`, preset name -> dotted overrides of them ("tiny": CPU size);
+    # `validate(cfg)`, its own checks of a whole config, after the stages'.
+    config: Any
     report: Report
     expert_start: ExpertStart | None = None  # None: experts start from a fresh policy
     # The meta-policies' inputs normalised by the dataset's statistics (False: the observation as
@@ -105,6 +105,19 @@ class Task:
     def make_env(self, env_cfg, overrides: dict | None = None) -> ContextualEnv:
         """The task's env from its env config and dotted `overrides`."""
         return self.env_class(env_cfg, overrides)
+
+    def sections(self) -> ml_collections.ConfigDict:
+        """Its config tree but `preset` and `task`, at the `paper` preset's values."""
+        return self.config.sections()
+
+    @property
+    def presets(self) -> Mapping[str, dict]:
+        """Preset name -> dotted overrides of `sections()`."""
+        return self.config.PRESETS
+
+    def validate(self, cfg: ml_collections.ConfigDict) -> None:
+        """Its own checks of a whole config (ValueError naming the first bad value)."""
+        self.config.validate(cfg)
 
     def env_config(self) -> ml_collections.ConfigDict:
         """The env section's defaults."""

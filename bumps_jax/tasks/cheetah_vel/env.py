@@ -90,13 +90,7 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
 
 def validate_config(cfg: ml_collections.ConfigDict) -> None:
     """ValueError naming the first bad value of a cheetah env config."""
-    task_env.validate_physics(cfg, ("episode_steps",))
-    lo, hi = cfg.task_range
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-        raise ValueError(f"env.task_range must be finite with low < high, got {tuple(cfg.task_range)}")
-    if not cfg.ctrl_dt > 0:
-        raise ValueError(f"env.ctrl_dt must be > 0, got {cfg.ctrl_dt!r}")
-    task_env.validate_physics_dt(cfg)
+    task_env.validate_episode(cfg, ("episode_steps",))
     if not cfg.reset_noise >= 0:
         raise ValueError(f"env.reset_noise must be >= 0, got {cfg.reset_noise!r}")
     for name, value in cfg.reward.items():

@@ -2,20 +2,15 @@
 
 from bumps_jax.report import tables
 from bumps_jax.tasks.cheetah_vel import config, env, table
-from bumps_jax.tasks.protocol import Report, Task
+from bumps_jax.tasks.protocol import Task
 
 TASK = Task(
     name="cheetah_vel",
     env_class=env.CheetahVelEnv,
     stages=("experts", "meta", "filter", "baseline"),
-    sections=config.sections,
-    presets=config.PRESETS,
-    validate=config.validate,
-    report=Report(
-        experts=tables.task_experts_markdown,
-        table1=tables.task_table1_markdown,
-        table2=tables.task_table2_markdown,
-        axes=("target velocity (m/s)", "mean velocity error (m/s)", "achieved mean velocity (m/s)"),
+    config=config,
+    report=tables.plain_report(
+        ("target velocity (m/s)", "mean velocity error (m/s)", "achieved mean velocity (m/s)"),
         published_blocks=table.publish,
     ),
 )

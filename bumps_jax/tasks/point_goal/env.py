@@ -85,13 +85,8 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
 
 def validate_config(cfg: ml_collections.ConfigDict) -> None:
     """ValueError naming the first bad value of a point-goal env config."""
-    task_env.validate_physics(cfg, ("episode_steps",))
+    task_env.validate_episode(cfg, ("episode_steps",))
     lo, hi = cfg.task_range
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-        raise ValueError(f"env.task_range must be finite with low < high, got {tuple(cfg.task_range)}")
-    if not cfg.ctrl_dt > 0:
-        raise ValueError(f"env.ctrl_dt must be > 0, got {cfg.ctrl_dt!r}")
-    task_env.validate_physics_dt(cfg)
     if not 0 < cfg.goal_radius <= min(-lo, hi):
         raise ValueError(f"env.goal_radius must be in (0, {min(-lo, hi)}] (inside the task range), "
                          f"got {cfg.goal_radius!r}")  # fmt: skip

@@ -3,19 +3,12 @@ normalised for the nets."""
 
 from bumps_jax.report import tables
 from bumps_jax.tasks.point_goal import config, env
-from bumps_jax.tasks.protocol import Report, Task
+from bumps_jax.tasks.protocol import Task
 
 TASK = Task(
     name="point_goal",
     env_class=env.PointGoalEnv,
     stages=("experts", "meta", "filter", "baseline"),
-    sections=config.sections,
-    presets=config.PRESETS,
-    validate=config.validate,
-    report=Report(
-        experts=tables.task_experts_markdown,
-        table1=tables.task_table1_markdown,
-        table2=tables.task_table2_markdown,
-        axes=("target goal (m)", "mean final distance to the goal (m)", "final position (m)"),
-    ),
+    config=config,
+    report=tables.plain_report(("target goal (m)", "mean final distance to the goal (m)", "final position (m)")),
 )
