@@ -282,12 +282,3 @@ def task_table2_markdown(rows: dict, unit: str) -> str:
             f"| {num(r.get('selection_error_m'), 3)} | {num(r.get('accuracy_mean'))} | {r.get('rollouts', '-')} |"
         )
     return "\n".join(lines) + "\n\n" + SELECTION_NOTE + "\n"
-
-
-def plain_report(axes: tuple[str, str, str], **extra):
-    """A task's `protocol.Report` with the tables of a task without the paper's rows
-    (`task_experts_markdown`, `task_table1_markdown`, `task_table2_markdown`); `extra`: its other fields."""
-    from bumps_jax.tasks.protocol import Report  # noqa: PLC0415
-
-    return Report(experts=task_experts_markdown, table1=task_table1_markdown, table2=task_table2_markdown,
-                  axes=axes, **extra)  # fmt: skip

@@ -68,6 +68,15 @@ class Report:
     ship_policies: Callable | None = None
 
 
+def plain_report(axes: tuple[str, str, str], **extra) -> Report:
+    """The `Report` of a task without the paper's rows: the generic tables
+    (`report.tables.task_*_markdown`) with its plot `axes`; `extra`: its other fields."""
+    from bumps_jax.report import tables  # noqa: PLC0415
+
+    return Report(experts=tables.task_experts_markdown, table1=tables.task_table1_markdown,
+                  table2=tables.task_table2_markdown, axes=axes, **extra)  # fmt: skip
+
+
 @dataclasses.dataclass(frozen=True)
 class Task:
     """A contextual task as the pipeline sees it.
