@@ -236,7 +236,7 @@ def test_a_stage_refused_before_writing_leaves_no_manifest(tmp_path, monkeypatch
         raise ValueError("refused")
 
     fake = types.SimpleNamespace(OUTPUT="out.json", inputs=lambda cfg, run_dir: {}, run=refuse)
-    monkeypatch.setattr(runner, "stage_module", lambda name: fake)
+    monkeypatch.setattr(runner, "stage_module", lambda name, task="kick": fake)
     with pytest.raises(ValueError, match="refused"):
         runner.run_stage("experts", config.make_config("tiny"), tmp_path)
     assert not (tmp_path / "experts").exists()  # a corrected rerun is a new stage, not a stale one

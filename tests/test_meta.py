@@ -26,6 +26,7 @@ from bumps_jax.report import publish, tables
 from bumps_jax.report import summary as report
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import policies
+from bumps_jax.tasks.kick.targets import HELDOUT_TARGETS
 
 
 def quiet(*args, **kwargs):
@@ -628,7 +629,7 @@ def test_the_paper_heldout_set_is_large_and_off_the_grid():
     assert len(targets) >= 50 and len(set(targets.tolist())) == len(targets)
     assert targets.min() >= 7.0 and targets.max() <= 18.0 and np.all(np.abs(targets - np.round(targets, 1)) >= 0.005)
     with pytest.raises(ValueError, match="heldout.targets holds 6 targets; the paper preset needs at least 50"):
-        config.make_config("paper", {"heldout.targets": config.HELDOUT_TARGETS[:6]})
+        config.make_config("paper", {"heldout.targets": HELDOUT_TARGETS[:6]})
     seeds = [
         v for k, v in _leaves(config.make_config("paper").to_dict()) if "seed" in k and not k.startswith("heldout")
     ]

@@ -29,7 +29,7 @@ from bumps_jax.tasks.kick import env as kick_env
 
 FORMAT_VERSION = 1
 MANIFEST = "policies.json"
-ASSET_DIR = Path(__file__).resolve().parents[2] / "assets" / "policies"
+ASSET_DIR = Path(__file__).resolve().parents[3] / "assets" / "policies"
 HOW_TO_MAKE = "publish a paper run: python -m bumps_jax publish --run-dir runs/paper"
 
 
