@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -247,10 +249,52 @@ def dispatch(args) -> None:
             commands.run(args.command, cfg, run_dir, args)
 
 
+# Commands that render offscreen: argv after the command -> whether this call renders.
+RENDERS = {"render": lambda args: True, "video": lambda args: True,
+           "kick": lambda args: any(a == "--gif" or a.startswith("--gif=") for a in args)}  # fmt: skip
+
+
+def choose_gl(argv) -> None:
+    """Pick MuJoCo's offscreen GL backend for a rendering command, before mujoco is imported (it
+    loads the backend MUJOCO_GL names once, at import): EGL, else OSMesa where only its library is
+    present; neither found: left unset, and the command says so in one line before its work.
+    Never where the user set MUJOCO_GL, nor for a command that does not render (with MUJOCO_GL
+    set, importing mujoco loads that library, and a host without one could not even simulate)."""
+    if "MUJOCO_GL" in os.environ or not argv or argv[0] not in RENDERS or not RENDERS[argv[0]](argv[1:]):
+        return
+    import ctypes.util  # noqa: PLC0415
+
+    for backend, library in (("egl", "EGL"), ("osmesa", "OSMesa")):
+        if ctypes.util.find_library(library):
+            os.environ["MUJOCO_GL"] = backend
+            return
+
+
+def load_mujoco() -> None:
+    """Import MuJoCo MJX once, first and quietly (it prints "Failed to import warp" to stdout on a
+    machine without the optional Warp backend); ValueError in one line where the GL library that
+    MUJOCO_GL names is missing."""
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            import mujoco.mjx  # noqa: F401, PLC0415
+    except (AttributeError, ImportError, OSError) as err:
+        if "MUJOCO_GL" not in os.environ:
+            raise
+        reason = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+        raise ValueError(
+            f"mujoco cannot load the GL backend MUJOCO_GL={os.environ['MUJOCO_GL']} names ({reason}): unset "
+            "MUJOCO_GL, or name one this host has (egl, osmesa)"
+        ) from None
+
+
 def main(argv=None) -> None:
     argv = sys.argv[1:] if argv is None else list(argv)
+    choose_gl(argv)  # before anything imports mujoco
+    try:
+        load_mujoco()
+    except ValueError as err:
+        sys.exit(f"error: {err}")
     args = build_parser(with_keys=any(a in ("-h", "--help") for a in argv)).parse_args(argv)
-    # (Offscreen rendering's GL backend is chosen before mujoco is imported: `bumps_jax._choose_gl`.)
     from bumps_jax import runio  # noqa: PLC0415
 
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task)

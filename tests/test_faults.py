@@ -326,19 +326,16 @@ def test_help_lists_the_stages_config_keys_and_a_bad_key_names_the_nearest(capsy
 )
 def test_the_gl_backend_is_chosen_only_for_rendering_commands(monkeypatch, argv, libraries, chosen):
     import ctypes.util
-    import sys
-
-    import bumps_jax
-
-    monkeypatch.delenv("MUJOCO_GL", raising=False)
-    monkeypatch.setattr(sys, "orig_argv", ["python", "-m", "bumps_jax", *argv])
-    monkeypatch.setattr(ctypes.util, "find_library", lambda name: f"lib{name}.so" if name in libraries else None)
-    bumps_jax._choose_gl()
     import os
 
+    from bumps_jax import cli
+
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: f"lib{name}.so" if name in libraries else None)
+    cli.choose_gl(argv)
     assert os.environ.get("MUJOCO_GL") == chosen
     monkeypatch.setenv("MUJOCO_GL", "glfw")  # the user's choice is never overridden
-    bumps_jax._choose_gl()
+    cli.choose_gl(argv)
     assert os.environ["MUJOCO_GL"] == "glfw"
 
 

@@ -13,7 +13,7 @@ from bumps_jax.tasks.kick import scene
 
 def check_gl() -> None:
     """ValueError in one line, before any long work, if MuJoCo cannot open an offscreen GL context
-    (the backend MUJOCO_GL named when mujoco was imported: `bumps_jax._choose_gl`)."""
+    (the backend MUJOCO_GL named when mujoco was imported: `cli.choose_gl`)."""
     import os  # noqa: PLC0415
 
     backend = os.environ.get("MUJOCO_GL")
