@@ -52,15 +52,13 @@ report: $(STAMP)
 kick-prior: $(STAMP)
 	$(PY) -m bumps_jax kick-prior --preset $(PRESET)
 
-# Offscreen rendering: EGL on a GPU host; on a CPU-only machine use MUJOCO_GL=osmesa
-# (Debian: apt-get install libosmesa6).
-MUJOCO_GL ?= egl
+# Offscreen rendering: the command picks EGL (else OSMesa) unless MUJOCO_GL names a backend.
 render: $(STAMP)
-	MUJOCO_GL=$(MUJOCO_GL) $(PY) -m bumps_jax render --out docs/stance.png
+	$(PY) -m bumps_jax render --out docs/stance.png
 
 # A GIF of filtered kicks at three distances from a finished run (runs/$(PRESET)/filtered_kicks.gif).
 video: $(STAMP)
-	MUJOCO_GL=$(MUJOCO_GL) $(PY) -m bumps_jax video --preset $(PRESET)
+	$(PY) -m bumps_jax video --preset $(PRESET)
 
 bench-scene: $(STAMP)
 	$(PY) benchmarks/scene_bench.py --out benchmarks/results/scene.json
