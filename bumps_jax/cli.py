@@ -43,22 +43,22 @@ PIPELINES = {
 OTHER = {
     "report": "write report.md of a run: our tables beside the paper's, figures, timings",
     "publish": "copy a finished paper run's results, figures and prior into the repository",
-    "render": "render the robot in its stance to a PNG",
-    "video": "render a GIF of filtered kicks at three distances from a finished run",
-    "showcase": "replay the committed prior over a batch of noisy episodes",
     "evaluate": "evaluate a finished run (experts, meta and filter done) on the held-out (--heldout) or "
     "development (--dev) targets",
-    "kick": "kick to a target with the shipped meta-policy (assets/policies/): filter a context, then N noisy kicks",
     "config": "print every config key (--set KEY=VALUE) with its value under --preset, --task and --set",
 }
 
-
-# Commands that take only their own options (`kick` runs the shipped policies under their own config).
-OWN_OPTIONS_ONLY = ("kick",)
-
 # The commands besides the stages that read a finished run and write into its directory: under
-# its lock, as the stages are, and refused at once where the directory does not exist.
-NEEDS_RUN = ("evaluate", "publish", "report", "video")
+# its lock, as the stages are, and refused at once where the directory does not exist. (A task's
+# own commands say so themselves: `protocol.Command.needs_run`.)
+NEEDS_RUN = ("evaluate", "publish", "report")
+
+
+def task_commands() -> dict:
+    """The tasks' own commands: name -> `protocol.Command` (`tasks.registry.commands`)."""
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
+
+    return {name: spec for name, (_, spec) in tasks.commands().items()}
 
 
 def parse_overrides(groups, section: str | None = None, task: str | None = None) -> dict:
@@ -94,12 +94,14 @@ def flat_keys(tree: dict, prefix: str = "") -> dict:
     return out
 
 
-def config_keys_text(sections, task: str = "kick") -> str:
+def config_keys_text(sections, task: str | None = None) -> str:
     """The keys of `task`'s config `sections` with the tiny preset's values (and the paper's where
     they differ): what --set takes, for a command's --help and the `config` command."""
     from bumps_jax import config  # noqa: PLC0415
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
-    tiny, paper = (flat_keys(config.make_config(p, {"task": task}).to_dict()) for p in ("tiny", "paper"))
+    overrides = {"task": task or tasks.DEFAULT}
+    tiny, paper = (flat_keys(config.make_config(p, overrides).to_dict()) for p in ("tiny", "paper"))
     lines = ["config keys (--set KEY=VALUE), with the tiny preset's value (and the paper preset's where it differs):"]
     for key, value in tiny.items():
         if key.split(".")[0] in sections:
@@ -115,12 +117,16 @@ def build_parser(with_keys: bool = False) -> argparse.ArgumentParser:
     the config: only when help is asked for)."""
     parser = argparse.ArgumentParser(prog="python -m bumps_jax", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
+    own = task_commands()
     helps = {**{k: v[1] for k, v in STAGE_COMMANDS.items()}, **{k: v[2] for k, v in PIPELINES.items()}, **OTHER}
+    helps.update({name: spec.help for name, spec in own.items()})
     for name, help_text in helps.items():
+        spec = own.get(name)
+        own_only = spec is not None and spec.own_options_only
         epilog = None
         if with_keys and name in STAGE_COMMANDS:
             epilog = config_keys_text((STAGE_COMMANDS[name][0],)) + "\n  env.*: python -m bumps_jax config"
-        elif with_keys and name not in OWN_OPTIONS_ONLY:
+        elif with_keys and not own_only:
             epilog = "config keys (--set KEY=VALUE) with their values: python -m bumps_jax config"
         p = sub.add_parser(
             name,
@@ -129,18 +135,12 @@ def build_parser(with_keys: bool = False) -> argparse.ArgumentParser:
             epilog=epilog,
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
-        if name in OWN_OPTIONS_ONLY:  # the shipped policies' own config: no preset, run directory or --set
+        if own_only:  # a command under its own config (the kick's shipped policies): no preset, run directory or --set
             p.set_defaults(preset="tiny", run_dir=None, task=None, set=[], force=False, distributed=False)
         else:
             add_run_options(p, name)
-        if name == "kick":
-            p.add_argument("--target", type=float, required=True, help="target distance (m)")
-            p.add_argument("--kicks", type=int, default=16, help="noisy kicks at the chosen context (default 16)")
-            p.add_argument("--net", default="meta_4x256", help="meta_4x256 (default) or meta_11x128")
-            p.add_argument("--gif", default=None, help="also render one of the printed kicks to this GIF")
-            p.add_argument("--selection-reps", type=int, default=4, help="noisy kicks per candidate context")
-            p.add_argument("--seed", type=int, default=0, help="noise of the selection and the kicks")
-            p.add_argument("--policies", type=Path, default=None, help="shipped policies (default: assets/policies)")
+        if spec is not None and spec.add_arguments is not None:
+            spec.add_arguments(p)
     return parser
 
 
@@ -166,10 +166,6 @@ def add_run_options(p, name: str) -> None:
         p.add_argument("--stages", nargs="+", default=None, metavar="STAGE",
                        help=f"only these of its stages, in its order (default: all of {every}); the run "
                             "directory's timings and report count them as one more call")  # fmt: skip
-    if name in ("render", "video"):
-        p.add_argument("--out", default=None, help="the picture's path")
-    if name == "showcase":
-        p.add_argument("--episodes", type=int, default=16)
     if name == "evaluate":
         p.add_argument("--heldout", action="store_true", help="the held-out targets and seed (config: heldout)")
         p.add_argument("--dev", action="store_true",
@@ -224,7 +220,9 @@ def dispatch(args) -> None:
     # One command at a time writes stages into a run directory; with --distributed every host runs
     # the same command into the same directory, by design.
     lock = contextlib.nullcontext() if args.distributed else runio.run_lock(run_dir)
-    if args.command in NEEDS_RUN:
+    spec = task_commands().get(args.command)
+    needs_run = args.command in NEEDS_RUN or (spec is not None and spec.needs_run)
+    if needs_run:
         if not Path(run_dir).is_dir():  # refused before the lock would create it
             raise ValueError(f"no run directory {str(run_dir)!r}: run its stages first (e.g. python -m bumps_jax demo)")
     if section:
@@ -244,14 +242,9 @@ def dispatch(args) -> None:
     else:
         from bumps_jax.pipeline import commands  # noqa: PLC0415
 
-        writes = args.command in NEEDS_RUN or (args.command == "render" and args.out is None)
+        writes = needs_run if spec is None or spec.writes_run is None else spec.writes_run(args)
         with lock if writes else contextlib.nullcontext():
             commands.run(args.command, cfg, run_dir, args)
-
-
-# Commands that render offscreen: argv after the command -> whether this call renders.
-RENDERS = {"render": lambda args: True, "video": lambda args: True,
-           "kick": lambda args: any(a == "--gif" or a.startswith("--gif=") for a in args)}  # fmt: skip
 
 
 def choose_gl(argv) -> None:
@@ -260,7 +253,8 @@ def choose_gl(argv) -> None:
     present; neither found: left unset, and the command says so in one line before its work.
     Never where the user set MUJOCO_GL, nor for a command that does not render (with MUJOCO_GL
     set, importing mujoco loads that library, and a host without one could not even simulate)."""
-    if "MUJOCO_GL" in os.environ or not argv or argv[0] not in RENDERS or not RENDERS[argv[0]](argv[1:]):
+    spec = task_commands().get(argv[0]) if argv else None
+    if "MUJOCO_GL" in os.environ or spec is None or not spec.renders(argv[1:]):
         return
     import ctypes.util  # noqa: PLC0415
 

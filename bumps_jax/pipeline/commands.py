@@ -1,5 +1,5 @@
 """The commands besides the stages that every task has: report, publish, evaluate; a task's own
-(`Task.commands`: the kick's render, video, showcase and kick) are found through it.
+(its folder's `commands.py`: the kick's render, video, showcase and kick) come from the registry.
 
 Each takes the pipeline config, the run directory and the parsed arguments; each checks its
 inputs (with their paths) before any long work.
@@ -16,10 +16,11 @@ def run(command: str, cfg, run_dir: Path, args) -> None:
     """Run `command`: one of every task's, else one of the config's task's own."""
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
-    commands = {"report": report, "publish": publish, "evaluate": evaluate, **tasks.get(cfg.task).commands}
-    if command not in commands:
-        raise ValueError(f"the {cfg.task} task has no {command} command; it has {', '.join(sorted(commands))}")
-    commands[command](cfg, Path(run_dir), args)
+    every = {"report": report, "publish": publish, "evaluate": evaluate}
+    own = {name: spec.run for name, (owner, spec) in tasks.commands().items() if owner == cfg.task}
+    if command not in {**every, **own}:
+        raise ValueError(f"the {cfg.task} task has no {command} command; it has {', '.join(sorted({**every, **own}))}")
+    {**every, **own}[command](cfg, Path(run_dir), args)
 
 
 def report(cfg, run_dir: Path, args) -> None:

@@ -11,12 +11,15 @@ from bumps_jax.report.summary import EXTRAS, STAGES, load, pipeline_lines, pream
 
 
 def run_task(run_dir: str | Path) -> str:
-    """The task a run's records name (`task`; the kick's records name none)."""
+    """The task a run's records name (`task`; records from before they named one are the default
+    task's, the only one there was)."""
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
+
     for rel in (STAGES["experts"], STAGES["meta"], STAGES["filter"]):
         record = load(Path(run_dir), rel)
         if record:
-            return record.get("task", "kick")
-    return "kick"
+            return record.get("task", tasks.DEFAULT)
+    return tasks.DEFAULT
 
 
 def build_task(run_dir: str | Path, task: str) -> str:

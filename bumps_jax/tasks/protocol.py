@@ -10,12 +10,13 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
-import ml_collections
-import numpy as np
+if TYPE_CHECKING:  # this module stays light: the command line reads tasks' commands before MuJoCo loads
+    import ml_collections
+    import numpy as np
 
-from bumps_jax.envs.base import ContextualEnv
+    from bumps_jax.envs.base import ContextualEnv
 
 # The pipeline's stages in their order; a task runs those it lists in `Task.stages`.
 STAGE_ORDER = ("prior", "experts", "meta", "filter", "heldout", "baseline")
@@ -68,6 +69,26 @@ class Report:
     ship_policies: Callable | None = None
 
 
+def _never(args) -> bool:
+    return False
+
+
+@dataclasses.dataclass(frozen=True)
+class Command:
+    """A command of a task's own beside every task's (report, publish, evaluate): `COMMANDS` of its
+    folder's `commands.py`, which imports nothing heavy (the command line reads it before MuJoCo
+    loads, to pick a GL backend)."""
+
+    help: str
+    run: Callable  # (cfg, run_dir, parsed arguments) -> None
+    add_arguments: Callable | None = None  # (argparse parser) -> None: its own options
+    # True: only its own options (no --preset, --run-dir, --task, --set): it runs under its own config.
+    own_options_only: bool = False
+    renders: Callable[[list], bool] = _never  # the arguments after its name -> whether this call renders
+    needs_run: bool = False  # it reads a finished run (refused at once where none is) and writes into it
+    writes_run: Callable | None = None  # (parsed arguments) -> whether it writes into the run (None: needs_run)
+
+
 def plain_report(axes: tuple[str, str, str], **extra) -> Report:
     """The `Report` of a task without the paper's rows: the generic tables
     (`report.tables.task_*_markdown`) with its plot `axes`; `extra`: its other fields."""
@@ -102,9 +123,6 @@ class Task:
     # it is, when it is in [0, 1] already).
     normalise_meta_inputs: bool = True
     own_stages: Mapping[str, str] = dataclasses.field(default_factory=dict)  # stage -> module (the kick's prior)
-    # Commands of its own beside every task's (report, publish, evaluate): name ->
-    # fn(cfg, run_dir, parsed arguments) (the kick's render, video, showcase and kick).
-    commands: Mapping[str, Callable] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         unknown = [s for s in self.stages if s not in STAGE_ORDER]

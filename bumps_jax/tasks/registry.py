@@ -1,7 +1,8 @@
 """The contextual tasks the pipeline runs (`task` in the config), by name.
 
-Each entry names a task's folder, whose `task.py` builds its `protocol.Task` as `TASK`. Adding a
-task is its folder and one line here (`docs/your_task.md`).
+Each entry names a task's `task.py`, which builds its `protocol.Task` as `TASK`; a `commands.py`
+beside it, where there is one, holds the task's own commands (`COMMANDS`). Adding a task is its
+folder and one line here (`docs/your_task.md`).
 """
 
 from __future__ import annotations
@@ -31,6 +32,24 @@ def check_task(name: str) -> str:
 def get(name: str) -> Task:
     """The task called `name` (its folder is imported on first use)."""
     return importlib.import_module(_TASKS[check_task(name)]).TASK
+
+
+@functools.cache
+def commands() -> dict:
+    """Every task's own commands: name -> (task, `protocol.Command`), from each folder's light
+    `commands.py` (no task module is imported: MuJoCo is not loaded)."""
+    import importlib.util  # noqa: PLC0415
+
+    out = {}
+    for name, module in _TASKS.items():
+        path = module.rsplit(".", 1)[0] + ".commands"
+        if importlib.util.find_spec(path) is None:
+            continue
+        for command, spec in importlib.import_module(path).COMMANDS.items():
+            if command in out:
+                raise ValueError(f"tasks {out[command][0]!r} and {name!r} both define a {command!r} command")
+            out[command] = (name, spec)
+    return out
 
 
 def make_env(name: str, env_cfg, overrides: dict | None = None):

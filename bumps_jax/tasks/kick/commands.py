@@ -1,8 +1,9 @@
-"""The kick's own commands: render (the stance), video (filtered kicks of a run), showcase (the
-committed prior's kicks) and kick (the shipped meta-policy kicking to a target).
+"""The kick's own commands (`COMMANDS`): render (the stance), video (filtered kicks of a run),
+showcase (the committed prior's kicks) and kick (the shipped meta-policy kicking to a target).
 
 Each takes the pipeline config, the run directory and the parsed arguments; each checks its
-inputs (with their paths) before any long work.
+inputs (with their paths) before any long work. This module imports nothing heavy at import: the
+command line reads `COMMANDS` before MuJoCo loads.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from bumps_jax import runio
+from bumps_jax.tasks.protocol import Command
 
 
 def render(cfg, run_dir: Path, args) -> None:
@@ -116,3 +118,39 @@ def kick(cfg, run_dir: Path, args) -> None:
         path = render.kick_gif(args.gif, env, apply_fn, shipped.nets[args.net], [out.context], [target],
                                keys=out.keys[shown : shown + 1])  # fmt: skip
         print(f"wrote {path}: kick {shown + 1} of the {len(out.distance)} above ({out.distance[shown]:.2f} m)")
+
+
+def picture_arguments(p) -> None:
+    p.add_argument("--out", default=None, help="the picture's path")
+
+
+def showcase_arguments(p) -> None:
+    p.add_argument("--episodes", type=int, default=16)
+
+
+def kick_arguments(p) -> None:
+    p.add_argument("--target", type=float, required=True, help="target distance (m)")
+    p.add_argument("--kicks", type=int, default=16, help="noisy kicks at the chosen context (default 16)")
+    p.add_argument("--net", default="meta_4x256", help="meta_4x256 (default) or meta_11x128")
+    p.add_argument("--gif", default=None, help="also render one of the printed kicks to this GIF")
+    p.add_argument("--selection-reps", type=int, default=4, help="noisy kicks per candidate context")
+    p.add_argument("--seed", type=int, default=0, help="noise of the selection and the kicks")
+    p.add_argument("--policies", type=Path, default=None, help="shipped policies (default: assets/policies)")
+
+
+COMMANDS = {
+    "render": Command(
+        "render the robot in its stance to a PNG", render, picture_arguments,
+        renders=lambda args: True, writes_run=lambda args: args.out is None,
+    ),
+    "video": Command(
+        "render a GIF of filtered kicks at three distances from a finished run", video, picture_arguments,
+        renders=lambda args: True, needs_run=True,
+    ),
+    "showcase": Command("replay the committed prior over a batch of noisy episodes", showcase, showcase_arguments),
+    "kick": Command(
+        "kick to a target with the shipped meta-policy (assets/policies/): filter a context, then N noisy kicks",
+        kick, kick_arguments, own_options_only=True,
+        renders=lambda args: any(a == "--gif" or a.startswith("--gif=") for a in args),
+    ),
+}  # fmt: skip

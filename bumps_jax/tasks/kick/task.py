@@ -1,7 +1,7 @@
 """The kick as a BUMPS task: its env, its experts' start, its own prior stage and its report."""
 
 from bumps_jax.report import tables
-from bumps_jax.tasks.kick import commands, config, env, policies
+from bumps_jax.tasks.kick import config, env, policies
 from bumps_jax.tasks.kick.start import KeyframeStart
 from bumps_jax.tasks.protocol import Report, Task
 
@@ -11,7 +11,6 @@ TASK = Task(
     stages=("prior", "experts", "meta", "filter", "heldout", "baseline"),
     config=config,
     own_stages={"prior": "bumps_jax.tasks.kick.prior"},
-    commands={"render": commands.render, "video": commands.video, "showcase": commands.showcase, "kick": commands.kick},
     expert_start=KeyframeStart(),
     normalise_meta_inputs=False,  # (phase, normalised target) are in [0, 1] already
     report=Report(
