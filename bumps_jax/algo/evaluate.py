@@ -114,3 +114,63 @@ def tasks_record(tasks, metrics: dict) -> dict:
         "rel_error_mean": None if rel is None else float(rel.mean()),
         "n_reps": int(np.asarray(metrics["valid"]).shape[1]),
     }
+
+
+# -- one family of experts ----------------------------------------------------------------------
+
+
+def nearest_others(tasks, k: int = 2) -> list[list[int]]:
+    """For each context, the indices of the `k` nearest other contexts (Euclidean; ties by index)."""
+    t = np.asarray(tasks, np.float64).reshape(len(tasks), -1)
+    dist = np.linalg.norm(t[:, None] - t[None], axis=-1)
+    np.fill_diagonal(dist, np.inf)
+    return [sorted(np.argsort(row, kind="stable")[: min(k, len(t) - 1)].tolist()) for row in dist]
+
+
+def family_check(env: task_env.ContextualEnv, tasks, metrics: dict, posture: dict | None = None) -> dict:
+    """Whether the experts are one family, before any net is cloned from them: per expert, what
+    its episodes achieved (`env.ACHIEVED`), its error on its own context and at its nearest
+    neighbours' (`nearest_others`), and the env's `posture` statistics ({name: (E,)}); in all,
+    whether what they achieve rises with the context (a scalar one) and how many spend most
+    of their steps flipped (a posture's `flipped_fraction` above 0.5).
+    metrics: final metrics of (E, R) (`evaluate_experts`)."""
+    posture = posture or {}
+    tasks = np.asarray(tasks, np.float64)
+    achieved = np.asarray(metrics[env.ACHIEVED], np.float64).mean(axis=1)
+    rows = []
+    for i, others in enumerate(nearest_others(tasks)):
+        episodes = {k: np.asarray(v)[i] for k, v in metrics.items()}
+        rows.append({
+            "target_m": task_env.context_json(tasks[i]),
+            "achieved": task_env.context_json(achieved[i]),
+            "error_m": float(np.asarray(metrics["final_error"])[i].mean()),
+            "neighbours_m": [task_env.context_json(tasks[j]) for j in others],
+            "error_at_neighbours_m": [float(np.mean(env.error_against(episodes, tasks[j]))) for j in others],
+            **{k: float(v[i]) for k, v in posture.items()},
+        })  # fmt: skip
+    out = {"per_task": rows}
+    if tasks.ndim == 1:
+        order = np.argsort(tasks)
+        out["achieved_rises"] = bool(np.all(np.diff(achieved[order]) > 0))
+    if "flipped_fraction" in posture:
+        out["flipped_experts"] = int((np.asarray(posture["flipped_fraction"]) > 0.5).sum())
+    return out
+
+
+def family_table(check: dict, unit: str) -> str:
+    """`family_check` as a markdown table, one row per expert, and its verdicts."""
+    fmt = task_env.format_context
+    extra = [k for k in check["per_task"][0] if k not in FAMILY_ROW_KEYS]
+    head = [f"target ({unit})", "achieved", "error", "error at the nearest neighbours", *extra]
+    lines = ["## Family check", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in check["per_task"]:
+        near = ", ".join(
+            f"{fmt(c)}: {e:.2f}" for c, e in zip(r["neighbours_m"], r["error_at_neighbours_m"], strict=True)
+        )
+        cells = [fmt(r["target_m"]), fmt(r["achieved"]), f"{r['error_m']:.3f}", near, *(f"{r[k]:.2f}" for k in extra)]
+        lines.append("| " + " | ".join(cells) + " |")
+    verdicts = {k: v for k, v in check.items() if k != "per_task"}
+    return "\n".join([*lines, "", ", ".join(f"{k}: {v}" for k, v in verdicts.items()), ""])
+
+
+FAMILY_ROW_KEYS = ("target_m", "achieved", "error_m", "neighbours_m", "error_at_neighbours_m")

@@ -30,21 +30,29 @@ from bumps_jax.envs.base import ContextualEnv
 RECORDS = (None, "trajectory", "return", "qpos")
 
 
-def episode_fn(env: ContextualEnv, apply_fn, record: str | None = None):
-    """A pure fn (params, context, target, key) -> metrics (or (metrics, recorded), see above)."""
+def episode_fn(env: ContextualEnv, apply_fn, record: str | None = None, action_noise: float = 0.0):
+    """A pure fn (params, context, target, key) -> metrics (or (metrics, recorded), see above).
+    action_noise: the env steps with the policy's action plus Gaussian noise of this std (its
+    own draws from the episode's key), while "trajectory" records the policy's action (DART)."""
     if record not in RECORDS:
         raise ValueError(f"record must be one of {RECORDS}, got {record!r}")
 
     def episode(params, context, target, key):
-        def body(carry, _):
+        noise_key = jax.random.fold_in(key, 1)
+
+        def body(carry, t):
             state, ret = carry
             obs = env.with_context(state.obs, context)
             action = apply_fn(params, obs)
-            state = env.step(state, action)
+            executed = action
+            if action_noise:
+                executed = action + action_noise * jax.random.normal(jax.random.fold_in(noise_key, t), action.shape)
+            state = env.step(state, executed)
             recorded = {"trajectory": (obs, action), "qpos": state.pipeline_state.qpos}.get(record)
             return (state, ret + state.reward), recorded
 
-        (state, ret), recorded = jax.lax.scan(body, (env.reset(key, target), jnp.zeros(())), None, env.n_steps)
+        steps = jnp.arange(env.n_steps)
+        (state, ret), recorded = jax.lax.scan(body, (env.reset(key, target), jnp.zeros(())), steps)
         if record is None:
             return state.metrics
         return state.metrics, (ret if record == "return" else recorded)
@@ -88,15 +96,15 @@ def in_chunks(program, env: ContextualEnv, axis: int, per_item: int, n_devices: 
     return run
 
 
-def matched_fn(env: ContextualEnv, apply_fn, record: str | None = None, mesh=None):
+def matched_fn(env: ContextualEnv, apply_fn, record: str | None = None, mesh=None, action_noise: float = 0.0):
     """(params (N, ...), contexts (N,), targets (N,), keys (N, R)) -> outputs of (N, R, ...), jitted.
 
     Policy i on its own (context i, target i), R noisy repetitions: experts on their tasks,
     the kick prior's candidates, the meta-policy's dataset. With a `mesh` the N axis is split
     over its devices (N must then be a multiple of the mesh size: `sharding.pad`). A batch
-    larger than the physics holds runs in chunks (`in_chunks`).
+    larger than the physics holds runs in chunks (`in_chunks`). action_noise: see `episode_fn`.
     """
-    fn = jax.vmap(over_reps(episode_fn(env, apply_fn, record)), in_axes=(0, 0, 0, 0))
+    fn = jax.vmap(over_reps(episode_fn(env, apply_fn, record, action_noise)), in_axes=(0, 0, 0, 0))
     if mesh is None:
         return in_chunks(jax.jit(fn), env, axis=0, per_item=1)
     return in_chunks(sharding.over_batch(fn, mesh, (True, True, True, True)), env, 0, 1, mesh.size)

@@ -151,6 +151,9 @@ class ContextualEnv(Env):
     UNIT = "m"  # the context's unit
     CONTEXT_SIZE = 1  # numbers in one context: 1, a scalar (); K > 1, a vector (K,) (a goal position)
     ACHIEVED = "distance"  # the final metric holding what an episode achieved, in UNIT (plots)
+    # The actions' bound: the env clips each action to [-ACTION_BOUND, ACTION_BOUND]; None: no
+    # clipping (the kick's joint targets).
+    ACTION_BOUND: float | None = None
     contacts_per_episode: int  # the most contacts one episode makes: Warp's pool holds this per episode
 
     def _init_physics(self, mj_model: mujoco.MjModel) -> None:
@@ -200,6 +203,11 @@ class ContextualEnv(Env):
         """What a single-task expert observes of a contextual observation (..., context size):
         the env's own observation, its first `observation_size` numbers (..., observation_size)."""
         return obs[..., : self.observation_size]
+
+    def posture(self, qpos: np.ndarray) -> dict:
+        """Statistics of a body's posture over episodes, qpos (..., T, nq) -> {name: (...)}: what
+        tells whether experts move alike (the cheetah: torso pitch and height). None by default."""
+        return {}
 
     def error_against(self, metrics: dict, targets) -> np.ndarray:
         """Final errors of finished episodes against other targets: metrics (host arrays of shape

@@ -27,6 +27,16 @@ def experts(tasks) -> ml_collections.ConfigDict:
     return cfg
 
 
+def family() -> ml_collections.ConfigDict:
+    """`experts.family`, for a task without its own expert start: the experts as one family."""
+    cfg = ml_collections.ConfigDict()
+    # PPO updates of the centre expert (the context nearest the contexts' mean) alone, before
+    # every expert continues from it; 0: every expert starts from its own fresh policy.
+    cfg.centre_updates = 0
+    cfg.ramp_updates = 0  # updates over which each expert's target moves from the centre's context to its own
+    return cfg
+
+
 def meta(eval_tasks) -> ml_collections.ConfigDict:
     """Behaviour cloning into the contextual meta-policies, and their unfiltered evaluation."""
     cfg = ml_collections.ConfigDict()
@@ -35,6 +45,17 @@ def meta(eval_tasks) -> ml_collections.ConfigDict:
     cfg.dataset = ml_collections.ConfigDict()  # the experts' rollouts the nets are cloned from
     cfg.dataset.repetitions = 1  # rollouts per expert; 1 records them noise-free (the paper)
     cfg.dataset.seed = 0  # noise of those rollouts (with repetitions > 1)
+    # Closed-loop cloning. DART: the recorded episodes act with the expert's action plus Gaussian
+    # noise of this std (labels stay the expert's own action); 0: the expert's action.
+    cfg.dataset.action_noise = 0.0
+    cfg.dataset.clip_labels = False  # labels clipped to the env's action bound (`ACTION_BOUND`)
+    # DAgger: after cloning, `rounds` times: each net runs `repetitions` episodes at every
+    # expert's context, its states are labelled by that expert, added to the pairs, and every
+    # net trains `epochs` more epochs on them all. 0 rounds: plain cloning (the paper).
+    cfg.dagger = ml_collections.ConfigDict()
+    cfg.dagger.rounds = 0
+    cfg.dagger.repetitions = 4  # episodes per net and expert context, each round
+    cfg.dagger.epochs = 100  # epochs of training after each round
     cfg.train = ml_collections.ConfigDict()  # behaviour cloning (`bc.make_trainer`: every net in one program)
     cfg.train.learning_rate = 3e-4  # Adam, times decay_rate every decay_every epochs
     cfg.train.decay_rate = 0.8  # factor on the rate every decay_every epochs

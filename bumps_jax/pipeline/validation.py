@@ -72,6 +72,16 @@ def experts(e, task_range, n_steps: int, unit: str = "m") -> None:
     positive_ints(e.eval, "experts.eval.", ("repetitions",))
     ppo_section(e.ppo, "experts.ppo.", n_steps, task_range)
     chunk_divides(e, "experts.", int(e.ppo.total_env_steps // (e.ppo.num_envs * n_steps)))
+    if "family" in e:
+        for key in ("centre_updates", "ramp_updates"):
+            value = e.family[key]
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+                raise ValueError(f"experts.family.{key} must be an integer >= 0, got {value!r}")
+        if e.family.centre_updates % e.updates_per_chunk:
+            raise ValueError(
+                f"experts.family.centre_updates {e.family.centre_updates} must be a multiple of "
+                f"experts.updates_per_chunk {e.updates_per_chunk} (one compiled chunk size)"
+            )
 
 
 def chunk_divides(section, prefix: str, total: int) -> None:
@@ -92,6 +102,15 @@ def meta(m, task_range, unit: str = "m") -> None:
     if not 0 < m.train.decay_rate <= 1:
         raise ValueError(f"{p}train.decay_rate must be in (0, 1], got {m.train.decay_rate!r}")
     positive_ints(m.dataset, f"{p}dataset.", ("repetitions",))
+    noise = m.dataset.action_noise
+    if isinstance(noise, bool) or not isinstance(noise, int | float) or not math.isfinite(noise) or noise < 0:
+        raise ValueError(f"{p}dataset.action_noise must be a finite std >= 0, got {noise!r}")
+    rounds = m.dagger.rounds
+    if isinstance(rounds, bool) or not isinstance(rounds, int | np.integer) or rounds < 0:
+        raise ValueError(f"{p}dagger.rounds must be an integer >= 0, got {rounds!r}")
+    positive_ints(m.dagger, f"{p}dagger.", ("repetitions", "epochs"))
+    if rounds and m.dagger.epochs % m.train.chunk:
+        raise ValueError(f"{p}dagger.epochs {m.dagger.epochs} must be a multiple of {p}train.chunk {m.train.chunk}")
     positive_ints(m.eval, f"{p}eval.", ("repetitions",))
     targets(m.eval.tasks, task_range, f"{p}eval.tasks", unit)
     for name, arch in m.nets.items():

@@ -26,7 +26,7 @@ import ml_collections
 import numpy as np
 
 from bumps_jax import config, runio
-from bumps_jax.algo import evaluate, ppo, sharding
+from bumps_jax.algo import evaluate, ppo, rollout, sharding
 from bumps_jax.envs import base as task_env
 from bumps_jax.records import jsonable
 from bumps_jax.tasks import registry as tasks
@@ -198,8 +198,75 @@ def initial_state(cfg, run_dir: Path, programs: Compiled, say=print):
     return state
 
 
+# -- one family: a centre expert first, every expert continued from it ----------------------------
+
+
+def family_updates(cfg) -> tuple[int, int]:
+    """(centre_updates, ramp_updates) of `experts.family` ((0, 0): every expert starts fresh)."""
+    fam = cfg.experts.get("family")
+    return (0, 0) if fam is None else (int(fam.centre_updates), int(fam.ramp_updates))
+
+
+def family_centre(tasks) -> int:
+    """The family's centre: the index of the training context nearest the contexts' mean."""
+    t = np.asarray(tasks, np.float64).reshape(len(tasks), -1)
+    return int(np.argmin(np.linalg.norm(t - t.mean(axis=0), axis=1)))
+
+
+def ramped_targets(tasks: np.ndarray, centre: int, update: int, chunk: int, ramp: int) -> np.ndarray:
+    """Every expert's training target for the chunk after `update` updates: its own context, or
+    while the ramp lasts, the point (update + chunk) / ramp of the way from the centre's to it."""
+    frac = 1.0 if ramp <= 0 else min(1.0, (update + chunk) / ramp)
+    return tasks[centre] + (tasks - tasks[centre]) * frac
+
+
+def family_state(centre: ppo.TrainState, rngs) -> ppo.TrainState:
+    """The centre expert's TrainState (1, ...) copied to every expert (N = len(rngs)): the same
+    policy, value net, optimiser and observation statistics; each its own rng, no updates yet."""
+    n = len(rngs)
+    state = jax.tree.map(lambda x: jnp.repeat(x, n, axis=0), centre)
+    zeros = jnp.zeros((n,), state.update.dtype)
+    return state._replace(
+        rng=jnp.asarray(rngs, state.rng.dtype), update=zeros, env_steps=zeros.astype(state.env_steps.dtype)
+    )
+
+
+def chunked_loop(programs: Compiled, tasks, init, targets_at, n_updates: int) -> runio.ChunkedTraining:
+    """`runio.ChunkedTraining` of experts on `tasks` (N,) or (N, K), starting from `init()`;
+    targets_at(updates done) -> the chunk's training targets."""
+    unit = programs.env.UNIT
+    fields = csv_fields(unit)
+    return runio.ChunkedTraining(
+        init=init,
+        chunk=lambda state: run_chunk(programs, state, targets_at(int(np.asarray(state.update)[0]))),
+        abstract=abstract_state(programs, len(tasks)),
+        updates=lambda state: int(np.asarray(state.update)[0]),
+        rows=lambda before, m: chunk_rows(before, m, tasks, programs.trainer.steps_per_update, fields),
+        line=lambda m, update, eta: progress_line(tasks, m, update, n_updates, eta, unit),
+        fields=fields,
+    )
+
+
+def train_centre(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: int | None = None) -> dict:
+    """The family's centre expert alone, `experts.family.centre_updates` PPO updates from a fresh
+    policy on its own context, under run_dir/experts/centre (resumable as the experts are)."""
+    tasks = task_env.as_contexts(cfg.experts.tasks, programs.env.CONTEXT_SIZE)
+    i = family_centre(tasks)
+    n, _ = family_updates(cfg)
+    say(f"family: the centre expert at {task_env.format_context(tasks[i])} {programs.env.UNIT} first, {n} updates")
+    rng = task_rngs(cfg.experts.seed, len(tasks))[i : i + 1]
+    start = np.zeros((1, programs.start_size))
+    loop = chunked_loop(
+        programs, tasks[i : i + 1], lambda: run_init(programs, rng, tasks[i : i + 1], start)[0],
+        lambda _: tasks[i : i + 1], n,
+    )  # fmt: skip
+    stage_dir = run_dir / "experts" / "centre"
+    return runio.train_in_chunks(stage_dir, loop, n, cfg.experts.keep_checkpoints, say, stop_after_chunks)
+
+
 def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: int | None = None) -> dict:
-    """Train every task's expert under run_dir/experts, resuming from its newest readable checkpoint.
+    """Train every task's expert under run_dir/experts, resuming from its newest readable checkpoint;
+    with `experts.family`, the centre expert first (`train_centre`) and every expert from it.
 
     Returns {"state": TrainState (N, ...), "finished": bool, "wall_s": training seconds over every call}.
     """
@@ -207,20 +274,22 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
 
     stage_dir = run_dir / "experts"
     tasks = task_env.as_contexts(cfg.experts.tasks, programs.env.CONTEXT_SIZE)  # (E,) or (E, K)
-    targets = jnp.asarray(tasks, jnp.float32)
     total = programs.trainer.n_updates
-    unit = programs.env.UNIT
-    fields = csv_fields(unit)
-    loop = runio.ChunkedTraining(
-        init=lambda: initial_state(cfg, run_dir, programs, say),
-        chunk=lambda state: run_chunk(programs, state, targets),
-        abstract=abstract_state(programs, len(tasks)),
-        updates=lambda state: int(np.asarray(state.update)[0]),
-        rows=lambda before, m: chunk_rows(before, m, tasks, programs.trainer.steps_per_update, fields),
-        line=lambda m, update, eta: progress_line(tasks, m, update, total, eta, unit),
-        fields=fields,
-    )
+    centre_updates, ramp = family_updates(cfg)
+    centre_s = 0.0
+    if centre_updates:
+        centre = train_centre(cfg, run_dir, programs, say, stop_after_chunks)
+        if not centre["finished"]:
+            return {**centre, "finished": False}
+        centre_s = centre["wall_s"]
+        rngs = jax.vmap(lambda k: jax.random.fold_in(k, 1))(task_rngs(cfg.experts.seed, len(tasks)))
+        init = functools.partial(family_state, centre["state"], rngs)
+    else:
+        init = functools.partial(initial_state, cfg, run_dir, programs, say)
+    i, chunk = family_centre(tasks), int(cfg.experts.updates_per_chunk)
+    loop = chunked_loop(programs, tasks, init, lambda u: ramped_targets(tasks, i, u, chunk, ramp), total)
     out = runio.train_in_chunks(stage_dir, loop, total, cfg.experts.keep_checkpoints, say, stop_after_chunks)
+    out["wall_s"] += centre_s
     if out["finished"]:
         with ocp.StandardCheckpointer() as checkpointer:  # leaving the context waits for the write
             checkpointer.save((stage_dir / "final_params").resolve(), expert_params(out["state"]), force=True)
@@ -280,6 +349,18 @@ def load_family(cfg, run_dir: Path) -> Family:
     return Family(expert_policy(policy_networks(policy), env), params, np.asarray(cfg.experts.tasks, np.float64))
 
 
+def family_posture(cfg, programs: Compiled, params: ExpertParams) -> dict:
+    """The env's `posture` statistics of each expert on its own context, over the evaluation's
+    episodes (same keys), averaged over them: {name: (E,)}; {} for an env that defines none."""
+    env, e = programs.env, cfg.experts
+    if type(env).posture is task_env.ContextualEnv.posture:
+        return {}
+    program = rollout.matched_fn(env, task_expert_policy(cfg, programs), record="qpos")
+    targets = np.asarray(e.tasks, np.float32)
+    _, qpos = program(params, targets, targets, rollout.repetition_keys(e.eval.seed, len(targets), e.eval.repetitions))
+    return {k: np.asarray(v).mean(axis=1) for k, v in env.posture(np.asarray(qpos)).items()}
+
+
 def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compiled, wall_s: float, say=print) -> dict:
     """Every expert on its own task (`eval.repetitions` noisy episodes each): experts.json and experts.md."""
     start = time.perf_counter()
@@ -289,16 +370,27 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
     metrics = evaluate.evaluate_experts(programs.env, apply, params, e.tasks, e.eval.repetitions, e.eval.seed)
     record = evaluate.experts_record(e.tasks, metrics, programs.trainer.n_updates * programs.trainer.steps_per_update)
     task = tasks.get(cfg.task)
-    if task.expert_start is None:  # every env step an expert cost is PPO's
+    centre_updates, _ = family_updates(cfg)
+    if task.expert_start is None:  # every env step an expert cost is PPO's (its share of the centre's)
+        centre_steps = centre_updates * programs.trainer.steps_per_update
         record["env_steps_breakdown"] = {"ppo": record["env_steps"]}
+        if centre_steps:
+            record["env_steps_breakdown"]["family_centre_share"] = centre_steps // len(e.tasks)
+            record["family_centre"] = {"context": task_env.context_json(e.tasks[family_centre(e.tasks)]),
+                                       "updates": centre_updates, "env_steps": centre_steps}  # fmt: skip
     else:
         record.update(task.expert_start.describe(cfg, stage_dir.parent, stage_dir, programs.env, record))
     known = [v for v in record["env_steps_breakdown"].values() if v is not None]
     record["env_steps_total"] = int(sum(known))  # per expert, the parts that are known
+    record["family_check"] = evaluate.family_check(
+        programs.env, e.tasks, metrics, family_posture(cfg, programs, params)
+    )
     record.update(runio.provenance(cfg.preset, wall_s + time.perf_counter() - start, config.resolved_env(cfg)))
     record.update(task=cfg.task, unit=task.unit, eval_repetitions=int(e.eval.repetitions))
     record["policy"] = policy_record(e.ppo, programs.env)  # what rebuilds the experts from final_params
-    runio.write_text(stage_dir / "experts.md", task.report.experts(record))
+    family = evaluate.family_table(record["family_check"], programs.env.UNIT)
+    say(family)
+    runio.write_text(stage_dir / "experts.md", task.report.experts(record) + "\n" + family)
     runio.write_json(stage_dir / OUTPUT, record)
     return record
 
@@ -311,8 +403,10 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     if (stage_dir / "final_params").exists():  # trained; a previous call stopped before its evaluation
         say(f"experts already trained ({stage_dir / 'final_params'}): evaluating them")
         params = load_final_params(stage_dir, policy_record(cfg.experts.ppo, programs.env), n)
-        clock = runio.read_json(stage_dir / "wall_time.json") if (stage_dir / "wall_time.json").exists() else {}
-        wall = max([0.0, *map(float, clock.values())])
+        wall = 0.0
+        for clock_path in (stage_dir / "wall_time.json", stage_dir / "centre" / "wall_time.json"):
+            clock = runio.read_json(clock_path) if clock_path.exists() else {}
+            wall += max([0.0, *map(float, clock.values())])
     else:
         out = train(cfg, run_dir, programs, say)
         params, wall = expert_params(out["state"]), out["wall_s"]
@@ -321,7 +415,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     # (most of a paper run directory's size) go, once final_params is verified.
     runio.verify_checksums(stage_dir / "final_params")
     start = tasks.get(cfg.task).expert_start
-    for scratch in ("checkpoints", *(() if start is None else start.scratch())):
+    for scratch in ("checkpoints", "centre/checkpoints", *(() if start is None else start.scratch())):
         shutil.rmtree(stage_dir / scratch, ignore_errors=True)
     say(tasks.get(cfg.task).report.experts(record))
     return record

@@ -16,9 +16,11 @@ table1.json is written), table1.json, table1.md.
 from __future__ import annotations
 
 import copy
+import shutil
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from bumps_jax import config, runio
@@ -97,25 +99,55 @@ def dataset_env(cfg):
     return tasks.make_env(cfg.task, copy.deepcopy(cfg.env), overrides)
 
 
-def collect_dataset(env, family, repetitions: int, seed: int = 0) -> tuple[bc.Dataset, dict]:
-    """Roll each expert out `repetitions` (K) times on its own task: (bc.Dataset of E * K * T
-    pairs, final metrics of (E, K)). family: (apply_fn, params stacked over E, tasks (E,) m, or
-    (E, C) for a vector context, whose Dataset.task is then (N, C))."""
-    targets = env.check_targets(family.tasks).astype(np.float32)
-    if repetitions < 1:
-        raise ValueError(f"repetitions must be >= 1, got {repetitions!r}")
-    program = rollout.matched_fn(env, family.apply_fn, record="trajectory")
-    keys = rollout.repetition_keys(seed, len(targets), repetitions)
-    metrics, (obs, actions) = program(family.params, targets, targets, keys)  # (E, K, T, ...)
+def pairs(targets: np.ndarray, obs, actions) -> bc.Dataset:
+    """A bc.Dataset from episodes' (obs (E, K, T, O), actions (E, K, T, A)) at targets (E,) or (E, C)."""
     n = obs.shape[0] * obs.shape[1] * obs.shape[2]
     rest = targets.shape[1:]  # () for a scalar context, (C,) for a vector one
     task = np.broadcast_to(targets.reshape(-1, 1, 1, *rest), obs.shape[:3] + rest).reshape(n, *rest)
-    data = bc.Dataset(
+    return bc.Dataset(
         obs=np.asarray(obs, np.float32).reshape(n, obs.shape[-1]),
         actions=np.asarray(actions, np.float32).reshape(n, actions.shape[-1]),
         task=np.asarray(task, np.float32),
     )
+
+
+def clipped(env, actions, clip: bool):
+    """Labels clipped to the env's action bound (`ACTION_BOUND`) when `clip` and the env has one."""
+    bound = env.ACTION_BOUND
+    return np.clip(actions, -bound, bound) if clip and bound is not None else actions
+
+
+def collect_dataset(env, family, repetitions: int, seed: int = 0, action_noise: float = 0.0,
+                    clip_labels: bool = False) -> tuple[bc.Dataset, dict]:  # fmt: skip
+    """Roll each expert out `repetitions` (K) times on its own task: (bc.Dataset of E * K * T
+    pairs, final metrics of (E, K)). family: (apply_fn, params stacked over E, tasks (E,) m, or
+    (E, C) for a vector context, whose Dataset.task is then (N, C)). action_noise: the episodes
+    act with noise of this std, labelled with the expert's own action (`rollout.episode_fn`);
+    clip_labels: labels clipped to the env's action bound."""
+    targets = env.check_targets(family.tasks).astype(np.float32)
+    if repetitions < 1:
+        raise ValueError(f"repetitions must be >= 1, got {repetitions!r}")
+    program = rollout.matched_fn(env, family.apply_fn, record="trajectory", action_noise=action_noise)
+    keys = rollout.repetition_keys(seed, len(targets), repetitions)
+    metrics, (obs, actions) = program(family.params, targets, targets, keys)  # (E, K, T, ...)
+    data = pairs(targets, obs, clipped(env, np.asarray(actions), clip_labels))
     return data, {k: np.asarray(v) for k, v in metrics.items()}
+
+
+def relabelled(
+    env, family, apply_fn, params, repetitions: int, seed: int, clip_labels: bool
+) -> tuple[bc.Dataset, dict]:
+    """DAgger's pairs: one policy (a net's params) runs `repetitions` episodes at every expert's
+    context, and each step's contextual observation is labelled with that expert's action:
+    (bc.Dataset of E * K * T pairs, the policy's final metrics of (E, K))."""
+    targets = env.check_targets(family.tasks).astype(np.float32)
+    program = rollout.matched_fn(env, apply_fn, record="trajectory")
+    stacked = jax.tree.map(lambda a: np.broadcast_to(a, (len(targets), *a.shape)), params)
+    metrics, (obs, _) = program(stacked, targets, targets, rollout.repetition_keys(seed, len(targets), repetitions))
+    labels = jax.jit(jax.vmap(lambda p, o: family.apply_fn(p, o)))(family.params, obs)  # expert i on its states
+    return pairs(targets, obs, clipped(env, np.asarray(labels), clip_labels)), {
+        k: np.asarray(v) for k, v in metrics.items()
+    }
 
 
 def save_dataset(path, data: bc.Dataset) -> Path:
@@ -150,9 +182,10 @@ def dataset(cfg, run_dir: Path, say=print) -> bc.Dataset:
             return data
     t0 = time.perf_counter()
     family = experts_stage.load_family(cfg, run_dir)
-    reps = cfg.meta.dataset.repetitions
+    d = cfg.meta.dataset
+    reps = d.repetitions
     env = dataset_env(cfg)
-    data, metrics = collect_dataset(env, family, reps, cfg.meta.dataset.seed)
+    data, metrics = collect_dataset(env, family, reps, d.seed, float(d.action_noise), bool(d.clip_labels))
     save_dataset(path, data)
     say(
         f"dataset: {len(data.obs)} pairs from {len(family.tasks)} experts x {reps} in {time.perf_counter() - t0:.1f} s;"
@@ -175,6 +208,26 @@ def run_obs_norm(run_dir: Path) -> tuple | None:
     return bc.obs_norm_of_record(runio.read_json(Path(run_dir) / "meta" / OUTPUT))
 
 
+def cloning_variant(m) -> str:
+    """The cloning a meta section asks for, in words (what each table used)."""
+    d, parts = m.dataset, [f"{m.dataset.repetitions} episode(s) per expert"]
+    if d.repetitions == 1:
+        parts[0] += " noise-free"
+    if d.action_noise:
+        parts.append(f"DART action noise {d.action_noise:g}")
+    if d.clip_labels:
+        parts.append("labels clipped")
+    if m.dagger.rounds:
+        parts.append(f"DAgger {m.dagger.rounds} x {m.dagger.repetitions} episodes, {m.dagger.epochs} epochs")
+    return ", ".join(parts) if len(parts) > 1 or d.repetitions == 1 else parts[0] + " (plain cloning)"
+
+
+def cloning_record(cfg, env, n_nets: int) -> dict:
+    """table1.json's "cloning": the variant in words and the env steps it spent."""
+    steps = cloning_env_steps(cfg, env, n_nets)
+    return {"variant": cloning_variant(cfg.meta), "env_steps": steps, "env_steps_total": int(sum(steps.values()))}
+
+
 # -- training and Table 1 -----------------------------------------------------------------------
 
 
@@ -186,10 +239,51 @@ def evaluate_unfiltered(grid, params, tasks, repetitions: int, seed: int) -> dic
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict, dict, dict]:
+def dagger_dirs(stage_dir: Path, names, r: int, rounds: int) -> dict:
+    """Where each net trains in round r: stage_dir/<net> for the last (what later stages read),
+    stage_dir/dagger/round<r>/<net> before it."""
+    return {n: stage_dir / n if r == rounds else stage_dir / "dagger" / f"round{r}" / n for n in names}
+
+
+def dagger_data(cfg, run_dir: Path, r: int, data: bc.Dataset, models: dict, states: dict, say=print) -> bc.Dataset:
+    """Round r's pairs: `data` and, from each net (its first seed) run at every expert's context,
+    its states labelled by that expert (`relabelled`); saved as meta/dagger/round<r>.npz and
+    reused when the stage resumes."""
+    path = Path(run_dir) / "meta" / "dagger" / f"round{r}.npz"
+    if path.exists():
+        try:
+            return load_dataset(path)
+        except runio.CorruptError as err:  # this stage's own intermediate: made again
+            say(f"dagger: {err}; relabelling again")
+    g = cfg.meta.dagger
+    env, family = tasks.make_env(cfg.task, cfg.env), experts_stage.load_family(cfg, run_dir)
+    parts, errors = [data], []
+    for i, (name, model) in enumerate(models.items()):
+        params = jax.tree.map(lambda a: a[0], states[name].params)
+        seed = cfg.meta.dataset.seed + 1000 * r + i
+        new, metrics = relabelled(env, family, bc.policy_apply(model), params, g.repetitions, seed,
+                                  bool(cfg.meta.dataset.clip_labels))  # fmt: skip
+        parts.append(new)
+        errors.append(f"{name} {metrics['final_error'].mean():.3f}")
+    out = bc.Dataset(*(np.concatenate(field) for field in zip(*parts, strict=True)))
+    save_dataset(path, out)
+    say(f"dagger round {r}: {len(out.obs)} pairs; nets' error at the experts' contexts {', '.join(errors)} {env.UNIT}")
+    return out
+
+
+def cloning_env_steps(cfg, env, n_nets: int) -> dict:
+    """The env steps cloning spends: the experts' recorded episodes and DAgger's."""
+    m, n = cfg.meta, len(cfg.experts.tasks)
+    dataset = n * m.dataset.repetitions * env.n_steps
+    return {"dataset": int(dataset), "dagger": int(m.dagger.rounds * n_nets * n * m.dagger.repetitions * env.n_steps)}
+
+
+def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict, dict, dict, int]:
     """Train (or resume) every net of cfg.meta.nets into stage_dir/<net>, all stacked in one
-    program (`bc.make_trainer`). Returns ({net: bc.MetaPolicy}, {net: final bc.TrainState},
-    {net: train_wall_s}: the nets share one loop, so each shows its whole time)."""
+    program (`bc.make_trainer`); with `meta.dagger.rounds`, each round's relabelled pairs added
+    and the nets trained on from where they were (`dagger_data`). Returns ({net: bc.MetaPolicy},
+    {net: final bc.TrainState}, {net: train_wall_s}: the nets share one loop, so each shows its
+    whole time, the pairs of the last round)."""
     m = cfg.meta
     obs_norm = net_obs_norm(cfg, env, data)
     names = net_names(m.nets)
@@ -208,8 +302,15 @@ def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict,
     # Training seconds over every process (a killed call's up to its last progress line), compiling
     # and checkpoints included; the nets share one loop, so each shows its whole time.
     clock = runio.CarriedClock(stage_dir / "train_wall_time.json")
-    states = bc.train_nets(models, data, m.train, {name: stage_dir / name for name in names}, timed(clock))
-    return models, states, dict.fromkeys(names, clock.save())
+    rounds = int(m.dagger.rounds)
+    states = bc.train_nets(models, data, m.train, dagger_dirs(stage_dir, names, 0, rounds), timed(clock))
+    for r in range(1, rounds + 1):
+        data = dagger_data(cfg, stage_dir.parent, r, data, models, states, say)
+        more = copy.deepcopy(m.train)
+        more.epochs = m.dagger.epochs
+        start = {name: states[name].params for name in names}
+        states = bc.train_nets(models, data, more, dagger_dirs(stage_dir, names, r, rounds), timed(clock), start=start)
+    return models, states, dict.fromkeys(names, clock.save()), len(data.obs)
 
 
 def evaluate_net(cfg, name: str, model: bc.MetaPolicy, state: bc.TrainState, env, grids: dict, say=print) -> dict:
@@ -260,7 +361,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     if start_row in experts_record:
         rows[start_row], per_task[start_row] = experts_row(experts_record[start_row], record_path)
     rows_per_seed, timings, grids = {}, {}, {}
-    models, states, train_s = train(cfg, stage_dir, data, env, say)
+    models, states, train_s, n_pairs = train(cfg, stage_dir, data, env, say)
     for name, model in models.items():
         out = evaluate_net(cfg, name, model, states[name], env, grids, say)
         rows[name], rows_per_seed[name], per_task[name] = out["row"], out["rows_per_seed"], out["per_task"]
@@ -271,7 +372,8 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         "rows_per_seed": rows_per_seed,
         "per_task": per_task,
         "eval": {"repetitions": e.repetitions, "n_tasks": len(e.tasks), "seed": e.seed},
-        "dataset_pairs": len(data.obs),
+        "dataset_pairs": n_pairs,
+        "cloning": cloning_record(cfg, env, len(models)),
         "timings": timings,
         "config": cfg.meta.to_dict(),  # what the filter stage checks its nets against
         **runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)),
@@ -284,6 +386,9 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     # ones go, as the experts' and the baseline's do once their records are written.
     for name in models:
         runio.keep_newest_checkpoint(stage_dir / name / "checkpoints")
+    for r in range(cfg.meta.dagger.rounds):  # the earlier rounds' nets: the last round started from them
+        for d in dagger_dirs(stage_dir, models, r, cfg.meta.dagger.rounds).values():
+            shutil.rmtree(d / "checkpoints", ignore_errors=True)
     markdown = tasks.get(cfg.task).report.table1(rows, env.UNIT)
     runio.write_text(stage_dir / "table1.md", markdown)
     return runio.json_safe(payload)

@@ -37,7 +37,13 @@ def experts() -> ml_collections.ConfigDict:
     experts.ppo.num_envs = 512  # whole 200-step episodes per update: 102,400 steps (Brax: 327,680)
     experts.ppo.num_minibatches = 16  # 32 episodes = 6,400 steps each (Brax: 10,240)
     experts.ppo.num_epochs = 8
-    experts.ppo.total_env_steps = 512 * 200 * 100  # 10.24 M per expert, 100 updates
+    # One family: the 1.5 m/s expert trains 130 updates alone, then all 13 continue from it for
+    # 90 updates each, their targets moving out from 1.5 m/s over the first 30: 1,300 updates of
+    # 102,400 steps in all (133.12 M), as 13 experts of 100 updates each.
+    experts.family = stage_sections.family()
+    experts.family.centre_updates = 130
+    experts.family.ramp_updates = 30
+    experts.ppo.total_env_steps = 512 * 200 * 90  # 9.216 M per expert after the centre's 13.312 M
     experts.ppo.learning_rate = 3e-4
     experts.ppo.value_learning_rate = 3e-4  # Brax: one Adam for both nets
     experts.ppo.discount = 0.95
@@ -61,12 +67,13 @@ def baseline(experts: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     b.seeds = 3  # independent runs, trained side by side
     b.updates_per_chunk = 10  # speed and logging only: PPO updates per compiled chunk
     b.eval_repetitions = 20  # episodes per test velocity and seed (reset noise on)
-    # ... and per seed the env steps that all of one BUMPS run's experts used together
-    # (13 experts x 10.24 M = 133.12 M), in as many updates as one expert makes (100): each update
-    # rolls out the episodes of all the experts' updates of one round (13 x 512), in the experts'
-    # 16 minibatches.
+    # ... and per seed the env steps that all of one BUMPS run's experts used together (the
+    # centre's and 13 experts', 133.12 M): each update rolls out the episodes of all the experts'
+    # updates of one round (13 x 512), in the experts' 16 minibatches.
     b.ppo.num_envs = len(experts.tasks) * experts.ppo.num_envs
-    b.ppo.total_env_steps = len(experts.tasks) * experts.ppo.total_env_steps
+    b.ppo.total_env_steps = len(experts.tasks) * experts.ppo.total_env_steps + (
+        experts.family.centre_updates * experts.ppo.num_envs * cheetah_env.default_config().episode_steps
+    )
     b.extra_learning_rate = None  # one arm only
     return b
 
@@ -113,7 +120,7 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
 
 
 # Each preset: dotted overrides of the defaults. "tiny": HalfCheetah-Vel at CPU size: 10-step
-# episodes, 2 experts, 2 PPO updates, a short BC; a baseline of 2 seeds x 4 updates.
+# episodes, 2 experts of 2 PPO updates after a centre of 2, a short BC; a baseline of 2 seeds x 6 updates.
 PRESETS: dict[str, dict] = {
     "paper": {},
     "tiny": {
@@ -126,6 +133,8 @@ PRESETS: dict[str, dict] = {
         "experts.ppo.num_minibatches": 2,
         "experts.ppo.num_epochs": 2,
         "experts.ppo.total_env_steps": 4 * 10 * 2,
+        "experts.family.centre_updates": 2,
+        "experts.family.ramp_updates": 1,
         "experts.ppo.policy_hidden": (32, 32),
         "experts.ppo.value_hidden": (32, 32),
         "experts.eval.repetitions": 2,
@@ -154,7 +163,7 @@ PRESETS: dict[str, dict] = {
         "baseline.ppo.num_envs": 4,
         "baseline.ppo.num_minibatches": 2,
         "baseline.ppo.num_epochs": 2,
-        "baseline.ppo.total_env_steps": 2 * 4 * 10 * 2,  # the 2 tiny experts' steps: 4 updates
+        "baseline.ppo.total_env_steps": 3 * 4 * 10 * 2,  # the tiny experts' and centre's steps: 6 updates
         "baseline.ppo.policy_hidden": (32, 32),
         "baseline.ppo.value_hidden": (32, 32),
     },

@@ -41,6 +41,8 @@ TORSO = "torso"
 # The torso's forward slide joint is the model's first: qpos[0] is its x, which the observation leaves out.
 ROOT_X = "rootx"
 ROOT_X_QPOS = 0
+# The torso's height (slide, m from its start) and pitch (hinge, rad; 0 upright) in qpos.
+ROOT_Z_QPOS, ROOT_PITCH_QPOS = 1, 2
 # A capsule touching the floor makes at most this many contacts (MuJoCo's capsule-plane test).
 CONTACTS_PER_GEOM = 2
 # Constraint rows of one contact: the pyramidal friction cone of condim 3.
@@ -69,9 +71,10 @@ def default_config() -> ml_collections.ConfigDict:
     # True: every body capsule collides with the floor, as in Gym's model that MAML, ProMP and
     # PEARL load. False: Brax's model as it is, whose torso and shins pass through the floor.
     cfg.all_contacts = True
-    # True: the observation ends with the torso's world position (PEARL, MAML: 20 numbers).
-    # False: joint positions and velocities only (Gym's HalfCheetah, ProMP: 17 numbers).
-    cfg.torso_position = True
+    # True: the observation ends with the torso's world position (PEARL, MAML: 20 numbers), whose
+    # x grows without bound over an episode. False: joint positions and velocities only (Gym's
+    # HalfCheetah, ProMP: 17 numbers).
+    cfg.torso_position = False
     # Reset noise: joint positions + U[-s, s], joint velocities + s * N(0, 1) (Gym's 0.1).
     cfg.reset_noise = 0.1
     cfg.reward = ml_collections.ConfigDict()
@@ -189,6 +192,7 @@ class CheetahVelEnv(task_env.ContextualEnv):
 
     UNIT = "m/s"
     ACHIEVED = "mean_forward_vel"
+    ACTION_BOUND = 1.0  # every motor's ctrlrange
 
     def __init__(self, config=None, config_overrides: dict | None = None):
         self.config = make_config(config, config_overrides)
@@ -328,6 +332,17 @@ class CheetahVelEnv(task_env.ContextualEnv):
         if self.config.torso_position:
             parts.append(data.xpos[self.torso_body])
         return jnp.concatenate(parts)
+
+    def posture(self, qpos: np.ndarray) -> dict:
+        """The torso's posture over episodes' steps, qpos (..., T, nq) -> {name: (...)}: its mean
+        pitch (rad, 0 upright; beyond +-pi/2 on its back), the fraction of steps it spends on its
+        back (|pitch| > pi/2), and its mean height (m, from its start)."""
+        pitch = np.asarray(qpos, np.float64)[..., ROOT_PITCH_QPOS]
+        return {
+            "pitch_rad": pitch.mean(axis=-1),
+            "flipped_fraction": (np.abs(pitch) > np.pi / 2).mean(axis=-1),
+            "height_m": np.asarray(qpos, np.float64)[..., ROOT_Z_QPOS].mean(axis=-1),
+        }
 
     @property
     def context_observation_size(self) -> int:

@@ -43,6 +43,7 @@ def experts() -> ml_collections.ConfigDict:
     experts.ppo.value_hidden = (64, 64)
     experts.ppo.init_log_std = -0.5
     experts.eval.repetitions = 20  # episodes per expert on its own goal (reset noise on)
+    experts.family = stage_sections.family()  # every expert from its own fresh policy
     return experts
 
 
