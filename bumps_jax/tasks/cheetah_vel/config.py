@@ -91,6 +91,8 @@ def sections() -> ml_collections.ConfigDict:
     cfg.env.warp_contacts = cheetah_env.CONTACTS_PER_GEOM * 8 * largest
     cfg.meta = stage_sections.meta(TEST_TASKS)
     cfg.meta.dataset.repetitions = 8  # episodes per expert, reset noise on: the states a closed loop meets
+    cfg.meta.dataset.action_noise = 0.2  # DART: the recorded episodes act with this noise (docs/decisions.md)
+    cfg.meta.dataset.clip_labels = True  # the env clips actions to [-1, 1]: so are the labels
     cfg.meta.train.learning_rate = 1e-3
     cfg.meta.train.batch_size = 256
     cfg.meta.train.epochs = 300  # 20,800 pairs: 82 steps per epoch
