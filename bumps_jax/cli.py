@@ -166,6 +166,10 @@ def add_run_options(p, name: str) -> None:
         p.add_argument("--stages", nargs="+", default=None, metavar="STAGE",
                        help=f"only these of its stages, in its order (default: all of {every}); the run "
                             "directory's timings and report count them as one more call")  # fmt: skip
+    if name == "publish":
+        p.add_argument("--seed-runs", nargs="+", type=Path, default=[], metavar="RUN_DIR",
+                       help="finished runs of the same config with other training seeds (experts, meta, filter): "
+                            "every headline published as mean and spread over them and --run-dir")  # fmt: skip
     if name == "evaluate":
         p.add_argument("--heldout", action="store_true", help="the held-out targets and seed (config: heldout)")
         p.add_argument("--dev", action="store_true",

@@ -40,6 +40,7 @@ def publish(cfg, run_dir: Path, args) -> None:
     """A finished paper run into the repository; another task's run into results/<task>/."""
     from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
     from bumps_jax.report import publish as publish_mod  # noqa: PLC0415
+    from bumps_jax.report import seeds  # noqa: PLC0415
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
     # A run with a stage unfinished would leave that stage's committed record from an older run
@@ -51,10 +52,20 @@ def publish(cfg, run_dir: Path, args) -> None:
             f"not published: {runio.shown(run_dir)} has not finished {', '.join(missing)} (no {records}); "
             "rerun the same reproduce to finish it"
         )
+    seed_runs = [Path(d) for d in getattr(args, "seed_runs", [])]
+    for d in seed_runs:  # every seed's run checked before anything is written
+        missing = pipeline.unfinished(d, ("experts", "meta", "filter"), cfg.task)
+        if missing:
+            raise ValueError(f"not published: {runio.shown(d)} (--seed-runs) has not finished {', '.join(missing)}")
     if not tasks.get(cfg.task).report.paper_rows:  # another task's records go to results/<task>/
-        for path in publish_mod.publish_task(run_dir, cfg.task):
+        written = []
+        if seed_runs:
+            written += seeds.publish_seeds([run_dir, *seed_runs], cfg.task, runio.command_line())
+        for path in written + publish_mod.publish_task(run_dir, cfg.task):
             print(f"wrote {path}")
         return
+    if seed_runs:
+        raise ValueError(f"--seed-runs: the {cfg.task} task's published tables hold one run")
     made_with = publish_mod.run_config(run_dir, cfg)
     try:
         pipeline.check_current(made_with, run_dir, tasks.get(made_with.task).stages)

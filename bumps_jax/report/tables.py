@@ -242,7 +242,13 @@ def task_experts_markdown(record: dict) -> str:
         f"| single-task experts | {pm(record['accuracy_mean'], record['accuracy_std'])} "
         f"| {num(record['error_mean_m'])} | {num(record['error_std_m'])} |",
         "",
-        f"{record['n_reps']} episodes per task, {record['env_steps']} PPO env steps per expert.",
+        f"{record['n_reps']} episodes per task; env steps per expert: "
+        + ", ".join(
+            f"{k} {v:,}"
+            for k, v in record.get("env_steps_breakdown", {"ppo": record["env_steps"]}).items()
+            if v is not None
+        )
+        + ".",  # fmt: skip
         "",
         f"| target ({unit}) | valid | error mean ({unit}) | error std ({unit}) |",
         "|---|---|---|---|",

@@ -65,9 +65,9 @@ def task_baseline_lines(baseline: dict, experts: dict | None, filtered: dict | N
     ]
     if experts:
         n = len(experts["tasks_m"])
-        lines.append(
-            f"BUMPS's experts used {n * experts['env_steps']:,} PPO env steps in all ({n} of {experts['env_steps']:,})."
-        )
+        total = n * experts.get("env_steps_total", experts["env_steps"])
+        parts = ", ".join(f"{k} {v:,}" for k, v in experts.get("env_steps_breakdown", {}).items() if v is not None)
+        lines.append(f"BUMPS's experts used {total:,} env steps in all ({n} experts, each: {parts}).")
     if filtered:
         name, best = min(filtered["rows"].items(), key=lambda kv: kv[1]["error_mean_m"])
         lines.append(f"Best BUMPS variant ({name}): {best['error_mean_m']:.2f} {unit} on its test targets.")

@@ -27,6 +27,7 @@ README_BEGIN = (
     " results/cheetah_vel/*.json; do not edit -->"
 )
 README_END = "<!-- end of the generated cheetah_vel results -->"
+SEEDS = "results/cheetah_vel/seeds.json"  # the headlines over training seeds (`report.seeds`)
 
 
 def speed_term(error: float, steps: int, weight: float) -> str:
@@ -49,9 +50,10 @@ def rows(root: str | Path = ".") -> list[str]:
     training = "not recorded"
     if experts and t1:
         n = len(experts["tasks_m"])
+        cloning = t1.get("cloning", {}).get("env_steps_total", t1["dataset_pairs"])
         training = (
-            f"{n * experts['env_steps_total']:,}: {n} experts x {experts['env_steps_total']:,} (PPO), "
-            f"then {t1['dataset_pairs']:,} steps of expert episodes for behaviour cloning"
+            f"{n * experts['env_steps_total']:,}: {n} experts x {experts['env_steps_total']:,} (PPO, the family's "
+            f"shared start included), then {cloning:,} env steps of episodes for behaviour cloning"
         )
     out = []
     if t1:
@@ -129,12 +131,34 @@ def readme_lines(root: str | Path = ".") -> list[str]:
         out.append(f"On its {len(t2['tasks'])} test velocities the meta-policies err {unfiltered} {unit} unfiltered "
                    f"and {min(filtered):.2f}-{max(filtered):.2f} {unit} filtered, beside their experts' own "
                    f"{experts['error_mean_all_m']:.2f} {unit}.")  # fmt: skip
+        seeds = load(root, SEEDS)
+        if seeds:
+            out.append(seeds_sentence(seeds))
         if base:
-            total = experts["env_steps"] * len(experts["tasks_m"])
+            total = experts.get("env_steps_total", experts["env_steps"]) * len(experts["tasks_m"])
             out.append(f"The multi-task PPO baseline, with {base['env_steps_per_seed'] / 1e6:.0f} M env steps per "
                        f"seed (the {len(experts['tasks_m'])} experts: {total / 1e6:.0f} M in all), errs "
                        f"{base['error_mean_m']:.2f} {unit} (`results/cheetah_vel/report.md`).")  # fmt: skip
     return out
+
+
+def seeds_sentence(seeds: dict) -> str:
+    """The headlines over training seeds (`report.seeds`): each row's mean, spread and per-seed values."""
+    unit, rows = seeds.get("unit", "m/s"), seeds["rows"]
+
+    def cell(name):
+        r = rows[name]
+        per_seed = ", ".join(f"{v:.2f}" for v in r["per_seed"])
+        return f"{r['mean']:.2f} +- {r['std']:.2f} {unit} ({per_seed})"
+
+    filtered = [n for n in rows if n.startswith(("filtered_", "high_sample"))]
+    best = min(filtered, key=lambda n: rows[n]["mean"])
+    flipped = ", ".join(f"{r['flipped_experts']} of {r['n_experts']}" for r in seeds["runs"])
+    return (
+        f"Over {seeds['n_seeds']} training seeds (mean +- std, then each seed; `{SEEDS}`): experts {cell('experts')}; "
+        f"meta_4x256 {cell('meta_4x256')}, meta_11x128 {cell('meta_11x128')} unfiltered; {best}, the best filtered "
+        f"variant on the mean, {cell(best)}. Experts flipped on their backs, per seed: {flipped}."
+    )
 
 
 def readme_block(root: str | Path = ".") -> str:

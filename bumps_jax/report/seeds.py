@@ -1,0 +1,98 @@
+"""Headlines over pipeline seeds: runs of one config that differ only in their training seeds,
+their rows side by side with the mean and spread over them (results/<task>/seeds.json)."""
+
+from __future__ import annotations
+
+import datetime
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from bumps_jax import records, runio
+
+# Each run's records the summary reads: run file -> the name it is kept under per seed.
+RUN_RECORDS = {"experts/experts.json": "experts.json", "meta/table1.json": "table1.json",
+               "filter/table2.json": "table2.json"}  # fmt: skip
+# The config keys a pipeline seed sets: every stage's training randomness (evaluation seeds stay).
+TRAINING_SEEDS = ("experts.seed", "meta.dataset.seed", "meta.train.seed", "filter.seed")
+
+
+def run_rows(run_dir: Path) -> dict:
+    """One run's headline errors: {"experts": all tasks, each net unfiltered, each filtered variant}."""
+    rec = {name: runio.read_json(Path(run_dir) / rel, f"a finished run's {name}") for rel, name in RUN_RECORDS.items()}
+    rows = {"experts": rec["experts.json"]["error_mean_all_m"]}
+    rows.update({n: r["error_mean_all_m"] for n, r in rec["table1.json"]["rows"].items() if n.startswith("meta_")})
+    rows.update({n: r["error_mean_m"] for n, r in rec["table2.json"]["rows"].items()})
+    family = rec["experts.json"].get("family_check", {})
+    n_experts = len(rec["experts.json"]["tasks_m"])
+    return {"rows": rows, "flipped_experts": family.get("flipped_experts"), "n_experts": n_experts, "records": rec}
+
+
+def seed_of(record: dict) -> dict:
+    """A run's training seeds as its record's overrides name them (the preset's own where unset)."""
+    overrides = record.get("overrides", {})
+    return {key: overrides.get(key, 0) for key in TRAINING_SEEDS}
+
+
+def seeds_record(run_dirs, command: str) -> dict:
+    """Every run's rows and their mean, std, min and max over the runs; ValueError naming a run
+    whose env or task differs from the first's."""
+    runs = [(Path(d), run_rows(Path(d))) for d in run_dirs]
+    first = runs[0][1]["records"]["table2.json"]
+    for d, r in runs[1:]:
+        other = r["records"]["table2.json"]
+        records.check_same_env(other.get("env"), first.get("env"), f"{d / 'filter/table2.json'}")
+        if other.get("task") != first.get("task"):
+            raise ValueError(f"{d}: a {other.get('task')} run, not {first.get('task')}")
+    names = list(runs[0][1]["rows"])
+    summary = {}
+    for name in names:
+        values = np.asarray([r["rows"][name] for _, r in runs], np.float64)
+        summary[name] = {"mean": float(values.mean()), "std": float(values.std()), "min": float(values.min()),
+                         "max": float(values.max()), "per_seed": values.tolist()}  # fmt: skip
+    pipelines = [runio.read_json(d / "pipeline.json") if (d / "pipeline.json").exists() else {} for d, _ in runs]
+    out = {
+        "task": first.get("task"),
+        "unit": first.get("unit"),
+        "n_seeds": len(runs),
+        "rows": summary,
+        "runs": [
+            {
+                "run": d.name,
+                "seeds": seed_of(p),
+                "rows": r["rows"],
+                "flipped_experts": r["flipped_experts"],
+                "n_experts": r["n_experts"],
+                "cloning": r["records"]["table1.json"].get("cloning", {}).get("variant"),
+            }
+            for (d, r), p in zip(runs, pipelines, strict=True)
+        ],
+        "training_seed_keys": list(TRAINING_SEEDS),
+    }
+    provenance = {k: first[k] for k in ("device", "n_devices", "versions", "preset", "env") if k in first}
+    wall = sum(float(p.get("wall_s", 0.0)) for p in pipelines)
+    return {
+        **out,
+        **provenance,
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "command": command,
+        "wall_s": wall,
+    }
+
+
+def publish_seeds(run_dirs, task: str, command: str, root: str | Path = ".") -> list[Path]:
+    """Each run's records under results/<task>/seeds/<run>/, and their summary as results/<task>/seeds.json."""
+    root, written = Path(root), []
+    record = seeds_record(run_dirs, command)
+    if record["task"] != task:
+        raise ValueError(f"the runs are {record['task']} runs, not {task}")
+    for d in map(Path, run_dirs):
+        for rel, name in RUN_RECORDS.items():
+            dest = root / "results" / task / "seeds" / d.name / name
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(d / rel, dest)
+            written.append(dest)
+    path = root / "results" / task / "seeds.json"
+    runio.write_json(path, record)
+    return [*written, path]
