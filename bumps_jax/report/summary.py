@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 
 from bumps_jax import records as env_records
-from bumps_jax.report import tables
+from bumps_jax.report import budgets, tables
 
 STAGES = {
     "prior": "prior/kick_prior.json",
@@ -388,5 +388,6 @@ def write_committed(root: str | Path = ".") -> Path:
     speed = speed_lines(load(root, BENCH), scaling_records(root), load(root, GAE))
     head, _, rest = text.partition("\n\n")
     body = rest.replace("](docs/", "](")  # figures sit beside the report
-    path.write_text(head + "\n\n" + note + body + ("\n" + "\n".join(speed) + "\n" if speed else ""))
+    steps = "\n" + "\n".join(budgets.section(root))
+    path.write_text(head + "\n\n" + note + body + steps + ("\n" + "\n".join(speed) + "\n" if speed else ""))
     return path
