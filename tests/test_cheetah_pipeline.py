@@ -33,15 +33,34 @@ def test_the_tiny_pipeline_runs_the_cheetahs_stages(cheetah_run):
     assert experts["task"] == "cheetah_vel" and experts["unit"] == "m/s"
     assert experts["tasks_m"] == list(view.experts.tasks)
     assert experts["env_steps"] == view.experts.ppo.total_env_steps
+    # One family: the centre expert trained first (its own progress), every expert from it; each
+    # expert's budget counts its share of the centre's steps.
+    centre_steps = view.experts.family.centre_updates * view.experts.ppo.num_envs * view.env.episode_steps
+    assert experts["family_centre"] == {"context": 0.5, "updates": 2, "env_steps": centre_steps}
+    assert experts["env_steps_breakdown"] == {"ppo": experts["env_steps"], "family_centre_share": centre_steps // 2}
+    assert experts["env_steps_total"] == experts["env_steps"] + centre_steps // 2
+    assert (run_dir / "experts" / "centre" / "progress.csv").exists()
+    assert not (run_dir / "experts" / "centre" / "checkpoints").exists()  # scratch, gone with the record
+    # The family check: each expert's posture beside its neighbour's error, in the record and experts.md.
+    check = experts["family_check"]
+    assert [r["target_m"] for r in check["per_task"]] == list(view.experts.tasks)
+    for row in check["per_task"]:
+        assert {"pitch_rad", "flipped_fraction", "height_m", "achieved"} <= set(row)
+        assert len(row["error_at_neighbours_m"]) == 1 and 0.0 <= row["flipped_fraction"] <= 1.0
+    assert check["flipped_experts"] in (0, 1, 2) and isinstance(check["achieved_rises"], bool)
+    assert "## Family check" in (run_dir / "experts" / "experts.md").read_text()
     # Two updates of PPO leave the experts near where a random policy runs: errors of the order of
     # the targets, every episode valid (no physics overflow).
     assert experts["accuracy_mean"] == 1.0
     for row in experts["per_task"]:
         assert 0.0 < row["error_mean_m"] < row["target_m"] + 2.0
     table1 = json.loads((run_dir / "meta" / "table1.json").read_text())
-    assert table1["obs_size"] == 21 and table1["n_actions"] == 6  # the state (20) and the context
+    assert table1["obs_size"] == 18 and table1["n_actions"] == 6  # the state (17) and the context
     # The meta-policies see the state normalised by the dataset's statistics, kept with the nets.
-    assert len(table1["obs_shift"]) == len(table1["obs_scale"]) == 21 and min(table1["obs_scale"]) > 0
+    assert len(table1["obs_shift"]) == len(table1["obs_scale"]) == 18 and min(table1["obs_scale"]) > 0
+    # Cloned with the preset's DART noise and clipped labels, no DAgger: its env steps are the recording's.
+    assert table1["cloning"]["variant"] == "2 episode(s) per expert, DART action noise 0.2, labels clipped"
+    assert table1["cloning"]["env_steps"] == {"dataset": table1["dataset_pairs"], "dagger": 0}
     assert table1["dataset_pairs"] == 2 * view.meta.dataset.repetitions * view.env.episode_steps
     for name in ("meta_4x256", "meta_11x128"):
         assert np.isfinite(table1["rows"][name]["error_mean_all_m"])
@@ -78,12 +97,12 @@ def test_the_baseline_trains_one_policy_on_the_experts_velocities_and_scores_the
     saved = json.loads((run_dir / "baseline" / "baseline.json").read_text())
     assert saved["task"] == "cheetah_vel" and saved["unit"] == "m/s" and "bc_final_loss" not in saved
     assert saved["sample_task_range"] == [min(view.experts.tasks), max(view.experts.tasks)]
-    # Per seed, the env steps all of BUMPS's experts used together (2 experts x 80 steps).
+    # Per seed, the env steps all of BUMPS's experts used together (the centre's 80 and 2 experts x 80).
     experts = json.loads((run_dir / "experts" / "experts.json").read_text())
-    assert saved["env_steps_per_seed"] == b.ppo.total_env_steps == len(experts["tasks_m"]) * experts["env_steps"]
+    assert saved["env_steps_per_seed"] == b.ppo.total_env_steps == len(experts["tasks_m"]) * experts["env_steps_total"]
     n_updates = b.ppo.total_env_steps // (b.ppo.num_envs * view.env.episode_steps)
     for curve in (saved["curve"], saved["error_curve"]):
-        assert len(curve["mean"]) == len(curve["env_steps"]) == n_updates == 4
+        assert len(curve["mean"]) == len(curve["env_steps"]) == n_updates == 6
         assert curve["env_steps"][-1] == saved["env_steps_per_seed"]
     assert np.isfinite(saved["error_curve"]["mean"]).all()
     assert saved["eval_tasks"] == pytest.approx(list(b.eval_tasks))

@@ -1,0 +1,165 @@
+"""One family of experts (a centre expert first, every expert continued from it), the family
+check, closed-loop cloning (DART noise, clipped labels, DAgger), headlines over seeds and the
+env-step table."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bumps_jax import config
+from bumps_jax.algo import evaluate, ppo, rollout
+from bumps_jax.pipeline import runner as pipeline
+from bumps_jax.pipeline.stages import experts as experts_stage
+from bumps_jax.pipeline.stages import meta as meta_stage
+from bumps_jax.report import budgets, seeds
+from bumps_jax.tasks.cheetah_vel import env as cheetah_env
+from bumps_jax.tasks.point_goal import env as point_env
+
+
+def test_the_centre_is_the_context_nearest_the_mean_and_targets_ramp_out_from_it():
+    assert experts_stage.family_centre([0.0, 0.5, 1.0, 1.5, 3.0]) == 2  # mean 1.2
+    assert experts_stage.family_centre([[1.0, 1.0], [0.1, 0.0], [-1.0, -1.0]]) == 1
+    tasks = np.array([0.0, 1.0, 3.0])
+    # Chunks of 10 updates, a ramp of 30: a third of the way after the first chunk, all of it from the third on.
+    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, 1, 0, 10, 30), [2 / 3, 1.0, 5 / 3])
+    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, 1, 20, 10, 30), tasks)
+    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, 1, 0, 10, 0), tasks)  # no ramp
+
+
+def test_every_expert_starts_as_the_centre_with_its_own_rng_and_no_updates():
+    centre = ppo.TrainState(
+        params={"w": jnp.arange(3.0)[None]}, opt_state={"m": jnp.ones((1, 3))}, normalizer={"n": jnp.full((1,), 7.0)},
+        rng=jax.random.split(jax.random.PRNGKey(0), 1), update=jnp.array([40]), env_steps=jnp.array([4000]),
+    )  # fmt: skip
+    rngs = jax.random.split(jax.random.PRNGKey(1), 4)
+    state = experts_stage.family_state(centre, rngs)
+    np.testing.assert_array_equal(state.params["w"], np.tile(np.arange(3.0), (4, 1)))
+    np.testing.assert_array_equal(state.opt_state["m"], np.ones((4, 3)))
+    np.testing.assert_array_equal(state.normalizer["n"], np.full(4, 7.0))
+    np.testing.assert_array_equal(state.rng, rngs)
+    assert state.update.tolist() == [0] * 4 and state.env_steps.tolist() == [0] * 4
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"experts.family.centre_updates": 3}, "must be a multiple of experts.updates_per_chunk"),
+        ({"experts.family.ramp_updates": -1}, "experts.family.ramp_updates must be an integer >= 0, got -1"),
+        ({"meta.dataset.action_noise": -0.1}, "meta.dataset.action_noise must be a finite std >= 0, got -0.1"),
+        ({"meta.dagger.rounds": 1, "meta.dagger.epochs": 15}, "meta.dagger.epochs 15 must be a multiple of"),
+    ],
+)
+def test_bad_family_and_cloning_settings_are_named(overrides, message):
+    base = {"task": "cheetah_vel", "experts.updates_per_chunk": 2, "experts.family.centre_updates": 2}
+    with pytest.raises(ValueError, match=message):
+        config.make_config("tiny", {**base, **overrides})
+
+
+def test_the_family_check_reads_postures_and_neighbours_errors():
+    env = object.__new__(cheetah_env.CheetahVelEnv)  # posture and error_against read no model
+    qpos = np.zeros((3, 2, 4, 9))
+    qpos[1, :, :, cheetah_env.ROOT_PITCH_QPOS] = np.pi  # the second expert runs on its back
+    posture = {k: v.mean(axis=1) for k, v in env.posture(qpos).items()}
+    assert posture["flipped_fraction"].tolist() == [0.0, 1.0, 0.0]
+    vels = np.stack([np.full((2, 5), v) for v in (0.5, 1.0, 2.0)])  # (E=3, R=2, steps): each expert's speed
+    metrics = {"forward_vels": vels, "valid": np.ones((3, 2)), "final_error": np.zeros((3, 2)),
+               "mean_forward_vel": vels.mean(axis=-1)}  # fmt: skip
+    check = evaluate.family_check(env, [0.5, 1.0, 2.0], metrics, posture)
+    assert check["flipped_experts"] == 1 and check["achieved_rises"] is True
+    first = check["per_task"][0]
+    assert first["neighbours_m"] == [1.0, 2.0] and first["error_at_neighbours_m"] == pytest.approx([0.5, 1.5])
+    assert "| 1 | 1 | 0.000 | 0.5: 0.50, 2: 1.00 | 3.14 | 1.00 | 0.00 |" in evaluate.family_table(check, "m/s")
+
+
+def test_dart_episodes_act_with_noise_but_record_the_policys_own_action():
+    env = point_env.PointGoalEnv()
+
+    def policy(params, obs):
+        return params * jnp.ones(2)
+
+    goal = jnp.array([0.5, 0.0])
+    clean = rollout.episode_fn(env, policy, "trajectory")
+    noisy = rollout.episode_fn(env, policy, "trajectory", action_noise=0.5)
+    _, (obs_clean, act_clean) = clean(0.3, goal, goal, jax.random.key(0))
+    _, (obs_noisy, act_noisy) = noisy(0.3, goal, goal, jax.random.key(0))
+    np.testing.assert_allclose(act_noisy, 0.3)  # the labels: the policy's action, not the one executed
+    np.testing.assert_allclose(act_clean, 0.3)
+    assert not np.allclose(obs_clean[1:], obs_noisy[1:])  # the states the noise led to
+    np.testing.assert_allclose(obs_clean[0], obs_noisy[0])  # the same reset
+    env.ACTION_BOUND = 1.0
+    np.testing.assert_allclose(meta_stage.clipped(env, np.array([[-3.0, 0.5]]), True), [[-1.0, 0.5]])
+    np.testing.assert_allclose(meta_stage.clipped(env, np.array([[-3.0, 0.5]]), False), [[-3.0, 0.5]])
+
+
+def test_dagger_adds_each_rounds_relabelled_states_and_resumes_from_them(tmp_path):
+    """Two rounds on the point-goal task: each adds (nets x experts x repetitions x steps) pairs,
+    the earlier rounds' nets are trained in their own folders, and a rerun is up to date."""
+    cfg = config.make_config("tiny", {"task": "point_goal", "meta.dagger.rounds": 2, "meta.dagger.repetitions": 1,
+                                      "meta.dagger.epochs": 10})  # fmt: skip
+    say = []
+    pipeline.run_pipeline(("experts", "meta"), cfg, tmp_path, say=say.append)
+    t1 = json.loads((tmp_path / "meta" / "table1.json").read_text())
+    n, steps, nets = len(cfg.experts.tasks), point_env.PointGoalEnv(cfg.env).n_steps, len(cfg.meta.nets)
+    first = n * cfg.meta.dataset.repetitions * steps
+    assert t1["dataset_pairs"] == first + 2 * nets * n * steps
+    assert t1["cloning"]["env_steps"] == {"dataset": first, "dagger": 2 * nets * n * steps}
+    assert "DAgger 2 x 1 episodes, 10 epochs" in t1["cloning"]["variant"]
+    for r in (1, 2):
+        assert (tmp_path / "meta" / "dagger" / f"round{r}.npz").exists()
+    for name in cfg.meta.nets:
+        assert (tmp_path / "meta" / "dagger" / "round0" / name / "progress.csv").exists()
+        assert not (tmp_path / "meta" / "dagger" / "round0" / name / "checkpoints").exists()
+        assert (tmp_path / "meta" / name / "checkpoints").is_dir()  # the last round's: what later stages read
+    assert sum("dagger round" in line for line in say) == 2
+    again = []
+    pipeline.run_pipeline(("experts", "meta"), cfg, tmp_path, say=again.append)
+    assert sum("up to date" in line for line in again) == 2
+
+
+def record(task, experts_err, meta_err, filtered_err, env=None, flipped=0):
+    env = env or {"impl": "warp", "physics_dt": None, "episode_steps": 10}
+    return {
+        "experts/experts.json": {"error_mean_all_m": experts_err, "tasks_m": [1.0, 2.0],
+                                 "family_check": {"flipped_experts": flipped}},
+        "meta/table1.json": {"rows": {"experts": {}, "meta_4x256": {"error_mean_all_m": meta_err}},
+                             "cloning": {"variant": "plain"}},
+        "filter/table2.json": {"rows": {"filtered_4x256": {"error_mean_m": filtered_err}}, "task": task, "unit": "m/s",
+                               "env": env, "device": "GPU", "versions": {}, "preset": "paper"},
+    }  # fmt: skip
+
+
+def write_run(path, files, seed):
+    for rel, data in files.items():
+        (path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (path / rel).write_text(json.dumps(data))
+    (path / "pipeline.json").write_text(json.dumps({"overrides": {"experts.seed": seed}, "wall_s": 10.0}))
+
+
+def test_headlines_over_seeds_are_means_with_every_seed_kept(tmp_path):
+    write_run(tmp_path / "s0", record("cheetah_vel", 0.4, 0.3, 0.2), 0)
+    write_run(tmp_path / "s1", record("cheetah_vel", 0.6, 0.5, 0.4, flipped=11), 1)
+    out = seeds.seeds_record([tmp_path / "s0", tmp_path / "s1"], "publish")
+    assert out["n_seeds"] == 2 and out["wall_s"] == 20.0 and out["device"] == "GPU"
+    assert out["rows"]["meta_4x256"] == pytest.approx({"mean": 0.4, "std": 0.1, "min": 0.3, "max": 0.5,
+                                                       "per_seed": [0.3, 0.5]})  # fmt: skip
+    assert [r["seeds"]["experts.seed"] for r in out["runs"]] == [0, 1]
+    assert [r["flipped_experts"] for r in out["runs"]] == [0, 11]
+    write_run(tmp_path / "s2", record("cheetah_vel", 0.6, 0.5, 0.4, env={"impl": "jax", "physics_dt": None}), 2)
+    with pytest.raises(ValueError, match="another env config"):
+        seeds.seeds_record([tmp_path / "s0", tmp_path / "s2"], "publish")
+
+
+def test_the_env_step_table_counts_every_part_of_each_arm():
+    rec = {
+        "experts.json": {"tasks_m": [1.0, 2.0], "env_steps": 100,
+                         "env_steps_breakdown": {"ppo": 100, "family_centre_share": 20}},
+        "table1.json": {"dataset_pairs": 50, "cloning": {"variant": "v", "env_steps_total": 70}},
+        "table2.json": {"env": {"episode_steps": 10}, "rows": {"filtered_4x256": {"rollouts": 3, "n_tasks": 2}}},
+        "baseline.json": {"seeds": 3, "env_steps_per_seed": 240},
+    }  # fmt: skip
+    rows = budgets.rows("cheetah_vel", rec)
+    assert [s for _, _, s in rows] == [200, 40, 70, 30, 240]
+    assert rows[-1][0] == "baseline" and rows[3][1].startswith("filtering: filtered_4x256")
