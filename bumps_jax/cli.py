@@ -166,6 +166,10 @@ def add_run_options(p, name: str) -> None:
         p.add_argument("--stages", nargs="+", default=None, metavar="STAGE",
                        help=f"only these of its stages, in its order (default: all of {every}); the run "
                             "directory's timings and report count them as one more call")  # fmt: skip
+        p.add_argument("--seeds", nargs="+", type=int, default=None, metavar="SEED",
+                       help="the pipeline once per training seed (every stage's training randomness), into "
+                            "<run-dir>/seed<SEED>, the baseline (seeded itself) in the first only; then "
+                            "<run-dir>/seeds.json: every headline's mean and spread over them")  # fmt: skip
     if name == "publish":
         p.add_argument("--seed-runs", nargs="+", type=Path, default=[], metavar="RUN_DIR",
                        help="finished runs of the same config with other training seeds (experts, meta, filter): "
@@ -242,13 +246,42 @@ def dispatch(args) -> None:
             for name in stages:
                 tasks.check_stage(cfg.task, name)
         with lock:
-            pipeline.run_pipeline(stages, cfg, run_dir, force=args.force)
+            if args.seeds is None:
+                pipeline.run_pipeline(stages, cfg, run_dir, force=args.force)
+            else:
+                run_seeds(args.seeds, stages, cfg, Path(run_dir), args.force)
     else:
         from bumps_jax.pipeline import commands  # noqa: PLC0415
 
         writes = needs_run if spec is None or spec.writes_run is None else spec.writes_run(args)
         with lock if writes else contextlib.nullcontext():
             commands.run(args.command, cfg, run_dir, args)
+
+
+def run_seeds(seeds, stages, cfg, run_dir: Path, force: bool = False) -> None:
+    """The pipeline once per training seed into run_dir/seed<S> (the baseline, seeded itself, in
+    the first only), then run_dir/seeds.json over the runs that finished experts, meta and filter."""
+    from bumps_jax import config, runio  # noqa: PLC0415
+    from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
+    from bumps_jax.report import seeds as seeds_report  # noqa: PLC0415
+
+    repeated = sorted({s for s in seeds if seeds.count(s) > 1})
+    if repeated:
+        raise ValueError(f"--seeds: {repeated[0]} given twice")
+    configs = [config.seeded(cfg, s) for s in seeds]  # every seed's config checked before any work
+    runs = []
+    for i, (seed, seeded) in enumerate(zip(seeds, configs, strict=True)):
+        seed_dir = run_dir / f"seed{seed}"
+        print(f"== training seed {seed} ({i + 1} of {len(seeds)}): {seed_dir}", flush=True)
+        pipeline.run_pipeline(tuple(s for s in stages if i == 0 or s != "baseline"), seeded, seed_dir, force=force)
+        runs.append(seed_dir)
+    done = [d for d in runs if not pipeline.unfinished(d, ("experts", "meta", "filter"), cfg.task)]
+    if len(done) > 1:
+        record = seeds_report.seeds_record(done, runio.command_line())
+        runio.write_json(run_dir / "seeds.json", record)
+        for name, r in record["rows"].items():
+            print(f"{name}: {r['mean']:.3f} +- {r['std']:.3f} over {record['n_seeds']} seeds ({r['per_seed']})")
+        print(f"wrote {run_dir / 'seeds.json'}")
 
 
 def choose_gl(argv) -> None:

@@ -173,3 +173,21 @@ def overrides_of(cfg: ml_collections.ConfigDict) -> dict:
             value = value[part]
         out[key] = value
     return out
+
+
+# The keys a pipeline seed sets: every stage's training randomness, not the evaluations' noise
+# (the same episodes score every seed). A task's config module adds its own (`TRAINING_SEEDS`).
+TRAINING_SEEDS = ("experts.seed", "meta.dataset.seed", "meta.train.seed", "filter.seed")
+
+
+def training_seed_keys(task: str) -> tuple[str, ...]:
+    """The keys a pipeline seed sets for `task`: the stages' and its config module's own."""
+    return TRAINING_SEEDS + tuple(getattr(tasks.get(task).config, "TRAINING_SEEDS", ()))
+
+
+def seeded(cfg: ml_collections.ConfigDict, seed: int) -> ml_collections.ConfigDict:
+    """`cfg` with every training seed set to `seed` (its preset and other overrides kept)."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"--seeds: a seed must be an integer >= 0, got {seed!r}")
+    kept = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides_of(cfg).items()}
+    return make_config(cfg.preset, {"task": cfg.task, **kept, **dict.fromkeys(training_seed_keys(cfg.task), seed)})

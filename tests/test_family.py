@@ -163,3 +163,38 @@ def test_the_env_step_table_counts_every_part_of_each_arm():
     rows = budgets.rows("cheetah_vel", rec)
     assert [s for _, _, s in rows] == [200, 40, 70, 30, 240]
     assert rows[-1][0] == "baseline" and rows[3][1].startswith("filtering: filtered_4x256")
+
+
+def test_a_pipeline_seed_sets_every_training_seed_and_keeps_the_rest():
+    cfg = config.make_config("tiny", {"task": "cheetah_vel", "meta.train.epochs": 30})
+    seeded = config.seeded(cfg, 7)
+    assert [seeded.experts.seed, seeded.meta.dataset.seed, seeded.meta.train.seed, seeded.filter.seed] == [7] * 4
+    assert seeded.meta.train.epochs == 30 and seeded.meta.eval.seed == cfg.meta.eval.seed  # evaluation noise stays
+    kick = config.seeded(config.make_config("tiny"), 3)
+    assert kick.prior.seed == kick.experts.tune.seed == 3  # the kick's own training seeds too
+    with pytest.raises(ValueError, match="a seed must be an integer >= 0, got -1"):
+        config.seeded(cfg, -1)
+
+
+def test_seeds_run_the_pipeline_per_seed_the_baseline_once_and_summarise(tmp_path, monkeypatch, capsys):
+    from bumps_jax import cli
+
+    calls = []
+
+    def fake_pipeline(stages, cfg, run_dir, force=False):
+        calls.append((tuple(stages), cfg.experts.seed, run_dir.name))
+        err = 0.1 * (cfg.experts.seed + 1)
+        write_run(run_dir, record("cheetah_vel", err, err, err), cfg.experts.seed)
+
+    monkeypatch.setattr(pipeline, "run_pipeline", fake_pipeline)
+    cfg = config.make_config("tiny", {"task": "cheetah_vel"})
+    cli.run_seeds([0, 2], ("experts", "meta", "filter", "baseline"), cfg, tmp_path)
+    assert calls == [
+        (("experts", "meta", "filter", "baseline"), 0, "seed0"),
+        (("experts", "meta", "filter"), 2, "seed2"),
+    ]
+    summary = json.loads((tmp_path / "seeds.json").read_text())
+    assert summary["rows"]["experts"]["per_seed"] == pytest.approx([0.1, 0.3]) and summary["n_seeds"] == 2
+    assert "experts: 0.200 +- 0.100 over 2 seeds" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="--seeds: 2 given twice"):
+        cli.run_seeds([2, 2], ("experts",), cfg, tmp_path)

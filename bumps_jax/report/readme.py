@@ -161,6 +161,10 @@ def findings(root: str | Path = ".") -> list[str]:
         if rows2:
             name, best = min(rows2.items(), key=lambda kv: kv[1]["error_mean_m"])
             line += f"; the best BUMPS variant ({name}) {best['error_mean_m']:.2f} m"
+        if e and "env_steps_total" in e:
+            bumps = e["env_steps_total"] * len(e["tasks_m"])
+            line += (f". Not an equal budget: {b['env_steps_per_seed'] / 1e6:.0f} M env steps per baseline seed "
+                     f"against BUMPS' experts' {bumps / 1e6:.0f} M (docs/results.md, env steps per arm)")  # fmt: skip
         out.append(line + ".")
     return out
 

@@ -9,13 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bumps_jax import records, runio
+from bumps_jax import config, records, runio
 
 # Each run's records the summary reads: run file -> the name it is kept under per seed.
 RUN_RECORDS = {"experts/experts.json": "experts.json", "meta/table1.json": "table1.json",
                "filter/table2.json": "table2.json"}  # fmt: skip
-# The config keys a pipeline seed sets: every stage's training randomness (evaluation seeds stay).
-TRAINING_SEEDS = ("experts.seed", "meta.dataset.seed", "meta.train.seed", "filter.seed")
 
 
 def run_rows(run_dir: Path) -> dict:
@@ -32,7 +30,7 @@ def run_rows(run_dir: Path) -> dict:
 def seed_of(record: dict) -> dict:
     """A run's training seeds as its record's overrides name them (the preset's own where unset)."""
     overrides = record.get("overrides", {})
-    return {key: overrides.get(key, 0) for key in TRAINING_SEEDS}
+    return {key: overrides.get(key, 0) for key in config.TRAINING_SEEDS}
 
 
 def seeds_record(run_dirs, command: str) -> dict:
@@ -68,7 +66,7 @@ def seeds_record(run_dirs, command: str) -> dict:
             }
             for (d, r), p in zip(runs, pipelines, strict=True)
         ],
-        "training_seed_keys": list(TRAINING_SEEDS),
+        "training_seed_keys": list(config.TRAINING_SEEDS),
     }
     provenance = {k: first[k] for k in ("device", "n_devices", "versions", "preset", "env") if k in first}
     wall = sum(float(p.get("wall_s", 0.0)) for p in pipelines)

@@ -135,6 +135,9 @@ def sections() -> ml_collections.ConfigDict:
 
 # Each preset: dotted overrides of the defaults (the paper's values). "tiny" shrinks every budget
 # so the whole pipeline runs on a CPU in minutes.
+# The kick's own training seeds, set with the stages' by a pipeline seed (`config.seeded`).
+TRAINING_SEEDS = ("prior.seed", "experts.tune.seed")
+
 PRESETS: dict[str, dict] = {
     "paper": {
         # The starting kicks tuned four times (independent CMA-ES keys, one batch), each task's
