@@ -97,16 +97,18 @@ def test_dart_episodes_act_with_noise_but_record_the_policys_own_action():
 def test_dagger_adds_each_rounds_relabelled_states_and_resumes_from_them(tmp_path):
     """Two rounds on the point-goal task: each adds (nets x experts x repetitions x steps) pairs,
     the earlier rounds' nets are trained in their own folders, and a rerun is up to date."""
-    cfg = config.make_config("tiny", {"task": "point_goal", "meta.dagger.rounds": 2, "meta.dagger.repetitions": 1,
-                                      "meta.dagger.epochs": 10})  # fmt: skip
+    nets = {f"meta.nets.{name}": (1, 16) for name in ("meta_4x256", "meta_11x128")}
+    cfg = config.make_config("tiny", {"task": "point_goal", "experts.tasks": ((0.5, 0.0), (0.0, 0.5)),
+                                      "meta.train.epochs": 50, "meta.dagger.rounds": 2, "meta.dagger.repetitions": 1,
+                                      "meta.dagger.epochs": 50, **nets})  # fmt: skip
     say = []
-    pipeline.run_pipeline(("experts", "meta"), cfg, tmp_path, say=say.append)
+    pipeline.run_pipeline(("experts", "meta"), cfg, tmp_path, say=lambda *a, **k: say.append(" ".join(map(str, a))))
     t1 = json.loads((tmp_path / "meta" / "table1.json").read_text())
     n, steps, nets = len(cfg.experts.tasks), point_env.PointGoalEnv(cfg.env).n_steps, len(cfg.meta.nets)
     first = n * cfg.meta.dataset.repetitions * steps
     assert t1["dataset_pairs"] == first + 2 * nets * n * steps
     assert t1["cloning"]["env_steps"] == {"dataset": first, "dagger": 2 * nets * n * steps}
-    assert "DAgger 2 x 1 episodes, 10 epochs" in t1["cloning"]["variant"]
+    assert "DAgger 2 x 1 episodes, 50 epochs" in t1["cloning"]["variant"]
     for r in (1, 2):
         assert (tmp_path / "meta" / "dagger" / f"round{r}.npz").exists()
     for name in cfg.meta.nets:
@@ -115,7 +117,7 @@ def test_dagger_adds_each_rounds_relabelled_states_and_resumes_from_them(tmp_pat
         assert (tmp_path / "meta" / name / "checkpoints").is_dir()  # the last round's: what later stages read
     assert sum("dagger round" in line for line in say) == 2
     again = []
-    pipeline.run_pipeline(("experts", "meta"), cfg, tmp_path, say=again.append)
+    pipeline.run_pipeline(("experts", "meta"), cfg, tmp_path, say=lambda *a, **k: again.append(" ".join(map(str, a))))
     assert sum("up to date" in line for line in again) == 2
 
 
