@@ -21,8 +21,8 @@ def open_loop(i: int) -> jax.Array:
 
 @pytest.fixture(scope="module")
 def cheetah():
-    """The env on MJX-JAX (the cheaper backend to compile on a CPU)."""
-    return cheetah_env.CheetahVelEnv(config_overrides={"impl": "jax"})
+    """The env on MJX-JAX (the cheaper backend to compile on a CPU), observing the torso position too."""
+    return cheetah_env.CheetahVelEnv(config_overrides={"impl": "jax", "torso_position": True})
 
 
 @pytest.fixture(scope="module")
@@ -183,7 +183,7 @@ def test_episode_ends_at_200_steps_over_a_batch_of_targets(cheetah, batch_episod
 
 def test_warp_matches_c_mujoco():
     """MuJoCo Warp (the default backend) steps as C MuJoCo does, in contact too."""
-    env = cheetah_env.CheetahVelEnv(config_overrides={"impl": "warp", "warp_contacts": 16})
+    env = cheetah_env.CheetahVelEnv(config_overrides={"impl": "warp", "warp_contacts": 16, "torso_position": True})
     assert env.max_episodes == 1
     assert_steps_match_c_mujoco(env, jax.jit(env.reset), jax.jit(env.step))
 

@@ -77,7 +77,7 @@ def test_a_manifest_of_another_schema_is_refused_in_one_line(tmp_path, stages):
     pipeline.run_stage("experts", cfg(), tmp_path)
     manifest = tmp_path / "experts" / pipeline.MANIFEST
     current = json.loads(manifest.read_text())
-    assert current["schema"] == pipeline.MANIFEST_SCHEMA == 2
+    assert current["schema"] == pipeline.MANIFEST_SCHEMA == 3
     for schema, named in ((None, "no schema"), (1, "schema 1"), ("2", "schema '2'")):
         older = dict(current)
         if schema is None:

@@ -316,6 +316,7 @@ def test_ppo_improves_the_return_on_the_warp_backend():
         "experts.ppo.total_env_steps": 16 * 20 * n,
         "experts.ppo.learning_rate": 3e-3,
         "experts.updates_per_chunk": n,
+        "experts.family.centre_updates": 0,  # PPO from a fresh policy
     }
     view = config.make_config("tiny", {"task": "cheetah_vel", **overrides})
     programs = experts.compile_programs(view)

@@ -268,7 +268,7 @@ def test_cheetah_rows_are_the_records_and_replace_only_their_block(tmp_path):
     rows = cheetah_table.rows(tmp_path)
     # Speed terms: -200 steps x each record's mean speed error; the env steps are the records' own.
     assert "4x256: -80 (mean speed error 0.40 m/s)" in rows[0] and "over 30 test velocities" in rows[0]
-    assert "3,000: 3 experts x 1,000 (PPO), then 600 steps" in rows[0]
+    assert "3,000: 3 experts x 1,000 (PPO, the family's shared start included), then 600 env steps" in rows[0]
     assert "filtered_4x256: -50 (0.25 m/s; 20 selection rollouts per task)" in rows[1]
     assert "speed term -10 (mean speed error 0.050 m/s, mean of 2 seeds: 0.040, 0.060)" in rows[2]
     doc = tmp_path / cheetah_table.DOC
@@ -289,7 +289,12 @@ def test_committed_cheetah_rows_are_the_committed_records():
     assert cheetah_table.readme_block(ROOT) in readme
     lines = cheetah_table.readme_lines(ROOT)
     baseline = json.loads((ROOT / "results" / "cheetah_vel" / "baseline.json").read_text())
-    assert len(lines) == 3 and f"errs {baseline['error_mean_m']:.2f} m/s" in lines[2]
+    seeds = json.loads((ROOT / "results" / "cheetah_vel" / "seeds.json").read_text())
+    assert len(lines) == 4 and f"errs {baseline['error_mean_m']:.2f} m/s" in lines[3]
+    # The headlines over seeds: each row's mean, then every seed's value.
+    assert f"Over {seeds['n_seeds']} training seeds" in lines[2]
+    per_seed = ", ".join(f"{v:.2f}" for v in seeds["rows"]["experts"]["per_seed"])
+    assert f"experts {seeds['rows']['experts']['mean']:.2f} +- " in lines[2] and f"({per_seed})" in lines[2]
 
 
 def test_readme_cheetah_sentences_follow_their_records(tmp_path):

@@ -16,11 +16,13 @@ from bumps_jax.tasks import registry as tasks
 # `pipeline.MANIFEST_SCHEMA`. Re-pinned when the losing arms' knobs left the tree (schema 2), and
 # when every section came to name its task (the kick's values unchanged: the pins without it held).
 # experts: the old pins' sections less the deleted losing-arm knobs (tune.scheme ... bc.common_start_strength).
+# meta: re-pinned with schema 3, when closed-loop cloning's knobs (meta.dataset.action_noise,
+# clip_labels, meta.dagger) joined the tree at values that change nothing (the kick's pins held otherwise).
 KICK_SECTIONS = {
     "tiny": {
         "prior": "c77d5ee26ce79ab481bb9e662a761800766d5204f5cb12fa5c4abe3858fe232d",
         "experts": "f0296a2c6baa1e33c32353ff41740a126f388b5e6930fd8e61951cb368ad692f",
-        "meta": "c31ba242d420911a21c719be714c6c0a9918a88b2ce264eefd0223fce6f637ac",
+        "meta": "acb20d3d70bae0f2574b25af91d2a0e4ef17e3ada1d2ef8f8bf785ec24072c4e",
         "filter": "25192c3f5983701f519587d2751b13a476b2d74c42985a855c0b5b6af8b77757",
         "heldout": "8bc6c1a9635b8e095e776cb3f006cb4378154fa4e755b89594bbe5768cd7ad0d",
         "baseline": "6a979f969de01a641d4650e63fdd1f326f0abd38a46ce1abfff45ce08793f69b",
@@ -28,7 +30,7 @@ KICK_SECTIONS = {
     "paper": {
         "prior": "60e55d10a9447f32ad888a955a4228849515451ee277be74d5ef7aef6bed3d2d",
         "experts": "09c1bb73a36a203a230cae681fc237b2412b1651be073a6f9131ecc7c743d3d6",
-        "meta": "834c238fff5fba0f7d17f26daa7839143042a938df1a0ff0b73e11ea835f4b62",
+        "meta": "23715b7f08d2ffa70ae7426856b968d4caaef23cc59c7c3d2e4fdc5799ff9e44",
         "filter": "28c68bd2e8a7fcbf5c7ee90aaf6dd5164a9097f322b524f9bfbfa020d98004c8",
         "heldout": "be6b478575aee78b6124528e9ff0987742791f2d5f312e8a448e5bb78a1b1e53",
         "baseline": "fe3b2493c8c10f2803dede6d928187700b942007d20d00b55ad870a67b29a358",

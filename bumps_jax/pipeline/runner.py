@@ -30,7 +30,7 @@ from bumps_jax.tasks.protocol import STAGE_ORDER
 MANIFEST = "stage.json"  # each stage directory's manifest
 # The manifest's layout and the config tree it records: raised when either changes so that a run
 # directory of an older layout is refused whole rather than compared key by key.
-MANIFEST_SCHEMA = 2
+MANIFEST_SCHEMA = 3
 
 # Stage name -> the stages that read its outputs (directly or through another).
 ORDER = STAGE_ORDER

@@ -31,20 +31,21 @@ def rows(task: str, rec: dict) -> list[tuple[str, str, int | None]]:
     together), cloning, each filtering variant's selection rollouts, and the baseline per seed."""
     experts, t1, t2, base = (rec[n] for n in RECORDS)
     out = []
-    if experts:
+    if experts and "tasks_m" in experts:
         n = len(experts["tasks_m"])
-        for part, steps in experts.get("env_steps_breakdown", {"ppo": experts["env_steps"]}).items():
+        for part, steps in experts.get("env_steps_breakdown", {"ppo": experts.get("env_steps")}).items():
             out.append(("BUMPS", f"experts: {part} ({n} experts)", None if steps is None else n * steps))
     if t1:
         cloning = t1.get("cloning", {})
         out.append(("BUMPS", f"cloning: {cloning.get('variant', 'the experts episodes')}",
-                    cloning.get("env_steps_total", t1["dataset_pairs"])))  # fmt: skip
-    if t2:
+                    cloning.get("env_steps_total", t1.get("dataset_pairs"))))  # fmt: skip
+    if t2 and "env" in t2:
         steps = episode_steps(task, t2["env"])
-        for name, r in t2["rows"].items():
-            out.append(("BUMPS", f"filtering: {name}'s selection rollouts ({r['n_tasks']} test contexts)",
-                        r["rollouts"] * steps))  # fmt: skip
-    if base:
+        for name, r in t2.get("rows", {}).items():
+            if "rollouts" in r:
+                out.append(("BUMPS", f"filtering: {name}'s selection rollouts ({r['n_tasks']} test contexts)",
+                            r["rollouts"] * steps))  # fmt: skip
+    if base and "env_steps_per_seed" in base:
         out.append(("baseline", f"multi-task PPO, per seed ({base['seeds']} seeds)", base["env_steps_per_seed"]))
     return out
 
