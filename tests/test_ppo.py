@@ -317,6 +317,7 @@ def test_ppo_improves_the_return_on_the_warp_backend():
         "experts.ppo.learning_rate": 3e-3,
         "experts.updates_per_chunk": n,
         "experts.family.centre_updates": 0,  # PPO from a fresh policy
+        "baseline.updates_per_chunk": 1,  # the tiny baseline's 240 steps are 3 updates of these episodes
     }
     view = config.make_config("tiny", {"task": "cheetah_vel", **overrides})
     programs = experts.compile_programs(view)
