@@ -16,6 +16,7 @@ _TASKS = {
     "kick": "bumps_jax.tasks.kick.task",  # the paper's: the NAO kicks a ball to a distance (m)
     "cheetah_vel": "bumps_jax.tasks.cheetah_vel.task",  # HalfCheetah-Vel: run at a velocity (m/s)
     "point_goal": "bumps_jax.tasks.point_goal.task",  # a point mass reaches a goal (x, y) (m)
+    "ant_goal": "bumps_jax.tasks.ant_goal.task",  # Ant-Goal: the ant walks to a goal (x, y) (m)
 }
 TASKS = tuple(_TASKS)
 DEFAULT = "kick"  # the task a command runs without --task
