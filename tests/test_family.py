@@ -94,33 +94,6 @@ def test_dart_episodes_act_with_noise_but_record_the_policys_own_action():
     np.testing.assert_allclose(meta_stage.clipped(env, np.array([[-3.0, 0.5]]), False), [[-3.0, 0.5]])
 
 
-def test_dagger_adds_each_rounds_relabelled_states_and_resumes_from_them(tmp_path):
-    """Two rounds on the point-goal task: each adds (nets x experts x repetitions x steps) pairs,
-    the earlier rounds' nets are trained in their own folders, and a rerun is up to date."""
-    nets = {f"meta.nets.{name}": (1, 16) for name in ("meta_4x256", "meta_11x128")}
-    cfg = config.make_config("tiny", {"task": "point_goal", "experts.tasks": ((0.5, 0.0), (0.0, 0.5)),
-                                      "meta.train.epochs": 50, "meta.dagger.rounds": 2, "meta.dagger.repetitions": 1,
-                                      "meta.dagger.epochs": 50, **nets})  # fmt: skip
-    say = []
-    pipeline.run_pipeline(("experts", "meta"), cfg, tmp_path, say=lambda *a, **k: say.append(" ".join(map(str, a))))
-    t1 = json.loads((tmp_path / "meta" / "table1.json").read_text())
-    n, steps, nets = len(cfg.experts.tasks), point_env.PointGoalEnv(cfg.env).n_steps, len(cfg.meta.nets)
-    first = n * cfg.meta.dataset.repetitions * steps
-    assert t1["dataset_pairs"] == first + 2 * nets * n * steps
-    assert t1["cloning"]["env_steps"] == {"dataset": first, "dagger": 2 * nets * n * steps}
-    assert "DAgger 2 x 1 episodes, 50 epochs" in t1["cloning"]["variant"]
-    for r in (1, 2):
-        assert (tmp_path / "meta" / "dagger" / f"round{r}.npz").exists()
-    for name in cfg.meta.nets:
-        assert (tmp_path / "meta" / "dagger" / "round0" / name / "progress.csv").exists()
-        assert not (tmp_path / "meta" / "dagger" / "round0" / name / "checkpoints").exists()
-        assert (tmp_path / "meta" / name / "checkpoints").is_dir()  # the last round's: what later stages read
-    assert sum("dagger round" in line for line in say) == 2
-    again = []
-    pipeline.run_pipeline(("experts", "meta"), cfg, tmp_path, say=lambda *a, **k: again.append(" ".join(map(str, a))))
-    assert sum("up to date" in line for line in again) == 2
-
-
 def record(task, experts_err, meta_err, filtered_err, env=None, flipped=0):
     env = env or {"impl": "warp", "physics_dt": None, "episode_steps": 10}
     return {
