@@ -182,6 +182,11 @@ class ContextualEnv(Env):
     def dt(self) -> float:
         return self.config.ctrl_dt
 
+    @property
+    def action_size(self) -> int:
+        """One action per actuator of the model (a task whose actions are not its actuators' says its own)."""
+        return self.mj_model.nu
+
     # -- the context -----------------------------------------------------------------------
     def check_targets(self, targets) -> np.ndarray:
         """Targets as a float array, or ValueError naming the first one outside the task range

@@ -262,10 +262,6 @@ class AntGoalEnv(task_env.ContextualEnv):
     def observation_size(self) -> int:
         return self.mj_model.nq - (0 if self.config.torso_xy else 2) + self.mj_model.nv
 
-    @property
-    def action_size(self) -> int:
-        return self.mj_model.nu
-
     # -- the task --------------------------------------------------------------------------
     def reset(self, rng: jax.Array, target=None) -> State:
         """A new episode. target: the goal (2,) m; default: drawn uniformly on the goal disc.

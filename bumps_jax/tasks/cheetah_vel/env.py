@@ -215,10 +215,6 @@ class CheetahVelEnv(task_env.ContextualEnv):
     def observation_size(self) -> int:
         return self.mj_model.nq - 1 + self.mj_model.nv + (3 if self.config.torso_position else 0)
 
-    @property
-    def action_size(self) -> int:
-        return self.mj_model.nu
-
     # -- the task --------------------------------------------------------------------------
     def reset(self, rng: jax.Array, target=None) -> State:
         """A new episode. target: scalar m/s; default: drawn from U[task_range].

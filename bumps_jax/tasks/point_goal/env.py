@@ -165,10 +165,6 @@ class PointGoalEnv(task_env.ContextualEnv):
     def observation_size(self) -> int:
         return self.mj_model.nq + self.mj_model.nv
 
-    @property
-    def action_size(self) -> int:
-        return self.mj_model.nu
-
     # -- the task --------------------------------------------------------------------------
     def reset(self, rng: jax.Array, target=None) -> State:
         """A new episode. target: the goal (2,) m; default: drawn uniformly on the goal disc.
