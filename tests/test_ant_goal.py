@@ -247,8 +247,11 @@ def test_a_bad_config_value_names_its_key(overrides, message):
 def test_the_tiny_pipeline_runs_every_stage(tmp_path):
     """Experts (a family from the centre goal), meta, filter and baseline at the tiny preset (Warp,
     the default backend): finite errors and records naming the task."""
-    cfg = config.make_config("tiny", {"task": "ant_goal"})
-    timing = pipeline.run_pipeline(pipeline.ORDER, cfg, tmp_path, say=lambda *a, **k: None)
+    # Closed-loop cloning with one DAgger round: each net's episodes at every goal relabelled by its expert.
+    dagger = {"meta.dagger.rounds": 1, "meta.dagger.repetitions": 1, "meta.dagger.epochs": 10}
+    cfg = config.make_config("tiny", {"task": "ant_goal", **dagger})
+    say = []
+    timing = pipeline.run_pipeline(pipeline.ORDER, cfg, tmp_path, say=lambda *a, **k: say.append(str(a[0])))
     assert sorted(timing["stages_s"]) == ["baseline", "experts", "filter", "meta"]
     experts = json.loads((tmp_path / "experts" / "experts.json").read_text())
     assert experts["task"] == "ant_goal" and experts["unit"] == "m"
@@ -270,3 +273,18 @@ def test_the_tiny_pipeline_runs_every_stage(tmp_path):
     assert baseline["task"] == "ant_goal" and np.isfinite(baseline["error_mean_m"])
     assert baseline["env_steps_per_seed"] == cfg.baseline.ppo.total_env_steps
     assert "BUMPS on ant_goal" in (tmp_path / "report.md").read_text()
+    # The DAgger round added (nets x goals x 1 episode x steps) pairs, its nets trained from the
+    # first round's in the folders later stages read; the first round's checkpoints are gone; a rerun is up to date.
+    n, steps, nets = len(cfg.experts.tasks), cfg.env.episode_steps, len(cfg.meta.nets)
+    first = n * cfg.meta.dataset.repetitions * steps
+    assert table1["dataset_pairs"] == first + nets * n * steps
+    assert table1["cloning"]["env_steps"] == {"dataset": first, "dagger": nets * n * steps}
+    assert "DAgger 1 x 1 episodes, 10 epochs" in table1["cloning"]["variant"]
+    assert sum("dagger round" in line for line in say) == 1
+    for name in cfg.meta.nets:
+        assert (tmp_path / "meta" / "dagger" / "round0" / name / "progress.csv").exists()
+        assert not (tmp_path / "meta" / "dagger" / "round0" / name / "checkpoints").exists()
+        assert (tmp_path / "meta" / name / "checkpoints").is_dir()
+    again = []
+    pipeline.run_pipeline(pipeline.ORDER, cfg, tmp_path, say=lambda *a, **k: again.append(str(a[0])))
+    assert sum("up to date" in line for line in again) == 4

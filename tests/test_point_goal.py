@@ -111,13 +111,10 @@ def test_the_tiny_pipeline_filters_better_than_doing_nothing(tmp_path):
         "task": "point_goal", **nets,
         "experts.ppo.total_env_steps": 32 * 30 * 20,  # 20 updates reach the goals within cm
         "meta.train.epochs": 100,
-        # Closed-loop cloning: two DAgger rounds, each net's episodes at every goal relabelled by its expert.
-        "meta.dagger.rounds": 2, "meta.dagger.repetitions": 1, "meta.dagger.epochs": 50,
         "filter.context_step": 0.5,  # 25 + 3 contexts
         "filter.high_context_step": 0.25,
     })  # fmt: skip
-    say = []
-    pipeline.run_pipeline(("experts", "meta", "filter"), cfg, tmp_path, say=lambda *a, **k: say.append(str(a[0])))
+    pipeline.run_pipeline(("experts", "meta", "filter"), cfg, tmp_path, say=lambda *a, **k: None)
     experts = json.loads((tmp_path / "experts" / "experts.json").read_text())
     assert experts["tasks_m"] == [list(t) for t in cfg.experts.tasks]
     table2 = json.loads((tmp_path / "filter" / "table2.json").read_text())
@@ -135,19 +132,3 @@ def test_the_tiny_pipeline_filters_better_than_doing_nothing(tmp_path):
         for context, task in zip(table2["chosen_contexts"].get(name, []), table2["tasks"], strict=False):
             assert np.linalg.norm(np.subtract(context, task)) <= cfg.filter.width + 1e-6
     assert "BUMPS on point_goal" in (tmp_path / "report.md").read_text()
-    # Each DAgger round added (nets x goals x 1 episode x steps) pairs, trained in its own folder;
-    # later stages read the last round's nets; a rerun is up to date.
-    t1 = json.loads((tmp_path / "meta" / "table1.json").read_text())
-    n, steps, nets = len(cfg.experts.tasks), env.n_steps, len(cfg.meta.nets)
-    first = n * cfg.meta.dataset.repetitions * steps
-    assert t1["dataset_pairs"] == first + 2 * nets * n * steps
-    assert t1["cloning"]["env_steps"] == {"dataset": first, "dagger": 2 * nets * n * steps}
-    assert "DAgger 2 x 1 episodes, 50 epochs" in t1["cloning"]["variant"]
-    assert sum("dagger round" in line for line in say) == 2
-    for name in cfg.meta.nets:
-        assert (tmp_path / "meta" / "dagger" / "round1" / name / "progress.csv").exists()
-        assert not (tmp_path / "meta" / "dagger" / "round1" / name / "checkpoints").exists()
-        assert (tmp_path / "meta" / name / "checkpoints").is_dir()
-    again = []
-    pipeline.run_pipeline(("experts", "meta", "filter"), cfg, tmp_path, say=lambda *a, **k: again.append(str(a[0])))
-    assert sum("up to date" in line for line in again) == 3
