@@ -3,6 +3,7 @@ check, closed-loop cloning (DART noise, clipped labels, DAgger), headlines over 
 env-step table."""
 
 import json
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -16,7 +17,6 @@ from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.pipeline.stages import meta as meta_stage
 from bumps_jax.report import budgets, seeds
 from bumps_jax.tasks.cheetah_vel import env as cheetah_env
-from bumps_jax.tasks.point_goal import env as point_env
 
 
 def test_the_centre_is_the_context_nearest_the_mean_and_targets_ramp_out_from_it():
@@ -74,22 +74,44 @@ def test_the_family_check_reads_postures_and_neighbours_errors():
     assert "| 1 | 1 | 0.000 | 0.5: 0.50, 2: 1.00 | 3.14 | 1.00 | 0.00 |" in evaluate.family_table(check, "m/s")
 
 
+class DriftState(NamedTuple):
+    obs: jax.Array
+    reward: jax.Array
+    metrics: dict
+
+
+class Drift:
+    """A stand-in env whose state is a position that each action moves: what `rollout.episode_fn` needs."""
+
+    n_steps = 5
+    ACTION_BOUND = 1.0
+
+    def reset(self, key, target):
+        return DriftState(jnp.zeros(2), jnp.zeros(()), {"final_error": jnp.zeros(())})
+
+    def step(self, state, action):
+        obs = state.obs + action
+        return DriftState(obs, -jnp.abs(obs).sum(), {"final_error": jnp.abs(obs).sum()})
+
+    def with_context(self, obs, context):
+        return jnp.concatenate([obs, jnp.atleast_1d(context)])
+
+
 def test_dart_episodes_act_with_noise_but_record_the_policys_own_action():
-    env = point_env.PointGoalEnv()
+    env = Drift()
 
     def policy(params, obs):
         return params * jnp.ones(2)
 
-    goal = jnp.array([0.5, 0.0])
     clean = rollout.episode_fn(env, policy, "trajectory")
     noisy = rollout.episode_fn(env, policy, "trajectory", action_noise=0.5)
-    _, (obs_clean, act_clean) = clean(0.3, goal, goal, jax.random.key(0))
-    _, (obs_noisy, act_noisy) = noisy(0.3, goal, goal, jax.random.key(0))
+    _, (obs_clean, act_clean) = clean(0.3, 1.0, 1.0, jax.random.key(0))
+    _, (obs_noisy, act_noisy) = noisy(0.3, 1.0, 1.0, jax.random.key(0))
     np.testing.assert_allclose(act_noisy, 0.3)  # the labels: the policy's action, not the one executed
     np.testing.assert_allclose(act_clean, 0.3)
+    np.testing.assert_allclose(obs_clean[:, :2], 0.3 * np.arange(5)[:, None] * np.ones(2), rtol=1e-6)
     assert not np.allclose(obs_clean[1:], obs_noisy[1:])  # the states the noise led to
     np.testing.assert_allclose(obs_clean[0], obs_noisy[0])  # the same reset
-    env.ACTION_BOUND = 1.0
     np.testing.assert_allclose(meta_stage.clipped(env, np.array([[-3.0, 0.5]]), True), [[-1.0, 0.5]])
     np.testing.assert_allclose(meta_stage.clipped(env, np.array([[-3.0, 0.5]]), False), [[-3.0, 0.5]])
 

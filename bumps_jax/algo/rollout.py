@@ -48,7 +48,9 @@ def episode_fn(env: ContextualEnv, apply_fn, record: str | None = None, action_n
             if action_noise:
                 executed = action + action_noise * jax.random.normal(jax.random.fold_in(noise_key, t), action.shape)
             state = env.step(state, executed)
-            recorded = {"trajectory": (obs, action), "qpos": state.pipeline_state.qpos}.get(record)
+            recorded = (obs, action) if record == "trajectory" else None
+            if record == "qpos":
+                recorded = state.pipeline_state.qpos
             return (state, ret + state.reward), recorded
 
         steps = jnp.arange(env.n_steps)
