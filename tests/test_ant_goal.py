@@ -234,8 +234,8 @@ def test_config_goals_and_sizes():
         ({"env.reward.contact": -1.0}, "env.reward.contact must be a finite weight >= 0, got -1.0"),
         ({"env.reset_noise": -0.1}, "env.reset_noise must be a finite number >= 0, got -0.1"),
         ({"env.impl": "torch"}, "env.impl must be one of"),
-        ({"experts.tasks": ((1.0,), (2.0,))}, r"experts.tasks must be a list of goals \(x, y\) m"),
-        ({"filter.tasks": ((3.5, 0.0),)}, r"filter.tasks: target 3.5 m is outside the task range \[-3.0, 3.0\]"),
+        ({"experts.tasks": ((1.0,), (2.0,))}, r"experts.tasks: targets must be vectors of 2 numbers \(m\), got shape"),
+        ({"filter.tasks": ((3.5, 0.0),)}, r"filter.tasks: target \(3.5, 0\) m is outside the task range \[-3.0, 3.0\]"),
         ({"env.warp_contacts": 100}, "env.warp_contacts 100 holds 4 episodes, but the experts program runs 12"),
     ],
 )

@@ -22,10 +22,11 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
 
     task = tasks.get(cfg.task)
     n_steps, task_range, unit = task.env_class.n_steps_of(cfg.env), tuple(cfg.env.task_range), task.unit
-    experts(cfg.experts, task_range, n_steps, unit)
-    meta(cfg.meta, task_range, unit)
-    filtering(cfg.filter, task_range, unit)
-    baseline(cfg.baseline, task_range, n_steps, unit)
+    size = task.env_class.CONTEXT_SIZE  # numbers in one context
+    experts(cfg.experts, task_range, n_steps, unit, size)
+    meta(cfg.meta, task_range, unit, size)
+    filtering(cfg.filter, task_range, unit, size)
+    baseline(cfg.baseline, task_range, n_steps, unit, size)
     if "heldout" in cfg:
         heldout(cfg.heldout, task_range)
     if cfg.filter.net_seed >= cfg.meta.train.n_seeds:
@@ -49,13 +50,15 @@ def positive_floats(node, prefix: str, keys) -> None:
             raise ValueError(f"{prefix}{key} must be > 0, got {value!r}")
 
 
-def targets(values, task_range, key: str, unit: str = "m") -> None:
+def targets(values, task_range, key: str, unit: str = "m", size: int = 1) -> None:
+    """ValueError naming `key` unless `values` is a non-empty list of contexts in the task range
+    (size > 1: vectors of `size` numbers, a bad one named whole)."""
     from bumps_jax.envs import base as task_env  # noqa: PLC0415
 
     if len(values) == 0:
         raise ValueError(f"{key} is empty: give at least one target ({unit})")
     try:
-        task_env.check_targets(values, task_range, unit)
+        task_env.check_targets(values, task_range, unit, size)
     except ValueError as err:
         raise ValueError(f"{key}: {err}") from None
 
@@ -66,8 +69,8 @@ def ppo_section(c, prefix: str, n_steps: int, task_range) -> None:
         targets(c.sample_task_range, task_range, f"{prefix}sample_task_range")
 
 
-def experts(e, task_range, n_steps: int, unit: str = "m") -> None:
-    targets(e.tasks, task_range, "experts.tasks", unit)
+def experts(e, task_range, n_steps: int, unit: str = "m", size: int = 1) -> None:
+    targets(e.tasks, task_range, "experts.tasks", unit, size)
     positive_ints(e, "experts.", ("updates_per_chunk", "keep_checkpoints"))
     positive_ints(e.eval, "experts.eval.", ("repetitions",))
     ppo_section(e.ppo, "experts.ppo.", n_steps, task_range)
@@ -93,7 +96,7 @@ def chunk_divides(section, prefix: str, total: int) -> None:
         )
 
 
-def meta(m, task_range, unit: str = "m") -> None:
+def meta(m, task_range, unit: str = "m", size: int = 1) -> None:
     p = "meta."
     positive_ints(m.train, f"{p}train.", ("batch_size", "epochs", "chunk", "n_seeds", "decay_every"))
     if m.train.epochs % m.train.chunk:
@@ -112,15 +115,15 @@ def meta(m, task_range, unit: str = "m") -> None:
     if rounds and m.dagger.epochs % m.train.chunk:
         raise ValueError(f"{p}dagger.epochs {m.dagger.epochs} must be a multiple of {p}train.chunk {m.train.chunk}")
     positive_ints(m.eval, f"{p}eval.", ("repetitions",))
-    targets(m.eval.tasks, task_range, f"{p}eval.tasks", unit)
+    targets(m.eval.tasks, task_range, f"{p}eval.tasks", unit, size)
     for name, arch in m.nets.items():
         if len(arch) != 2 or min(arch) < 1:
             raise ValueError(f"{p}nets.{name} must be (hidden layers >= 1, width >= 1), got {tuple(arch)!r}")
 
 
-def filtering(f, task_range, unit: str = "m") -> None:
+def filtering(f, task_range, unit: str = "m", size: int = 1) -> None:
     p = "filter."
-    targets(f.tasks, task_range, f"{p}tasks", unit)
+    targets(f.tasks, task_range, f"{p}tasks", unit, size)
     targets(f.context_range, task_range, f"{p}context_range", unit)
     positive_floats(f, p, ("width", "context_step", "high_context_step"))
     positive_ints(f, p, ("selection_repetitions", "eval_repetitions"))
@@ -141,11 +144,11 @@ def filtering(f, task_range, unit: str = "m") -> None:
         positive_ints(f, p, ("block",))
 
 
-def baseline(b, task_range, n_steps: int, unit: str = "m") -> None:
+def baseline(b, task_range, n_steps: int, unit: str = "m", size: int = 1) -> None:
     """The multi-task baseline's section."""
     p = "baseline."
     positive_ints(b, p, ("seeds", "eval_repetitions", "updates_per_chunk", "keep_checkpoints"))
-    targets(b.eval_tasks, task_range, f"{p}eval_tasks", unit)
+    targets(b.eval_tasks, task_range, f"{p}eval_tasks", unit, size)
     ppo_section(b.ppo, f"{p}ppo.", n_steps, task_range)
     chunk_divides(b, p, int(b.ppo.total_env_steps // (b.ppo.num_envs * n_steps)))
     if b.ppo.sample_task_range is None:
