@@ -185,7 +185,7 @@ def default_run_dir(command: str, preset: str, task: str | None = None) -> Path:
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
     name = "demo" if command == "demo" else preset
-    return Path("runs") / name if task in (None, tasks.DEFAULT) else Path("runs") / task / name
+    return Path("runs") / tasks.folder(task or tasks.DEFAULT) / name
 
 
 def pipeline_stages(command: str, chosen) -> tuple[str, ...]:

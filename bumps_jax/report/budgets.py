@@ -13,9 +13,11 @@ import ml_collections
 RECORDS = ("experts.json", "table1.json", "table2.json", "baseline.json")
 
 
-def task_records(root: Path, task: str, default: str) -> dict:
-    """{name: record or None} of a task's committed records."""
-    folder = Path(root) / "results" / ("" if task == default else task)
+def task_records(root: Path, task: str) -> dict:
+    """{name: record or None} of a task's committed records (`registry.folder`)."""
+    from bumps_jax.tasks import registry  # noqa: PLC0415
+
+    folder = Path(root) / "results" / registry.folder(task)
     return {n: json.loads((folder / n).read_text()) if (folder / n).exists() else None for n in RECORDS}
 
 
@@ -58,7 +60,7 @@ def section(root: str | Path = ".") -> list[str]:
              "What each arm spent, from the committed records (evaluation episodes not counted). BUMPS' "
              "total is its experts, its cloning and one filtering variant's selection.", ""]  # fmt: skip
     for task in registry.TASKS:
-        table = rows(task, task_records(Path(root), task, registry.DEFAULT))
+        table = rows(task, task_records(Path(root), task))
         if not table:
             continue
         lines += [f"**{task}**", "", "| arm | part | env steps |", "|---|---|---|"]

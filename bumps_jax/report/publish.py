@@ -110,12 +110,11 @@ def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list
     run_dir, root = Path(run_dir), Path(root)
     if not any((run_dir / rel).exists() for rel in TASK_PUBLISHED if rel.endswith(".json")):
         raise ValueError(f"{run_dir} holds no stage results to publish")
-    if report_task.run_task(run_dir) != task:
-        raise ValueError(f"{run_dir} holds no {task} run (its records name {report_task.run_task(run_dir)!r})")
+    tasks.check_record_task(report_task.run_task(run_dir), task, str(run_dir))
     written = []
     for rel, name in TASK_PUBLISHED.items():
         if (run_dir / rel).exists():
-            dest = root / "results" / task / name
+            dest = root / "results" / tasks.folder(task) / name
             dest.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(run_dir / rel, dest)
             written.append(dest)

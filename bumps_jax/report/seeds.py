@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from bumps_jax import config, records, runio
+from bumps_jax.tasks import registry
 
 # Each run's records the summary reads: run file -> the name it is kept under per seed.
 RUN_RECORDS = {"experts/experts.json": "experts.json", "meta/table1.json": "table1.json",
@@ -41,8 +42,7 @@ def seeds_record(run_dirs, command: str) -> dict:
     for d, r in runs[1:]:
         other = r["records"]["table2.json"]
         records.check_same_env(other.get("env"), first.get("env"), f"{d / 'filter/table2.json'}")
-        if other.get("task") != first.get("task"):
-            raise ValueError(f"{d}: a {other.get('task')} run, not {first.get('task')}")
+        registry.check_record_task(other.get("task"), first.get("task"), str(d))
     names = list(runs[0][1]["rows"])
     summary = {}
     for name in names:
@@ -83,8 +83,7 @@ def publish_seeds(run_dirs, task: str, command: str, root: str | Path = ".") -> 
     """Each run's records under results/<task>/seeds/<run>/, and their summary as results/<task>/seeds.json."""
     root, written = Path(root), []
     record = seeds_record(run_dirs, command)
-    if record["task"] != task:
-        raise ValueError(f"the runs are {record['task']} runs, not {task}")
+    registry.check_record_task(record["task"], task, "--seed-runs")
     for d in map(Path, run_dirs):
         for rel, name in RUN_RECORDS.items():
             dest = root / "results" / task / "seeds" / d.name / name

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+from pathlib import PurePath
 
 from bumps_jax.tasks.protocol import Task
 
@@ -51,6 +52,18 @@ def commands() -> dict:
                 raise ValueError(f"tasks {out[command][0]!r} and {name!r} both define a {command!r} command")
             out[command] = (name, spec)
     return out
+
+
+def folder(name: str) -> PurePath:
+    """Task `name`'s folder under runs/ and results/: none for the default task (its records are
+    results/*.json), its name for another (results/<task>/)."""
+    return PurePath() if check_task(name) == DEFAULT else PurePath(name)
+
+
+def check_record_task(found, name: str, what: str) -> None:
+    """ValueError naming `what` unless its records name task `name` (`found`: the task they name)."""
+    if found != name:
+        raise ValueError(f"{what} holds no {name} run (its records name {found!r})")
 
 
 def make_env(name: str, env_cfg, overrides: dict | None = None):

@@ -349,16 +349,19 @@ def load_family(cfg, run_dir: Path) -> Family:
     return Family(expert_policy(policy_networks(policy), env), params, np.asarray(cfg.experts.tasks, np.float64))
 
 
-def family_posture(cfg, programs: Compiled, params: ExpertParams) -> dict:
-    """The env's `posture` statistics of each expert on its own context, over the evaluation's
-    episodes (same keys), averaged over them: {name: (E,)}; {} for an env that defines none."""
+def evaluate_on_own(cfg, programs: Compiled, params: ExpertParams) -> tuple[dict, dict]:
+    """Every expert on its own context, `eval.repetitions` noisy episodes: final metrics of (E, R)
+    and, for an env that defines `posture`, its statistics averaged over the same episodes
+    ({name: (E,)}; {} otherwise), from one rollout that records the bodies' positions."""
     env, e = programs.env, cfg.experts
+    apply = task_expert_policy(cfg, programs)
     if type(env).posture is task_env.ContextualEnv.posture:
-        return {}
-    program = rollout.matched_fn(env, task_expert_policy(cfg, programs), record="qpos")
-    targets = np.asarray(e.tasks, np.float32)
-    _, qpos = program(params, targets, targets, rollout.repetition_keys(e.eval.seed, len(targets), e.eval.repetitions))
-    return {k: np.asarray(v).mean(axis=1) for k, v in env.posture(np.asarray(qpos)).items()}
+        return evaluate.evaluate_experts(env, apply, params, e.tasks, e.eval.repetitions, e.eval.seed), {}
+    targets = np.asarray(env.check_targets(e.tasks), np.float32)
+    keys = rollout.repetition_keys(e.eval.seed, len(targets), e.eval.repetitions)  # evaluate_experts' keys
+    metrics, qpos = rollout.matched_fn(env, apply, record="qpos")(params, targets, targets, keys)
+    posture = {k: np.asarray(v).mean(axis=1) for k, v in env.posture(np.asarray(qpos)).items()}
+    return jax.tree.map(np.asarray, metrics), posture
 
 
 def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compiled, wall_s: float, say=print) -> dict:
@@ -366,8 +369,7 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
     start = time.perf_counter()
     e = cfg.experts
     say(f"evaluating {len(e.tasks)} experts x {e.eval.repetitions} noisy episodes (compiling first)", flush=True)
-    apply = task_expert_policy(cfg, programs)
-    metrics = evaluate.evaluate_experts(programs.env, apply, params, e.tasks, e.eval.repetitions, e.eval.seed)
+    metrics, posture = evaluate_on_own(cfg, programs, params)
     record = evaluate.experts_record(e.tasks, metrics, programs.trainer.n_updates * programs.trainer.steps_per_update)
     task = tasks.get(cfg.task)
     centre_updates, _ = family_updates(cfg)
@@ -382,9 +384,7 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
         record.update(task.expert_start.describe(cfg, stage_dir.parent, stage_dir, programs.env, record))
     known = [v for v in record["env_steps_breakdown"].values() if v is not None]
     record["env_steps_total"] = int(sum(known))  # per expert, the parts that are known
-    record["family_check"] = evaluate.family_check(
-        programs.env, e.tasks, metrics, family_posture(cfg, programs, params)
-    )
+    record["family_check"] = evaluate.family_check(programs.env, e.tasks, metrics, posture)
     record.update(runio.provenance(cfg.preset, wall_s + time.perf_counter() - start, config.resolved_env(cfg)))
     record.update(task=cfg.task, unit=task.unit, eval_repetitions=int(e.eval.repetitions))
     record["policy"] = policy_record(e.ppo, programs.env)  # what rebuilds the experts from final_params
