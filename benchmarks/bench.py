@@ -297,10 +297,11 @@ def filter_work(cfg, step: float, reps: int, mesh, workload: int = 1, seed: int 
 
     def run():
         sel = filtering.filter_policy(grid, params, contexts, tasks, f.width, reps, sel_key,
-                                      task_range=cfg.env.task_range, block=f.block, multiple=mesh.size,
+                                      task_range=cfg.env.task_range, block=f.block, multiple=sharding.ways(mesh),
                                       **filtering.scoring(env))  # fmt: skip
         chosen = sel.contexts[sel.chosen]
-        return filtering.evaluate_chosen(grid, params, chosen, tasks, f.eval_repetitions, eval_key, f.block, mesh.size)
+        ways = sharding.ways(mesh)
+        return filtering.evaluate_chosen(grid, params, chosen, tasks, f.eval_repetitions, eval_key, f.block, ways)
 
     return Work(run, len(contexts) * reps + len(tasks) * f.eval_repetitions, {"filter_contexts": len(contexts)})
 

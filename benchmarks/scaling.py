@@ -11,6 +11,10 @@ does all of it in one program; N GPUs share it in one of two layouts:
   MJX's Warp physics runs on one GPU per process (`sharding.device_mesh`), so this is how
   Warp scales: independent runs side by side, as the experts of two seeds or two development
   arms are run on a two-GPU host.
+- `distributed`: N processes joined by JAX's multi-process runtime (`jax.distributed`, as
+  `--processes N` and several hosts run), one GPU each, sharing one batch of N x K copies:
+  each process computes its share of every program call and the results are gathered to all
+  (`sharding.over_batch`). This is how the pipeline itself spreads over GPUs.
 - `mesh`: one process splitting the N x K copies over a mesh of N devices (`sharding.over_batch`),
   for MJX-JAX physics (`--set env.impl=jax`) or several CPU devices.
 
@@ -41,7 +45,7 @@ from bumps_jax import cli, config, runio
 
 # Each measured work and the record's key of its rate (`bench.Work.amount` per second).
 WORKS = {"experts": "experts_env_steps_per_s", "filter": "filter_rollouts_per_s"}
-LAYOUTS = ("processes", "mesh")
+LAYOUTS = ("processes", "distributed", "mesh")
 # Seconds a worker may take to build and compile its program, and to run it once timed.
 COMPILE_TIMEOUT_S = 1200.0
 POLL_S = 0.05
@@ -94,6 +98,8 @@ def layout_of(layout: str, m: int, n: int, k: int = 1) -> list[dict]:
         return [{"gpu": "0", "devices": 1, "copies": n * k}]
     if layout == "processes":
         return [{"gpu": str(i), "devices": 1, "copies": k} for i in range(m)]
+    if layout == "distributed":  # one batch of every copy, each process computing its share
+        return [{"gpu": str(i), "devices": 1, "copies": n * k, "processes": m} for i in range(m)]
     return [{"gpu": None, "devices": m, "copies": n * k}]
 
 
@@ -125,7 +131,10 @@ def worker_env(gpu: str | None) -> dict:
 
 def run_phase(args, work: str, m: int, k: int, folder: Path) -> dict:
     """Start the processes of one phase, let them time their work together, and combine."""
+    from bumps_jax import launch  # noqa: PLC0415
+
     folder.mkdir(parents=True)
+    port = launch.free_port()
     base = [sys.executable, "-m", "benchmarks.scaling", "--preset", args.preset, "--worker", work,
             "--worker-dir", str(folder), "--devices", str(args.devices)]  # fmt: skip
     for group in args.set:
@@ -137,7 +146,10 @@ def run_phase(args, work: str, m: int, k: int, folder: Path) -> dict:
         log = open(folder / f"log.{i}", "w")  # noqa: SIM115 (closed with its process below)
         own = ["--worker-index", str(i), "--worker-devices", str(p["devices"]), "--worker-copies", str(p["copies"])]
         cmd = [*base, *own]
-        procs.append((subprocess.Popen(cmd, env=worker_env(p["gpu"]), stdout=log, stderr=subprocess.STDOUT), log))
+        env = worker_env(p["gpu"])
+        if "processes" in p:  # joined: `sharding.initialize_distributed` reads these
+            env = {**launch.process_env(i, p["processes"], port, None), **env}
+        procs.append((subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT), log))
     try:
         wait_for(procs, [folder / f"ready.{i}" for i in range(len(procs))], folder, COMPILE_TIMEOUT_S)
         (folder / "go").touch()
@@ -183,9 +195,13 @@ def worker(args, cfg) -> None:
     from bumps_jax.algo import sharding  # noqa: PLC0415
 
     folder, i = Path(args.worker_dir), args.worker_index
+    if "JAX_NUM_PROCESSES" in os.environ:  # the distributed layout
+        sharding.initialize_distributed()
     mesh = sharding.device_mesh(args.worker_devices, impl=cfg.env.impl)
     size = bench.SIZES[args.preset]
-    seed = 1000 * i  # each process its own noise (the copies within one program are seeded apart already)
+    # each process its own noise (the copies within one program are seeded apart already); one
+    # batch shared by joined processes has one seed
+    seed = 1000 * i if jax.process_count() == 1 else 0
     if args.worker == "experts":
         work = bench.experts_work(cfg, args.updates or size["bench_updates"], mesh, args.worker_copies,
                                   seed=cfg.experts.seed + seed)  # fmt: skip
@@ -204,9 +220,11 @@ def worker(args, cfg) -> None:
     jax.block_until_ready(work.run())
     end = time.time()
     record = {"start": start, "end": end, "wall_s": end - start, "compile_s": first - (end - start),
-              "amount": work.amount, "detail": work.detail, "gpu": os.environ.get("CUDA_VISIBLE_DEVICES"),
+              "amount": work.amount / jax.process_count(), "detail": work.detail,  # a joined process: its share
+              "gpu": os.environ.get("CUDA_VISIBLE_DEVICES"),
               "provenance": runio.provenance(cfg.preset, 0.0, config.resolved_env(cfg))}  # fmt: skip
-    runio.write_json(folder / f"result.{i}.json", record)
+    # every process its own file (runio writes only the first process's in a joined job)
+    (folder / f"result.{i}.json").write_text(json.dumps(runio.json_safe(record)))
 
 
 def measure(args, work: str, k: int, folder: Path, say) -> dict:

@@ -22,6 +22,7 @@ import io
 import json
 import os
 import sys
+import traceback
 from pathlib import Path
 
 # command -> (stage or pipeline, the presets it knows, help)
@@ -136,7 +137,7 @@ def build_parser(with_keys: bool = False) -> argparse.ArgumentParser:
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
         if own_only:  # a command under its own config (the kick's shipped policies): no preset, run directory or --set
-            p.set_defaults(preset="tiny", run_dir=None, task=None, set=[], force=False, distributed=False)
+            p.set_defaults(preset="tiny", run_dir=None, task=None, set=[], force=False, distributed=False, processes=1)
         else:
             add_run_options(p, name)
         if spec is not None and spec.add_arguments is not None:
@@ -160,7 +161,11 @@ def add_run_options(p, name: str) -> None:
     p.add_argument("--force", action="store_true",
                    help="recompute a stage whose outputs were made under another config or inputs, "
                         "and every stage after it")  # fmt: skip
-    p.add_argument("--distributed", action="store_true", help="one process per host of a multi-host job")
+    p.add_argument("--processes", type=int, default=1, metavar="N",
+                   help="run as N processes on this host, one GPU each (JAX's multi-process runtime): every "
+                        "batched program split over them")  # fmt: skip
+    p.add_argument("--distributed", action="store_true",
+                   help="this process is one of a multi-process job (started by srun, or by --processes)")  # fmt: skip
     if name in PIPELINES:
         every = ", ".join(PIPELINES[name][0])
         p.add_argument("--stages", nargs="+", default=None, metavar="STAGE",
@@ -330,18 +335,41 @@ def main(argv=None) -> None:
 
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task)
     try:
+        if args.processes != 1 and not args.distributed:
+            from bumps_jax import launch  # noqa: PLC0415
+
+            n = launch.check_count(args.processes)
+            with runio.run_lock(run_dir):
+                sys.exit(launch.run(argv, n, run_dir))
         if args.distributed:
             from bumps_jax.algo import sharding  # noqa: PLC0415
 
             sharding.initialize_distributed()
         dispatch(args)
     except ValueError as err:  # bad config values, missing or stale inputs: one clear line
-        sys.exit(f"error: {err}")
+        leave(args, f"error: {err}")
     except (KeyboardInterrupt, runio.Interrupted):  # the checkpoints are the state
-        sys.exit(
+        leave(
+            args,
             f"interrupted: rerun the same command to resume {run_dir} from what it saved (the stage in flight's "
-            "last chunk or search generation; the stages before it are done)"
+            "last chunk or search generation; the stages before it are done)",
         )
+    except Exception:
+        if not args.distributed:
+            raise
+        traceback.print_exc()
+        leave(args, "error: the traceback above")
+
+
+def leave(args, message: str) -> None:
+    """End the command with `message` on stderr and exit status 1. A process of a multi-process
+    job leaves at once: JAX's orderly shutdown would wait minutes for the others to get there
+    (the launcher stops them, `launch.run`)."""
+    if not args.distributed:
+        sys.exit(message)
+    print(message, file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    os._exit(1)
 
 
 if __name__ == "__main__":

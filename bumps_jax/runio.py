@@ -53,13 +53,16 @@ def versions() -> dict:
 def provenance(preset: str, wall_s: float, env: dict, command: str | None = None) -> dict:
     """The keys every results file carries: device, versions, date, command, preset, wall time, and
     the env config it ran under (`env`, as its task resolves it: `config.resolved_env`)."""
+    import jax  # noqa: PLC0415
+
     from bumps_jax.algo import sharding  # noqa: PLC0415
 
     resolved = dict(env)
     record = {
         "device": device_name(),
-        # the devices its programs were split over (Warp physics uses one GPU: `sharding.device_mesh`)
-        "n_devices": sharding.device_mesh(impl=resolved.get("impl")).size,
+        # the devices its programs were split over, in every process (Warp: one GPU a process)
+        "n_devices": sharding.ways(sharding.device_mesh(impl=resolved.get("impl"))),
+        "n_processes": jax.process_count(),
         "versions": versions(),
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "command": command or command_line(),
@@ -139,6 +142,42 @@ def recorded_path(path: str | os.PathLike, run_dir: str | os.PathLike | None = N
     return shown(path)
 
 
+def write_npz(path: str | os.PathLike, **arrays) -> Path:
+    """numpy arrays into `path` (.npz), atomically (temp file + rename)."""
+    import numpy as np  # noqa: PLC0415
+
+    path = Path(path)
+    if not writes_here():
+        return path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(path)
+    return path
+
+
+def sync(name: str) -> None:
+    """Wait until every process of a multi-process run has got here (`sharding.barrier`), so none
+    reads a file before the process that writes it (`writes_here`) has written it."""
+    jax = sys.modules.get("jax")
+    if jax is not None and jax.process_count() > 1:
+        from bumps_jax.algo import sharding  # noqa: PLC0415
+
+        sharding.barrier(name)
+
+
+def remove(path: str | os.PathLike) -> None:
+    """Remove a file, or a directory and everything under it, if it exists (by the process that
+    writes: `writes_here`)."""
+    path = Path(path)
+    if not writes_here():
+        return
+    if path.is_dir():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
 def write_json(path: str | os.PathLike, payload: dict) -> Path:
     """Strict JSON (no NaN), written atomically (temp file + rename): a killed run never leaves half a file."""
     return write_text(path, json.dumps(json_safe(payload), indent=2, allow_nan=False) + "\n")
@@ -149,9 +188,18 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     return write_bytes(path, text.encode("utf-8"))
 
 
+def writes_here() -> bool:
+    """Whether this process writes the run's files: every process but the later ones of a
+    multi-process run (`sharding.over_batch`), which compute the same values as the first."""
+    jax = sys.modules.get("jax")
+    return jax is None or jax.process_index() == 0
+
+
 def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """`data` into `path`, atomically (temp file + rename), as `write_text`."""
     path = Path(path)
+    if not writes_here():
+        return path
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(data)
@@ -301,7 +349,7 @@ def check_writable(directory: str | os.PathLike) -> Path:
     directory = Path(directory)
     try:
         directory.mkdir(parents=True, exist_ok=True)
-        probe = directory / ".write_probe"
+        probe = directory / f".write_probe{os.getpid()}"  # one per process: several may start at once
         probe.write_text("")
         probe.unlink()
     except OSError as err:
@@ -340,9 +388,10 @@ def save_figure(fig, path: str | os.PathLike) -> Path:
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    if writes_here():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
 
@@ -354,6 +403,8 @@ def trim_csv(path: Path, fields, key: str, last: int) -> None:
     """Rewrite `path` with the header `fields` and only the rows whose `key` column is <= `last`:
     rows of a chunk whose checkpoint never landed are redone by the resumed run."""
     rows = []
+    if not writes_here():
+        return
     if path.exists():
         with path.open(newline="") as f:
             rows = [r for r in csv.DictReader(f) if r.get(key) not in (None, "") and int(r[key]) <= last]
@@ -367,6 +418,8 @@ def trim_csv(path: Path, fields, key: str, last: int) -> None:
 
 def append_csv(path: Path, fields, rows) -> None:
     """Append dict rows (header first if the file is new)."""
+    if not writes_here():
+        return
     new = not path.exists()
     with path.open("a", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(fields))
@@ -385,7 +438,10 @@ def checkpoint_manager(directory: Path, keep: int, read_only: bool = False):
 
     manager_class = _sealed_manager_class()
     if not read_only:
-        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True)
+        # Several managers save the same step at once (nets trained in one loop): in a
+        # multi-process run each needs barriers of its own, named after its directory.
+        own = ocp.options.MultiprocessingOptions(barrier_sync_key_prefix=fingerprint(str(Path(directory).resolve())))
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, multiprocessing_options=own)
         return manager_class(Path(directory).resolve(), options=options)
     # Orbax logs a warning for every read-only manager; reading a policy is not worth one.
     absl_logger = logging.getLogger("absl")
@@ -410,6 +466,8 @@ def _sealed_manager_class():
 
         class SealedCheckpointManager(ocp.CheckpointManager):
             def save(self, step, *args, **kwargs):
+                if isinstance(kwargs.get("args"), ocp.args.StandardSave):
+                    kwargs["args"] = ocp.args.StandardSave(savable(kwargs["args"].item))
                 saved = super().save(step, *args, **kwargs)
                 self.__dict__.setdefault("_unsealed", []).append(int(step))
                 return saved
@@ -434,6 +492,25 @@ def _sealed_manager_class():
     return _SEALED_MANAGER
 
 
+def savable(tree):
+    """`tree` as orbax saves it from any number of processes: as it is in one process; as host
+    (numpy) arrays in several, where orbax refuses an array on one process's device (every
+    process holds the same values: `sharding.over_batch` gathers them). Brax's 64-bit counter
+    (`UInt64`, in the observation statistics) turns numpy back into device arrays when built,
+    so it goes as a dict of its two halves: orbax stores both the same way, and restores either
+    as the counter."""
+    jax = sys.modules.get("jax")
+    if jax is None or jax.process_count() == 1:
+        return tree
+    import numpy as np  # noqa: PLC0415
+    from brax.training.types import UInt64  # noqa: PLC0415
+
+    def host(x):
+        return {"hi": np.asarray(x.hi), "lo": np.asarray(x.lo)} if isinstance(x, UInt64) else np.asarray(x)
+
+    return jax.tree.map(host, tree, is_leaf=lambda x: isinstance(x, UInt64))
+
+
 def keep_newest_checkpoint(directory: Path) -> None:
     """Remove every numbered checkpoint under `directory` but the newest (a finished stage's), once
     the newest is verified (`verify_checksums`): CorruptError naming its bad file, and nothing removed."""
@@ -441,7 +518,7 @@ def keep_newest_checkpoint(directory: Path) -> None:
     if steps:
         verify_checksums(Path(directory) / str(steps[-1]))
     for step in steps[:-1]:
-        shutil.rmtree(Path(directory) / str(step))
+        remove(Path(directory) / str(step))
 
 
 def restore_latest(manager, restore_args, say=print):
@@ -479,8 +556,10 @@ def restore_latest_common(managers: dict, restore_args: dict, say=print) -> tupl
                     say(f"checkpoint {shown(path)} is unreadable ({error_reason(err)}); set aside as {step}.corrupt, "
                         "trying an older one")  # fmt: skip
                 aside = path.with_name(f"{step}.corrupt")
-                shutil.rmtree(aside, ignore_errors=True)  # an earlier one set aside at this step
-                shutil.move(str(path), str(aside))
+                if writes_here():
+                    shutil.rmtree(aside, ignore_errors=True)  # an earlier one set aside at this step
+                    shutil.move(str(path), str(aside))
+                sync(f"set aside {shown(path)}")
                 manager.reload()
                 step, restored = None, None
                 break

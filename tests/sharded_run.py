@@ -1,12 +1,13 @@
-"""Run by test_sharding.py in a fresh process with N_DEVICES host devices (XLA reads the device
-count once, at start-up): trains tiny experts, filters a synthetic family and steps episodes
-through a small contact pool on a mesh of N_DEVICES devices, and prints what they produced as
-JSON. The single-device side of the first two runs in the test's own process (the filtering on
-conftest's program that test_filtering.py uses too)."""
+"""Run by test_sharding.py as PROCESSES processes of JAX's multi-process runtime on this host
+(`jax.distributed`, the coordinator on localhost), each with N_DEVICES host devices (XLA reads
+the device count once, at start-up): trains tiny experts into the run directory argv[1], filters
+a synthetic family and steps episodes through a small contact pool, every batch split over the
+processes and each process's devices, and the first process prints what they produced as JSON.
+The single-process, single-device side of the first two runs in the test's own process (the
+filtering on conftest's program that test_filtering.py uses too)."""
 
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 import jax
@@ -20,10 +21,11 @@ from bumps_jax.algo import filtering, rollout, sharding
 from bumps_jax.pipeline.stages import experts
 from bumps_jax.tasks.kick import env as kick_env
 
-# Two devices and three tiny experts: two on each device, one of them a padded copy, so padding
-# and unpadding run. On a CPU each device's share of a Warp physics step is a callback into Python,
-# one at a time, so every device more adds its steps' cost (this process: 4 devices 124 s, 3
-# devices 93 s, 2 devices 72 s).
+# Two processes of two devices and three tiny experts: one on each device, one of them a padded
+# copy, so padding and unpadding run. On a CPU each device's share of a Warp physics step is a
+# callback into Python, one at a time, so every device more adds its steps' cost (one process:
+# 4 devices 124 s, 3 devices 93 s, 2 devices 72 s).
+PROCESSES = 2
 N_DEVICES = 2
 TASKS = (8.0, 12.0, 16.0)
 
@@ -47,13 +49,14 @@ def train(env, run_dir: Path) -> dict:
     return {"params": [np.asarray(x).tolist() for x in leaves], "finished": out["finished"]}
 
 
-# All 18 selection episodes in one call (9 on each of 2 devices): a call costs its 600 physics
-# steps on every device, nearly whatever its batch.
-EPISODES_PER_CALL = 18
+# The 18 selection episodes in calls of 20 (5 on each of 4 devices, the last call padded): a
+# call costs its 600 physics steps on every device, nearly whatever its batch.
+EPISODES_PER_CALL = 20
 
 
 def filter_synthetic(env, grid, params, n_devices: int) -> dict:
-    """Selection of a synthetic family by `grid` split over `n_devices`, in calls of 18 episodes."""
+    """Selection of a synthetic family by `grid` split over `n_devices` (every device of every
+    process), in calls of EPISODES_PER_CALL episodes."""
     tasks = np.array([10.0, 13.0, 15.0])
     contexts = filtering.candidate_contexts(tasks, [9.0, 11.5, 14.0])  # 6 candidates x 3 reps = 18 episodes
     sel_key, _ = filtering.noise_keys(0)
@@ -75,13 +78,13 @@ def filter_synthetic(env, grid, params, n_devices: int) -> dict:
     return {"chosen": sel.chosen.tolist(), "distance": sel.distance.tolist(), "scores": sel.scores.tolist()}
 
 
-# Warp's contact pool for 4 episodes, and 8 episodes split over the devices: 4 on each.
+# Warp's contact pool for 4 episodes, and 16 episodes split over the 4 devices: 4 on each.
 POOL_EPISODES = 4
 
 
 def pool_per_device() -> dict:
-    """One control step of 2 * POOL_EPISODES episodes over N_DEVICES devices, with a contact pool
-    for POOL_EPISODES: whether any overflowed, and whether the program gathers a batch across
+    """One control step of POOL_EPISODES episodes on each device of each process, with a contact
+    pool for POOL_EPISODES: whether any overflowed, and whether the program gathers a batch across
     devices (it must not: each device steps only its own share of the episodes)."""
     pool = {"warp_contacts": kick_env.CONTACTS_PER_EPISODE * POOL_EPISODES}
     env = kick_env.KickEnv(config.make_config("tiny").env, pool)
@@ -94,7 +97,7 @@ def pool_per_device() -> dict:
         return jax.vmap(one)(keys)
 
     program = sharding.over_batch(step, sharding.device_mesh(N_DEVICES, impl="warp"), (True,))
-    keys = jax.random.split(jax.random.key(0), N_DEVICES * POOL_EPISODES)
+    keys = jax.random.split(jax.random.key(0), PROCESSES * N_DEVICES * POOL_EPISODES)
     overflow, qpos = program(keys)
     return {
         "overflow": np.asarray(overflow).tolist(),
@@ -104,15 +107,17 @@ def pool_per_device() -> dict:
 
 
 def main() -> None:
-    assert len(jax.devices()) == N_DEVICES, jax.devices()
+    sharding.initialize_distributed()
+    assert jax.process_count() == PROCESSES and len(jax.local_devices()) == N_DEVICES, jax.devices()
     env = kick_env.KickEnv(config.make_config("tiny").env)
-    with tempfile.TemporaryDirectory() as tmp:
-        out = {"experts": train(env, Path(tmp))}
+    out = {"experts": train(env, Path(sys.argv[1]))}
+    mesh = sharding.device_mesh(N_DEVICES, impl="warp")
     params = jax.tree.map(lambda a: a[None], stand_ins.synthetic_contextual_params())
-    grid = rollout.grid_fn(env, stand_ins.contextual_apply, sharding.device_mesh(N_DEVICES, impl="warp"))
-    out["filter"] = filter_synthetic(env, grid, params, N_DEVICES)
+    grid = rollout.grid_fn(env, stand_ins.contextual_apply, mesh)
+    out["filter"] = filter_synthetic(env, grid, params, sharding.ways(mesh))
     out["pool"] = pool_per_device()
-    json.dump(out, sys.stdout)
+    if jax.process_index() == 0:
+        json.dump(out, sys.stdout)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
-"""Sharding over devices changes where work runs, not what it computes: tiny experts and a
-filtering selection on a mesh of 2 (host) devices equal those on one device."""
+"""Sharding over devices and processes changes where work runs, not what it computes: tiny
+experts and a filtering selection split over 2 processes of 2 (host) devices each (JAX's
+multi-process runtime on localhost) equal those of one process on one device."""
 
 import json
 import os
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 import sharded_run
 
+from bumps_jax import launch
 from bumps_jax.algo import sharding
 from bumps_jax.pipeline.stages import experts
 
@@ -23,13 +25,20 @@ def sharded_vs_single(env, contextual, tmp_path_factory):
     devices = f"--xla_force_host_platform_device_count={sharded_run.N_DEVICES}"
     run_env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {devices}".strip(), JAX_PLATFORMS="cpu")
     run_env["PYTHONPATH"] = os.pathsep.join([str(ROOT), run_env.get("PYTHONPATH", "")])
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "tests" / "sharded_run.py")], env=run_env, capture_output=True, text=True, cwd=ROOT
-    )
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    sharded = json.loads(proc.stdout.strip().splitlines()[-1])
-    # The single-device side runs here (the selection in one call of 18 episodes on the program
-    # test_filtering.py builds, the sharded one's 9 on each device).
+    run_dir, port = tmp_path_factory.mktemp("processes"), launch.free_port()
+    command = [sys.executable, str(ROOT / "tests" / "sharded_run.py"), str(run_dir)]
+    procs = [
+        subprocess.Popen(command, env={**launch.process_env(i, sharded_run.PROCESSES, port, None), **run_env},
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+        for i in range(sharded_run.PROCESSES)
+    ]  # fmt: skip
+    outs = [p.communicate(timeout=900) for p in procs]
+    for p, (_, err) in zip(procs, outs, strict=True):
+        assert p.returncode == 0, err[-4000:]
+    sharded = json.loads(outs[0][0].strip().splitlines()[-1])
+    assert not any(line.startswith("{") for line in outs[1][0].splitlines()), "only the first process reports"
+    # The single-device side runs here (the selection in one call of 20 episodes on the program
+    # test_filtering.py builds, the split one's 5 on each device of each process).
     cfg = sharded_run.experts_config()
     programs = experts.compile_programs(cfg, env)
     out = experts.train(cfg, tmp_path_factory.mktemp("one_device"), programs, say=lambda *a, **k: None)
@@ -81,7 +90,7 @@ def test_each_device_steps_only_its_own_episodes(sharded_vs_single):
     # around each physics call): 8 episodes through a contact pool for 4 overflowed, all 8.
     _, sharded = sharded_vs_single
     pool = sharded["pool"]
-    assert len(pool["overflow"]) == sharded_run.N_DEVICES * sharded_run.POOL_EPISODES
+    assert len(pool["overflow"]) == sharded_run.PROCESSES * sharded_run.N_DEVICES * sharded_run.POOL_EPISODES
     assert not any(pool["overflow"]) and pool["finite"]
     assert not pool["gathers"]
 
@@ -103,18 +112,31 @@ def test_bad_device_counts_are_named():
         sharding.device_mesh(10_000)
 
 
-def test_warp_on_gpus_runs_on_one_gpu_and_refuses_more(monkeypatch):
-    # Warp's physics crashes a process that steps episodes on a second GPU (mujoco-mjx 3.17).
+def test_warp_on_gpus_runs_on_one_gpu_a_process_and_refuses_more(monkeypatch):
+    # Warp's physics crashes a process that steps episodes on a second GPU (mujoco-mjx 3.17):
+    # several GPUs are several processes, each splitting batches with the others.
     class Gpu:
         platform = "gpu"
 
-    monkeypatch.setattr(jax, "devices", lambda: [Gpu(), Gpu()])
-    monkeypatch.setattr(sharding, "Mesh", lambda devices, axes: devices)  # the devices it would span
+    monkeypatch.setattr(jax, "local_devices", lambda: [Gpu(), Gpu()])
+    monkeypatch.setattr(sharding, "Mesh", lambda devices, axes: np.asarray(devices))  # the devices it would span
     assert len(sharding.device_mesh(impl="warp")) == 1
     assert len(sharding.device_mesh(impl="jax")) == 2 and len(sharding.device_mesh()) == 2
     assert len(sharding.device_mesh(1, impl="warp")) == 1
-    with pytest.raises(ValueError, match="n_devices 2 with env.impl 'warp'"):
+    with pytest.raises(ValueError, match="n_devices 2 with env.impl 'warp'.*--processes"):
         sharding.device_mesh(2, impl="warp")
-    monkeypatch.setattr(jax, "process_count", lambda: 2)  # --distributed: several processes
-    with pytest.raises(ValueError, match="2 processes with env.impl 'warp'"):
-        sharding.device_mesh(impl="warp")
+    monkeypatch.setattr(jax, "process_count", lambda: 4)  # --processes 4: one GPU each
+    mesh = sharding.device_mesh(impl="warp")
+    assert sharding.ways(mesh) == 4 and sharding.padded_size(37, mesh) == 40
+
+
+def test_each_process_takes_its_own_rows(monkeypatch):
+    monkeypatch.setattr(jax, "process_count", lambda: 2)
+    monkeypatch.setattr(jax, "process_index", lambda: 1)
+    rows = sharding.own_rows({"a": np.arange(8.0), "b": np.arange(16.0).reshape(2, 8)})
+    np.testing.assert_array_equal(rows["a"], [4, 5, 6, 7])
+    np.testing.assert_array_equal(
+        sharding.own_rows(np.arange(16.0).reshape(2, 8), axis=1), [[4, 5, 6, 7], [12, 13, 14, 15]]
+    )
+    with pytest.raises(ValueError, match="a batch of 7 does not split over 2 processes"):
+        sharding.own_rows(np.arange(7.0))

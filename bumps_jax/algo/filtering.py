@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax.algo import evaluate, sharding
+from bumps_jax.algo import evaluate
 
 # -- candidates ---------------------------------------------------------------------------------
 
@@ -273,7 +273,7 @@ def run_blocked(grid, params, contexts, targets, keys, block: int | None, multip
         m = grid(
             params, jnp.asarray(contexts[idx], jnp.float32), jnp.asarray(targets[idx], jnp.float32), keys[idx][:, None]
         )
-        out.append({k: np.asarray(v)[0, :, 0] for k, v in sharding.gather(m).items()})
+        out.append({k: np.asarray(v)[0, :, 0] for k, v in m.items()})
     return {k: np.concatenate([o[k] for o in out])[:n] for k in out[0]}
 
 

@@ -103,13 +103,14 @@ def matched_fn(env: ContextualEnv, apply_fn, record: str | None = None, mesh=Non
 
     Policy i on its own (context i, target i), R noisy repetitions: experts on their tasks,
     the kick prior's candidates, the meta-policy's dataset. With a `mesh` the N axis is split
-    over its devices (N must then be a multiple of the mesh size: `sharding.pad`). A batch
-    larger than the physics holds runs in chunks (`in_chunks`). action_noise: see `episode_fn`.
+    over its devices and the processes (N must then be a multiple of `sharding.ways(mesh)`:
+    `sharding.pad`). A batch larger than the physics holds runs in chunks (`in_chunks`).
+    action_noise: see `episode_fn`.
     """
     fn = jax.vmap(over_reps(episode_fn(env, apply_fn, record, action_noise)), in_axes=(0, 0, 0, 0))
     if mesh is None:
         return in_chunks(jax.jit(fn), env, axis=0, per_item=1)
-    return in_chunks(sharding.over_batch(fn, mesh, (True, True, True, True)), env, 0, 1, mesh.size)
+    return in_chunks(sharding.over_batch(fn, mesh, (True, True, True, True)), env, 0, 1, sharding.ways(mesh))
 
 
 def grid_fn(env: ContextualEnv, apply_fn, mesh=None):
@@ -117,7 +118,8 @@ def grid_fn(env: ContextualEnv, apply_fn, mesh=None):
 
     Every policy of a stack (seeds, networks of one architecture) on every (context, target)
     pair, R noisy repetitions each: one XLA program. With a `mesh` the pairs are split over
-    its devices (n must then be a multiple of the mesh size; `filtering.run_blocked` pads).
+    its devices and the processes (n must then be a multiple of `sharding.ways(mesh)`;
+    `filtering.run_blocked` pads).
     """
     over_pairs = jax.vmap(over_reps(episode_fn(env, apply_fn)), in_axes=(None, 0, 0, 0))
     over_policies = jax.vmap(over_pairs, in_axes=(0, None, None, None))
@@ -129,7 +131,8 @@ def grid_fn(env: ContextualEnv, apply_fn, mesh=None):
 
     def run(params, contexts, targets, keys):
         n_policies = jax.tree.leaves(params)[0].shape[0]
-        chunked = in_chunks(program, env, axis=1, per_item=n_policies, n_devices=1 if mesh is None else mesh.size)
+        ways = 1 if mesh is None else sharding.ways(mesh)
+        chunked = in_chunks(program, env, axis=1, per_item=n_policies, n_devices=ways)
         return chunked(params, contexts, targets, keys)
 
     return run

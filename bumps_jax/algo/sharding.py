@@ -1,29 +1,26 @@
-"""Spreading a batch axis (experts, episodes) over devices with JAX's own sharding.
+"""Spreading a batch axis (experts, episodes, searches) over devices and processes.
 
 Every batched program of the pipeline is a `vmap` over independent items: experts in
-training, episodes in filtering. `over_batch` jits such a function with its batch split over a
-one-axis `Mesh`, each device computing its slice, with no communication. On one device the
-mesh has one member and the program is the one that runs everywhere else.
+training, episodes in filtering. `over_batch` jits such a function for a batch that is split
+two ways:
 
-How the split is made depends on the devices. On GPUs, XLA's SPMD partitioner splits the
-program (`jit` with sharded inputs; a `shard_map` of the experts' trainer crashed XLA's
-compiler on two H200s). It cannot split a foreign call, though: it gathers the whole batch onto
-every device around each of Warp's physics calls, so every device would step every episode
-(and overflow a contact pool sized for its share). That is no loss on GPUs, where Warp runs on
-one GPU per process (`device_mesh`), but on several CPU devices, where Warp's calls are host
-callbacks, each device runs its slice as a `shard_map`.
+- over processes (JAX's multi-controller runtime, `jax.distributed`): every process runs the
+  same command, computes its own rows of the batch with its own program on its own devices,
+  and the rows are gathered back to every process after the call (`process_allgather`), so the
+  host code after a program call (progress, checkpoints, selection) runs the same everywhere;
+- over the devices of one process: a one-axis `Mesh`. On several CPU devices each runs its
+  slice as a `shard_map`. MJX's Warp physics runs on one GPU per process (a program stepping
+  episodes on a second GPU of the process crashes it, mujoco-mjx 3.17, warp-lang 1.18), so with
+  Warp on GPUs a process uses one GPU, and several GPUs are several processes (`launch`).
 
-The batch must divide evenly over the devices: `pad` repeats the last item up to a multiple
-of the mesh size and callers drop the copies (`unpad`) before anything is saved, so
-checkpoints and results do not depend on how many devices made them.
-
-Several hosts: start one process per host and call `jax.distributed.initialize()` before
-anything else (see README, "Several GPUs and hosts"); `jax.devices()` then lists every
-host's devices and `device_mesh()` spans them all (with JAX physics: MJX's Warp backend runs on
-one GPU per process, `device_mesh`).
+The batch must divide evenly over every device of every process (`ways`): `pad` repeats the
+last item up to a multiple of it and callers drop the copies (`unpad`) before anything is
+saved, so checkpoints and results do not depend on how many devices or processes made them.
 """
 
 from __future__ import annotations
+
+import os
 
 import jax
 import numpy as np
@@ -34,36 +31,35 @@ AXIS = "batch"
 
 
 def device_mesh(n_devices: int | None = None, impl: str | None = None) -> Mesh:
-    """A one-axis mesh over the first `n_devices` devices (default: all that the physics can use).
+    """A one-axis mesh over the first `n_devices` of this process's devices (default: all that
+    the physics can use).
 
     `impl` is the physics backend of the programs that will run on it (`env.impl`; None: no
-    physics). MJX's Warp backend runs on one GPU per process: its physics call crashes the
-    process (a segmentation fault) when a program steps episodes on a second GPU, whatever
-    Warp's graph mode (measured with mujoco-mjx 3.17 and warp-lang 1.18 on two H200s). So with
-    Warp on GPUs the default is one device, and more is refused. On CPU devices Warp's calls
-    are host callbacks and split like any other program.
+    physics). With Warp on GPUs the default is one device and more is refused: a second GPU
+    crashes Warp's physics (module docstring); start one process per GPU instead. On CPU
+    devices Warp's calls are host callbacks and split like any other program.
     """
-    devices = jax.devices()
+    devices = jax.local_devices()
     one_gpu = impl == "warp" and devices[0].platform == "gpu"
     n = (1 if one_gpu else len(devices)) if n_devices is None else int(n_devices)
     if not 1 <= n <= len(devices):
-        raise ValueError(f"n_devices must be in [1, {len(devices)}] (the devices visible), got {n_devices!r}")
-    if one_gpu and jax.process_count() > 1:
-        raise ValueError(
-            f"{jax.process_count()} processes with env.impl 'warp': MJX's Warp physics runs on one GPU of "
-            "one process; run without --distributed, or with env.impl=jax"
-        )
+        raise ValueError(f"n_devices must be in [1, {len(devices)}] (the devices this process sees), got {n_devices!r}")
     if one_gpu and n > 1:
         raise ValueError(
             f"n_devices {n} with env.impl 'warp': MJX's Warp physics runs on one GPU per process "
-            "(a second GPU crashes it); use one device, or env.impl=jax to spread over GPUs"
+            "(a second GPU crashes it); run one process per GPU (--processes)"
         )
     return Mesh(np.asarray(devices[:n]), (AXIS,))
 
 
+def ways(mesh: Mesh) -> int:
+    """How many slices a batch is split into: the mesh's devices in every process."""
+    return mesh.size * jax.process_count()
+
+
 def padded_size(n: int, mesh: Mesh) -> int:
-    """The smallest multiple of the mesh size that holds `n` items."""
-    return -(-int(n) // mesh.size) * mesh.size
+    """The smallest multiple of `ways(mesh)` that holds `n` items."""
+    return -(-int(n) // ways(mesh)) * ways(mesh)
 
 
 def pad(tree, size: int):
@@ -82,43 +78,77 @@ def pad(tree, size: int):
 
 
 def unpad(tree, n: int):
-    """Every leaf's first `n` rows (the real items; the rest are `pad`'s copies).
-
-    With several processes (hosts), each holds only its devices' rows: they are gathered first,
-    so every process gets the whole batch as host arrays and the host code after a program
-    call (progress, checkpoints, selection) runs the same everywhere.
-    """
-    return jax.tree.map(lambda x: x[:n], gather(tree))
+    """Every leaf's first `n` rows (the real items; the rest are `pad`'s copies)."""
+    return jax.tree.map(lambda x: x[:n], tree)
 
 
-def gather(tree):
-    """The whole of every (possibly multi-host) array, on every process; as is with one process."""
+def own_rows(tree, axis: int = 0):
+    """This process's equal share of every leaf's `axis` (the whole of it with one process)."""
+    count, index = jax.process_count(), jax.process_index()
+    if count == 1:
+        return tree
+
+    def rows(x):
+        size = x.shape[axis]
+        if size % count:
+            raise ValueError(f"a batch of {size} does not split over {count} processes: pad it (sharding.pad)")
+        k = size // count
+        return jax.lax.slice_in_dim(x, index * k, (index + 1) * k, axis=axis)
+
+    return jax.tree.map(rows, tree)
+
+
+def gather(tree, axis: int = 0):
+    """Every process's rows (`own_rows`) joined along `axis`, as host arrays on every process;
+    as is with one process."""
     if jax.process_count() == 1:
         return tree
     from jax.experimental import multihost_utils  # noqa: PLC0415
 
-    return multihost_utils.process_allgather(tree, tiled=True)
+    front = jax.tree.map(lambda x: np.moveaxis(np.asarray(x), axis, 0), tree)
+    joined = multihost_utils.process_allgather(front, tiled=True)
+    return jax.tree.map(lambda x: np.moveaxis(x, 0, axis), joined)
+
+
+def barrier(name: str) -> None:
+    """Wait until every process reaches the barrier `name` (nothing with one process)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils  # noqa: PLC0415
+
+        multihost_utils.sync_global_devices(name)
+
+
+def is_writer() -> bool:
+    """Whether this process writes the run's files: the first of the processes (every process
+    computes the same host values, so one copy is written)."""
+    return jax.process_index() == 0
 
 
 def initialize_distributed() -> None:
-    """Join a multi-host job: one process per host, all running the same command.
+    """Join a multi-process job: every process runs the same command.
 
-    Under SLURM (or on TPU pods) `jax.distributed.initialize()` finds the coordinator, process
-    count and id by itself; elsewhere set JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and
-    JAX_PROCESS_ID. Afterwards `jax.devices()` lists every host's devices.
+    Under SLURM `jax.distributed.initialize()` finds the coordinator, process count and id by
+    itself; `launch` (and any other launcher) sets JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and
+    JAX_PROCESS_ID instead. Afterwards `jax.process_count()` is the number of processes, and each
+    computes its share of every batch (`over_batch`).
     """
-    jax.distributed.initialize()
+    count, index = os.environ.get("JAX_NUM_PROCESSES"), os.environ.get("JAX_PROCESS_ID")
+    if count is None or index is None:
+        jax.distributed.initialize()
+    else:
+        jax.distributed.initialize(num_processes=int(count), process_id=int(index))
 
 
 def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0):
-    """`fn` jitted with the arguments flagged in `batched` split on their leading axis over
-    `mesh`, the others replicated, and every output split on axis `out_axis`.
+    """`fn` jitted for arguments whose leading axis (those flagged in `batched`; the others are
+    given whole to every device) is a batch of independent items, every output's batch on axis
+    `out_axis`. The batch must be a multiple of `ways(mesh)` (`pad`).
 
-    `fn` must treat the items of its batch independently (a vmap), so each device's slice
-    gives what the whole batch would. On several CPU devices each runs `fn` on its own slice
-    (`shard_map`: values `fn` closes over, such as a blank Warp episode with its contact pool,
-    are copied to every device); elsewhere XLA's partitioner splits the program (module
-    docstring).
+    Each process takes its rows (`own_rows`) and splits them over its mesh; the outputs of every
+    process are gathered (`gather`), so every process gets the whole batch. On several CPU
+    devices each runs `fn` on its own slice (`shard_map`: values `fn` closes over, such as a
+    blank Warp episode with its contact pool, are copied to every device); elsewhere XLA's
+    partitioner splits the program. `fn` must treat its items independently (a vmap).
     """
     in_specs = tuple(P(AXIS) if b else P() for b in batched)
     out_spec = P(*([None] * out_axis), AXIS)
@@ -126,17 +156,33 @@ def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0):
         # check_vma off: a scan whose carry starts from a replicated constant (the blank episode)
         # and becomes per-device is fine here, since every output is split over the batch anyway.
         fn = jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_spec, check_vma=False)
-    return jax.jit(
+    program = jax.jit(
         fn,
         in_shardings=tuple(NamedSharding(mesh, s) for s in in_specs),
         out_shardings=NamedSharding(mesh, out_spec),
     )
+    if jax.process_count() == 1:
+        return program
+
+    def own(args):
+        return tuple(own_rows(a) if b else a for a, b in zip(args, batched, strict=True))
+
+    def run(*args):
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args)):
+            return program(*args)  # traced (`jax.eval_shape`): the whole batch's shapes, nothing run
+        return gather(program(*own(args)), out_axis)
+
+    run.lower = lambda *args: program.lower(*own(args))  # what this process compiles
+    return run
 
 
 def place(tree, mesh: Mesh):
-    """Put a batch (leading axis a multiple of the mesh size) split over the mesh's devices.
+    """Put a batch (leading axis a multiple of `ways(mesh)`) split over the mesh's devices; with
+    several processes it stays whole (each process's program takes its rows: `over_batch`).
 
     Calling a program always with inputs placed like this keeps jit's cache to one entry: an
     input laid out differently (e.g. fresh from the host) would compile the program again.
     """
+    if jax.process_count() > 1:
+        return tree
     return jax.device_put(tree, NamedSharding(mesh, P(AXIS)))

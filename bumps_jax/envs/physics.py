@@ -16,18 +16,30 @@ import numpy as np
 from mujoco import mjx
 
 
+def local_device() -> jax.Device:
+    """This process's first device: where MJX puts a model and its data (MJX's own default is
+    the first device of every process, another process's in a multi-process run)."""
+    return jax.local_devices()[0]
+
+
 def put_physics(mj_model: mujoco.MjModel, cfg) -> tuple[mjx.Model, mjx.Data | None]:
     """The MJX model of `mj_model` for backend `cfg.impl`, and for Warp the blank episode data
     (its buffers sized by `cfg.warp_contacts` and `cfg.warp_constraints_per_world`); for JAX
-    None (`mjx.make_data` sizes them from the model)."""
+    None (`blank_data` sizes them from the model)."""
     if cfg.impl == "jax":
-        return mjx.put_model(mj_model), None
+        return mjx.put_model(mj_model, device=local_device()), None
     _init_warp()
-    model = mjx.put_model(mj_model, impl="warp")
+    model = mjx.put_model(mj_model, impl="warp", device=local_device())
     # Overflows and unconverged solves are read from the data (`read_flags`), not printed.
     model = model.tree_replace({"opt._impl.warn_overflow": 0})
-    data = mjx.make_data(mj_model, impl="warp", naconmax=cfg.warp_contacts, njmax=cfg.warp_constraints_per_world)
+    data = mjx.make_data(mj_model, impl="warp", naconmax=cfg.warp_contacts, njmax=cfg.warp_constraints_per_world,
+                         device=local_device())  # fmt: skip
     return model, data
+
+
+def blank_data(model: mjx.Model, warp_data: mjx.Data | None) -> mjx.Data:
+    """An episode's blank data: Warp's, sized by `put_physics`, or JAX's made from the model."""
+    return mjx.make_data(model, device=local_device()) if warp_data is None else warp_data
 
 
 def read_flags(data: mjx.Data) -> tuple[mjx.Data, jax.Array, jax.Array]:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import importlib
 import json
-import shutil
 import time
 from pathlib import Path
 
@@ -85,6 +84,7 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
     """One stage after `plan`: reuse its record, or write its manifest and run it."""
     module = stage_module(name, cfg.task)
     output = run_dir / name / module.OUTPUT
+    runio.sync(f"stage {name} planned")  # every process has read the directory before any removes from it
     if status == "done":
         say(f"== {name}: up to date ({output})")
         return runio.read_json(output)
@@ -92,8 +92,9 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
         for later in DOWNSTREAM[name]:
             if (run_dir / later).exists():
                 say(f"== {later}: removed (made from the {name} outputs that --force replaces)")
-                shutil.rmtree(run_dir / later)
+                runio.remove(run_dir / later)
     write_manifest(run_dir / name, wanted)
+    runio.sync(f"stage {name} starts")  # every process reads this stage's directory as the writer left it
     say(f"== {name}" + (" (resuming)" if status == "same" else ""), flush=True)
     # Ctrl-C only asks the stage to stop (a KeyboardInterrupt raised inside a Warp callback
     # crashed the process): its chunk loops stop at their next chunk, a stage without chunks
@@ -104,6 +105,7 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
         except ValueError:
             _forget_empty_stage(run_dir / name)
             raise
+        runio.sync(f"stage {name} ends")  # the next stage reads what this one wrote
         stop.check()
     return record
 
@@ -112,7 +114,7 @@ def _forget_empty_stage(stage_dir: Path) -> None:
     """Remove the manifest of a stage refused before it wrote anything else: a corrected rerun
     is then a new stage, not a stale one."""
     if all(p.name == MANIFEST for p in stage_dir.iterdir()):
-        shutil.rmtree(stage_dir)
+        runio.remove(stage_dir)
 
 
 def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> dict:
@@ -244,7 +246,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, finished:
         schema = have.get("schema") if isinstance(have, dict) else None
         if schema != MANIFEST_SCHEMA:
             if force:
-                shutil.rmtree(stage_dir)
+                runio.remove(stage_dir)
                 return "forced"
             made = "no schema" if schema is None else f"schema {schema!r}"
             raise StaleRunError(
@@ -259,7 +261,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, finished:
         if not diff:
             return "same"
     if force:
-        shutil.rmtree(stage_dir)
+        runio.remove(stage_dir)
         return "forced"
     shown = ", ".join(d.removeprefix("config.") for d in diff[:6]) + (" ..." if len(diff) > 6 else "")
     raise StaleRunError(

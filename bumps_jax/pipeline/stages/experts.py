@@ -15,7 +15,6 @@ progress.csv, wall_time.json, final_params/, experts.json, experts.md.
 from __future__ import annotations
 
 import functools
-import shutil
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -292,8 +291,10 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
     out["wall_s"] += centre_s
     if out["finished"]:
         with ocp.StandardCheckpointer() as checkpointer:  # leaving the context waits for the write
-            checkpointer.save((stage_dir / "final_params").resolve(), expert_params(out["state"]), force=True)
+            params = runio.savable(expert_params(out["state"]))
+            checkpointer.save((stage_dir / "final_params").resolve(), params, force=True)
         runio.write_checksums(stage_dir / "final_params")
+        runio.sync("final_params")
     return out
 
 
@@ -416,6 +417,6 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     runio.verify_checksums(stage_dir / "final_params")
     start = tasks.get(cfg.task).expert_start
     for scratch in ("checkpoints", "centre/checkpoints", *(() if start is None else start.scratch())):
-        shutil.rmtree(stage_dir / scratch, ignore_errors=True)
+        runio.remove(stage_dir / scratch)
     say(tasks.get(cfg.task).report.experts(record))
     return record

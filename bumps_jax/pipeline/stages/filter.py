@@ -59,7 +59,7 @@ def inputs(cfg, run_dir: Path) -> dict:
     return out
 
 
-def filter_variant(cfg, grid, params, contexts, mesh_size: int):
+def filter_variant(cfg, grid, params, contexts, ways: int):
     """Selection over `contexts` (C,) (vectors: (C, K)) and the fresh evaluation of each task's
     choice: (filtering.Selection, metrics of (T, R), Table 2 row, timings)."""
     f = cfg.filter
@@ -71,12 +71,12 @@ def filter_variant(cfg, grid, params, contexts, mesh_size: int):
     scoring = filtering.scoring(env)
     sel = filtering.filter_policy(
         grid, params, contexts, targets, f.width, f.selection_repetitions, sel_key,
-        task_range=tuple(cfg.env.task_range), block=f.block, multiple=mesh_size, rungs=rungs, keep=f.halving_keep,
+        task_range=tuple(cfg.env.task_range), block=f.block, multiple=ways, rungs=rungs, keep=f.halving_keep,
         **scoring,
     )  # fmt: skip
     chosen = sel.contexts[sel.chosen]
     # Fresh episodes: the evaluation key is independent of every selection rollout's (`noise_keys`).
-    metrics = filtering.evaluate_chosen(grid, params, chosen, targets, f.eval_repetitions, eval_key, f.block, mesh_size)
+    metrics = filtering.evaluate_chosen(grid, params, chosen, targets, f.eval_repetitions, eval_key, f.block, ways)
     row = filtering.table2_row(metrics, len(contexts), sel.best_score, sel.rollouts)
     rollouts = sel.rollouts + len(targets) * f.eval_repetitions
     wall = time.perf_counter() - t0  # selection and fresh evaluation, compiling included
@@ -110,7 +110,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
             contexts = grids[VARIANTS[name][1]]
             say(f"filter: variant {done + 1}/{len(VARIANTS)} {name} ({len(contexts)} contexts x {len(targets)} "
                 f"tasks){'' if done == 0 else ', ' + pace.tick(done)}", flush=True)  # fmt: skip
-            out = filter_variant(cfg, grid, params, contexts, mesh.size)
+            out = filter_variant(cfg, grid, params, contexts, sharding.ways(mesh))
             done += 1
             if done == 1:
                 pace.tick(done)  # the first variant compiles: the ETA counts from the second

@@ -166,15 +166,15 @@ def meta_variants(cfg, run_dir: Path, net: str, targets, contexts, noise_keys, m
     params = jax.tree.map(lambda a: a[f.net_seed : f.net_seed + 1], params)
     grid = meta_programs.meta_grid(cfg.env, depth, width, mesh, cfg.task, obs_norm)
     reps = int(h.repetitions)
-    unfiltered = filtering.evaluate_chosen(grid, params, targets, targets, reps, eval_key, f.block, mesh.size)
+    unfiltered = filtering.evaluate_chosen(grid, params, targets, targets, reps, eval_key, f.block, sharding.ways(mesh))
     sel = filtering.filter_policy(
         grid, params, contexts, targets, f.width, h.selection_repetitions, sel_key,
-        task_range=tuple(cfg.env.task_range), block=f.block, multiple=mesh.size,
+        task_range=tuple(cfg.env.task_range), block=f.block, multiple=sharding.ways(mesh),
         rungs=tuple(f.halving_rungs) if f.selection == "halving" else None, keep=f.halving_keep,
         **filtering.scoring(meta_programs.stage_env(cfg.env, cfg.task)),
     )  # fmt: skip
     chosen = sel.contexts[sel.chosen]
-    filtered = filtering.evaluate_chosen(grid, params, chosen, targets, reps, eval_key, f.block, mesh.size)
+    filtered = filtering.evaluate_chosen(grid, params, chosen, targets, reps, eval_key, f.block, sharding.ways(mesh))
     return unfiltered, filtered, sel
 
 

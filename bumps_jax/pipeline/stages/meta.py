@@ -16,7 +16,6 @@ table1.json is written), table1.json, table1.md.
 from __future__ import annotations
 
 import copy
-import shutil
 import time
 from pathlib import Path
 
@@ -152,13 +151,9 @@ def relabelled(
 
 def save_dataset(path, data: bc.Dataset) -> Path:
     """npz with obs, actions, task; written atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **data._asdict())
-    tmp.replace(path)
+    runio.write_npz(path, **data._asdict())
     runio.write_file_checksum(path)
-    return path
+    return Path(path)
 
 
 def load_dataset(path) -> bc.Dataset:
@@ -388,7 +383,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         runio.keep_newest_checkpoint(stage_dir / name / "checkpoints")
     for r in range(cfg.meta.dagger.rounds):  # the earlier rounds' nets: the last round started from them
         for d in dagger_dirs(stage_dir, models, r, cfg.meta.dagger.rounds).values():
-            shutil.rmtree(d / "checkpoints", ignore_errors=True)
+            runio.remove(d / "checkpoints")
     markdown = tasks.get(cfg.task).report.table1(rows, env.UNIT)
     runio.write_text(stage_dir / "table1.md", markdown)
     return runio.json_safe(payload)

@@ -48,6 +48,7 @@ from brax.envs.base import State
 from mujoco import mjx
 
 from bumps_jax.envs import base as task_env
+from bumps_jax.envs import physics
 from bumps_jax.envs.physics import read_flags
 
 TORSO = "torso"
@@ -283,7 +284,7 @@ class AntGoalEnv(task_env.ContextualEnv):
         nq, nv = self.mj_model.nq, self.mj_model.nv
         qpos = self._qpos0 + jax.random.uniform(rng_q, (nq,), minval=-s, maxval=s)
         qvel = s * jax.random.normal(rng_v, (nv,))
-        blank = mjx.make_data(self.mjx_model) if self._warp_data is None else self._warp_data
+        blank = physics.blank_data(self.mjx_model, self._warp_data)
         data = blank.replace(qpos=qpos, qvel=qvel, ctrl=jnp.zeros(self.mj_model.nu))
         data, overflow, _ = read_flags(mjx.forward(self.mjx_model, data))
         zero = jnp.zeros((), jnp.float32)

@@ -257,13 +257,9 @@ def _state_leaves(carry, key) -> list:
 
 def _write_search_state(path, identity: str, done: int, carry, key, history) -> None:
     """A search's state after `done` generations, written atomically (temp file + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     leaves = {f"leaf_{i}": x for i, x in enumerate(_state_leaves(carry, key))}
     stats = {f"stats_{k}": np.asarray([getattr(s, k) for s in history]) for k in Stats._fields}
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, identity=np.asarray(identity), done=np.asarray(done), **leaves, **stats)
-    tmp.replace(path)
+    runio.write_npz(path, identity=np.asarray(identity), done=np.asarray(done), **leaves, **stats)
 
 
 def _read_search_state(path, identity: str, carry, key, say, label) -> tuple:
@@ -439,7 +435,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     kick_scoring.check_count("eval_repetitions", tune_cfg.eval_repetitions)
     mesh = mesh or sharding.device_mesh(impl=env.config.impl)
     P, R, E, T = int(tune_cfg.population_size), int(tune_cfg.repetitions), int(tune_cfg.eval_repetitions), len(targets)
-    per_device = sharding.padded_size(T, mesh) // mesh.size  # searches each device plays at once
+    per_device = sharding.padded_size(T, mesh) // sharding.ways(mesh)  # searches each device plays at once
     _check_pool(env, per_device * P * R, "the tuning (tasks x population x repetitions)")
     fitness_json = kick_scoring.fitness_json_of(fitness)
     kick_scoring.check_count("restarts", tune_cfg.restarts)
@@ -448,7 +444,8 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     _check_pool(env, per_device * (K + 1) * E, "the tuning's fresh scoring (tasks x (restarts + 1) x eval_repetitions)")
     search = kick_search(env, mesh, P, R, float(sigma_init), fitness_json)
     leash, centre_fn = tuning_leash(targets, float(tune_cfg.neighbour_leash))
-    fingerprint = tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, fitness_json, mesh.size)
+    ways = sharding.ways(mesh)
+    fingerprint = tuning_fingerprint(env, targets, starts, tune_cfg, generations, sigma_init, fitness_json, ways)
     seed = jax.random.key(int(tune_cfg.seed))
     seeds = [seed if k == 0 else jax.random.fold_in(seed, k) for k in range(K)]  # run k's own key
 
@@ -477,7 +474,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
     batched = len(left) > 1
     if batched:
         # every run left in one batch: its searches side by side in each physics call
-        most = sharding.padded_size(len(left) * T, mesh) // mesh.size * P * R
+        most = sharding.padded_size(len(left) * T, mesh) // sharding.ways(mesh) * P * R
         _check_pool(env, most, f"the {len(left)} tuning runs batched (runs x tasks x population x repetitions)")
     # With runs kept, Ctrl-C stops after the generation in flight (the search's state saved, resumed
     # by a rerun) or between runs (their files written).
@@ -493,7 +490,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
                 if paths[k] is not None:
                     write_tuning_run(paths[k], fingerprint, result, took)
             if state_path(batch) is not None:  # its runs are kept whole now
-                state_path(batch).unlink(missing_ok=True)
+                runio.remove(state_path(batch))
             still = [k for k in left if k not in done]
             if still:  # the later runs compile nothing: each takes about as long as the last
                 say(f"{label} done in {took:.0f} s; ETA of the other runs {len(still) * took:.0f} s")

@@ -211,7 +211,7 @@ class KickEnv(task_env.ContextualEnv):
         joint_noise = cfg.noise.joint_angle * jax.random.normal(rng_q, (scene.N_JOINTS,))
         qpos = qpos.at[self.ids.joint_qpos].set(jnp.clip(self._stance + joint_noise, self._lo, self._hi))
 
-        blank = mjx.make_data(self.mjx_model) if self._warp_data is None else self._warp_data
+        blank = physics.blank_data(self.mjx_model, self._warp_data)
         data = blank.replace(qpos=qpos, ctrl=self._stance)
         info = {
             "target": clipped_target,

@@ -227,14 +227,14 @@ def filtered_kicks(
     program = meta_programs.meta_grid(env_cfg, entry["depth"], entry["width"], mesh, "kick", obs_norm)
     params = jax.tree.map(lambda a: np.asarray(a)[None], shipped.nets[net])
     sel_key, eval_key = filtering.noise_keys(seed)
-    block = KICK_BLOCK * mesh.size  # one compiled program serves the selection and the kicks
+    block = KICK_BLOCK * sharding.ways(mesh)  # one compiled program serves the selection and the kicks
     sel = filtering.filter_policy(
         program, params, contexts, targets, f["width"], selection_repetitions, sel_key,
-        task_range=task_range, block=block, multiple=mesh.size,
+        task_range=task_range, block=block, multiple=sharding.ways(mesh),
         **filtering.scoring(meta_programs.stage_env(env_cfg, "kick")),
     )  # fmt: skip
     context = float(sel.contexts[sel.chosen[0]])
-    m = filtering.evaluate_chosen(program, params, [context], targets, n_kicks, eval_key, block, mesh.size)
+    m = filtering.evaluate_chosen(program, params, [context], targets, n_kicks, eval_key, block, sharding.ways(mesh))
     keys = filtering.stage_keys(eval_key, 1, n_kicks)  # evaluate_chosen's keys, kick by kick
     return Kicks(context, sel.contexts, sel.scores[0], m["distance"][0], m["final_error"][0], m["valid"][0] > 0, keys)
 

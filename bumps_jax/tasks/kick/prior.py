@@ -18,7 +18,6 @@ the run's own start_prior.json, whatever assets/ holds by then.
 
 from __future__ import annotations
 
-import shutil
 import time
 from pathlib import Path
 
@@ -57,8 +56,7 @@ def run(cfg, run_dir, say=print) -> dict:
     start_path = inputs(cfg, run_dir)["start"]
     own = stage_dir / START
     if not own.exists():
-        stage_dir.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(start_path, own)
+        runio.write_bytes(own, Path(start_path).read_bytes())
         say(f"prior: starting from {start_path} (kept as {own})")
     x0 = np.asarray(kick_model.load_record(own)["params"], np.float32).copy()
     x0[kick_model.PARAM_NAMES.index("strength")] = p.start_strength
@@ -143,7 +141,7 @@ def _anchor(stage_dir: Path, name: str, target: float, start, free, p, env, mesh
         "wall_s": time.perf_counter() - t0,
     }
     runio.write_json(path, found)
-    state_path.unlink(missing_ok=True)  # the finished search's state: its anchor file holds what is read
+    runio.remove(state_path)  # the finished search's state: its anchor file holds what is read
     say(f"prior: anchor {name} ({target:g} m) done: error {evaluation['mean_error']:.2f} m, valid "
         f"{evaluation['valid_fraction']:.2f} ({path})")  # fmt: skip
     return {**found, "params": np.asarray(found["params"], np.float32), "reused": False}

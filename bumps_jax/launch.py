@@ -1,0 +1,126 @@
+"""`--processes N`: one command as N processes of JAX's multi-controller runtime on this host.
+
+Each process runs the same command with `--distributed` (`sharding.initialize_distributed`
+joins them through a coordinator on this host) and, on a GPU host, sees one GPU of its own
+(`CUDA_VISIBLE_DEVICES`: MJX's Warp physics runs on one GPU per process). Every batched program
+is then split over the processes (`sharding.over_batch`) and the first process writes the run's
+files. The first process prints to this terminal; the others to run_dir/processes/process<i>.log.
+If one process fails, the others are stopped and the failure is named with its log's last line.
+Several hosts (SLURM) start the processes themselves: `srun ... --distributed`.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+LOGS = "processes"  # run_dir/processes/process<i>.log: the output of every process but the first
+
+
+def check_count(n) -> int:
+    """`--processes`: an integer >= 1, else ValueError naming it."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"--processes must be an integer >= 1, got {n!r}")
+    return n
+
+
+def visible_gpus() -> list[str] | None:
+    """The GPUs the processes can be given, one each: CUDA_VISIBLE_DEVICES's list where it is set,
+    else the indices `nvidia-smi` lists; None where JAX runs on the CPU (JAX_PLATFORMS=cpu) or
+    the host shows no GPU."""
+    if os.environ.get("JAX_PLATFORMS", "").split(",")[0] == "cpu":
+        return None
+    if os.environ.get("CUDA_VISIBLE_DEVICES") is not None:
+        return [g for g in os.environ["CUDA_VISIBLE_DEVICES"].split(",") if g.strip()] or None
+    if shutil.which("nvidia-smi") is None:
+        return None
+    out = subprocess.run(
+        ["nvidia-smi", "--query-gpu=index", "--format=csv,noheader"], capture_output=True, text=True, check=False
+    )
+    gpus = [line.strip() for line in out.stdout.splitlines() if line.strip()]
+    return gpus or None
+
+
+def free_port() -> int:
+    """A TCP port free on this host now, for the processes' coordinator."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def process_env(i: int, n: int, port: int, gpus: list[str] | None) -> dict:
+    """Process i's environment: the coordinator, the process count and index, and its own GPU."""
+    env = {**os.environ, "JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{port}", "JAX_NUM_PROCESSES": str(n),
+           "JAX_PROCESS_ID": str(i)}  # fmt: skip
+    if gpus is not None:
+        env["CUDA_VISIBLE_DEVICES"] = gpus[i]
+    return env
+
+
+def without_processes(argv: list[str]) -> list[str]:
+    """argv without its --processes option (as `--processes N` or `--processes=N`)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--processes":
+            skip = True
+        elif not a.startswith("--processes="):
+            out.append(a)
+    return out
+
+
+def last_line(path: Path) -> str:
+    lines = [x for x in path.read_text(errors="replace").splitlines() if x.strip()] if path.is_file() else []
+    return lines[-1] if lines else "(no output)"
+
+
+def run(argv: list[str], n: int, run_dir: Path, poll_s: float = 0.5) -> int:
+    """Run `python -m bumps_jax <argv> --distributed` as n processes; the exit code: 0 when every
+    process ended well, else the first failure's (named on stderr)."""
+    gpus = visible_gpus()
+    if gpus is not None and n > len(gpus):
+        raise ValueError(f"--processes {n}: this host shows {len(gpus)} GPU(s) ({','.join(gpus)}), one per process")
+    logs = Path(run_dir) / LOGS
+    logs.mkdir(parents=True, exist_ok=True)
+    port, command = free_port(), [sys.executable, "-m", "bumps_jax", *without_processes(argv), "--distributed"]
+    where = "one GPU each" if gpus is not None else "on the CPU"
+    print(f"{n} processes ({where}); processes 1-{n - 1} write to {logs}/", flush=True)
+    procs, files = [], []
+    for i in range(n):
+        out = None if i == 0 else (logs / f"process{i}.log").open("w")
+        files.append(out)
+        procs.append(subprocess.Popen(command, env=process_env(i, n, port, gpus), stdout=out, stderr=out))
+    failed = None
+    try:
+        while failed is None and any(p.poll() is None for p in procs):
+            failed = next((i for i, p in enumerate(procs) if p.returncode not in (None, 0)), None)
+            time.sleep(poll_s)
+        failed = failed if failed is not None else next((i for i, p in enumerate(procs) if p.returncode), None)
+    except KeyboardInterrupt:  # Ctrl-C reached every process too: each stops after its chunk
+        for p in procs:
+            p.wait()
+        raise
+    finally:
+        if failed is not None:
+            for p in procs:
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+            for p in procs:
+                p.wait()
+        for f in files:
+            if f is not None:
+                f.close()
+    if failed is None:
+        return 0
+    code = procs[failed].returncode if procs[failed].returncode > 0 else 1  # killed by a signal: 1
+    if failed > 0:
+        log = logs / f"process{failed}.log"
+        print(f"error: process {failed} of {n} exited with {code}: {last_line(log)} (its log: {log})", file=sys.stderr)
+    return code
