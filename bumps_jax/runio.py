@@ -266,6 +266,8 @@ def write_checksums(directory: str | os.PathLike) -> Path:
     """Seal a finished directory artifact (a checkpoint step, final_params): the sha256 of every
     file under it into directory/checksums.json, written atomically, for `verify_checksums`."""
     directory = Path(directory)
+    if not writes_here():
+        return directory / CHECKSUMS
     files = sorted(p for p in directory.rglob("*") if p.is_file() and p.name != CHECKSUMS)
     return write_json(
         directory / CHECKSUMS, {"sha256": {p.relative_to(directory).as_posix(): sha256_of(p) for p in files}}
@@ -296,6 +298,8 @@ def verify_checksums(directory: str | os.PathLike) -> bool:
 def write_file_checksum(path: str | os.PathLike) -> Path:
     """Seal a finished file artifact (a dataset): its sha256 into <path>.sha256, atomically."""
     path = Path(path)
+    if not writes_here():  # the file is the writing process's (`write_npz`)
+        return path.with_name(path.name + FILE_CHECKSUM)
     return write_text(path.with_name(path.name + FILE_CHECKSUM), f"{sha256_of(path)}  {path.name}\n")
 
 

@@ -93,21 +93,33 @@ def own_rows(tree, axis: int = 0):
         if size % count:
             raise ValueError(f"a batch of {size} does not split over {count} processes: pad it (sharding.pad)")
         k = size // count
-        return jax.lax.slice_in_dim(x, index * k, (index + 1) * k, axis=axis)
+        return x[(slice(None),) * axis + (slice(index * k, (index + 1) * k),)]  # host arrays stay on the host
 
     return jax.tree.map(rows, tree)
 
 
 def gather(tree, axis: int = 0):
     """Every process's rows (`own_rows`) joined along `axis`, as host arrays on every process;
-    as is with one process."""
-    if jax.process_count() == 1:
+    as is with one process. One collective per dtype: the leaves of a dtype travel as one
+    flat row per process."""
+    count = jax.process_count()
+    if count == 1:
         return tree
     from jax.experimental import multihost_utils  # noqa: PLC0415
 
-    front = jax.tree.map(lambda x: np.moveaxis(np.asarray(x), axis, 0), tree)
-    joined = multihost_utils.process_allgather(front, tiled=True)
-    return jax.tree.map(lambda x: np.moveaxis(x, 0, axis), joined)
+    leaves, treedef = jax.tree.flatten(tree)
+    host = [np.moveaxis(np.asarray(x), axis, 0) for x in leaves]
+    joined = [None] * len(host)
+    for dtype in {x.dtype for x in host}:
+        which = [i for i, x in enumerate(host) if x.dtype == dtype]
+        rows = multihost_utils.process_allgather(np.concatenate([host[i].reshape(-1) for i in which]))
+        start = 0
+        for i in which:
+            size = host[i].size
+            parts = rows[:, start : start + size].reshape(count, *host[i].shape)  # (processes, rows, ...)
+            joined[i] = np.moveaxis(np.concatenate(parts, axis=0), 0, axis)
+            start += size
+    return jax.tree.unflatten(treedef, joined)
 
 
 def barrier(name: str) -> None:
@@ -164,8 +176,13 @@ def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0):
     if jax.process_count() == 1:
         return program
 
-    def own(args):
-        return tuple(own_rows(a) if b else a for a, b in zip(args, batched, strict=True))
+    shardings = tuple(NamedSharding(mesh, s) for s in in_specs)
+
+    def own(args):  # this process's rows of the batched arguments, placed on its mesh
+        return tuple(
+            jax.device_put(own_rows(a) if b else a, sharding)
+            for a, b, sharding in zip(args, batched, shardings, strict=True)
+        )
 
     def run(*args):
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args)):

@@ -99,7 +99,8 @@ def write_report(run_dir: str | Path) -> Path:
     path = Path(run_dir) / "report.md"
     task = report_task.run_task(run_dir)
     paper_rows = tasks.get(task).report.paper_rows
-    path.write_text(report.build(run_dir) if paper_rows else report_task.build_task(run_dir, task))
+    runio.write_text(path, report.build(run_dir) if paper_rows else report_task.build_task(run_dir, task))
+    runio.sync("report")  # every process reads it back
     return path
 
 
