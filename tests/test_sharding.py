@@ -28,7 +28,9 @@ def sharded_vs_single(env, contextual, tmp_path_factory):
     run_dir, port = tmp_path_factory.mktemp("processes"), launch.free_port()
     command = [sys.executable, str(ROOT / "tests" / "sharded_run.py"), str(run_dir)]
     procs = [
-        subprocess.Popen(command, env={**launch.process_env(i, sharded_run.PROCESSES, port, None), **run_env},
+        # each its own hash seed: nothing the processes agree on may follow Python's hash order
+        subprocess.Popen(command, env={**launch.process_env(i, sharded_run.PROCESSES, port, None), **run_env,
+                                       "PYTHONHASHSEED": str(1 + i)},
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
         for i in range(sharded_run.PROCESSES)
     ]  # fmt: skip
@@ -140,3 +142,39 @@ def test_each_process_takes_its_own_rows(monkeypatch):
     )
     with pytest.raises(ValueError, match="a batch of 7 does not split over 2 processes"):
         sharding.own_rows(np.arange(7.0))
+
+
+GATHER = """
+import sys, numpy as np, jax
+from bumps_jax.algo import sharding
+sharding.initialize_distributed()
+i = jax.process_index()
+tree = {"f": np.full((2, 3), i, np.float32), "u": np.full((2,), 10 + i, np.uint32), "b": np.array([i == 0, True]),
+        "n": np.full((2, 2), -i, np.int32)}
+print(repr({k: v.tolist() for k, v in sorted(sharding.gather(tree).items())}))
+"""
+
+
+def test_gather_joins_every_process_rows_in_order():
+    # Two processes whose hash seeds order a set of dtypes differently (seeds 1 and 2 do): the
+    # per-dtype collectives must still pair up.
+    port = launch.free_port()
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
+    procs = [
+        subprocess.Popen([sys.executable, "-c", GATHER], env={**launch.process_env(i, 2, port, None), **env,
+                         "PYTHONHASHSEED": str(1 + i)}, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        for i in range(2)
+    ]  # fmt: skip
+    outs = [p.communicate(timeout=120) for p in procs]  # unpaired collectives hang
+    assert all(p.returncode == 0 for p in procs), outs[0][1][-2000:] + outs[1][1][-2000:]
+    first, second = (eval(out.strip().splitlines()[-1]) for out, _ in outs)  # noqa: S307 (our own repr)
+    assert (
+        first
+        == second
+        == {
+            "b": [True, True, False, True],
+            "f": [[0, 0, 0], [0, 0, 0], [1, 1, 1], [1, 1, 1]],
+            "n": [[0, 0], [0, 0], [-1, -1], [-1, -1]],
+            "u": [10, 10, 11, 11],
+        }
+    )

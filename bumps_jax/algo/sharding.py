@@ -110,7 +110,9 @@ def gather(tree, axis: int = 0):
     leaves, treedef = jax.tree.flatten(tree)
     host = [np.moveaxis(np.asarray(x), axis, 0) for x in leaves]
     joined = [None] * len(host)
-    for dtype in {x.dtype for x in host}:
+    # The same order of collectives in every process: sorted, not a set's (whose order follows
+    # Python's hash seed, which differs between processes).
+    for dtype in sorted({x.dtype for x in host}, key=str):
         which = [i for i, x in enumerate(host) if x.dtype == dtype]
         rows = multihost_utils.process_allgather(np.concatenate([host[i].reshape(-1) for i in which]))
         start = 0
