@@ -14,8 +14,12 @@ from benchmarks import scaling
 def test_one_device_and_n_devices_do_the_same_work(layout, k):
     one = scaling.layout_of(layout, 1, 3, k)
     every = scaling.layout_of(layout, 3, 3, k)
-    assert sum(p["copies"] for p in one) == sum(p["copies"] for p in every) == 3 * k
     assert one == [{"gpu": "0", "devices": 1, "copies": 3 * k}]
+    if layout == "distributed":  # one batch of every copy, shared: each of 3 joined processes computes a third
+        assert [p["gpu"] for p in every] == ["0", "1", "2"]
+        assert all(p["copies"] == 3 * k and p["processes"] == 3 and p["devices"] == 1 for p in every)
+        return
+    assert sum(p["copies"] for p in one) == sum(p["copies"] for p in every) == 3 * k
     if layout == "processes":  # one GPU visible to each process, k copies each
         assert [p["gpu"] for p in every] == ["0", "1", "2"] and {p["devices"] for p in every} == {1}
     else:  # one process, a mesh over all three
