@@ -91,7 +91,8 @@ def run(argv: list[str], n: int, run_dir: Path, poll_s: float = 0.5) -> int:
     logs.mkdir(parents=True, exist_ok=True)
     port, command = free_port(), [sys.executable, "-m", "bumps_jax", *without_processes(argv), "--distributed"]
     where = "one GPU each" if gpus is not None else "on the CPU"
-    print(f"{n} processes ({where}); processes 1-{n - 1} write to {logs}/", flush=True)
+    others = "process 1 writes" if n == 2 else f"processes 1-{n - 1} write"
+    print(f"{n} processes ({where}); {others} to {logs}/", flush=True)
     procs, files = [], []
     for i in range(n):
         out = None if i == 0 else (logs / f"process{i}.log").open("w")
@@ -99,10 +100,12 @@ def run(argv: list[str], n: int, run_dir: Path, poll_s: float = 0.5) -> int:
         procs.append(subprocess.Popen(command, env=process_env(i, n, port, gpus), stdout=out, stderr=out))
     failed = None
     try:
-        while failed is None and any(p.poll() is None for p in procs):
-            failed = next((i for i, p in enumerate(procs) if p.returncode not in (None, 0)), None)
+        while True:
+            codes = [p.poll() for p in procs]  # every process's, each time
+            failed = next((i for i, c in enumerate(codes) if c not in (None, 0)), None)
+            if failed is not None or all(c == 0 for c in codes):
+                break
             time.sleep(poll_s)
-        failed = failed if failed is not None else next((i for i, p in enumerate(procs) if p.returncode), None)
     except KeyboardInterrupt:  # Ctrl-C reached every process too: each stops after its chunk
         for p in procs:
             p.wait()

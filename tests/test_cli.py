@@ -160,3 +160,41 @@ def test_a_run_directory_in_use_stops_a_stage_command_in_one_line(tmp_path, comm
         with pytest.raises(SystemExit, match=r"error: run directory .* is in use by another process"):
             cli.main([command, "--preset", "tiny" if command == "kick-prior" else "paper", "--run-dir",
                       str(tmp_path / "run")])  # fmt: skip
+
+
+@pytest.mark.parametrize("value", ["0", "-2"])
+def test_a_bad_process_count_is_one_line_before_any_work(tmp_path, capsys, value):
+    with pytest.raises(SystemExit, match=f"--processes must be an integer >= 1, got {value}"):
+        cli.main(["train-experts", "--run-dir", str(tmp_path / "run"), "--processes", value])
+    assert not (tmp_path / "run").exists()
+
+
+def test_more_processes_than_gpus_is_refused(tmp_path, monkeypatch):
+    from bumps_jax import launch
+
+    monkeypatch.setattr(launch, "visible_gpus", lambda: ["0", "1"])
+    with pytest.raises(SystemExit, match=r"--processes 4: this host shows 2 GPU\(s\) \(0,1\), one per process"):
+        cli.main(["train-experts", "--run-dir", str(tmp_path / "run"), "--processes", "4"])
+
+
+def test_the_launcher_runs_each_process_as_one_of_the_job_and_names_a_failure(tmp_path, monkeypatch, capsys):
+    from bumps_jax import launch
+
+    assert launch.without_processes(["demo", "--processes", "4", "--task", "x", "--processes=2"]) == [
+        "demo",
+        "--task",
+        "x",
+    ]
+    env = launch.process_env(2, 4, 1234, ["5", "6", "7", "8"])
+    assert (env["JAX_PROCESS_ID"], env["JAX_NUM_PROCESSES"], env["CUDA_VISIBLE_DEVICES"]) == ("2", "4", "7")
+    assert env["JAX_COORDINATOR_ADDRESS"] == "127.0.0.1:1234"
+    # a stand-in command: process 1 fails at once, process 0 would run on; the launcher stops it
+    script = "import os, sys, time; i = int(os.environ['JAX_PROCESS_ID']); print('process', i, 'says no');"
+    script += "sys.exit(3) if i == 1 else time.sleep(60)"
+    monkeypatch.setattr(launch.sys, "executable", "python3")
+    monkeypatch.setattr(launch, "visible_gpus", lambda: None)
+    real_popen = launch.subprocess.Popen
+    monkeypatch.setattr(launch.subprocess, "Popen", lambda cmd, **kw: real_popen([sys.executable, "-c", script], **kw))
+    assert launch.run(["demo"], 2, tmp_path, poll_s=0.05) == 3
+    err = capsys.readouterr().err
+    assert "process 1 of 2 exited with 3: process 1 says no" in err
