@@ -252,7 +252,9 @@ def scale_out_line(scaling: dict) -> str:
     n = str(scaling["devices"])
     nan = float("nan")
     # one process per device (Warp's way) or one process with a mesh of all (a record without a layout)
-    how = "one process per device" if scaling.get("layout") == "processes" else "one process, a mesh of all"
+    how = {"processes": "one process per device, each its own copies",
+           "distributed": "joined processes, one device each, sharing one batch"}.get(
+        scaling.get("layout"), "one process, a mesh of all")  # fmt: skip
     filtering = (f"filtering {scaling['filter_rollouts_speedup']:.2f}x" if "filter_rollouts_speedup" in scaling
                  else "filtering not measured in this run")  # fmt: skip
     line = (
