@@ -11,7 +11,7 @@ import pytest
 
 from benchmarks import c_replay
 from bumps_jax import config
-from bumps_jax.algo import ppo, ppo_config, rollout
+from bumps_jax.algo import rollout
 from bumps_jax.envs import base as task_env
 from bumps_jax.tasks.kick import cmaes, scene
 from bumps_jax.tasks.kick import env as kick_env
@@ -139,16 +139,6 @@ def test_a_contact_overflow_invalidates_the_episode(warp, anchors):
     env = warp_env(contacts=4, **NO_NOISE)  # a standing robot alone makes 9
     metrics = play(env, anchors[MAIN : MAIN + 1])
     assert metrics["overflow"][0, 0] == 1.0 and metrics["valid"][0, 0] == 0.0
-
-
-def test_one_ppo_update_over_two_tasks_runs_on_warp(warp):
-    env = warp_env(contacts=12 * 8)
-    overrides = {"num_envs": 4, "num_minibatches": 2, "num_epochs": 1, "total_env_steps": 4 * 75}
-    cfg = ppo_config.make_config(overrides=overrides)
-    trainer = ppo.make_train(cfg, env)
-    state, metrics = jax.jit(jax.vmap(trainer.train))(jax.random.split(jax.random.key(0), 2), jnp.array([9.0, 15.0]))
-    assert np.asarray(state.update).tolist() == [1, 1]
-    assert all(np.isfinite(np.asarray(v)).all() for v in metrics)
 
 
 def test_the_tuning_fits_the_pool_of_one_generation(warp, anchors):

@@ -155,6 +155,9 @@ def test_vmapped_training_equals_each_task_alone(programs):
     state, bc_losses = experts.run_init(programs, experts.task_rngs(cfg.experts.seed, 2), targets, kicks)
     assert np.all(np.asarray(bc_losses[:, -1]) < 0.2 * np.asarray(bc_losses[:, 0]))
     together, metrics = experts.run_chunk(programs, state, targets)
+    # One PPO update of both tasks ran on Warp (the tiny env's backend), every metric finite.
+    assert programs.env.config.impl == "warp" and np.asarray(together.update).tolist() == [1, 1]
+    assert all(np.isfinite(np.asarray(v)).all() for v in metrics)
 
     other_targets = jnp.asarray([8.0, 16.0])
     other_cfg = pipeline_config(**{"experts.tasks": (8.0, 16.0)})
