@@ -10,7 +10,7 @@ from bumps_jax.algo import bc
 
 
 def main(out_dir: str) -> None:
-    cfg = config.make_config("tiny", {"meta.train.epochs": 30, "meta.train.chunk": 1, "meta.train.decay_every": 10})
+    cfg = config.make_config("tiny", {"meta.train.epochs": 10, "meta.train.chunk": 1, "meta.train.decay_every": 10})
     rng = np.random.default_rng(0)
     data = bc.Dataset(obs=rng.random((64, 2), np.float32), actions=rng.random((64, 22), np.float32),
                       task=np.zeros(64, np.float32))  # fmt: skip
