@@ -192,7 +192,7 @@ PRESETS: dict[str, dict] = {
         "filter.selection_repetitions": 2,
         "filter.halving_rungs": (1, 2),
         "filter.eval_repetitions": 2,
-        "filter.block": 64,
+        "filter.block": 16,  # the contact pool's 16 episodes: each block one physics call
         "baseline.seeds": 2,
         "baseline.updates_per_chunk": 2,
         "baseline.keep_checkpoints": 2,
