@@ -340,7 +340,7 @@ def main(argv=None) -> None:
 
             n = launch.check_count(args.processes)
             with runio.run_lock(run_dir):
-                sys.exit(launch.run(argv, n, run_dir))
+                sys.exit(launched(args, argv, n, run_dir))
         if args.distributed:
             from bumps_jax.algo import sharding  # noqa: PLC0415
 
@@ -359,6 +359,33 @@ def main(argv=None) -> None:
             raise
         traceback.print_exc()
         leave(args, "error: the traceback above")
+
+
+def launched(args, argv, n: int, run_dir) -> int:
+    """`--processes n`: the command as n processes (`launch.run`); a pipeline (without --seeds) in
+    the phases of `runner.schedule`, its pipeline.json given the launch's wall time from start to
+    end (`runner.record_launch`). The exit code."""
+    import time  # noqa: PLC0415
+
+    from bumps_jax import launch  # noqa: PLC0415
+
+    if args.command not in PIPELINES or args.seeds is not None:
+        return launch.run(argv, n, run_dir)
+    from bumps_jax import config  # noqa: PLC0415
+    from bumps_jax.pipeline import runner  # noqa: PLC0415
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
+
+    overrides = parse_overrides(args.set, None, args.task)
+    cfg = config.make_config(args.preset, {"task": args.task, **overrides} if args.task else overrides)
+    stages = [s for s in pipeline_stages(args.command, args.stages) if s in tasks.get(cfg.task).stages]
+    phases = runner.schedule(stages, n)
+    start = time.perf_counter()
+    code = 1
+    try:
+        code = launch.run(argv, n, run_dir, phases)
+    finally:  # also when interrupted: a resumed run adds up its calls
+        runner.record_launch(run_dir, n, phases, time.perf_counter() - start, code == 0)
+    return code
 
 
 def leave(args, message: str) -> None:

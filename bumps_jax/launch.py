@@ -7,6 +7,8 @@ is then split over the processes (`sharding.over_batch`) and the first process w
 files. The first process prints to this terminal; the others to run_dir/processes/process<i>.log.
 If one process fails, the others are stopped and the failure is named with its log's last line.
 Several hosts (SLURM) start the processes themselves: `srun ... --distributed`.
+A pipeline may run in phases whose branches run side by side as jobs of their own
+(`runner.schedule`: the baseline beside the meta-policies).
 """
 
 from __future__ import annotations
@@ -76,28 +78,72 @@ def without_processes(argv: list[str]) -> list[str]:
     return out
 
 
+def with_stages(argv: list[str], stages) -> list[str]:
+    """argv with its --stages list replaced by `stages` (None: argv as it is)."""
+    if stages is None:
+        return list(argv)
+    out, skip = [], False
+    for a in argv:
+        if a == "--stages":
+            skip = True
+        elif skip and not a.startswith("-"):
+            continue
+        else:
+            skip = False
+            out.append(a)
+    return [*out, "--stages", *stages]
+
+
 def last_line(path: Path) -> str:
     lines = [x for x in path.read_text(errors="replace").splitlines() if x.strip()] if path.is_file() else []
     return lines[-1] if lines else "(no output)"
 
 
-def run(argv: list[str], n: int, run_dir: Path, poll_s: float = 0.5) -> int:
+def branch_name(stages) -> str:
+    return "the command" if stages is None else ", ".join(stages)
+
+
+def run(argv: list[str], n: int, run_dir: Path, phases=None, poll_s: float = 0.5) -> int:
     """Run `python -m bumps_jax <argv> --distributed` as n processes; the exit code: 0 when every
-    process ended well, else the first failure's (named on stderr)."""
+    process ended well, else the first failure's (named on stderr).
+
+    phases (`runner.schedule`): lists of branches (stages, processes) run one list after another,
+    the branches of a list side by side, each a job of its own (its own coordinator, its share of
+    the GPUs, argv's --stages replaced by its own); default: the whole command on all n."""
     gpus = visible_gpus()
     if gpus is not None and n > len(gpus):
         raise ValueError(f"--processes {n}: this host shows {len(gpus)} GPU(s) ({','.join(gpus)}), one per process")
+    phases = phases or [[(None, n)]]
     logs = Path(run_dir) / LOGS
+    shutil.rmtree(logs, ignore_errors=True)  # this call's logs only
     logs.mkdir(parents=True, exist_ok=True)
-    port, command = free_port(), [sys.executable, "-m", "bumps_jax", *without_processes(argv), "--distributed"]
     where = "one GPU each" if gpus is not None else "on the CPU"
-    others = "process 1 writes" if n == 2 else f"processes 1-{n - 1} write"
-    print(f"{n} processes ({where}); {others} to {logs}/", flush=True)
-    procs, files = [], []
-    for i in range(n):
-        out = None if i == 0 else (logs / f"process{i}.log").open("w")
-        files.append(out)
-        procs.append(subprocess.Popen(command, env=process_env(i, n, port, gpus), stdout=out, stderr=out))
+    print(f"{n} processes ({where}); every process but the first writes to {logs}/process<i>.log", flush=True)
+    for phase in phases:
+        code = run_phase(argv, phase, gpus, logs, poll_s)
+        if code:
+            return code
+    return 0
+
+
+def run_phase(argv: list[str], branches, gpus, logs: Path, poll_s: float) -> int:
+    """The branches of one phase side by side: branch b's processes take the next GPUs in turn
+    (process slots 0, 1, ... over every branch); slot 0 prints here, the others to their logs."""
+    procs, files, names, slot = [], [], [], 0
+    for stages, count in branches:
+        port = free_port()
+        command = [sys.executable, "-m", "bumps_jax", *with_stages(without_processes(argv), stages), "--distributed"]
+        first = slot
+        for i in range(count):
+            out = None if slot == 0 else (logs / f"process{slot}.log").open("a")  # one log over the phases
+            env = process_env(i, count, port, None if gpus is None else gpus[first:])
+            files.append(out)
+            procs.append(subprocess.Popen(command, env=env, stdout=out, stderr=out))
+            names.append((slot, branch_name(stages), i, count))
+            slot += 1
+        if len(branches) > 1:
+            shown = f"process {first}" if count == 1 else f"processes {first}-{slot - 1}"
+            print(f"{branch_name(stages)}: {shown}, side by side with the others", flush=True)
     failed = None
     try:
         while True:
@@ -123,7 +169,9 @@ def run(argv: list[str], n: int, run_dir: Path, poll_s: float = 0.5) -> int:
     if failed is None:
         return 0
     code = procs[failed].returncode if procs[failed].returncode > 0 else 1  # killed by a signal: 1
-    if failed > 0:
-        log = logs / f"process{failed}.log"
-        print(f"error: process {failed} of {n} exited with {code}: {last_line(log)} (its log: {log})", file=sys.stderr)
+    slot, name, i, count = names[failed]
+    if slot > 0:
+        log = logs / f"process{slot}.log"
+        which = f"process {i} of {count}" + ("" if len(branches) == 1 else f" running {name}")
+        print(f"error: {which} exited with {code}: {last_line(log)} (its log: {log})", file=sys.stderr)
     return code

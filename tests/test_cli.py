@@ -198,3 +198,33 @@ def test_the_launcher_runs_each_process_as_one_of_the_job_and_names_a_failure(tm
     assert launch.run(["demo"], 2, tmp_path, poll_s=0.05) == 3
     err = capsys.readouterr().err
     assert "process 1 of 2 exited with 3: process 1 says no" in err
+
+
+def test_the_launcher_runs_a_phase_s_branches_side_by_side_as_jobs_of_their_own(tmp_path, monkeypatch, capfd):
+    from bumps_jax import launch
+
+    argv = ["reproduce", "--stages", "meta", "baseline", "--task", "x"]
+    assert launch.with_stages(argv, ("meta",)) == ["reproduce", "--task", "x", "--stages", "meta"]
+    # Every process reports its command's stages, its job's size and index, and its GPU; then it
+    # ends well, except the baseline's second process of the last phase.
+    script = (
+        "import os, sys; s = ' '.join(sys.argv[sys.argv.index('--stages') + 1 : -1]);"
+        "e = os.environ; print(s, e['JAX_NUM_PROCESSES'], e['JAX_PROCESS_ID'], e['CUDA_VISIBLE_DEVICES'],"
+        " e['JAX_COORDINATOR_ADDRESS'], flush=True);"
+        "sys.exit(4 if s == 'baseline' and e['JAX_PROCESS_ID'] == '1' and 'fail' in e else 0)"
+    )
+    real_popen = launch.subprocess.Popen
+    monkeypatch.setattr(launch, "visible_gpus", lambda: ["g0", "g1", "g2"])
+    stand_in = [sys.executable, "-c", script]
+    monkeypatch.setattr(launch.subprocess, "Popen", lambda cmd, **kw: real_popen([*stand_in, *cmd], **kw))
+    phases = [[(("prior", "experts"), 3)], [(("meta",), 1), (("baseline",), 2)]]
+    assert launch.run(argv, 3, tmp_path, phases, poll_s=0.05) == 0
+    logs = {i: (tmp_path / launch.LOGS / f"process{i}.log").read_text().splitlines()[-1].split() for i in (1, 2)}
+    assert logs[1][:4] == ["baseline", "2", "0", "g1"] and logs[2][:4] == ["baseline", "2", "1", "g2"]
+    assert logs[1][4] == logs[2][4]  # one coordinator per job
+    out = capfd.readouterr().out
+    assert "prior experts 3 0 g0" in out and "meta 1 0 g0" in out  # process 0 prints here
+    assert "baseline: processes 1-2, side by side with the others" in out
+    monkeypatch.setenv("fail", "1")
+    assert launch.run(argv, 3, tmp_path, phases, poll_s=0.05) == 4
+    assert "error: process 1 of 2 running baseline exited with 4: baseline 2 1 g2" in capfd.readouterr().err

@@ -248,7 +248,7 @@ def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, stages, 
         ckpt.parent.mkdir(parents=True)
         ckpt.write_text("")
         opened = json.loads((Path(run_dir) / "pipeline.json").read_text())["open"]
-        os.utime(ckpt, (opened["started"] + 42.0,) * 2)  # its last write, 42 s after the start
+        os.utime(ckpt, (opened["experts"] + 42.0,) * 2)  # its last write, 42 s after the start
         raise SystemExit(json.loads((Path(run_dir) / "pipeline.json").read_text()))
 
     monkeypatch.setattr(modules["experts"], "run", killed)
@@ -265,6 +265,27 @@ def test_a_killed_call_is_counted_up_to_its_stages_last_write(tmp_path, stages, 
     assert "calls that were killed" in report.pipeline_lines(record, {"experts": 1000.0, "meta": 5000.0})[1]
     # A stage the record does not count (run by its own command) is not compared.
     assert not any("calls that were killed" in line for line in report.pipeline_lines(record, {"baseline": 5000.0}))
+
+
+def test_side_by_side_calls_share_the_record_and_leave_each_others_marks(tmp_path, stages):
+    # Another command is running the baseline now (its mark is open): this call neither counts it
+    # as killed nor drops its time when it writes its own stages.
+    (tmp_path / "pipeline.json").write_text(json.dumps({"stages_s": {"baseline": 5.0}, "open": {"baseline": 1.0e9}}))
+    pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path, say=lambda *a, **k: None)
+    record = json.loads((tmp_path / "pipeline.json").read_text())
+    assert record["open"] == {"baseline": 1.0e9} and "killed_calls" not in record
+    assert record["stages_s"]["baseline"] == 5.0 and {"experts", "meta"} <= set(record["stages_s"])
+
+
+def test_schedule_runs_the_baseline_beside_the_nets_once_the_experts_are_trained():
+    every = ("prior", "experts", "meta", "filter", "heldout", "baseline")
+    assert pipeline.schedule(every, 4) == [
+        [(("prior", "experts"), 4)],
+        [(("meta", "filter", "heldout"), 1), (("baseline",), 3)],
+    ]
+    assert pipeline.schedule(("meta", "baseline"), 2) == [[(("meta",), 1), (("baseline",), 1)]]
+    assert pipeline.schedule(every, 1) == [[(every, 1)]]  # one process: one after another
+    assert pipeline.schedule(("prior", "experts", "baseline"), 4) == [[(("prior", "experts", "baseline"), 4)]]
 
 
 def test_publishing_refuses_a_run_with_a_stage_unfinished(tmp_path, stages):
@@ -286,3 +307,18 @@ def test_publishing_refuses_a_run_with_a_stage_unfinished(tmp_path, stages):
     assert "\n" not in str(err.value)  # one line, before anything is read or written
     pipeline.run_stage("baseline", cfg(), tmp_path)
     assert pipeline.unfinished(tmp_path, tasks.get("kick").stages, "kick") == []
+
+
+def test_a_launch_is_recorded_with_its_wall_time_and_phases(tmp_path, stages):
+    pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path, say=lambda *a, **k: None)
+    phases = pipeline.schedule(("experts", "meta", "baseline"), 3)
+    pipeline.record_launch(tmp_path, 3, phases, 90.0, finished=False)
+    record = pipeline.record_launch(tmp_path, 3, phases, 30.0, finished=True)  # a resumed call
+    assert [x["wall_s"] for x in record["launches"]] == [90.0, 30.0] and record["launches"][1]["finished"]
+    assert record["launches"][0]["phases"][1] == [
+        {"stages": ["meta"], "processes": 1},
+        {"stages": ["baseline"], "processes": 2},
+    ]
+    (line,) = report.launch_lines(record["launches"])
+    assert line.startswith("Launched as 3 processes (experts on 3; then meta on 1 beside baseline on 2): **2.0 min**")
+    assert "2 calls, added up" in line and "did not finish" not in line

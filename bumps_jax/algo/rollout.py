@@ -118,8 +118,8 @@ def grid_fn(env: ContextualEnv, apply_fn, mesh=None):
 
     Every policy of a stack (seeds, networks of one architecture) on every (context, target)
     pair, R noisy repetitions each: one XLA program. With a `mesh` the pairs are split over
-    its devices and the processes (n must then be a multiple of `sharding.ways(mesh)`;
-    `filtering.run_blocked` pads).
+    its devices and the processes (padded to a multiple of `sharding.ways(mesh)` and the copies
+    dropped).
     """
     over_pairs = jax.vmap(over_reps(episode_fn(env, apply_fn)), in_axes=(None, 0, 0, 0))
     over_policies = jax.vmap(over_pairs, in_axes=(0, None, None, None))
@@ -130,10 +130,11 @@ def grid_fn(env: ContextualEnv, apply_fn, mesh=None):
     )
 
     def run(params, contexts, targets, keys):
-        n_policies = jax.tree.leaves(params)[0].shape[0]
+        n_policies, n = jax.tree.leaves(params)[0].shape[0], len(keys)
         ways = 1 if mesh is None else sharding.ways(mesh)
         chunked = in_chunks(program, env, axis=1, per_item=n_policies, n_devices=ways)
-        return chunked(params, contexts, targets, keys)
+        pairs = sharding.pad((jnp.asarray(contexts), jnp.asarray(targets), keys), -(-n // ways) * ways)
+        return jax.tree.map(lambda a: a[:, :n], chunked(params, *pairs))
 
     return run
 

@@ -17,6 +17,7 @@ and then reuses, resumes, recomputes (`force`) or refuses.
 
 from __future__ import annotations
 
+import datetime
 import importlib
 import json
 import time
@@ -121,7 +122,8 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
     """Run `stages` in order into `run_dir` (those the config's task has: `tasks.STAGES`), then write
     the report. Writes run_dir/pipeline.json:
     each stage's wall time over every call (`stages_s`; their sum is `wall_s`), the number of
-    calls, and this call's own time.
+    calls, and this call's own time. Each update touches this call's stages only
+    (`runio.update_json`), so commands running other stages side by side (`schedule`) share it.
 
     Every stage's inputs and manifest are checked up front where they already exist, so a stale
     later stage stops the call before the first stage does any work.
@@ -139,8 +141,7 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
             except ValueError:
                 pass  # an input that an earlier stage of this call writes
     timing_path = run_dir / "pipeline.json"
-    timing = runio.read_json(timing_path) if timing_path.exists() else {"stages_s": {}}
-    count_killed_call(run_dir, timing, say)
+    timing = runio.update_json(timing_path, lambda t: count_killed_call(run_dir, t, stages, say))
     counted = False
     t_call = time.perf_counter()
     for name in stages:
@@ -148,43 +149,98 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
         if status == "done":
             execute(name, cfg, run_dir, wanted, status, say)
             continue
-        if status in ("new", "forced"):  # a stage made anew counts its own time, not its predecessor's
-            timing["stages_s"].pop(name, None)
-        if not counted:  # a report says whether the run was resumed
-            timing["calls"], counted = timing.get("calls", 0) + 1, True
-        # A SIGKILL skips the `finally` below; this mark lets the next call count the lost time.
-        timing["open"] = {"stage": name, "started": time.time()}
-        runio.write_json(timing_path, timing)
+        first, counted = not counted, True  # a report says whether the run was resumed
+        started = time.time()
+
+        def opened(t, name=name, new=status in ("new", "forced"), first=first, started=started):
+            t.setdefault("stages_s", {})
+            if new:  # a stage made anew counts its own time, not its predecessor's
+                t["stages_s"].pop(name, None)
+            if first:
+                t["calls"] = t.get("calls", 0) + 1
+            # A SIGKILL skips the `finally` below; this mark lets the next call count the lost time.
+            t.setdefault("open", {})[name] = started
+
+        timing = runio.update_json(timing_path, opened)
         t0 = time.perf_counter()
         try:
             execute(name, cfg, run_dir, wanted, status, say)
         finally:  # also when interrupted: a resumed stage adds up its parts
-            timing.pop("open", None)
-            timing["stages_s"][name] = timing["stages_s"].get(name, 0.0) + time.perf_counter() - t0
-            timing["call_wall_s"] = time.perf_counter() - t_call
-            timing.update(runio.provenance(cfg.preset, sum(timing["stages_s"].values()), config.resolved_env(cfg)))
-            timing["overrides"] = config.overrides_of(cfg)
-            runio.write_json(timing_path, timing)
+            seconds = time.perf_counter() - t0
+
+            def closed(t, name=name, seconds=seconds):
+                t.get("open", {}).pop(name, None)
+                if not t.get("open"):
+                    t.pop("open", None)
+                t["stages_s"][name] = t["stages_s"].get(name, 0.0) + seconds
+                t["call_wall_s"] = time.perf_counter() - t_call
+                t.update(runio.provenance(cfg.preset, sum(t["stages_s"].values()), config.resolved_env(cfg)))
+                t["overrides"] = config.overrides_of(cfg)
+
+            timing = runio.update_json(timing_path, closed)
     path = publish.write_report(run_dir)
     say(path.read_text())
     say(f"wrote {path}")
     return timing
 
 
-def count_killed_call(run_dir: Path, timing: dict, say=print) -> None:
-    """Add a call that was killed mid-stage (its `open` mark is left) to `timing`, in place.
+def count_killed_call(run_dir: Path, timing: dict, stages=None, say=print) -> None:
+    """Add a call that was killed mid-stage (its `open` mark is left) to `timing`, in place; only
+    the marks of `stages` (default: all), since another command may be running the others now.
 
     Its time is counted up to the stage's last write under run_dir (a checkpoint, a progress
     row): what came after it was lost and is redone by this call."""
-    opened = timing.pop("open", None)
-    if not opened:
-        return
-    stage_dir = run_dir / opened["stage"]
-    writes = [p.stat().st_mtime for p in stage_dir.rglob("*") if p.is_file()] if stage_dir.exists() else []
-    lost = max([0.0, *(t - opened["started"] for t in writes)])
-    timing["stages_s"][opened["stage"]] = timing["stages_s"].get(opened["stage"], 0.0) + lost
-    timing["killed_calls"] = timing.get("killed_calls", 0) + 1
-    say(f"== a previous call was killed during {opened['stage']}: counting its {lost:.0f} s up to its last write")
+    marks = timing.get("open") or {}
+    if "stage" in marks:  # an older version's single mark
+        marks = {marks["stage"]: marks["started"]}
+    timing.setdefault("stages_s", {})
+    for stage in [s for s in marks if stages is None or s in stages]:
+        started = marks.pop(stage)
+        stage_dir = run_dir / stage
+        writes = [p.stat().st_mtime for p in stage_dir.rglob("*") if p.is_file()] if stage_dir.exists() else []
+        lost = max([0.0, *(t - started for t in writes)])
+        timing["stages_s"][stage] = timing["stages_s"].get(stage, 0.0) + lost
+        timing["killed_calls"] = timing.get("killed_calls", 0) + 1
+        say(f"== a previous call was killed during {stage}: counting its {lost:.0f} s up to its last write")
+    if marks:
+        timing["open"] = marks
+    else:
+        timing.pop("open", None)
+
+
+def record_launch(run_dir: Path, processes: int, phases, wall_s: float, finished: bool) -> dict:
+    """Add one launched call (`launch.run`: its processes, phases and wall time from start to end,
+    process start-up and compiles included) to run_dir/pipeline.json's `launches`, and write the
+    report again so that it shows it. Stages run side by side add up to more than the wall time."""
+    from bumps_jax.report import publish  # noqa: PLC0415
+
+    entry = {
+        "processes": int(processes),
+        "phases": [[{"stages": list(stages), "processes": int(k)} for stages, k in phase] for phase in phases],
+        "wall_s": float(wall_s),
+        "finished": bool(finished),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+    record = runio.update_json(Path(run_dir) / "pipeline.json", lambda t: t.setdefault("launches", []).append(entry))
+    if record.get("stages_s"):
+        publish.write_report(run_dir)
+    return record
+
+
+def schedule(stages, processes: int) -> list[list[tuple[tuple[str, ...], int]]]:
+    """How a pipeline's `stages` run as `processes` processes (`launch`): phases one after
+    another, each a list of branches (stages, processes) run side by side.
+
+    The baseline reads only the prior. With several processes, once the experts are trained it
+    trains on all processes but one while the meta-policies are cloned (one program, which does
+    not split over processes), filtered and evaluated on that one. Otherwise every stage runs on
+    every process, one after another."""
+    stages = tuple(stages)
+    nets = tuple(s for s in stages if s in ("meta", "filter", "heldout"))
+    if processes < 2 or "baseline" not in stages or not nets:
+        return [[(stages, processes)]]
+    trunk = tuple(s for s in stages if s in ("prior", "experts"))
+    return ([[(trunk, processes)]] if trunk else []) + [[(nets, 1), (("baseline",), processes - 1)]]
 
 
 # -- the stage manifest ------------------------------------------------------------------------

@@ -199,12 +199,31 @@ def pipeline_lines(pipeline: dict | None, own_s: dict[str, float] | None = None)
         f"on {pipeline.get('device', 'the device above')}, {how}).",
         *([f"Note: {pipeline['note']}"] if pipeline.get("note") else []),
     ]
+    lines += launch_lines(pipeline.get("launches"))
     if stages_total_s and pipeline["wall_s"] < 0.99 * stages_total_s:
         lines.append(
             f"This record is short of the stages' own {stages_total_s / 60:.1f} min: calls that were killed "
             "before they could write it are missing. The stages' times above are counted to their checkpoints."
         )
     return [*lines, ""]
+
+
+def launch_lines(launches: list | None) -> list[str]:
+    """The run's launched calls (`--processes`): wall time from start to end and their phases."""
+    if not launches:
+        return []
+
+    def phase(p):
+        return " beside ".join(f"{', '.join(b['stages'])} on {b['processes']}" for b in p)
+
+    last = launches[-1]
+    steps = "; then ".join(phase(p) for p in last["phases"])
+    calls = "one call" if len(launches) == 1 else f"{len(launches)} calls, added up"
+    done = "" if last["finished"] else " (the last call did not finish)"
+    return [
+        f"Launched as {last['processes']} processes ({steps}): **{sum(x['wall_s'] for x in launches) / 60:.1f} min** "
+        f"from start to end ({calls}; process start-up and compiles included){done}."
+    ]
 
 
 def baseline_lines(baseline: dict | None, experts: dict | None, filtered: dict | None = None) -> list[str]:

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bumps_jax import config, runio
-from bumps_jax.algo import evaluate, ppo, rollout
+from bumps_jax.algo import evaluate, ppo, rollout, sharding
 from bumps_jax.envs import base as task_env
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.tasks import registry as tasks
@@ -73,22 +73,34 @@ CSV_FIELDS = ("update", "env_steps", "run", "learning_rate", "seed", *ppo.Update
 TRAIN_TARGET = 12.0
 
 
-def training_loop(cfg, trainer: ppo.Trainer, policy0, unit: str = "m") -> runio.ChunkedTraining:
-    """Every arm's seeds from `policy0`, vmapped over runs, in chunks of updates (errors in `unit`)."""
+def training_loop(cfg, trainer: ppo.Trainer, policy0, unit: str = "m", mesh=None) -> runio.ChunkedTraining:
+    """Every arm's seeds from `policy0`, vmapped over runs, in chunks of updates (errors in `unit`).
+    The runs are independent: they are split over `mesh` (default: this process's devices for
+    the task's physics) and the processes (`sharding.over_batch`), and gathered after each chunk."""
     b = cfg.baseline
     rates = learning_rates(b)
     seeds = int(b.seeds)
+    mesh = mesh or sharding.device_mesh(impl=cfg.env.impl)
     # Every arm trains the same seeds (the same keys); the rate is a value of each run's optimiser state.
     rngs = jnp.concatenate([jax.random.split(jax.random.PRNGKey(1), seeds)] * len(rates))  # raw keys: orbax saves them
     lrs = jnp.repeat(jnp.asarray(rates, jnp.float32), seeds)
-    init = jax.jit(jax.vmap(lambda rng, lr: trainer.init(rng, policy0, lr)))
+    n_runs, size = len(lrs), sharding.padded_size(len(lrs), mesh)
+    init_runs = jax.vmap(lambda rng, lr: trainer.init(rng, policy0, lr))
+    init = sharding.over_batch(init_runs, mesh, (True, True))
     n = int(b.updates_per_chunk)
-    chunk = jax.jit(jax.vmap(lambda state: trainer.run_updates(state, TRAIN_TARGET, n)))
+    program = sharding.over_batch(jax.vmap(lambda state: trainer.run_updates(state, TRAIN_TARGET, n)), mesh, (True,))
+
+    def over_runs(fn, *args):  # the runs padded to the devices' multiple, placed, run, unpadded
+        return sharding.unpad(fn(*sharding.place(sharding.pad(args, size), mesh)), n_runs)
+
+    def chunk(state):
+        return over_runs(program, state)
+
     total = trainer.n_updates
 
     def fresh():
         # Strong dtypes throughout (Adam starts its count weakly typed): the chunk compiles once.
-        return jax.tree.map(lambda x: x.astype(x.dtype), init(rngs, lrs))
+        return jax.tree.map(lambda x: x.astype(x.dtype), over_runs(init, rngs, lrs))
 
     def rows(before: int, metrics: ppo.UpdateMetrics) -> list:
         m = jax.tree.map(np.asarray, metrics)
@@ -113,7 +125,7 @@ def training_loop(cfg, trainer: ppo.Trainer, policy0, unit: str = "m") -> runio.
     return runio.ChunkedTraining(
         init=fresh,
         chunk=chunk,
-        abstract=jax.eval_shape(fresh),
+        abstract=jax.eval_shape(lambda: jax.tree.map(lambda x: x.astype(x.dtype), init_runs(rngs, lrs))),
         updates=lambda state: int(np.asarray(state.update)[0]),
         rows=rows,
         line=line,
@@ -208,7 +220,8 @@ def evaluate_runs(cfg, env, trainer, policy0, state) -> tuple[list[dict], np.nda
     )
     eval_tasks = np.asarray(b.eval_tasks, np.float32)
     keys = rollout.repetition_keys(b.eval_seed, len(eval_tasks), b.eval_repetitions)
-    grid = rollout.grid_fn(env, experts_stage.expert_policy(trainer.networks))
+    mesh = sharding.device_mesh(impl=cfg.env.impl)  # the (task, repetition) pairs split over devices and processes
+    grid = rollout.grid_fn(env, experts_stage.expert_policy(trainer.networks), mesh)
     m = grid(params, eval_tasks, eval_tasks, keys)  # (1 + runs, tasks, reps)
     summaries = [evaluate.summarise_tasks({k: v[s] for k, v in m.items()}) for s in range(len(m["valid"]))]
     return [evaluate.table_row(x) for x in summaries], np.stack([x["error_mean_m"] for x in summaries])

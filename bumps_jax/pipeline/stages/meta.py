@@ -24,7 +24,7 @@ import numpy as np
 
 from bumps_jax import config, runio
 from bumps_jax import records as env_records
-from bumps_jax.algo import bc, evaluate, rollout
+from bumps_jax.algo import bc, evaluate, rollout, sharding
 from bumps_jax.envs import base as task_env
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.tasks import registry as tasks
@@ -315,7 +315,8 @@ def evaluate_net(cfg, name: str, model: bc.MetaPolicy, state: bc.TrainState, env
     t0 = time.perf_counter()
     key = (model.depth, model.width, model.obs_norm)  # one program per architecture and inputs
     if key not in grids:
-        grids[key] = rollout.grid_fn(env, bc.policy_apply(model))
+        # the (task, repetition) pairs split over this process's devices and the processes
+        grids[key] = rollout.grid_fn(env, bc.policy_apply(model), sharding.device_mesh(impl=cfg.env.impl))
     metrics = evaluate_unfiltered(grids[key], state.params, m.eval.tasks, m.eval.repetitions, m.eval.seed)
     summaries = [evaluate.summarise_tasks({k: v[s] for k, v in metrics.items()}) for s in range(m.train.n_seeds)]
     eval_wall_s = time.perf_counter() - t0
