@@ -126,6 +126,22 @@ def run(argv: list[str], n: int, run_dir: Path, phases=None, poll_s: float = 0.5
     return 0
 
 
+def stop(procs, grace_s: float = 5.0) -> None:
+    """SIGTERM every process still running, then SIGKILL those alive after `grace_s` (JAX's
+    preemption notifier catches SIGTERM, and the process would wait for its peers' heartbeats
+    to time out, minutes)."""
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    for p in procs:
+        try:
+            p.wait(timeout=max(deadline - time.monotonic(), 0.0))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
 def run_phase(argv: list[str], branches, gpus, logs: Path, poll_s: float) -> int:
     """The branches of one phase side by side: branch b's processes take the next GPUs in turn
     (process slots 0, 1, ... over every branch); slot 0 prints here, the others to their logs."""
@@ -158,11 +174,7 @@ def run_phase(argv: list[str], branches, gpus, logs: Path, poll_s: float) -> int
         raise
     finally:
         if failed is not None:
-            for p in procs:
-                if p.poll() is None:
-                    p.send_signal(signal.SIGTERM)
-            for p in procs:
-                p.wait()
+            stop(procs)
         for f in files:
             if f is not None:
                 f.close()

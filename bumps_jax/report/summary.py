@@ -194,12 +194,16 @@ def pipeline_lines(pipeline: dict | None, own_s: dict[str, float] | None = None)
     killed = pipeline.get("killed_calls")
     if killed:
         how += f"; {killed} of them killed, each counted up to its stage's last write"
+    launches = pipeline.get("launches")
+    if launches:  # several jobs per launched call, some side by side: the launches say the wall time
+        how = "one call" if len(launches) == 1 else f"resumed across {len(launches)} calls, each stage's time added up"
+        how += "; stages side by side add up to more than the wall time below"
     lines = [
         f"The pipeline (`demo` or `reproduce`): **{pipeline['wall_s'] / 60:.1f} min** in all ({parts}; "
         f"on {pipeline.get('device', 'the device above')}, {how}).",
         *([f"Note: {pipeline['note']}"] if pipeline.get("note") else []),
     ]
-    lines += launch_lines(pipeline.get("launches"))
+    lines += launch_lines(launches)
     if stages_total_s and pipeline["wall_s"] < 0.99 * stages_total_s:
         lines.append(
             f"This record is short of the stages' own {stages_total_s / 60:.1f} min: calls that were killed "

@@ -58,6 +58,7 @@ def run(cfg, run_dir, say=print) -> dict:
     if not own.exists():
         runio.write_bytes(own, Path(start_path).read_bytes())
         say(f"prior: starting from {start_path} (kept as {own})")
+    runio.sync("prior start copied")  # every process reads the copy the first one wrote
     x0 = np.asarray(kick_model.load_record(own)["params"], np.float32).copy()
     x0[kick_model.PARAM_NAMES.index("strength")] = p.start_strength
     env = kick_env.KickEnv(cfg.env, {"task_range": tuple(p.task_range)})
