@@ -362,14 +362,15 @@ def main(argv=None) -> None:
 
 
 def launched(args, argv, n: int, run_dir) -> int:
-    """`--processes n`: the command as n processes (`launch.run`); a pipeline (without --seeds) in
-    the phases of `runner.schedule`, its pipeline.json given the launch's wall time from start to
-    end (`runner.record_launch`). The exit code."""
+    """`--processes n`: the command as n processes (`launch.run`). A pipeline runs in the phases
+    of `runner.schedule` (the baseline beside the meta-policies), its pipeline.json given the
+    launch's wall time from start to end (`runner.record_launch`); with several `--seeds`, the
+    seeds' pipelines run side by side (`seed_phases`). The exit code."""
     import time  # noqa: PLC0415
 
     from bumps_jax import launch  # noqa: PLC0415
 
-    if args.command not in PIPELINES or args.seeds is not None:
+    if args.command not in PIPELINES:
         return launch.run(argv, n, run_dir)
     from bumps_jax import config  # noqa: PLC0415
     from bumps_jax.pipeline import runner  # noqa: PLC0415
@@ -378,14 +379,30 @@ def launched(args, argv, n: int, run_dir) -> int:
     overrides = parse_overrides(args.set, None, args.task)
     cfg = config.make_config(args.preset, {"task": args.task, **overrides} if args.task else overrides)
     stages = [s for s in pipeline_stages(args.command, args.stages) if s in tasks.get(cfg.task).stages]
-    phases = runner.schedule(stages, n)
+    if args.seeds is not None:
+        return launch.run(argv, n, run_dir, seed_phases(args.seeds, stages, n))
+    schedule = runner.schedule(stages, n)
+    phases = [[({"--stages": branch}, k) for branch, k in phase] for phase in schedule]
     start = time.perf_counter()
     code = 1
     try:
         code = launch.run(argv, n, run_dir, phases)
     finally:  # also when interrupted: a resumed run adds up its calls
-        runner.record_launch(run_dir, n, phases, time.perf_counter() - start, code == 0)
+        runner.record_launch(run_dir, n, schedule, time.perf_counter() - start, code == 0)
     return code
+
+
+def seed_phases(seeds, stages, n: int) -> list:
+    """`--seeds` over n processes: min(n, seeds) jobs side by side, job j the seeds j, j + jobs, ...
+    one after another on its share of the processes (the baseline with the first seed only, as
+    `run_seeds` trains it); then one process writes seeds.json over them all (every stage is
+    done by then, so it only reads)."""
+    jobs = min(n, len(seeds))
+    branches = []
+    for j in range(jobs):
+        own = [s for s in stages if j == 0 or s != "baseline"]
+        branches.append(({"--seeds": list(seeds[j::jobs]), "--stages": own}, n // jobs + (j < n % jobs)))
+    return [branches, [({"--seeds": list(seeds), "--stages": list(stages)}, 1)]]
 
 
 def leave(args, message: str) -> None:

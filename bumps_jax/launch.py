@@ -78,20 +78,21 @@ def without_processes(argv: list[str]) -> list[str]:
     return out
 
 
-def with_stages(argv: list[str], stages) -> list[str]:
-    """argv with its --stages list replaced by `stages` (None: argv as it is)."""
-    if stages is None:
-        return list(argv)
+def with_options(argv: list[str], options: dict) -> list[str]:
+    """argv with each option of `options` (e.g. {"--stages": ["meta"]}) given these values instead
+    of its own (the values after it up to the next option)."""
     out, skip = [], False
     for a in argv:
-        if a == "--stages":
+        if a in options:
             skip = True
         elif skip and not a.startswith("-"):
             continue
         else:
             skip = False
             out.append(a)
-    return [*out, "--stages", *stages]
+    for flag, values in options.items():
+        out += [flag, *map(str, values)]
+    return out
 
 
 def last_line(path: Path) -> str:
@@ -99,21 +100,24 @@ def last_line(path: Path) -> str:
     return lines[-1] if lines else "(no output)"
 
 
-def branch_name(stages) -> str:
-    return "the command" if stages is None else ", ".join(stages)
+def branch_name(options: dict) -> str:
+    """A branch in words: its options' values (its stages, its seeds)."""
+    if not options:
+        return "the command"
+    return "; ".join(f"{flag.lstrip('-')} {' '.join(map(str, v))}" for flag, v in options.items())
 
 
 def run(argv: list[str], n: int, run_dir: Path, phases=None, poll_s: float = 0.5) -> int:
     """Run `python -m bumps_jax <argv> --distributed` as n processes; the exit code: 0 when every
     process ended well, else the first failure's (named on stderr).
 
-    phases (`runner.schedule`): lists of branches (stages, processes) run one list after another,
-    the branches of a list side by side, each a job of its own (its own coordinator, its share of
-    the GPUs, argv's --stages replaced by its own); default: the whole command on all n."""
+    phases: lists of branches (options, processes) run one list after another, the branches of a
+    list side by side, each a job of its own (its own coordinator, its share of the GPUs, argv's
+    options replaced by the branch's, e.g. {"--stages": [...]}); default: the whole command on all n."""
     gpus = visible_gpus()
     if gpus is not None and n > len(gpus):
         raise ValueError(f"--processes {n}: this host shows {len(gpus)} GPU(s) ({','.join(gpus)}), one per process")
-    phases = phases or [[(None, n)]]
+    phases = phases or [[({}, n)]]
     logs = Path(run_dir) / LOGS
     shutil.rmtree(logs, ignore_errors=True)  # this call's logs only
     logs.mkdir(parents=True, exist_ok=True)
@@ -146,20 +150,20 @@ def run_phase(argv: list[str], branches, gpus, logs: Path, poll_s: float) -> int
     """The branches of one phase side by side: branch b's processes take the next GPUs in turn
     (process slots 0, 1, ... over every branch); slot 0 prints here, the others to their logs."""
     procs, files, names, slot = [], [], [], 0
-    for stages, count in branches:
+    for options, count in branches:
         port = free_port()
-        command = [sys.executable, "-m", "bumps_jax", *with_stages(without_processes(argv), stages), "--distributed"]
+        command = [sys.executable, "-m", "bumps_jax", *with_options(without_processes(argv), options), "--distributed"]
         first = slot
         for i in range(count):
             out = None if slot == 0 else (logs / f"process{slot}.log").open("a")  # one log over the phases
             env = process_env(i, count, port, None if gpus is None else gpus[first:])
             files.append(out)
             procs.append(subprocess.Popen(command, env=env, stdout=out, stderr=out))
-            names.append((slot, branch_name(stages), i, count))
+            names.append((slot, branch_name(options), i, count))
             slot += 1
         if len(branches) > 1:
             shown = f"process {first}" if count == 1 else f"processes {first}-{slot - 1}"
-            print(f"{branch_name(stages)}: {shown}, side by side with the others", flush=True)
+            print(f"{branch_name(options)}: {shown}, side by side with the others", flush=True)
     failed = None
     try:
         while True:

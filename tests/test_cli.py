@@ -204,7 +204,7 @@ def test_the_launcher_runs_a_phase_s_branches_side_by_side_as_jobs_of_their_own(
     from bumps_jax import launch
 
     argv = ["reproduce", "--stages", "meta", "baseline", "--task", "x"]
-    assert launch.with_stages(argv, ("meta",)) == ["reproduce", "--task", "x", "--stages", "meta"]
+    assert launch.with_options(argv, {"--stages": ["meta"]}) == ["reproduce", "--task", "x", "--stages", "meta"]
     # Every process reports its command's stages, its job's size and index, and its GPU; then it
     # ends well, except the baseline's second process of the last phase.
     script = (
@@ -217,14 +217,31 @@ def test_the_launcher_runs_a_phase_s_branches_side_by_side_as_jobs_of_their_own(
     monkeypatch.setattr(launch, "visible_gpus", lambda: ["g0", "g1", "g2"])
     stand_in = [sys.executable, "-c", script]
     monkeypatch.setattr(launch.subprocess, "Popen", lambda cmd, **kw: real_popen([*stand_in, *cmd], **kw))
-    phases = [[(("prior", "experts"), 3)], [(("meta",), 1), (("baseline",), 2)]]
+    phases = [[({"--stages": ["prior", "experts"]}, 3)], [({"--stages": ["meta"]}, 1), ({"--stages": ["baseline"]}, 2)]]
     assert launch.run(argv, 3, tmp_path, phases, poll_s=0.05) == 0
     logs = {i: (tmp_path / launch.LOGS / f"process{i}.log").read_text().splitlines()[-1].split() for i in (1, 2)}
     assert logs[1][:4] == ["baseline", "2", "0", "g1"] and logs[2][:4] == ["baseline", "2", "1", "g2"]
     assert logs[1][4] == logs[2][4]  # one coordinator per job
     out = capfd.readouterr().out
     assert "prior experts 3 0 g0" in out and "meta 1 0 g0" in out  # process 0 prints here
-    assert "baseline: processes 1-2, side by side with the others" in out
+    assert "stages baseline: processes 1-2, side by side with the others" in out
     monkeypatch.setenv("fail", "1")
     assert launch.run(argv, 3, tmp_path, phases, poll_s=0.05) == 4
-    assert "error: process 1 of 2 running baseline exited with 4: baseline 2 1 g2" in capfd.readouterr().err
+    assert "error: process 1 of 2 running stages baseline exited with 4: baseline 2 1 g2" in capfd.readouterr().err
+
+
+def test_seeds_over_processes_run_side_by_side_the_baseline_with_the_first():
+    every = ["prior", "experts", "meta", "baseline"]
+    assert cli.seed_phases([0, 1, 2], every, 4) == [
+        [
+            ({"--seeds": [0], "--stages": every}, 2),
+            ({"--seeds": [1], "--stages": ["prior", "experts", "meta"]}, 1),
+            ({"--seeds": [2], "--stages": ["prior", "experts", "meta"]}, 1),
+        ],
+        [({"--seeds": [0, 1, 2], "--stages": every}, 1)],
+    ]
+    # fewer processes than seeds: each job runs its seeds one after another
+    assert cli.seed_phases([0, 1, 2], every, 2)[0] == [
+        ({"--seeds": [0, 2], "--stages": every}, 1),
+        ({"--seeds": [1], "--stages": ["prior", "experts", "meta"]}, 1),
+    ]
