@@ -33,10 +33,20 @@ def test_the_tiny_pipeline_runs_the_cheetahs_stages(cheetah_run):
     assert experts["task"] == "cheetah_vel" and experts["unit"] == "m/s"
     assert experts["tasks_m"] == list(view.experts.tasks)
     assert experts["env_steps"] == view.experts.ppo.total_env_steps
-    # One family: the centre expert trained first (its own progress), every expert from it; each
-    # expert's budget counts its share of the centre's steps.
-    centre_steps = view.experts.family.centre_updates * view.experts.ppo.num_envs * view.env.episode_steps
-    assert experts["family_centre"] == {"context": 0.5, "updates": 2, "env_steps": centre_steps}
+    # One family: two centre candidates trained first (their own progress), every expert from the
+    # one chosen (upright first, then the lower error on the centre context); each expert's budget
+    # counts its share of the candidates' steps.
+    fam = view.experts.family
+    centre_steps = fam.candidates * fam.centre_updates * view.experts.ppo.num_envs * view.env.episode_steps
+    centre = experts["family_centre"]
+    assert {k: centre[k] for k in ("context", "updates", "env_steps")} == {"context": 0.5, "updates": 2,
+                                                                          "env_steps": centre_steps}  # fmt: skip
+    candidates = centre["candidates"]
+    assert len(candidates) == 2 and centre["choice_env_steps"] == 2 * view.experts.eval.repetitions * 10
+    assert all(set(c) == {"error_m", "pitch_rad", "flipped_fraction", "height_m"} for c in candidates)
+    rank = [(c["flipped_fraction"] > 0.5, c["error_m"]) for c in candidates]
+    assert centre["chosen"] == rank.index(min(rank))
+    assert json.loads((run_dir / "experts" / "centre" / "choice.json").read_text())["chosen"] == centre["chosen"]
     assert experts["env_steps_breakdown"] == {"ppo": experts["env_steps"], "family_centre_share": centre_steps // 2}
     assert experts["env_steps_total"] == experts["env_steps"] + centre_steps // 2
     assert (run_dir / "experts" / "centre" / "progress.csv").exists()
@@ -97,12 +107,12 @@ def test_the_baseline_trains_one_policy_on_the_experts_velocities_and_scores_the
     saved = json.loads((run_dir / "baseline" / "baseline.json").read_text())
     assert saved["task"] == "cheetah_vel" and saved["unit"] == "m/s" and "bc_final_loss" not in saved
     assert saved["sample_task_range"] == [min(view.experts.tasks), max(view.experts.tasks)]
-    # Per seed, the env steps all of BUMPS's experts used together (the centre's 80 and 2 experts x 80).
+    # Per seed, the env steps all of BUMPS's experts used together (2 centres' 160 and 2 experts x 80).
     experts = json.loads((run_dir / "experts" / "experts.json").read_text())
     assert saved["env_steps_per_seed"] == b.ppo.total_env_steps == len(experts["tasks_m"]) * experts["env_steps_total"]
     n_updates = b.ppo.total_env_steps // (b.ppo.num_envs * view.env.episode_steps)
     for curve in (saved["curve"], saved["error_curve"]):
-        assert len(curve["mean"]) == len(curve["env_steps"]) == n_updates == 6
+        assert len(curve["mean"]) == len(curve["env_steps"]) == n_updates == 8
         assert curve["env_steps"][-1] == saved["env_steps_per_seed"]
     assert np.isfinite(saved["error_curve"]["mean"]).all()
     assert saved["eval_tasks"] == pytest.approx(list(b.eval_tasks))

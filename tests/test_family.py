@@ -48,6 +48,7 @@ def test_every_expert_starts_as_the_centre_with_its_own_rng_and_no_updates():
     [
         ({"experts.family.centre_updates": 3}, "must be a multiple of experts.updates_per_chunk"),
         ({"experts.family.ramp_updates": -1}, "experts.family.ramp_updates must be an integer >= 0, got -1"),
+        ({"experts.family.candidates": 0}, "experts.family.candidates must be an integer >= 1, got 0"),
         ({"meta.dataset.action_noise": -0.1}, "meta.dataset.action_noise must be a finite std >= 0, got -0.1"),
         ({"meta.dagger.rounds": 1, "meta.dagger.epochs": 15}, "meta.dagger.epochs 15 must be a multiple of"),
     ],

@@ -34,6 +34,9 @@ def family() -> ml_collections.ConfigDict:
     # every expert continues from it; 0: every expert starts from its own fresh policy.
     cfg.centre_updates = 0
     cfg.ramp_updates = 0  # updates over which each expert's target moves from the centre's context to its own
+    # Centre experts trained side by side (seeds of their own) before one is chosen: upright where
+    # the env reports a posture, then the lowest error on the centre context (`choose_centre`).
+    cfg.candidates = 1
     return cfg
 
 

@@ -206,6 +206,12 @@ def family_updates(cfg) -> tuple[int, int]:
     return (0, 0) if fam is None else (int(fam.centre_updates), int(fam.ramp_updates))
 
 
+def centre_candidates(cfg) -> int:
+    """How many centre experts are trained side by side before one is chosen (`experts.family`)."""
+    fam = cfg.experts.get("family")
+    return 1 if fam is None else int(fam.get("candidates", 1))
+
+
 def family_centre(tasks) -> int:
     """The family's centre: the index of the training context nearest the contexts' mean."""
     t = np.asarray(tasks, np.float64).reshape(len(tasks), -1)
@@ -247,20 +253,66 @@ def chunked_loop(programs: Compiled, tasks, init, targets_at, n_updates: int) ->
 
 
 def train_centre(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: int | None = None) -> dict:
-    """The family's centre expert alone, `experts.family.centre_updates` PPO updates from a fresh
-    policy on its own context, under run_dir/experts/centre (resumable as the experts are)."""
+    """The family's centre experts alone: `experts.family.candidates` of them side by side, each
+    `experts.family.centre_updates` PPO updates from a fresh policy of its own seed (the first
+    the centre task's own) on the centre context, under run_dir/experts/centre (resumable as the
+    experts are). Returns `runio.train_in_chunks`'s dict, its state (K, ...)."""
     tasks = task_env.as_contexts(cfg.experts.tasks, programs.env.CONTEXT_SIZE)
-    i = family_centre(tasks)
+    i, k = family_centre(tasks), centre_candidates(cfg)
     n, _ = family_updates(cfg)
-    say(f"family: the centre expert at {task_env.format_context(tasks[i])} {programs.env.UNIT} first, {n} updates")
-    rng = task_rngs(cfg.experts.seed, len(tasks))[i : i + 1]
-    start = np.zeros((1, programs.start_size))
-    loop = chunked_loop(
-        programs, tasks[i : i + 1], lambda: run_init(programs, rng, tasks[i : i + 1], start)[0],
-        lambda _: tasks[i : i + 1], n,
-    )  # fmt: skip
+    each = "" if k == 1 else f", {k} candidates side by side"
+    say(
+        f"family: the centre expert at {task_env.format_context(tasks[i])} {programs.env.UNIT} first, {n} updates{each}"
+    )
+    own = task_rngs(cfg.experts.seed, len(tasks))[i]
+    rngs = jnp.stack([own, *(jax.random.fold_in(own, 10_000 + c) for c in range(1, k))])
+    centre = np.repeat(tasks[i : i + 1], k, axis=0)
+    start = np.zeros((k, programs.start_size))
+    loop = chunked_loop(programs, centre, lambda: run_init(programs, rngs, centre, start)[0], lambda _: centre, n)
     stage_dir = run_dir / "experts" / "centre"
     return runio.train_in_chunks(stage_dir, loop, n, cfg.experts.keep_checkpoints, say, stop_after_chunks)
+
+
+def choose_centre(cfg, run_dir: Path, programs: Compiled, state: ppo.TrainState, say=print) -> dict:
+    """Which centre candidate the family continues from: each runs `experts.eval.repetitions`
+    noisy episodes on the centre context (the same keys for all); the upright ones (where the env
+    reports a posture: most steps not flipped) first, then the lowest error. Written to
+    run_dir/experts/centre/choice.json on the first call and read back on the next, so a resumed
+    run continues from the same one. Returns that record ({"chosen", "candidates": [...]})."""
+    path = Path(run_dir) / "experts" / "centre" / "choice.json"
+    runio.sync("centre choice")  # every process sees the same: the choice made, or not yet
+    if not path.exists():
+        runio.write_json(path, centre_choice(cfg, programs, state, say))
+        runio.sync("centre chosen")
+    return runio.read_json(path)  # every process continues from the first one's choice
+
+
+def centre_choice(cfg, programs: Compiled, state: ppo.TrainState, say=print) -> dict:
+    """`choose_centre`'s record, measured now."""
+    env, e = programs.env, cfg.experts
+    tasks = task_env.as_contexts(e.tasks, env.CONTEXT_SIZE)
+    k = len(np.asarray(state.update))
+    targets = np.repeat(np.asarray(env.check_targets(tasks), np.float32)[family_centre(tasks)][None], k, axis=0)
+    keys = jnp.repeat(rollout.repetition_keys(e.eval.seed, 1, e.eval.repetitions), k, axis=0)
+    has_posture = type(env).posture is not task_env.ContextualEnv.posture
+    program = rollout.matched_fn(env, task_expert_policy(cfg, programs), record="qpos" if has_posture else None)
+    out = program(expert_params(state), targets, targets, keys)
+    metrics = out[0] if has_posture else out
+    errors = np.asarray(metrics["final_error"], np.float64).mean(axis=1)
+    posture = (
+        {} if not has_posture else {k_: np.asarray(v).mean(axis=1) for k_, v in env.posture(np.asarray(out[1])).items()}
+    )
+    flipped = posture.get("flipped_fraction", np.zeros(k)) > 0.5
+    chosen = int(min(range(k), key=lambda c: (bool(flipped[c]), float(errors[c]))))
+    candidates = [{"error_m": float(errors[c]), **{n: float(v[c]) for n, v in posture.items()}} for c in range(k)]
+    steps = k * int(e.eval.repetitions) * env.n_steps  # the choice's episodes
+    record = {"chosen": chosen, "candidates": candidates, "repetitions": int(e.eval.repetitions), "env_steps": steps}
+    if k > 1:
+        shown = ", ".join(
+            f"{c['error_m']:.3f}" + (" (flipped)" if f else "") for c, f in zip(candidates, flipped, strict=True)
+        )
+        say(f"family: centre candidates' errors {shown} {env.UNIT}: continuing from candidate {chosen}")
+    return record
 
 
 def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: int | None = None) -> dict:
@@ -281,8 +333,10 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
         if not centre["finished"]:
             return {**centre, "finished": False}
         centre_s = centre["wall_s"]
+        c = choose_centre(cfg, run_dir, programs, centre["state"], say)["chosen"]
+        chosen = jax.tree.map(lambda x: x[c : c + 1], centre["state"])
         rngs = jax.vmap(lambda k: jax.random.fold_in(k, 1))(task_rngs(cfg.experts.seed, len(tasks)))
-        init = functools.partial(family_state, centre["state"], rngs)
+        init = functools.partial(family_state, chosen, rngs)
     else:
         init = functools.partial(initial_state, cfg, run_dir, programs, say)
     i, chunk = family_centre(tasks), int(cfg.experts.updates_per_chunk)
@@ -375,12 +429,16 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
     task = tasks.get(cfg.task)
     centre_updates, _ = family_updates(cfg)
     if task.expert_start is None:  # every env step an expert cost is PPO's (its share of the centre's)
-        centre_steps = centre_updates * programs.trainer.steps_per_update
+        centre_steps = centre_candidates(cfg) * centre_updates * programs.trainer.steps_per_update
         record["env_steps_breakdown"] = {"ppo": record["env_steps"]}
         if centre_steps:
             record["env_steps_breakdown"]["family_centre_share"] = centre_steps // len(e.tasks)
             record["family_centre"] = {"context": task_env.context_json(e.tasks[family_centre(e.tasks)]),
                                        "updates": centre_updates, "env_steps": centre_steps}  # fmt: skip
+            choice = stage_dir / "centre" / "choice.json"
+            if choice.exists():  # the candidates and which one the family continued from (its episodes' steps)
+                chosen = runio.read_json(choice)
+                record["family_centre"].update(chosen, env_steps=centre_steps, choice_env_steps=chosen["env_steps"])
     else:
         record.update(task.expert_start.describe(cfg, stage_dir.parent, stage_dir, programs.env, record))
     known = [v for v in record["env_steps_breakdown"].values() if v is not None]

@@ -94,7 +94,7 @@ def baseline(experts: ml_collections.ConfigDict, episode_steps: int) -> ml_colle
     # experts' updates of one round (37 x 512), in the experts' 16 minibatches: 102 updates.
     b.ppo.num_envs = len(experts.tasks) * experts.ppo.num_envs
     b.ppo.total_env_steps = len(experts.tasks) * experts.ppo.total_env_steps + (
-        experts.family.centre_updates * experts.ppo.num_envs * episode_steps
+        experts.family.candidates * experts.family.centre_updates * experts.ppo.num_envs * episode_steps
     )
     b.extra_learning_rate = None  # one arm only
     return b

@@ -72,7 +72,10 @@ def baseline(experts: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     # updates of one round (13 x 512), in the experts' 16 minibatches.
     b.ppo.num_envs = len(experts.tasks) * experts.ppo.num_envs
     b.ppo.total_env_steps = len(experts.tasks) * experts.ppo.total_env_steps + (
-        experts.family.centre_updates * experts.ppo.num_envs * cheetah_env.default_config().episode_steps
+        experts.family.candidates
+        * experts.family.centre_updates
+        * experts.ppo.num_envs
+        * cheetah_env.default_config().episode_steps
     )
     b.extra_learning_rate = None  # one arm only
     return b
@@ -137,6 +140,7 @@ PRESETS: dict[str, dict] = {
         "experts.ppo.total_env_steps": 4 * 10 * 2,
         "experts.family.centre_updates": 2,
         "experts.family.ramp_updates": 1,
+        "experts.family.candidates": 2,
         "experts.ppo.policy_hidden": (32, 32),
         "experts.ppo.value_hidden": (32, 32),
         "experts.eval.repetitions": 2,
@@ -165,7 +169,7 @@ PRESETS: dict[str, dict] = {
         "baseline.ppo.num_envs": 4,
         "baseline.ppo.num_minibatches": 2,
         "baseline.ppo.num_epochs": 2,
-        "baseline.ppo.total_env_steps": 3 * 4 * 10 * 2,  # the tiny experts' and centre's steps: 6 updates
+        "baseline.ppo.total_env_steps": 4 * 4 * 10 * 2,  # the tiny experts' and 2 centres' steps: 8 updates
         "baseline.ppo.policy_hidden": (32, 32),
         "baseline.ppo.value_hidden": (32, 32),
     },
