@@ -38,8 +38,7 @@ def jit_env(env):
 @pytest.fixture(scope="session")
 def contextual(env):
     """(grid, params): every-pair rollouts of the stand-in contextual policy (a stack of one) on
-    one device, jitted once for the filtering tests and the single-device side of the sharding
-    test (each batch shape compiles once)."""
+    one device, jitted once for the filtering tests (each batch shape compiles once)."""
     params = stand_ins.synthetic_contextual_params(tuple(env.config.task_range))
     return rollout.grid_fn(env, stand_ins.contextual_apply), jax.tree.map(lambda a: a[None], params)
 

@@ -1,10 +1,19 @@
 """Run by test_sharding.py as PROCESSES processes of JAX's multi-process runtime on this host
 (`jax.distributed`, the coordinator on localhost), each with N_DEVICES host devices (XLA reads
 the device count once, at start-up): trains tiny experts into the run directory argv[1], filters
-a synthetic family and steps episodes through a small contact pool, every batch split over the
-processes and each process's devices, and the first process prints what they produced as JSON.
-The single-process, single-device side of the first two runs in the test's own process (the
-filtering on conftest's program that test_filtering.py uses too)."""
+a stand-in contextual policy and steps kick episodes through a small contact pool, every batch
+split over the processes and each process's devices, and the first process prints what they
+produced as JSON. The single-process, single-device side of the first two runs in the test's
+own process.
+
+The experts and the filtering run on PointGoal (a point mass, nothing collides): what is tested
+is how batches split, pad, gather and resume, which no task changes, and its programs compile
+and run in seconds where the kick's Warp physics on a CPU took minutes (on a CPU each device's
+share of a Warp physics step is a callback into Python, one at a time). Its Warp backend runs
+them, as the kick's does, so the experts' and the filtering's physics are split over devices
+as Warp's. The contact pool is the kick's: it is what a device stepping other devices' episodes
+would overflow.
+"""
 
 import json
 import sys
@@ -13,26 +22,45 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-import stand_ins
-import tiny_experts
 
 from bumps_jax import config
 from bumps_jax.algo import filtering, rollout, sharding
 from bumps_jax.pipeline.stages import experts
+from bumps_jax.tasks import registry
 from bumps_jax.tasks.kick import env as kick_env
 
 # Two processes of two devices and three tiny experts: one on each device, one of them a padded
-# copy, so padding and unpadding run. On a CPU each device's share of a Warp physics step is a
-# callback into Python, one at a time, so every device more adds its steps' cost (one process:
-# 4 devices 124 s, 3 devices 93 s, 2 devices 72 s).
+# copy, so padding and unpadding run.
 PROCESSES = 2
 N_DEVICES = 2
-TASKS = (8.0, 12.0, 16.0)
+TASKS = ((0.7, 0.0), (0.0, 0.7), (-0.7, 0.0))  # goals (x, y) m
+
+# PointGoal's tiny experts on Warp: 4 whole episodes per update, 2 chunks of 1 update. An episode
+# is 10 control steps of one physics step each (Warp's cost on a CPU is per physics call).
+N_STEPS = 10
+EXPERTS = {
+    "task": "point_goal",
+    "env.impl": "warp",
+    "env.episode_steps": N_STEPS,
+    "env.physics_dt": 0.1,
+    "experts.tasks": TASKS,
+    "experts.updates_per_chunk": 1,
+    "experts.ppo.num_envs": 4,
+    "experts.ppo.num_minibatches": 2,
+    "experts.ppo.num_epochs": 1,
+    "experts.ppo.total_env_steps": 4 * N_STEPS * 2,
+}
 
 
 def experts_config():
-    """The tiny experts' config (tiny_experts.py) with TASKS: both sides of the test train it."""
-    return tiny_experts.pipeline_config(**{"experts.tasks": TASKS})
+    """The tiny experts' config: both sides of the test train it."""
+    return config.make_config("tiny", EXPERTS)
+
+
+def make_env(cfg=None):
+    """PointGoal's env of the experts' config (Warp physics)."""
+    cfg = cfg or experts_config()
+    return registry.make_env(cfg.task, cfg.env)
 
 
 def quiet(*args, **kwargs):
@@ -40,7 +68,7 @@ def quiet(*args, **kwargs):
 
 
 def train(env, run_dir: Path) -> dict:
-    cfg = experts_config()  # 3 tasks on 2 devices: one padded copy
+    cfg = experts_config()  # 3 tasks on 2 devices of 2 processes: one padded copy
     programs = experts.compile_programs(cfg, env, mesh=sharding.device_mesh(N_DEVICES, impl="warp"))
     # Stop after one chunk and resume: the sharded path must also restore checkpoints.
     experts.train(cfg, run_dir, programs, say=quiet, stop_after_chunks=1)
@@ -49,29 +77,45 @@ def train(env, run_dir: Path) -> dict:
     return {"params": [np.asarray(x).tolist() for x in leaves], "finished": out["finished"]}
 
 
-# The 18 selection episodes in calls of 20 (5 on each of 4 devices, the last call padded): a
-# call costs its 600 physics steps on every device, nearly whatever its batch.
-EPISODES_PER_CALL = 20
+def contextual_params():
+    """A stand-in contextual policy (a stack of one): a PD push toward `scale` x its goal, so
+    that it stops short of the goal and filtering has a choice to make."""
+    return {"gain": jnp.array([3.0]), "damping": jnp.array([1.5]), "scale": jnp.array([0.8])}
+
+
+def contextual_apply(params, obs):
+    """obs (6,): position, velocity and the goal normalised over (-1, 1) -> action (2,)."""
+    goal = params["scale"] * (2.0 * obs[4:6] - 1.0)
+    return jnp.clip(params["gain"] * (goal - obs[:2]) - params["damping"] * obs[2:4], -1.0, 1.0)
+
+
+def contextual_grid(env, mesh=None):
+    """(grid, params): every-pair rollouts of the stand-in policy, split over `mesh`."""
+    return rollout.grid_fn(env, contextual_apply, mesh), contextual_params()
+
+
+# The selection episodes (6 tasks' and sampled contexts x 3 reps) in calls of 8 (2 on each of 4
+# devices, the last call padded).
+EPISODES_PER_CALL = 8
 
 
 def filter_synthetic(env, grid, params, n_devices: int) -> dict:
-    """Selection of a synthetic family by `grid` split over `n_devices` (every device of every
+    """Selection for three goals by `grid` split over `n_devices` (every device of every
     process), in calls of EPISODES_PER_CALL episodes."""
-    tasks = np.array([10.0, 13.0, 15.0])
-    contexts = filtering.candidate_contexts(tasks, [9.0, 11.5, 14.0])  # 6 candidates x 3 reps = 18 episodes
+    tasks = np.array([[0.5, 0.2], [-0.2, 0.5], [-0.4, -0.3]])
+    sampled = [[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5]]
+    contexts = filtering.candidate_contexts(tasks, sampled)  # 6 candidates x 3 reps = 18 episodes
     sel_key, _ = filtering.noise_keys(0)
-    block = EPISODES_PER_CALL // n_devices
-    task_range = tuple(env.config.task_range)
     sel = filtering.filter_policy(
         grid,
         params,
         contexts,
         tasks,
-        2.0,
+        0.5,
         3,
         sel_key,
-        task_range=task_range,
-        block=block,
+        task_range=tuple(env.config.task_range),
+        block=EPISODES_PER_CALL // n_devices,
         multiple=n_devices,
         **filtering.scoring(env),
     )
@@ -83,9 +127,9 @@ POOL_EPISODES = 4
 
 
 def pool_per_device() -> dict:
-    """One control step of POOL_EPISODES episodes on each device of each process, with a contact
-    pool for POOL_EPISODES: whether any overflowed, and whether the program gathers a batch across
-    devices (it must not: each device steps only its own share of the episodes)."""
+    """One control step of POOL_EPISODES kick episodes on each device of each process, with a
+    contact pool for POOL_EPISODES: whether any overflowed, and whether the program gathers a
+    batch across devices (it must not: each device steps only its own share of the episodes)."""
     pool = {"warp_contacts": kick_env.CONTACTS_PER_EPISODE * POOL_EPISODES}
     env = kick_env.KickEnv(config.make_config("tiny").env, pool)
 
@@ -109,11 +153,10 @@ def pool_per_device() -> dict:
 def main() -> None:
     sharding.initialize_distributed()
     assert jax.process_count() == PROCESSES and len(jax.local_devices()) == N_DEVICES, jax.devices()
-    env = kick_env.KickEnv(config.make_config("tiny").env)
+    env = make_env()
     out = {"experts": train(env, Path(sys.argv[1]))}
     mesh = sharding.device_mesh(N_DEVICES, impl="warp")
-    params = jax.tree.map(lambda a: a[None], stand_ins.synthetic_contextual_params())
-    grid = rollout.grid_fn(env, stand_ins.contextual_apply, mesh)
+    grid, params = contextual_grid(env, mesh)
     out["filter"] = filter_synthetic(env, grid, params, sharding.ways(mesh))
     out["pool"] = pool_per_device()
     if jax.process_index() == 0:

@@ -1,5 +1,4 @@
-"""The tiny expert-training config of test_experts.py and test_sharding.py (there with a third
-task, also in the process that test starts): conftest builds its programs once per test worker."""
+"""The tiny expert-training config of test_experts.py: conftest builds its programs once per test worker."""
 
 from bumps_jax import config
 
