@@ -59,17 +59,19 @@ def expert_programs(env):
 SLOWEST_FIRST = (
     "test_meta.py",
     "test_experts.py",
-    "test_sharding.py",
-    "test_engines.py",
-    "test_cmaes.py",
+    "test_ant_goal.py",
     "test_baseline.py",
-    "test_compare_brax_ppo.py",
-    "test_cheetah_pipeline.py",
-    "test_bc_trainer.py",
     "test_ppo.py",
+    "test_engines.py",
+    "test_cheetah_pipeline.py",
+    "test_cmaes.py",
+    "test_sharding.py",
+    "test_point_goal.py",
+    "test_compare_brax_ppo.py",
     "test_filtering.py",
-    "test_cheetah_env.py",
+    "test_bc_trainer.py",
     "test_kick_env.py",
+    "test_cheetah_env.py",
 )
 
 
