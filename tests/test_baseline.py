@@ -16,8 +16,11 @@ from bumps_jax.tasks.kick import start as kick_start
 
 
 def test_tiny_baseline_writes_curve_for_two_seeds_and_two_arms(tmp_path, monkeypatch):
-    # The tiny preset with two updates instead of three: on a CPU each update's episodes cost seconds.
-    cfg = config.make_config("tiny", {"baseline.ppo.total_env_steps": 2 * 8 * 75})
+    # The tiny preset with two updates instead of three and three test targets instead of six: on
+    # a CPU each update's and each evaluation's episodes cost seconds.
+    cfg = config.make_config(
+        "tiny", {"baseline.ppo.total_env_steps": 2 * 8 * 75, "baseline.eval_tasks": kick_env.meta_test_tasks()[9::50]}
+    )
     scored = []  # the per-episode metrics of every policy evaluated, in order
     original = evaluate.summarise_tasks
     monkeypatch.setattr(evaluate, "summarise_tasks", lambda m: scored.append(m) or original(m))
