@@ -205,18 +205,11 @@ def pipeline_stages(command: str, chosen) -> tuple[str, ...]:
     return tuple(s for s in stages if s in chosen)
 
 
-def dispatch(args) -> None:
-    """Run one parsed command; ValueError for every user mistake."""
-    from bumps_jax import (
-        config,  # noqa: PLC0415
-        runio,  # noqa: PLC0415
-    )
-    from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
+def command_config(args, section: str | None = None):
+    """The pipeline config a parsed command asks for: its preset, --task and --set (keys read
+    inside the stage's `section` where they name no top-level one)."""
+    from bumps_jax import config  # noqa: PLC0415
 
-    known = (PIPELINES[args.command][1],) if args.command in PIPELINES else ("tiny", "paper")
-    if args.preset not in known:
-        raise ValueError(f"--preset {args.preset!r}: {args.command} takes {' or '.join(map(repr, known))}")
-    section = STAGE_COMMANDS.get(args.command, (None,))[0]
     if args.task is not None:
         from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
@@ -224,7 +217,19 @@ def dispatch(args) -> None:
     overrides = parse_overrides(args.set, section, args.task)
     if args.task is not None:
         overrides = {"task": args.task, **overrides}
-    cfg = config.make_config(args.preset, overrides)
+    return config.make_config(args.preset, overrides)
+
+
+def dispatch(args) -> None:
+    """Run one parsed command; ValueError for every user mistake."""
+    from bumps_jax import runio  # noqa: PLC0415
+    from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
+
+    known = (PIPELINES[args.command][1],) if args.command in PIPELINES else ("tiny", "paper")
+    if args.preset not in known:
+        raise ValueError(f"--preset {args.preset!r}: {args.command} takes {' or '.join(map(repr, known))}")
+    section = STAGE_COMMANDS.get(args.command, (None,))[0]
+    cfg = command_config(args, section)
     if args.command == "config":
         for key, value in flat_keys(cfg.to_dict()).items():
             print(f"{key} = {json.dumps(value)}")
@@ -372,12 +377,10 @@ def launched(args, argv, n: int, run_dir) -> int:
 
     if args.command not in PIPELINES:
         return launch.run(argv, n, run_dir)
-    from bumps_jax import config  # noqa: PLC0415
     from bumps_jax.pipeline import runner  # noqa: PLC0415
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
-    overrides = parse_overrides(args.set, None, args.task)
-    cfg = config.make_config(args.preset, {"task": args.task, **overrides} if args.task else overrides)
+    cfg = command_config(args)
     stages = [s for s in pipeline_stages(args.command, args.stages) if s in tasks.get(cfg.task).stages]
     if args.seeds is not None:
         return launch.run(argv, n, run_dir, seed_phases(args.seeds, stages, n))

@@ -195,6 +195,13 @@ def over_batch(fn, mesh: Mesh, batched: tuple[bool, ...], out_axis: int = 0):
     return run
 
 
+def run_padded(program, mesh: Mesh, *args):
+    """`program` (an `over_batch` one whose arguments are all batched) on a batch of any size n:
+    the arguments padded to a multiple of `ways(mesh)` and placed, the outputs' first n rows."""
+    n = len(jax.tree.leaves(args)[0])
+    return unpad(program(*place(pad(args, padded_size(n, mesh)), mesh)), n)
+
+
 def place(tree, mesh: Mesh):
     """Put a batch (leading axis a multiple of `ways(mesh)`) split over the mesh's devices; with
     several processes it stays whole (each process's program takes its rows: `over_batch`).

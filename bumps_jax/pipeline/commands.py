@@ -17,7 +17,7 @@ def run(command: str, cfg, run_dir: Path, args) -> None:
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
     every = {"report": report, "publish": publish, "evaluate": evaluate}
-    own = {name: spec.run for name, (owner, spec) in tasks.commands().items() if owner == cfg.task}
+    own = {name: spec.run for name, spec in tasks.own_commands(cfg.task).items()}
     if command not in {**every, **own}:
         raise ValueError(f"the {cfg.task} task has no {command} command; it has {', '.join(sorted({**every, **own}))}")
     {**every, **own}[command](cfg, Path(run_dir), args)

@@ -36,6 +36,11 @@ def get(name: str) -> Task:
     return importlib.import_module(_TASKS[check_task(name)]).TASK
 
 
+def own_commands(task: str) -> dict:
+    """`task`'s own commands: name -> `protocol.Command`."""
+    return {name: spec for name, (owner, spec) in commands().items() if owner == task}
+
+
 @functools.cache
 def commands() -> dict:
     """Every task's own commands: name -> (task, `protocol.Command`), from each folder's light

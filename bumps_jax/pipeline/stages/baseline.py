@@ -84,23 +84,19 @@ def training_loop(cfg, trainer: ppo.Trainer, policy0, unit: str = "m", mesh=None
     # Every arm trains the same seeds (the same keys); the rate is a value of each run's optimiser state.
     rngs = jnp.concatenate([jax.random.split(jax.random.PRNGKey(1), seeds)] * len(rates))  # raw keys: orbax saves them
     lrs = jnp.repeat(jnp.asarray(rates, jnp.float32), seeds)
-    n_runs, size = len(lrs), sharding.padded_size(len(lrs), mesh)
     init_runs = jax.vmap(lambda rng, lr: trainer.init(rng, policy0, lr))
     init = sharding.over_batch(init_runs, mesh, (True, True))
     n = int(b.updates_per_chunk)
     program = sharding.over_batch(jax.vmap(lambda state: trainer.run_updates(state, TRAIN_TARGET, n)), mesh, (True,))
 
-    def over_runs(fn, *args):  # the runs padded to the devices' multiple, placed, run, unpadded
-        return sharding.unpad(fn(*sharding.place(sharding.pad(args, size), mesh)), n_runs)
-
     def chunk(state):
-        return over_runs(program, state)
+        return sharding.run_padded(program, mesh, state)
 
     total = trainer.n_updates
 
     def fresh():
         # Strong dtypes throughout (Adam starts its count weakly typed): the chunk compiles once.
-        return jax.tree.map(lambda x: x.astype(x.dtype), over_runs(init, rngs, lrs))
+        return jax.tree.map(lambda x: x.astype(x.dtype), sharding.run_padded(init, mesh, rngs, lrs))
 
     def rows(before: int, metrics: ppo.UpdateMetrics) -> list:
         m = jax.tree.map(np.asarray, metrics)

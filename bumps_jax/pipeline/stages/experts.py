@@ -120,18 +120,15 @@ def compile_programs(cfg, env=None, mesh=None) -> Compiled:
 def run_init(programs: Compiled, rngs, targets, starts):
     """The experts' starts (N, K) for any number N of tasks, made into policies (fresh ones for
     starts (N, 0)): (TrainState (N, ...), losses (N, steps))."""
-    n = len(targets)
     args = (rngs, jnp.asarray(targets, jnp.float32), jnp.asarray(starts, jnp.float32))
-    out = programs.init(*sharding.place(sharding.pad(args, sharding.padded_size(n, programs.mesh)), programs.mesh))
+    out = sharding.run_padded(programs.init, programs.mesh, *args)
     # Strong dtypes throughout (Adam starts its count weakly typed): the chunk compiles once.
-    return jax.tree.map(lambda x: x.astype(x.dtype), sharding.unpad(out, n))
+    return jax.tree.map(lambda x: x.astype(x.dtype), out)
 
 
 def run_chunk(programs: Compiled, state: ppo.TrainState, targets):
     """One chunk of PPO updates for any number of tasks: (TrainState (N, ...), UpdateMetrics (N, chunk))."""
-    n = len(targets)
-    args = sharding.pad((state, jnp.asarray(targets, jnp.float32)), sharding.padded_size(n, programs.mesh))
-    return sharding.unpad(programs.chunk(*sharding.place(args, programs.mesh)), n)
+    return sharding.run_padded(programs.chunk, programs.mesh, state, jnp.asarray(targets, jnp.float32))
 
 
 def task_rngs(seed: int, n_tasks: int) -> jax.Array:
@@ -293,15 +290,10 @@ def centre_choice(cfg, programs: Compiled, state: ppo.TrainState, say=print) -> 
     tasks = task_env.as_contexts(e.tasks, env.CONTEXT_SIZE)
     k = len(np.asarray(state.update))
     targets = np.repeat(np.asarray(env.check_targets(tasks), np.float32)[family_centre(tasks)][None], k, axis=0)
-    keys = jnp.repeat(rollout.repetition_keys(e.eval.seed, 1, e.eval.repetitions), k, axis=0)
-    has_posture = type(env).posture is not task_env.ContextualEnv.posture
-    program = rollout.matched_fn(env, task_expert_policy(cfg, programs), record="qpos" if has_posture else None)
-    out = program(expert_params(state), targets, targets, keys)
-    metrics = out[0] if has_posture else out
+    keys = jnp.repeat(rollout.repetition_keys(e.eval.seed, 1, e.eval.repetitions), k, axis=0)  # the same for all
+    apply = task_expert_policy(cfg, programs)
+    metrics, posture = own_context_rollouts(env, apply, expert_params(state), targets, keys)
     errors = np.asarray(metrics["final_error"], np.float64).mean(axis=1)
-    posture = (
-        {} if not has_posture else {k_: np.asarray(v).mean(axis=1) for k_, v in env.posture(np.asarray(out[1])).items()}
-    )
     flipped = posture.get("flipped_fraction", np.zeros(k)) > 0.5
     chosen = int(min(range(k), key=lambda c: (bool(flipped[c]), float(errors[c]))))
     candidates = [{"error_m": float(errors[c]), **{n: float(v[c]) for n, v in posture.items()}} for c in range(k)]
@@ -404,19 +396,23 @@ def load_family(cfg, run_dir: Path) -> Family:
     return Family(expert_policy(policy_networks(policy), env), params, np.asarray(cfg.experts.tasks, np.float64))
 
 
-def evaluate_on_own(cfg, programs: Compiled, params: ExpertParams) -> tuple[dict, dict]:
-    """Every expert on its own context, `eval.repetitions` noisy episodes: final metrics of (E, R)
+def own_context_rollouts(env, apply, params, targets, keys) -> tuple[dict, dict]:
+    """Each expert on its own target, its keys' (E, R) noisy episodes: final metrics of (E, R)
     and, for an env that defines `posture`, its statistics averaged over the same episodes
     ({name: (E,)}; {} otherwise), from one rollout that records the bodies' positions."""
-    env, e = programs.env, cfg.experts
-    apply = task_expert_policy(cfg, programs)
     if type(env).posture is task_env.ContextualEnv.posture:
-        return evaluate.evaluate_experts(env, apply, params, e.tasks, e.eval.repetitions, e.eval.seed), {}
-    targets = np.asarray(env.check_targets(e.tasks), np.float32)
-    keys = rollout.repetition_keys(e.eval.seed, len(targets), e.eval.repetitions)  # evaluate_experts' keys
+        return evaluate.evaluate_experts(env, apply, params, targets, keys.shape[1], keys=keys), {}
     metrics, qpos = rollout.matched_fn(env, apply, record="qpos")(params, targets, targets, keys)
     posture = {k: np.asarray(v).mean(axis=1) for k, v in env.posture(np.asarray(qpos)).items()}
     return jax.tree.map(np.asarray, metrics), posture
+
+
+def evaluate_on_own(cfg, programs: Compiled, params: ExpertParams) -> tuple[dict, dict]:
+    """Every expert on its own context, `eval.repetitions` noisy episodes (`own_context_rollouts`)."""
+    env, e = programs.env, cfg.experts
+    targets = np.asarray(env.check_targets(e.tasks), np.float32)
+    keys = rollout.repetition_keys(e.eval.seed, len(targets), e.eval.repetitions)  # evaluate_experts' keys
+    return own_context_rollouts(env, task_expert_policy(cfg, programs), params, targets, keys)
 
 
 def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compiled, wall_s: float, say=print) -> dict:

@@ -26,6 +26,7 @@ from bumps_jax import config, runio
 from bumps_jax import records as env_records
 from bumps_jax.algo import bc, evaluate, rollout, sharding
 from bumps_jax.envs import base as task_env
+from bumps_jax.pipeline import programs as meta_programs
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.tasks import registry as tasks
 
@@ -308,16 +309,15 @@ def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict,
     return models, states, dict.fromkeys(names, clock.save()), len(data.obs)
 
 
-def evaluate_net(cfg, name: str, model: bc.MetaPolicy, state: bc.TrainState, env, grids: dict, say=print) -> dict:
+def evaluate_net(cfg, name: str, model: bc.MetaPolicy, state: bc.TrainState, env, say=print) -> dict:
     """One trained net's seeds evaluated unfiltered: its row, rows_per_seed, per_task and eval time.
-    grids: (depth, width) -> program, filled here."""
+    Its program is the filter stage's (`programs.meta_grid`, one per architecture and inputs), its
+    (task, repetition) pairs split over this process's devices and the processes."""
     m = cfg.meta
     t0 = time.perf_counter()
-    key = (model.depth, model.width, model.obs_norm)  # one program per architecture and inputs
-    if key not in grids:
-        # the (task, repetition) pairs split over this process's devices and the processes
-        grids[key] = rollout.grid_fn(env, bc.policy_apply(model), sharding.device_mesh(impl=cfg.env.impl))
-    metrics = evaluate_unfiltered(grids[key], state.params, m.eval.tasks, m.eval.repetitions, m.eval.seed)
+    mesh = sharding.device_mesh(impl=cfg.env.impl)
+    grid = meta_programs.meta_grid(cfg.env, model.depth, model.width, mesh, cfg.task, model.obs_norm)
+    metrics = evaluate_unfiltered(grid, state.params, m.eval.tasks, m.eval.repetitions, m.eval.seed)
     summaries = [evaluate.summarise_tasks({k: v[s] for k, v in metrics.items()}) for s in range(m.train.n_seeds)]
     eval_wall_s = time.perf_counter() - t0
     row = {**evaluate.table_row(summaries[0]), "per_task": per_task_list(m.eval.tasks, summaries[0])}
@@ -356,10 +356,10 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     start_row = tasks.get(cfg.task).report.start_row  # the experts' starts, scored as the experts are
     if start_row in experts_record:
         rows[start_row], per_task[start_row] = experts_row(experts_record[start_row], record_path)
-    rows_per_seed, timings, grids = {}, {}, {}
+    rows_per_seed, timings = {}, {}
     models, states, train_s, n_pairs = train(cfg, stage_dir, data, env, say)
     for name, model in models.items():
-        out = evaluate_net(cfg, name, model, states[name], env, grids, say)
+        out = evaluate_net(cfg, name, model, states[name], env, say)
         rows[name], rows_per_seed[name], per_task[name] = out["row"], out["rows_per_seed"], out["per_task"]
         # the nets share one loop: each shows its whole time
         timings[name] = {"train_wall_s": train_s[name], "eval_wall_s": out["eval_wall_s"]}
