@@ -179,6 +179,9 @@ def add_run_options(p, name: str) -> None:
         p.add_argument("--seed-runs", nargs="+", type=Path, default=[], metavar="RUN_DIR",
                        help="finished runs of the same config with other training seeds (experts, meta, filter): "
                             "every headline published as mean and spread over them and --run-dir")  # fmt: skip
+        p.add_argument("--records-only", action="store_true",
+                       help="the run's records, tables and figures only; assets/ (the kick prior later runs "
+                            "start from, the shipped policies) kept as they are")  # fmt: skip
     if name == "evaluate":
         p.add_argument("--heldout", action="store_true", help="the held-out targets and seed (config: heldout)")
         p.add_argument("--dev", action="store_true",

@@ -15,7 +15,7 @@ from bumps_jax.algo import evaluate, ppo, rollout
 from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.pipeline.stages import meta as meta_stage
-from bumps_jax.report import budgets, seeds
+from bumps_jax.report import budgets, readme, seeds
 from bumps_jax.tasks.cheetah_vel import env as cheetah_env
 
 
@@ -149,6 +149,33 @@ def test_headlines_over_seeds_are_means_with_every_seed_kept(tmp_path):
     write_run(tmp_path / "s2", record("cheetah_vel", 0.6, 0.5, 0.4, env={"impl": "jax", "physics_dt": None}), 2)
     with pytest.raises(ValueError, match="another env config"):
         seeds.seeds_record([tmp_path / "s0", tmp_path / "s2"], "publish")
+
+
+def test_the_kicks_seeds_are_published_beside_its_run_and_set_in_readmes_table(tmp_path):
+    for i, (e, m, f, h) in enumerate([(0.3, 0.4, 0.2, 0.5), (0.5, 0.8, 0.4, 0.7)]):
+        files = record("kick", e, m, f)
+        files["heldout/heldout.json"] = {"rows": {"filtered_4x256": {"error_mean_m": h}}}
+        write_run(tmp_path / f"seed{i}", files, i)
+    (tmp_path / "seed1" / "heldout" / "heldout.json").unlink()  # a run without held-out: no held-out rows
+    runs = [tmp_path / "seed0", tmp_path / "seed1"]
+    root = tmp_path / "repo"
+    written = seeds.publish_seeds(runs, "kick", "publish", root)
+    assert root / "results" / "seeds.json" in written  # the default task's records: results/ itself
+    assert (root / "results" / "seeds" / "seed0" / "heldout.json").exists()
+    assert not (root / "results" / "seeds" / "seed1" / "heldout.json").exists()
+    out = json.loads((root / "results" / "seeds.json").read_text())
+    assert list(out["rows"]) == ["experts", "meta_4x256", "filtered_4x256"]  # rows every run has
+    assert out["rows"]["filtered_4x256"]["per_seed"] == pytest.approx([0.2, 0.4])
+    # README's column: each row's mean +- std, "-" where the seeds have none.
+    assert readme.seeds_cell("experts on their own tasks (accuracy; error)", out) == "0.40 +- 0.10 m"
+    assert readme.seeds_cell("meta-policy 4x256, unfiltered (accuracy; error)", out) == "0.60 +- 0.20 m"
+    assert readme.seeds_cell("BUMPS filtered: filtered_4x256 (error)", out) == "0.30 +- 0.10 m"
+    assert readme.seeds_cell("held-out, 2 targets off the grid: filtered_4x256 (error)", out) == ""
+    assert readme.seeds_cell("12 m keyframe prior, 100 noisy kicks", out) == ""
+    table = readme.readme_table(root)
+    assert "| what | over 2 training seeds, mean +- std | the published run |" in table
+    (line,) = [x for x in readme.findings(root) if "training seeds" in x]
+    assert "at most 0.03 m, except experts 0.10 m (0.30, 0.50 m); meta_4x256 0.20 m (0.40, 0.80 m)" in line
 
 
 def test_the_env_step_table_counts_every_part_of_each_arm():

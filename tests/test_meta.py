@@ -560,6 +560,25 @@ def test_publish_ships_the_runs_results_and_policies(stage_run, heldout_run):
         policies.load(root / "assets" / "policies", config.make_config("tiny", {"env.physics_dt": 0.005}).env)
 
 
+def test_publish_of_records_only_keeps_assets_and_checks_configs_without_params(stage_run, heldout_run, tmp_path):
+    cfg, run_dir = stage_run["cfg"], stage_run["dir"]
+    kept = tmp_path / "kept"  # the run's records and manifests, not its parameters
+    shutil.copytree(run_dir, kept, ignore=shutil.ignore_patterns("final_params", "checkpoints", "meta_*"))
+    for name in ("meta", "filter"):  # as a pipeline leaves them (the stand-in run's stages ran alone)
+        pipeline.write_manifest(kept / name, pipeline.manifest(config.section(cfg, name), {}))
+    pipeline.check_current(cfg, kept, ("meta", "filter"), inputs=False)
+    with pytest.raises(pipeline.StaleRunError, match="outputs without a manifest"):
+        pipeline.check_current(cfg, kept, ("heldout",), inputs=False)
+    with pytest.raises(ValueError, match="final_params"):  # its inputs are what a full check reads
+        pipeline.check_current(cfg, kept, ("meta",))
+    other = config.make_config("tiny", {"filter.width": 2 * cfg.filter.width})
+    with pytest.raises(pipeline.StaleRunError, match="filter.width"):
+        pipeline.check_current(other, kept, ("filter",), inputs=False)
+    root = tmp_path / "repo"
+    written = publish.publish(kept, root, cfg=cfg, assets=False)
+    assert root / "results" / "table2.json" in written and not (root / "assets").exists()
+
+
 def test_kick_filters_a_context_and_reports_the_resting_distances(stage_run, heldout_run, capsys):
     directory = heldout_run["root"] / "assets" / "policies"
     shipped = policies.load(directory)

@@ -57,24 +57,28 @@ def publish(cfg, run_dir: Path, args) -> None:
         missing = pipeline.unfinished(d, ("experts", "meta", "filter"), cfg.task)
         if missing:
             raise ValueError(f"not published: {runio.shown(d)} (--seed-runs) has not finished {', '.join(missing)}")
-    if not tasks.get(cfg.task).report.paper_rows:  # another task's records go to results/<task>/
-        written = []
-        if seed_runs:
-            written += seeds.publish_seeds([run_dir, *seed_runs], cfg.task, runio.command_line())
+    paper_rows = tasks.get(cfg.task).report.paper_rows
+    records_only = getattr(args, "records_only", False)
+    if records_only and not paper_rows:
+        raise ValueError(f"--records-only: the {cfg.task} task's publish writes records only already")
+    # The seeds' summary first: the README and results pages written next read it.
+    written = seeds.publish_seeds([run_dir, *seed_runs], cfg.task, runio.command_line()) if seed_runs else []
+    if not paper_rows:  # another task's records go to results/<task>/
         for path in written + publish_mod.publish_task(run_dir, cfg.task):
             print(f"wrote {path}")
         return
-    if seed_runs:
-        raise ValueError(f"--seed-runs: the {cfg.task} task's published tables hold one run")
     made_with = publish_mod.run_config(run_dir, cfg)
     try:
-        pipeline.check_current(made_with, run_dir, tasks.get(made_with.task).stages)
+        pipeline.check_current(made_with, run_dir, tasks.get(made_with.task).stages, inputs=not records_only)
     except pipeline.StaleRunError as err:
         raise ValueError(f"not published: {err}") from None
     if made_with.preset != cfg.preset:
         print(f"{run_dir} is a {made_with.preset} run: publishing it with the {made_with.preset} preset's config")
-    for path in publish_mod.publish(run_dir, cfg=made_with):
+    written += publish_mod.publish(run_dir, cfg=made_with, assets=not records_only)
+    for path in written:
         print(f"wrote {path}")
+    if records_only:
+        print(f"assets/ kept: the prior later runs start from and the shipped policies are not {run_dir}'s")
 
 
 def evaluate(cfg, run_dir: Path, args) -> None:

@@ -72,13 +72,21 @@ def run_stage(name: str, cfg, run_dir: Path, force: bool = False, say=print) -> 
     return execute(name, cfg, run_dir, *plan(name, cfg, run_dir, force), say=say)
 
 
-def check_current(cfg, run_dir: Path, stages) -> None:
+def check_current(cfg, run_dir: Path, stages, inputs: bool = True) -> None:
     """StaleRunError unless every one of `stages` that `run_dir` holds was made with `cfg` and the
     inputs there now (its manifest, `check_manifest`): what publishing a run checks first, so that
-    no record goes out under a config it was not made with."""
+    no record goes out under a config it was not made with. inputs=False: the configs only, for a
+    run whose records were kept without its parameters (the inputs its manifests name)."""
     for name in stages:
-        if (run_dir / name).exists():
+        if not (run_dir / name).exists():
+            continue
+        if inputs:
             plan(name, cfg, run_dir)
+            continue
+        path = run_dir / name / MANIFEST  # none: `check_manifest` refuses the outputs, naming why
+        have = runio.read_json(path, f"the {name} stage's manifest") if path.exists() else {}
+        wanted = {**manifest(config.section(cfg, name), {}), "inputs": have.get("inputs", {})}
+        check_manifest(run_dir / name, wanted, finished=True)
 
 
 def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print) -> dict:

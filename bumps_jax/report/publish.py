@@ -52,21 +52,24 @@ TASK_PUBLISHED = {
 }
 
 
-def publish(run_dir: str | Path, root: str | Path = ".", cfg=None) -> list[Path]:
+def publish(run_dir: str | Path, root: str | Path = ".", cfg=None, assets: bool = True) -> list[Path]:
     """Copy a finished paper run's results, tables and figures into results/ and docs/, and its
     kick prior into assets/; with `cfg` (the run's config) and a finished filter stage, ship its
     policies into assets/policies/ (the task's `Report.ship_policies`: the kick's `policies.write`).
-    Then rebuild docs/results.md and README's results table. Returns the paths written."""
+    assets=False: neither (the committed prior and policies stay another run's). Then rebuild
+    docs/results.md and README's results table. Returns the paths written."""
     run_dir, root = Path(run_dir), Path(root)
     written = []
     for rel, dest in PUBLISHED.items():
+        if dest.startswith("assets/") and not assets:
+            continue
         if (run_dir / rel).exists():
             (root / dest).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(run_dir / rel, root / dest)
             written.append(root / dest)
     if not any(p.suffix == ".json" for p in written):
         raise ValueError(f"{run_dir} holds no stage results to publish")
-    ship = None if cfg is None else tasks.get(cfg.task).report.ship_policies
+    ship = None if cfg is None or not assets else tasks.get(cfg.task).report.ship_policies
     if ship is not None and (run_dir / "filter" / "table2.json").exists():
         written += ship(cfg, run_dir, root / POLICIES)
     written.append(report.write_committed(root))

@@ -15,6 +15,8 @@ from bumps_jax.tasks import registry
 # Each run's records the summary reads: run file -> the name it is kept under per seed.
 RUN_RECORDS = {"experts/experts.json": "experts.json", "meta/table1.json": "table1.json",
                "filter/table2.json": "table2.json"}  # fmt: skip
+HELDOUT = ("heldout/heldout.json", "heldout.json")  # read too where the run has it: rows heldout_<policy>
+PIPELINE = ("pipeline.json", "pipeline.json")  # published beside them where the run has it (its wall times)
 
 
 def run_rows(run_dir: Path) -> dict:
@@ -23,6 +25,9 @@ def run_rows(run_dir: Path) -> dict:
     rows = {"experts": rec["experts.json"]["error_mean_all_m"]}
     rows.update({n: r["error_mean_all_m"] for n, r in rec["table1.json"]["rows"].items() if n.startswith("meta_")})
     rows.update({n: r["error_mean_m"] for n, r in rec["table2.json"]["rows"].items()})
+    if (Path(run_dir) / HELDOUT[0]).exists():
+        rec[HELDOUT[1]] = runio.read_json(Path(run_dir) / HELDOUT[0])
+        rows.update({f"heldout_{n}": r["error_mean_m"] for n, r in rec[HELDOUT[1]]["rows"].items()})
     family = rec["experts.json"].get("family_check", {})
     n_experts = len(rec["experts.json"]["tasks_m"])
     return {"rows": rows, "flipped_experts": family.get("flipped_experts"), "n_experts": n_experts, "records": rec}
@@ -43,7 +48,7 @@ def seeds_record(run_dirs, command: str) -> dict:
         other = r["records"]["table2.json"]
         records.check_same_env(other.get("env"), first.get("env"), f"{d / 'filter/table2.json'}")
         registry.check_record_task(other.get("task"), first.get("task"), str(d))
-    names = list(runs[0][1]["rows"])
+    names = [n for n in runs[0][1]["rows"] if all(n in r["rows"] for _, r in runs)]  # rows every run has
     summary = {}
     for name in names:
         values = np.asarray([r["rows"][name] for _, r in runs], np.float64)
@@ -59,7 +64,7 @@ def seeds_record(run_dirs, command: str) -> dict:
             {
                 "run": d.name,
                 "seeds": seed_of(p),
-                "rows": r["rows"],
+                "rows": {n: r["rows"][n] for n in names},
                 "flipped_experts": r["flipped_experts"],
                 "n_experts": r["n_experts"],
                 "cloning": r["records"]["table1.json"].get("cloning", {}).get("variant"),
@@ -80,16 +85,19 @@ def seeds_record(run_dirs, command: str) -> dict:
 
 
 def publish_seeds(run_dirs, task: str, command: str, root: str | Path = ".") -> list[Path]:
-    """Each run's records under results/<task>/seeds/<run>/, and their summary as results/<task>/seeds.json."""
+    """Each run's records under results/<task>/seeds/<run>/ (results/seeds/<run>/ for the default
+    task), and their summary as results/<task>/seeds.json."""
     root, written = Path(root), []
     record = seeds_record(run_dirs, command)
     registry.check_record_task(record["task"], task, "--seed-runs")
+    results = root / "results" / registry.folder(task)
     for d in map(Path, run_dirs):
-        for rel, name in RUN_RECORDS.items():
-            dest = root / "results" / task / "seeds" / d.name / name
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(d / rel, dest)
-            written.append(dest)
-    path = root / "results" / task / "seeds.json"
+        for rel, name in (*RUN_RECORDS.items(), HELDOUT, PIPELINE):
+            if (d / rel).exists():
+                dest = results / "seeds" / d.name / name
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(d / rel, dest)
+                written.append(dest)
+    path = results / "seeds.json"
     runio.write_json(path, record)
     return [*written, path]

@@ -34,6 +34,7 @@ BENCH = "benchmarks/results/training.json"
 SCALING = "benchmarks/results/scaling.json"
 GAE = "benchmarks/results/experts_gae.json"  # `bench --skip ...` keeping only the experts' GAE comparison
 PRIOR_ASSET = "assets/kick_prior.json"
+SEEDS = "results/seeds.json"  # the headlines over training seeds (`publish --seed-runs`)
 
 
 def load(run_dir: Path, rel: str) -> dict | None:
@@ -414,5 +415,28 @@ def write_committed(root: str | Path = ".") -> Path:
     head, _, rest = text.partition("\n\n")
     body = rest.replace("](docs/", "](")  # figures sit beside the report
     steps = "\n" + "\n".join(budgets.section(root))
-    path.write_text(head + "\n\n" + note + body + steps + ("\n" + "\n".join(speed) + "\n" if speed else ""))
+    seeds = "\n".join(seeds_lines(load(root, SEEDS)))
+    path.write_text(head + "\n\n" + note + seeds + body + steps + ("\n" + "\n".join(speed) + "\n" if speed else ""))
     return path
+
+
+def seeds_lines(record: dict | None) -> list[str]:
+    """The headlines over training seeds (`publish --seed-runs`): each row's mean, std and every seed's value."""
+    if not record:
+        return []
+    runs = record["runs"]
+    names = [f"seed {sorted(set(r['seeds'].values()))[0]}" for r in runs]
+    lines = [
+        f"## Over {record['n_seeds']} training seeds",
+        "",
+        "The same config run once per training seed (every stage's training randomness; the published run's "
+        f"stages below are the first's). Error in m; `{SEEDS}`, each run's records under `results/seeds/`.",
+        "",
+        "| row | mean +- std | " + " | ".join(names) + " |",
+        "|---|---|" + "---|" * len(names),
+    ]
+    for name, r in record["rows"].items():
+        lines.append(
+            f"| {name} | {r['mean']:.3f} +- {r['std']:.3f} | " + " | ".join(f"{v:.3f}" for v in r["per_seed"]) + " |"
+        )
+    return [*lines, "", ""]
