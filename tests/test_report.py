@@ -203,15 +203,28 @@ def test_readme_results_table_is_the_committed_records():
         readme.index(readme_table.README_END) + len(readme_table.README_END),
     )
     assert readme[start:end] == readme_table.readme_table(ROOT)
-    rows = {}
+    rows, over_seeds = {}, {}
     for line in readme[start:end].splitlines():
         cells = [c.strip() for c in line.strip("|").split("|")]
+        if len(cells) == 6 and cells[5].startswith("`results/"):  # with the seeds' column
+            over_seeds[cells[0]] = cells[1]
+            cells = [cells[0], *cells[2:]]
         if len(cells) == 5 and cells[4].startswith("`results/"):
             rows[cells[0]] = (cells[1], json.loads((ROOT / cells[4].strip("`")).read_text()))
     assert len(rows) >= 6, rows
 
     def numbers(text):
         return [float(x) for x in re.findall(r"\d+\.\d+", text)]
+
+    if (ROOT / "results" / "seeds.json").exists():  # each headline's mean and std over the seeds
+        seeds = json.loads((ROOT / "results" / "seeds.json").read_text())["rows"]
+        assert numbers(over_seeds["experts on their own tasks (accuracy; error)"]) == [
+            round(seeds["experts"][k], 2) for k in ("mean", "std")
+        ]
+        (label, cell), *_ = [(k, v) for k, v in over_seeds.items() if k.startswith("BUMPS filtered")]
+        names = label.removeprefix("BUMPS filtered: ").removesuffix(" (error)").split(" / ")
+        assert numbers(cell) == [round(seeds[n][k], 2) for n in names for k in ("mean", "std")]
+        assert over_seeds[next(k for k in over_seeds if k.endswith("noisy kicks"))] == "-"
 
     ours, record = rows["experts on their own tasks (accuracy; error)"]
     assert numbers(ours) == [round(record[k], 2) for k in ("accuracy_mean", "error_mean_m", "error_std_m")]
@@ -353,7 +366,7 @@ def test_readme_findings_are_the_committed_records(tmp_path):
     start = readme.index(readme_table.FINDINGS_BEGIN)
     end = readme.index(readme_table.FINDINGS_END) + len(readme_table.FINDINGS_END)
     assert readme[start:end] == readme_table.findings_block(ROOT)
-    assert len(readme_table.findings(ROOT)) == 6
+    assert len(readme_table.findings(ROOT)) == 7  # the seeds' spread, then one per record
     shutil.copytree(ROOT / "results", tmp_path / "results")
     path = tmp_path / "results" / "table1.json"
     table1 = json.loads(path.read_text())
@@ -365,4 +378,4 @@ def test_readme_findings_are_the_committed_records(tmp_path):
     unfiltered = next(line for line in lines if line.startswith("- Unfiltered"))
     assert ": 0.78 / " in unfiltered and "not all within the paper's 0.72 / 0.68 m" in unfiltered
     assert "worst meta-test task 2.50 / " in unfiltered
-    assert len(lines) == 5 and not any(line.startswith("- Baseline") for line in lines)
+    assert len(lines) == 6 and not any(line.startswith("- Baseline") for line in lines)
