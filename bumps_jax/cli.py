@@ -371,7 +371,7 @@ def main(argv=None) -> None:
 
 def launched(args, argv, n: int, run_dir) -> int:
     """`--processes n`: the command as n processes (`launch.run`). A pipeline runs in the phases
-    of `runner.schedule` (the baseline beside the meta-policies), its pipeline.json given the
+    of `runner.schedule` (the baseline beside the experts and meta-policies), its pipeline.json given the
     launch's wall time from start to end (`runner.record_launch`); with several `--seeds`, the
     seeds' pipelines run side by side (`seed_phases`). The exit code."""
     import time  # noqa: PLC0415

@@ -277,15 +277,16 @@ def test_side_by_side_calls_share_the_record_and_leave_each_others_marks(tmp_pat
     assert record["stages_s"]["baseline"] == 5.0 and {"experts", "meta"} <= set(record["stages_s"])
 
 
-def test_schedule_runs_the_baseline_beside_the_nets_once_the_experts_are_trained():
+def test_schedule_runs_the_baseline_beside_the_experts_once_the_prior_is_made():
     every = ("prior", "experts", "meta", "filter", "heldout", "baseline")
     assert pipeline.schedule(every, 4) == [
-        [(("prior", "experts"), 4)],
-        [(("meta", "filter", "heldout"), 1), (("baseline",), 3)],
+        [(("prior",), 4)],
+        [(("experts", "meta", "filter", "heldout"), 3), (("baseline",), 1)],
     ]
+    assert pipeline.schedule(every, 8)[1] == [(("experts", "meta", "filter", "heldout"), 6), (("baseline",), 2)]
     assert pipeline.schedule(("meta", "baseline"), 2) == [[(("meta",), 1), (("baseline",), 1)]]
     assert pipeline.schedule(every, 1) == [[(every, 1)]]  # one process: one after another
-    assert pipeline.schedule(("prior", "experts", "baseline"), 4) == [[(("prior", "experts", "baseline"), 4)]]
+    assert pipeline.schedule(("prior", "baseline"), 4) == [[(("prior", "baseline"), 4)]]  # nothing beside it
 
 
 def test_publishing_refuses_a_run_with_a_stage_unfinished(tmp_path, stages):
@@ -315,10 +316,10 @@ def test_a_launch_is_recorded_with_its_wall_time_and_phases(tmp_path, stages):
     pipeline.record_launch(tmp_path, 3, phases, 90.0, finished=False)
     record = pipeline.record_launch(tmp_path, 3, phases, 30.0, finished=True)  # a resumed call
     assert [x["wall_s"] for x in record["launches"]] == [90.0, 30.0] and record["launches"][1]["finished"]
-    assert record["launches"][0]["phases"][1] == [
-        {"stages": ["meta"], "processes": 1},
-        {"stages": ["baseline"], "processes": 2},
-    ]
+    assert record["launches"][0]["phases"] == [[
+        {"stages": ["experts", "meta"], "processes": 2},
+        {"stages": ["baseline"], "processes": 1},
+    ]]  # fmt: skip
     (line,) = report.launch_lines(record["launches"])
-    assert line.startswith("Launched as 3 processes (experts on 3; then meta on 1 beside baseline on 2): **2.0 min**")
+    assert line.startswith("Launched as 3 processes (experts, meta on 2 beside baseline on 1): **2.0 min**")
     assert "2 calls, added up" in line and "did not finish" not in line

@@ -239,16 +239,19 @@ def schedule(stages, processes: int) -> list[list[tuple[tuple[str, ...], int]]]:
     """How a pipeline's `stages` run as `processes` processes (`launch`): phases one after
     another, each a list of branches (stages, processes) run side by side.
 
-    The baseline reads only the prior. With several processes, once the experts are trained it
-    trains on all processes but one while the meta-policies are cloned (one program, which does
-    not split over processes), filtered and evaluated on that one. Otherwise every stage runs on
-    every process, one after another."""
+    The baseline reads only what the experts read (the prior). With several processes, once the
+    stages before the experts are done, it trains on a quarter of the processes (at least one)
+    beside the experts, the meta-policies, filtering and held-out evaluation on the others: at the
+    paper's size neither batch fills its GPUs, so two jobs side by side beat one after the other.
+    Otherwise every stage runs on every process, one after another."""
     stages = tuple(stages)
-    nets = tuple(s for s in stages if s in ("meta", "filter", "heldout"))
-    if processes < 2 or "baseline" not in stages or not nets:
+    first = STAGE_ORDER.index("experts")
+    trunk = tuple(s for s in stages if STAGE_ORDER.index(s) < first)
+    rest = tuple(s for s in stages if s not in trunk and s != "baseline")
+    if processes < 2 or "baseline" not in stages or not rest:
         return [[(stages, processes)]]
-    trunk = tuple(s for s in stages if s in ("prior", "experts"))
-    return ([[(trunk, processes)]] if trunk else []) + [[(nets, 1), (("baseline",), processes - 1)]]
+    side = max(processes // 4, 1)
+    return ([[(trunk, processes)]] if trunk else []) + [[(rest, processes - side), (("baseline",), side)]]
 
 
 # -- the stage manifest ------------------------------------------------------------------------
