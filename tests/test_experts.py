@@ -168,11 +168,10 @@ def test_vmapped_training_equals_each_task_alone(programs):
         np.testing.assert_array_equal(np.asarray(a)[0], np.asarray(b)[0])
 
     alone = jax.jit(programs.trainer.run_updates, static_argnums=2)
-    for i, target in enumerate(cfg.experts.tasks):
-        start = jax.tree_util.tree_map(lambda x, i=i: x[i], state)
-        _, single_metrics = alone(start, target, cfg.experts.updates_per_chunk)
-        # The first batch is collected before any gradient step: the same episodes.
-        np.testing.assert_allclose(single_metrics.episode_return[0], metrics.episode_return[i, 0], rtol=1e-3)
+    start = jax.tree_util.tree_map(lambda x: x[1], state)  # the second expert (12 m), alone
+    _, single_metrics = alone(start, cfg.experts.tasks[1], cfg.experts.updates_per_chunk)
+    # The first batch is collected before any gradient step: the same episodes.
+    np.testing.assert_allclose(single_metrics.episode_return[0], metrics.episode_return[1, 0], rtol=1e-3)
     assert int(together.env_steps[0]) == 1 * 4 * N_STEPS  # one update of 4 episodes
 
 
