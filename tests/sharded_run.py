@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bumps_jax import config
-from bumps_jax.algo import filtering, rollout, sharding
+from bumps_jax.algo import bc, filtering, rollout, sharding
 from bumps_jax.pipeline.stages import experts
 from bumps_jax.tasks import registry
 from bumps_jax.tasks.kick import env as kick_env
@@ -150,6 +150,40 @@ def pool_per_device() -> dict:
     }
 
 
+# Two nets of the meta stage trained on stand-in pairs: each process trains its own (net i on
+# process i % PROCESSES) and takes the other's state from its owner after every chunk.
+NETS = {"wide": (2, 8), "deep": (3, 4)}
+
+
+def nets_data():
+    rng = np.random.default_rng(2)
+    n = 120
+    obs, actions = rng.uniform(size=(n, 2)).astype(np.float32), rng.normal(size=(n, 3)).astype(np.float32)
+    return bc.Dataset(obs, actions, np.zeros(n, np.float32))
+
+
+def nets_config():
+    cfg = config.make_config("tiny").meta.train
+    cfg.unlock()
+    cfg.update({"learning_rate": 1e-2, "decay_every": 2, "epochs": 4, "chunk": 2, "batch_size": 64, "n_seeds": 2})
+    cfg.lock()
+    return cfg
+
+
+def train_nets(run_dir: Path) -> dict:
+    """The nets stopped after one chunk and resumed (the split path restores too): each net's
+    final params and progress rows."""
+    models = {name: bc.MetaPolicy(depth, width, 3) for name, (depth, width) in NETS.items()}
+    dirs = {name: run_dir / name for name in NETS}
+    bc.train_nets(models, nets_data(), nets_config(), dirs, quiet, max_chunks=1)
+    states = bc.train_nets(models, nets_data(), nets_config(), dirs, quiet)
+    return {
+        name: {"params": [np.asarray(x).tolist() for x in jax.tree.leaves(states[name].params)],
+               "rows": (dirs[name] / "progress.csv").read_text().splitlines()[1:] if jax.process_index() == 0 else []}
+        for name in NETS
+    }  # fmt: skip
+
+
 def main() -> None:
     sharding.initialize_distributed()
     assert jax.process_count() == PROCESSES and len(jax.local_devices()) == N_DEVICES, jax.devices()
@@ -159,6 +193,8 @@ def main() -> None:
     grid, params = contextual_grid(env, mesh)
     out["filter"] = filter_synthetic(env, grid, params, sharding.ways(mesh))
     out["pool"] = pool_per_device()
+    out["nets"] = train_nets(Path(sys.argv[1]) / "nets")
+    out["nets_trained_here"] = sharding.own_items(list(NETS))  # the first process's share
     if jax.process_index() == 0:
         json.dump(out, sys.stdout)
 

@@ -51,6 +51,7 @@ def sharded_vs_single(tmp_path_factory):
     single = {
         "experts": {"params": [np.asarray(x) for x in leaves], "finished": out["finished"]},
         "filter": sharded_run.filter_synthetic(env, grid, params, 1),
+        "nets": sharded_run.train_nets(tmp_path_factory.mktemp("nets")),
     }
     return single, sharded
 
@@ -78,6 +79,21 @@ def test_sharded_filtering_makes_the_same_choices(sharded_vs_single):
     # episodes to another rollout's place: the candidate goals lie 0.3 m or more apart.
     np.testing.assert_allclose(single["filter"]["distance"], sharded["filter"]["distance"], atol=1e-5)
     np.testing.assert_allclose(single["filter"]["scores"], sharded["filter"]["scores"], atol=1e-5)
+
+
+def test_nets_split_over_processes_train_as_one_process_trains_them(sharded_vs_single):
+    # Each process trained one net (and resumed it) and took the other's from its owner: the
+    # same params as both stacked in one process, to the rounding of a net trained beside another.
+    single, sharded = sharded_vs_single
+    assert sharded["nets_trained_here"] == ["wide"]  # "deep" came from the second process
+    for name in sharded_run.NETS:
+        a, b = single["nets"][name], sharded["nets"][name]
+        assert len(a["params"]) == len(b["params"]) > 0
+        for x, y in zip(a["params"], b["params"], strict=True):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-5)
+        # every chunk's row written once, by the first process, for the net the other trained too
+        assert len(a["rows"]) == len(b["rows"]) == 2
+        assert [r.split(",")[:2] for r in a["rows"]] == [r.split(",")[:2] for r in b["rows"]]
 
 
 def test_each_device_steps_only_its_own_episodes(sharded_vs_single):

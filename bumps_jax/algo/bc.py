@@ -32,7 +32,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 
 from bumps_jax import runio
-from bumps_jax.algo import ppo
+from bumps_jax.algo import ppo, sharding
 
 # Gradient steps per iteration of the compiled epoch loop (lax.scan's unroll; at most an epoch's):
 # the same steps on the same batches in fewer loop iterations.
@@ -401,6 +401,18 @@ def make_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):
     return init, chunk
 
 
+def shared_chunk(chunk, states: dict, own: list, names: list, inputs: tuple, loss_shape: tuple) -> tuple[dict, dict]:
+    """One chunk of the nets `own` (this process's share, maybe none), then every net's state and
+    losses from the process that trained it (`sharding.from_owner`): (states, {name: losses})."""
+    mine, losses = chunk({n: states[n] for n in own}, *inputs) if own else ({}, {})
+    states, losses = {**states, **mine}, {n: np.asarray(v) for n, v in losses.items()}
+    count = jax.process_count()
+    for i, name in enumerate(names):
+        losses.setdefault(name, np.zeros(loss_shape, np.float32))  # another process's: shapes only
+        states[name], losses[name] = sharding.from_owner((states[name], losses[name]), i % count)
+    return states, losses
+
+
 def seed_keys(train_cfg) -> jax.Array:
     """(n_seeds,) keys, one per initialisation trained side by side."""
     return jax.random.split(jax.random.key(train_cfg.seed), train_cfg.n_seeds)
@@ -428,8 +440,9 @@ def train(model: MetaPolicy, data: Dataset, train_cfg, out_dir, say=print, max_c
 
 def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print, max_chunks=None,
                trainer=None, start=None) -> dict:  # fmt: skip
-    """Train (or resume) every net of `models` (name -> MetaPolicy) on data (N pairs) in one loop;
-    returns {name: final TrainState}, whose `step` counts gradient steps (train_cfg.epochs x
+    """Train (or resume) every net of `models` (name -> MetaPolicy) on data (N pairs) in one loop
+    (with several processes, each process's share of the nets: `shared_chunk`); returns {name:
+    final TrainState} on every process, whose `step` counts gradient steps (train_cfg.epochs x
     `steps_per_epoch`).
 
     trainer: `make_trainer`'s (init, chunk) for these nets, to reuse its compiled programs. After
@@ -448,6 +461,11 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
     for d in out_dirs.values():
         d.mkdir(parents=True, exist_ok=True)
     init, chunk = trainer or make_trainer(models, train_cfg, len(data.obs), data.obs.shape[-1])
+    # With several processes each trains its share of the nets (net i on process i % P), and
+    # after every chunk every process takes each net's state and losses from its owner.
+    own = sharding.own_items(names) if len(names) > 1 else names
+    if own and own != names:
+        _, chunk = make_trainer({n: models[n] for n in own}, train_cfg, len(data.obs), data.obs.shape[-1])
     epoch_steps = steps_per_epoch(train_cfg, len(data.obs))
     total_steps = train_cfg.epochs * epoch_steps
     keys = seed_keys(train_cfg)
@@ -472,13 +490,17 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
         done = int(states[names[0]].step)
         for name in names:
             runio.trim_csv(out_dirs[name] / "progress.csv", CSV_FIELDS, "step", done)
+        loss_shape = (len(keys), int(train_cfg.chunk) * epoch_steps)  # a chunk's losses of one net
         obs, actions = jnp.asarray(data.obs), jnp.asarray(data.actions)  # resident on the device
         done_chunks, pace = 0, runio.Clock(total_steps)
         with runio.stop_on_interrupt(say) as stop:
             while done < total_steps and (max_chunks is None or done_chunks < max_chunks):
                 t0 = time.perf_counter()
-                states, losses = chunk(states, obs, actions, keys)
-                losses = {n: np.asarray(losses[n]) for n in names}  # waits for the chunk to finish
+                if own == names:
+                    states, losses = chunk(states, obs, actions, keys)
+                    losses = {n: np.asarray(losses[n]) for n in names}  # waits for the chunk to finish
+                else:
+                    states, losses = shared_chunk(chunk, states, own, names, (obs, actions, keys), loss_shape)
                 seconds = time.perf_counter() - t0
                 rows = {n: _progress_row(states[n], losses[n], epoch_steps, schedule, seconds) for n in names}
                 for name in names:

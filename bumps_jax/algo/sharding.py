@@ -124,6 +124,21 @@ def gather(tree, axis: int = 0):
     return jax.tree.unflatten(treedef, joined)
 
 
+def own_items(items: list) -> list:
+    """This process's share of a few unequal items (nets of different shapes): every P-th from
+    its index, item i to process i % P (all of them with one process)."""
+    return list(items[jax.process_index() :: jax.process_count()])
+
+
+def from_owner(tree, owner: int):
+    """`tree` as process `owner` holds it, as host arrays on every process (as is with one
+    process); every process passes a tree of the same shapes."""
+    if jax.process_count() == 1:
+        return tree
+    rows = gather(jax.tree.map(lambda x: np.asarray(x)[None], tree))
+    return jax.tree.map(lambda x: x[owner], rows)
+
+
 def barrier(name: str) -> None:
     """Wait until every process reaches the barrier `name` (nothing with one process)."""
     if jax.process_count() > 1:

@@ -5,7 +5,7 @@
    action) is kept, the observation's context being the expert's task. Saved as dataset.npz
    and reused when the stage resumes.
 2. The nets of `meta.nets` (`bc.MetaPolicy`) are trained on it, resumable, all in one stacked
-   program (`bc.train_nets`).
+   program (`bc.train_nets`); with several processes each trains its share of the nets.
 3. Evaluation, unfiltered: every net on `meta.eval.tasks` x `meta.eval.repetitions` noisy kicks
    with context = target (`rollout.grid_fn`); the experts' row comes from their own record.
 
@@ -286,7 +286,11 @@ def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict,
     models = {name: bc.MetaPolicy(*m.nets[name], env.action_size, obs_norm) for name in names}
     for name in names:
         say(f"{name}: {m.nets[name][0]} x {m.nets[name][1]}, {m.train.epochs} epochs, {m.train.n_seeds} seed(s)")
-    say(f"{', '.join(names)}: trained stacked in one loop")
+    count = jax.process_count()
+    if count > 1 and len(names) > 1:  # `bc.train_nets`: net i on process i % count
+        say("; ".join(f"{name} on process {i % count}" for i, name in enumerate(names)))
+    else:
+        say(f"{', '.join(names)}: trained stacked in one loop")
 
     def timed(clock):  # each progress line (after a checkpoint) records the training seconds so far
         def say_and_save(*args, **kwargs):
