@@ -164,6 +164,42 @@ print(repr({k: v.tolist() for k, v in sorted(sharding.gather(tree).items())}))
 """
 
 
+SLURM = """
+import jax, numpy as np
+from bumps_jax.algo import sharding
+sharding.initialize_distributed()
+print(jax.process_count(), jax.process_index(), sharding.gather({"i": np.array([jax.process_index()])})["i"].tolist())
+"""
+
+
+def test_processes_started_as_srun_starts_them_join_one_job():
+    # srun sets these for every task; JAX's SLURM detection derives the coordinator (the first
+    # node, a port from the job id) from them: no JAX_* variable is set.
+    job = next(j for j in range(4096) if _port_free(61440 + j))
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COORDINATOR", "JAX_NUM", "JAX_PROCESS"))}
+    env.update(JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT), SLURM_JOB_ID=str(job), SLURM_STEP_NODELIST="localhost",
+               SLURM_NTASKS="2", SLURM_STEP_NUM_NODES="1")  # fmt: skip
+    procs = [
+        subprocess.Popen([sys.executable, "-c", SLURM], env={**env, "SLURM_PROCID": str(i), "SLURM_LOCALID": str(i)},
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        for i in range(2)
+    ]  # fmt: skip
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs[0][1][-2000:] + outs[1][1][-2000:]
+    assert [out.strip().splitlines()[-1] for out, _ in outs] == ["2 0 [0, 1]", "2 1 [0, 1]"]
+
+
+def _port_free(port: int) -> bool:
+    import socket
+
+    with socket.socket() as s:
+        try:
+            s.bind(("localhost", port))
+        except OSError:
+            return False
+    return True
+
+
 def test_gather_joins_every_process_rows_in_order():
     # Two processes whose hash seeds order a set of dtypes differently (seeds 1 and 2 do): the
     # per-dtype collectives must still pair up.
