@@ -18,9 +18,10 @@ FINDINGS_END = "<!-- end of the generated findings -->"
 SPREAD_M = 0.03  # a seeds row whose std is above this is named in the findings with its seeds' values
 
 
-def readme_rows(root: str | Path = ".") -> list[tuple[str, str, str, str, str]]:
-    """(what, ours, paper, physics, record) for README's results table, from the committed records
-    that exist: every number in `ours` is the record's, rounded as shown."""
+def readme_rows(root: str | Path = ".") -> list[tuple[str, str, str, str, str, tuple[str, ...]]]:
+    """(what, ours, paper, physics, record, seeds) for README's results table, from the committed
+    records that exist: every number in `ours` is the record's, rounded as shown; `seeds` names
+    the row's rows in `seeds.json` (none for a row that is not kept per seed)."""
     root = Path(root)
     rec = {name: load(root, rel) for name, rel in COMMITTED.items()}
     rows = []
@@ -28,14 +29,14 @@ def readme_rows(root: str | Path = ".") -> list[tuple[str, str, str, str, str]]:
     if p:
         rows.append((f"{p['target_m']:.0f} m keyframe prior, {p['n_reps']} noisy kicks",
                      f"error {p['mean_error_m']:.2f} m, valid {p['valid_fraction']:.2f}",
-                     "(a hand-made keyframe kick)", physics_step(p), COMMITTED["prior"]))  # fmt: skip
+                     "(a hand-made keyframe kick)", physics_step(p), COMMITTED["prior"], ()))  # fmt: skip
     e = rec["experts"]
     if e:
         paper = tables.PAPER_TABLE1["experts"]
         rows.append(("experts on their own tasks (accuracy; error)",
                      f"{e['accuracy_mean']:.2f}; {tables.pm(e['error_mean_m'], e['error_std_m'])} m",
                      f"{paper[0]:.2f}; {tables.pm(paper[2], paper[3])} m", physics_step(e),
-                     COMMITTED["experts"]))  # fmt: skip
+                     COMMITTED["experts"], ("experts",)))  # fmt: skip
     t1 = rec["meta"]
     for net in ("meta_4x256", "meta_11x128"):
         r = (t1 or {}).get("rows", {}).get(net)
@@ -44,20 +45,21 @@ def readme_rows(root: str | Path = ".") -> list[tuple[str, str, str, str, str]]:
             rows.append((f"meta-policy {net.removeprefix('meta_')}, unfiltered (accuracy; error)",
                          f"{r['accuracy_mean']:.2f}; {tables.num(r['error_mean_m'])} m "
                          f"({r['tasks_above_threshold']} of {r['n_tasks']} tasks above {tables.ACCURACY_THRESHOLD})",
-                         f"{paper[0]:.2f}; {paper[2]:.2f} m", physics_step(t1), COMMITTED["meta"]))  # fmt: skip
+                         f"{paper[0]:.2f}; {paper[2]:.2f} m", physics_step(t1), COMMITTED["meta"], (net,)))  # fmt: skip
     t2 = rec["filter"]
     if t2:
         names = [n for n in tables.PAPER_TABLE2 if n in t2["rows"]]
         rows.append(("BUMPS filtered: " + " / ".join(names) + " (error)",
                      " / ".join(f"{t2['rows'][n]['error_mean_m']:.2f}" for n in names) + " m",
                      " / ".join(f"{tables.PAPER_TABLE2[n][0]:.2f}" for n in names) + " m",
-                     physics_step(t2), COMMITTED["filter"]))  # fmt: skip
+                     physics_step(t2), COMMITTED["filter"], tuple(names)))  # fmt: skip
     h = rec["heldout"]
     if h:
         names = list(h["rows"])
         rows.append((f"held-out, {len(h['targets_m'])} targets off the grid: " + " / ".join(names) + " (error)",
                      " / ".join(f"{h['rows'][n]['error_mean_m']:.2f}" for n in names) + " m",
-                     "(no held-out set)", physics_step(h), COMMITTED["heldout"]))  # fmt: skip
+                     "(no held-out set)", physics_step(h), COMMITTED["heldout"],
+                     tuple(f"heldout_{n}" for n in names)))  # fmt: skip
     pl = rec["pipeline"]
     if pl:
         stages = pl.get("stages_s", pl.get("stages", {}))
@@ -70,35 +72,25 @@ def readme_rows(root: str | Path = ".") -> list[tuple[str, str, str, str, str]]:
             rows.append((f"{what}, start to end as {launches[-1]['processes']} processes (one GPU each)",
                          f"{sum(x['wall_s'] for x in launches) / 60:.1f} min over {calls}, compiles included "
                          f"(stages: {each})", "~14 CPU-hours per expert", physics_step(pl),
-                         COMMITTED["pipeline"]))  # fmt: skip
+                         COMMITTED["pipeline"], ()))  # fmt: skip
         else:
             rows.append((f"{what}, the stages' own wall times", f"{sum(stages.values()) / 60:.1f} min ({each})",
-                         "~14 CPU-hours per expert", physics_step(pl), COMMITTED["pipeline"]))  # fmt: skip
+                         "~14 CPU-hours per expert", physics_step(pl), COMMITTED["pipeline"], ()))  # fmt: skip
     b = rec["baseline"]
     if b:
         start = b.get("start", {}).get("error_mean_all_m")
         head = f"{start:.2f} m at its start -> " if start is not None else ""
         rows.append((f"multi-task PPO baseline ({b['seeds']} seeds, {b['env_steps'] / 1e6:.2f} M steps each), error",
                      f"{head}{b['error_mean_m']:.2f} m, accuracy {b['accuracy_mean']:.2f}", "reward collapsed",
-                     physics_step(b), COMMITTED["baseline"]))  # fmt: skip
+                     physics_step(b), COMMITTED["baseline"], ()))  # fmt: skip
     return rows
 
 
-def seeds_cell(what: str, seeds: dict) -> str:
-    """A results row's mean +- std over the training seeds (`seeds.json`), its names in the row's
-    order ("" where the row has none): experts, each net, each filtered variant, each held-out policy."""
+def seeds_cell(names: tuple[str, ...], seeds: dict) -> str:
+    """The mean +- std over the training seeds (`seeds.json`) of a results row's `names`, in
+    order ("" where the row names none, or one the seeds lack)."""
     rows = seeds["rows"]
-    if what.startswith("experts"):
-        names = ["experts"]
-    elif what.startswith("meta-policy"):
-        names = ["meta_" + what.split()[1].rstrip(",")]
-    elif what.startswith("BUMPS filtered: "):
-        names = what.removeprefix("BUMPS filtered: ").removesuffix(" (error)").split(" / ")
-    elif what.startswith("held-out"):
-        names = ["heldout_" + n for n in what.split(": ", 1)[1].removesuffix(" (error)").split(" / ")]
-    else:
-        return ""
-    if not all(n in rows for n in names):
+    if not names or not all(n in rows for n in names):
         return ""
     return " / ".join(tables.pm(rows[n]["mean"], rows[n]["std"]) for n in names) + " m"
 
@@ -112,11 +104,11 @@ def readme_table(root: str | Path = ".") -> str:
         n = seeds["n_seeds"]
         head = [f"| what | over {n} training seeds, mean +- std | the published run | paper (SimSpark) | "
                 "physics (step, backend) | record |", "|---|---|---|---|---|---|"]  # fmt: skip
-        body = [f"| {what} | {seeds_cell(what, seeds) or '-'} | {ours} | {paper} | {phys} | `{record}` |"
-                for what, ours, paper, phys, record in rows]  # fmt: skip
+        body = [f"| {what} | {seeds_cell(names, seeds) or '-'} | {ours} | {paper} | {phys} | `{record}` |"
+                for what, ours, paper, phys, record, names in rows]  # fmt: skip
     else:
         head = ["| what | ours | paper (SimSpark) | physics (step, backend) | record |", "|---|---|---|---|---|"]
-        body = [f"| {what} | {ours} | {paper} | {phys} | `{record}` |" for what, ours, paper, phys, record in rows]
+        body = [f"| {what} | {ours} | {paper} | {phys} | `{record}` |" for what, ours, paper, phys, record, _ in rows]
     lines = [
         README_BEGIN,
         "",
