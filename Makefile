@@ -18,10 +18,9 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 # pytest exits 5 when it collects nothing: that must fail, and it does (no `|| true`).
-# Two workers (one core each, so XLA gets one thread in each: two of them on every core were
-# 12 % slower); every test file runs whole on one worker, the slowest files first
-# (tests/conftest.py: SLOWEST_FIRST).
-TEST_XLA_FLAGS = --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1
+# Two workers (one core each, so XLA's CPU kernels run single-threaded in each); every test file
+# runs whole on one worker, the slowest files first (tests/conftest.py: SLOWEST_FIRST).
+TEST_XLA_FLAGS = --xla_cpu_multi_thread_eigen=false
 test: $(STAMP)
 	$(PY) -m ruff check bumps_jax tests benchmarks experiments
 	JAX_PLATFORMS=cpu XLA_FLAGS="$(TEST_XLA_FLAGS)" $(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder tests
