@@ -18,12 +18,11 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 # pytest exits 5 when it collects nothing: that must fail, and it does (no `|| true`).
-# Two workers (one core each, so XLA's CPU kernels run single-threaded in each); every test file
-# runs whole on one worker, the slowest files first (tests/conftest.py: SLOWEST_FIRST).
-TEST_XLA_FLAGS = --xla_cpu_multi_thread_eigen=false
+# Two workers (one core each); every test file runs whole on one worker, the slowest files first
+# (tests/conftest.py: SLOWEST_FIRST).
 test: $(STAMP)
 	$(PY) -m ruff check bumps_jax tests benchmarks experiments
-	JAX_PLATFORMS=cpu XLA_FLAGS="$(TEST_XLA_FLAGS)" $(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder tests
+	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder tests
 
 lint: $(STAMP)
 	$(PY) -m ruff check bumps_jax tests benchmarks experiments
