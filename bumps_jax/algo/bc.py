@@ -403,14 +403,14 @@ def make_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):
 
 def shared_chunk(chunk, states: dict, own: list, names: list, inputs: tuple, loss_shape: tuple) -> tuple[dict, dict]:
     """One chunk of the nets `own` (this process's share, maybe none), then every net's state and
-    losses from the process that trained it (`sharding.from_owner`): (states, {name: losses})."""
+    losses from the process that trained it (`sharding.from_owners`): (states, {name: losses})."""
     mine, losses = chunk({n: states[n] for n in own}, *inputs) if own else ({}, {})
-    states, losses = {**states, **mine}, {n: np.asarray(v) for n, v in losses.items()}
-    count = jax.process_count()
-    for i, name in enumerate(names):
-        losses.setdefault(name, np.zeros(loss_shape, np.float32))  # another process's: shapes only
-        states[name], losses[name] = sharding.from_owner((states[name], losses[name]), i % count)
-    return states, losses
+    states = {**states, **mine}
+    blank = np.zeros(loss_shape, np.float32)  # another process's net: its shapes only
+    shared = sharding.from_owners([(states[n], np.asarray(losses.get(n, blank))) for n in names])
+    return {n: s for n, (s, _) in zip(names, shared, strict=True)}, {
+        n: x for n, (_, x) in zip(names, shared, strict=True)
+    }
 
 
 def seed_keys(train_cfg) -> jax.Array:
@@ -461,8 +461,8 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
     for d in out_dirs.values():
         d.mkdir(parents=True, exist_ok=True)
     init, chunk = trainer or make_trainer(models, train_cfg, len(data.obs), data.obs.shape[-1])
-    # With several processes each trains its share of the nets (net i on process i % P), and
-    # after every chunk every process takes each net's state and losses from its owner.
+    # With several processes each trains its share of the nets (`sharding.owner`), and after
+    # every chunk every process takes each net's state and losses from its owner.
     own = sharding.own_items(names) if len(names) > 1 else names
     if own and own != names:
         _, chunk = make_trainer({n: models[n] for n in own}, train_cfg, len(data.obs), data.obs.shape[-1])

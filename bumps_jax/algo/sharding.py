@@ -124,19 +124,23 @@ def gather(tree, axis: int = 0):
     return jax.tree.unflatten(treedef, joined)
 
 
+def owner(i: int) -> int:
+    """The process that computes item i of a few unequal items (nets of different shapes)."""
+    return i % jax.process_count()
+
+
 def own_items(items: list) -> list:
-    """This process's share of a few unequal items (nets of different shapes): every P-th from
-    its index, item i to process i % P (all of them with one process)."""
-    return list(items[jax.process_index() :: jax.process_count()])
+    """This process's share of a few unequal items (`owner`; all of them with one process)."""
+    return [x for i, x in enumerate(items) if owner(i) == jax.process_index()]
 
 
-def from_owner(tree, owner: int):
-    """`tree` as process `owner` holds it, as host arrays on every process (as is with one
-    process); every process passes a tree of the same shapes."""
+def from_owners(trees: list) -> list:
+    """Item i of `trees` as its `owner` holds it, as host arrays on every process, in one
+    `gather` (as is with one process); every process passes trees of the same shapes."""
     if jax.process_count() == 1:
-        return tree
-    rows = gather(jax.tree.map(lambda x: np.asarray(x)[None], tree))
-    return jax.tree.map(lambda x: x[owner], rows)
+        return trees
+    rows = gather([jax.tree.map(lambda x: np.asarray(x)[None], t) for t in trees])
+    return [jax.tree.map(lambda x, i=i: x[owner(i)], row) for i, row in enumerate(rows)]
 
 
 def barrier(name: str) -> None:

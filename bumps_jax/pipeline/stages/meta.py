@@ -286,9 +286,8 @@ def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict,
     models = {name: bc.MetaPolicy(*m.nets[name], env.action_size, obs_norm) for name in names}
     for name in names:
         say(f"{name}: {m.nets[name][0]} x {m.nets[name][1]}, {m.train.epochs} epochs, {m.train.n_seeds} seed(s)")
-    count = jax.process_count()
-    if count > 1 and len(names) > 1:  # `bc.train_nets`: net i on process i % count
-        say("; ".join(f"{name} on process {i % count}" for i, name in enumerate(names)))
+    if jax.process_count() > 1 and len(names) > 1:  # `bc.train_nets` splits them
+        say("; ".join(f"{name} on process {sharding.owner(i)}" for i, name in enumerate(names)))
     else:
         say(f"{', '.join(names)}: trained stacked in one loop")
 
