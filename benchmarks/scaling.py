@@ -23,9 +23,11 @@ its phase has, and then times a second call; a phase's rate is its total work ov
 from the first start to the last end, so N processes count only while they all run. A GPU
 that one copy does not fill gains from more (the physics' rate grows with the batch up to
 tens of thousands of episodes), so the ratio depends on K: the record keeps every K measured,
-its top-level rates being the largest K's.
+its top-level rates being the largest K's. `--workload W` names the total instead (W copies
+shared by the N devices, a layout sharing one batch): `--workload 1` is the preset's own work.
 
     python -m benchmarks.scaling --preset paper --devices 2 --copies 1 4  # benchmarks/results/scaling.json
+    python -m benchmarks.scaling --preset paper --devices 4 --layout distributed --workload 1
     python -m benchmarks.scaling --preset tiny --out-dir runs/bench  # CPU smoke test
 """
 
@@ -60,8 +62,10 @@ def parse_args(argv=None):
     parser.add_argument("--devices", type=int, default=2, help="N: the devices the work is spread over")
     parser.add_argument("--layout", choices=LAYOUTS, default="processes",
                         help="one process per device, or one process with a mesh of N devices")  # fmt: skip
-    parser.add_argument("--copies", type=int, nargs="+", default=[1],
+    parser.add_argument("--copies", type=int, nargs="+", default=None,
                         help="K: copies of the preset's work per device, each value measured in turn")  # fmt: skip
+    parser.add_argument("--workload", type=int, nargs="+", default=None,
+                        help="W: copies of the work in all, shared by the devices (not with --copies)")  # fmt: skip
     parser.add_argument("--updates", type=int, default=None,
                         help="PPO updates in the timed chunk (default: the bench's for the preset)")  # fmt: skip
     parser.add_argument("--skip", nargs="*", default=(), choices=tuple(WORKS))
@@ -77,8 +81,17 @@ def parse_args(argv=None):
         parser.error(f"--devices must be at least 2 (the scale-out of one device is itself), got {args.devices}")
     if set(args.skip) >= set(WORKS):
         parser.error(f"--skip leaves nothing to measure: it names every work ({', '.join(WORKS)})")
+    if args.copies is not None and args.workload is not None:
+        parser.error("--copies and --workload both name the work: give one")
+    args.copies = args.copies or [1]
     if any(k < 1 for k in args.copies):
         parser.error(f"--copies must be positive integers, got {args.copies}")
+    if args.workload is not None:
+        if any(w < 1 for w in args.workload):
+            parser.error(f"--workload must be positive integers, got {args.workload}")
+        if args.layout == "processes":
+            parser.error("--workload needs a layout sharing one batch (distributed or mesh): "
+                         "the processes layout gives every device whole copies (--copies)")  # fmt: skip
     if args.updates is not None and args.updates < 1:
         parser.error(f"--updates must be a positive integer, got {args.updates}")
     try:
@@ -90,17 +103,17 @@ def parse_args(argv=None):
     return args, cfg
 
 
-def layout_of(layout: str, m: int, n: int, k: int = 1) -> list[dict]:
-    """The processes of a phase doing `n` x `k` copies of the preset's work on `m` devices (1 or
-    n): each one's visible GPU (None: the host's as they are), the devices its mesh spans and
-    the copies it does."""
+def layout_of(layout: str, m: int, w: int) -> list[dict]:
+    """The processes of a phase doing `w` copies of the preset's work on `m` devices: each one's
+    visible GPU (None: the host's as they are), the devices its mesh spans and the copies it
+    does (the processes layout: w / m each, a whole number)."""
     if m == 1:
-        return [{"gpu": "0", "devices": 1, "copies": n * k}]
+        return [{"gpu": "0", "devices": 1, "copies": w}]
     if layout == "processes":
-        return [{"gpu": str(i), "devices": 1, "copies": k} for i in range(m)]
+        return [{"gpu": str(i), "devices": 1, "copies": w // m} for i in range(m)]
     if layout == "distributed":  # one batch of every copy, each process computing its share
-        return [{"gpu": str(i), "devices": 1, "copies": n * k, "processes": m} for i in range(m)]
-    return [{"gpu": None, "devices": m, "copies": n * k}]
+        return [{"gpu": str(i), "devices": 1, "copies": w, "processes": m} for i in range(m)]
+    return [{"gpu": None, "devices": m, "copies": w}]
 
 
 def combine(results: list[dict]) -> dict:
@@ -129,7 +142,7 @@ def worker_env(gpu: str | None) -> dict:
     return env
 
 
-def run_phase(args, work: str, m: int, k: int, folder: Path) -> dict:
+def run_phase(args, work: str, m: int, w: int, folder: Path) -> dict:
     """Start the processes of one phase, let them time their work together, and combine."""
     from bumps_jax import launch  # noqa: PLC0415
 
@@ -142,7 +155,7 @@ def run_phase(args, work: str, m: int, k: int, folder: Path) -> dict:
     if args.updates is not None:
         base += ["--updates", str(args.updates)]
     procs = []
-    for i, p in enumerate(layout_of(args.layout, m, args.devices, k)):
+    for i, p in enumerate(layout_of(args.layout, m, w)):
         log = open(folder / f"log.{i}", "w")  # noqa: SIM115 (closed with its process below)
         own = ["--worker-index", str(i), "--worker-devices", str(p["devices"]), "--worker-copies", str(p["copies"])]
         cmd = [*base, *own]
@@ -227,13 +240,14 @@ def worker(args, cfg) -> None:
     (folder / f"result.{i}.json").write_text(json.dumps(runio.json_safe(record)))
 
 
-def measure(args, work: str, k: int, folder: Path, say) -> dict:
-    """One work at `k` copies per device, on one device and on all: rates, ratio and phases."""
+def measure(args, work: str, w: int, folder: Path, say) -> dict:
+    """One work at `w` copies in all, on one device and on all: rates, ratio and phases."""
     n, key = args.devices, WORKS[work]
-    out: dict = {"copies_per_device": k, "workload": n * k, key: {}, "phases": {}}
+    k = w // n if w % n == 0 else w / n
+    out: dict = {"copies_per_device": k, "workload": w, key: {}, "phases": {}}
     for m in (1, n):
-        say(f"{work} on {m} device(s), {n * k} times the preset's work")
-        phase = run_phase(args, work, m, k, folder / f"{work}.{k}.{m}")
+        say(f"{work} on {m} device(s), {w} times the preset's work")
+        phase = run_phase(args, work, m, w, folder / f"{work}.{w}.{m}")
         out["phases"][str(m)] = {kk: v for kk, v in phase.items() if kk != "rate"}
         out[key][str(m)] = phase["rate"]
         say(f"{key} on {m}: {phase['rate']:,.0f}")
@@ -242,9 +256,9 @@ def measure(args, work: str, k: int, folder: Path, say) -> dict:
 
 
 def eta_s(spent: float, steps: list[tuple[int, str]], done: int) -> float:
-    """Seconds left after `done` of `steps` ((K, work) pairs) took `spent`: each measurement
-    counted at the mean cost of those done per copy, times its K (too long where compiles, which
-    do not grow with K, dominate)."""
+    """Seconds left after `done` of `steps` ((W, work) pairs) took `spent`: each measurement
+    counted at the mean cost of those done per copy, times its W (too long where compiles, which
+    do not grow with W, dominate)."""
     weight = [k for k, _ in steps]
     return spent * sum(weight[done:]) / max(sum(weight[:done]), 1)
 
@@ -274,7 +288,8 @@ def main(argv=None) -> dict | None:
     size = bench.SIZES[args.preset]
     sizes = {**size, "bench_updates": args.updates or size["bench_updates"]}
     record: dict = {"devices": n, "layout": args.layout, "backend": cfg.env.impl, "sizes": sizes, "by_copies": []}
-    steps = [(k, w) for k in sorted(set(args.copies)) for w in works]
+    workloads = args.workload or [n * k for k in args.copies]
+    steps = [(w, work) for w in sorted(set(workloads)) for work in works]
     done = 0
 
     def say(line: str) -> None:
@@ -283,11 +298,11 @@ def main(argv=None) -> dict | None:
         print(f"[scaling] {done}/{len(steps)} measured, {spent:.0f} s in{eta}: {line}", flush=True)
 
     with tempfile.TemporaryDirectory(prefix="scaling-") as tmp:
-        for k, work in steps:
-            part = measure(args, work, k, Path(tmp), say)
+        for w, work in steps:
+            part = measure(args, work, w, Path(tmp), say)
             done += 1
             top = add_measurement(record, work, part)
-            result = Path(tmp) / f"{work}.{k}.{n}" / "result.0.json"
+            result = Path(tmp) / f"{work}.{w}.{n}" / "result.0.json"
             prov = json.loads(result.read_text())["provenance"]
             prov.update(n_devices=n, command=runio.command_line(), wall_s=round(time.perf_counter() - start, 3))
             runio.write_json(Path(args.out_dir) / "scaling.json", {**top, **prov})  # after each measurement

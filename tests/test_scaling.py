@@ -12,8 +12,8 @@ from benchmarks import scaling
 @pytest.mark.parametrize("layout", scaling.LAYOUTS)
 @pytest.mark.parametrize("k", [1, 4])
 def test_one_device_and_n_devices_do_the_same_work(layout, k):
-    one = scaling.layout_of(layout, 1, 3, k)
-    every = scaling.layout_of(layout, 3, 3, k)
+    one = scaling.layout_of(layout, 1, 3 * k)
+    every = scaling.layout_of(layout, 3, 3 * k)
     assert one == [{"gpu": "0", "devices": 1, "copies": 3 * k}]
     if layout == "distributed":  # one batch of every copy, shared: each of 3 joined processes computes a third
         assert [p["gpu"] for p in every] == ["0", "1", "2"]
@@ -55,6 +55,9 @@ def test_each_process_sees_only_its_gpu(monkeypatch):
         (["--skip", "experts", "filter"], "--skip leaves nothing to measure"),
         (["--set", "env.impl=bullet"], "env.impl must be one of"),
         (["--layout", "ring"], "invalid choice: 'ring'"),
+        (["--workload", "0"], "--workload must be positive integers, got [0]"),
+        (["--workload", "1"], "--workload needs a layout sharing one batch"),
+        (["--layout", "mesh", "--copies", "2", "--workload", "1"], "--copies and --workload both name the work"),
     ],
 )
 def test_bad_arguments_stop_before_any_process_starts(argv, message, capsys, tmp_path):
@@ -108,3 +111,16 @@ def test_the_record_keeps_every_k_and_its_top_level_is_the_largest_measured():
     assert top["workload"] == 8 and top["experts_env_steps_per_s"] == {"1": 300.0, "2": 570.0}
     assert top["experts_speedup"] == pytest.approx(1.9) and "filter_rollouts_per_s" not in top  # not yet at K = 4
     assert set(record["by_copies"][0]["phases"]) == {"experts", "filter"} and "phases" not in top
+
+
+def test_the_presets_own_work_is_one_batch_shared_by_every_device(monkeypatch, tmp_path):
+    args, _ = scaling.parse_args(["--devices", "4", "--layout", "distributed", "--workload", "1",
+                                  "--out-dir", str(tmp_path)])  # fmt: skip
+    assert scaling.layout_of(args.layout, 4, 1) == [
+        {"gpu": str(i), "devices": 1, "copies": 1, "processes": 4} for i in range(4)
+    ]
+    phases = []
+    monkeypatch.setattr(scaling, "run_phase", lambda a, work, m, w, folder: phases.append((m, w)) or {"rate": 10.0 * m})
+    out = scaling.measure(args, "experts", 1, tmp_path, lambda line: None)
+    assert phases == [(1, 1), (4, 1)]  # one copy on one GPU, the same one copy over four
+    assert out["workload"] == 1 and out["copies_per_device"] == 0.25 and out["experts_env_steps_speedup"] == 4.0
