@@ -255,12 +255,19 @@ def measure(args, work: str, w: int, folder: Path, say) -> dict:
     return out
 
 
-def eta_s(spent: float, steps: list[tuple[int, str]], done: int) -> float:
-    """Seconds left after `done` of `steps` ((W, work) pairs) took `spent`: each measurement
-    counted at the mean cost of those done per copy, times its W (too long where compiles, which
-    do not grow with W, dominate)."""
-    weight = [k for k, _ in steps]
-    return spent * sum(weight[done:]) / max(sum(weight[:done]), 1)
+def eta_s(costs: list[tuple[int, float]], left: list[int]) -> float:
+    """Seconds left for measurements at the workloads `left`, from those done (`costs`: (W,
+    seconds) pairs): each a fixed cost (start-up and compiles, which do not grow with W) plus a
+    cost per copy, fitted by least squares once two workloads are measured; before that, every
+    measurement counted at the mean cost so far (too short where the work per copy dominates)."""
+    if not costs:
+        return 0.0
+    ws = [w for w, _ in costs]
+    mean_w, mean_t = sum(ws) / len(ws), sum(t for _, t in costs) / len(costs)
+    var = sum((w - mean_w) ** 2 for w in ws)
+    per_copy = max(sum((w - mean_w) * (t - mean_t) for w, t in costs) / var, 0.0) if var else 0.0
+    fixed = max(mean_t - per_copy * mean_w, 0.0)
+    return sum(fixed + per_copy * w for w in left)
 
 
 def add_measurement(record: dict, work: str, part: dict) -> dict:
@@ -290,17 +297,18 @@ def main(argv=None) -> dict | None:
     record: dict = {"devices": n, "layout": args.layout, "backend": cfg.env.impl, "sizes": sizes, "by_copies": []}
     workloads = args.workload or [n * k for k in args.copies]
     steps = [(w, work) for w in sorted(set(workloads)) for work in works]
-    done = 0
+    costs: list[tuple[int, float]] = []  # (W, seconds) of each measurement done
 
     def say(line: str) -> None:
-        spent = time.perf_counter() - start
-        eta = f", ETA {eta_s(spent, steps, done):.0f} s" if done else ""
+        spent, done = time.perf_counter() - start, len(costs)
+        eta = f", ETA {eta_s(costs, [w for w, _ in steps[done:]]):.0f} s" if done else ""
         print(f"[scaling] {done}/{len(steps)} measured, {spent:.0f} s in{eta}: {line}", flush=True)
 
     with tempfile.TemporaryDirectory(prefix="scaling-") as tmp:
         for w, work in steps:
+            began = time.perf_counter()
             part = measure(args, work, w, Path(tmp), say)
-            done += 1
+            costs.append((w, time.perf_counter() - began))
             top = add_measurement(record, work, part)
             result = Path(tmp) / f"{work}.{w}.{n}" / "result.0.json"
             prov = json.loads(result.read_text())["provenance"]

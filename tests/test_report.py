@@ -118,6 +118,25 @@ def _paper_run(tmp_path):
     return run
 
 
+def test_a_launched_run_leads_with_its_wall_time_not_the_sum_of_its_stages():
+    launch = {
+        "processes": 4,
+        "wall_s": 1130.0,
+        "finished": True,
+        "phases": [
+            [{"stages": ["prior"], "processes": 4}],
+            [{"stages": ["experts", "meta"], "processes": 3}, {"stages": ["baseline"], "processes": 1}],
+        ],
+    }
+    pipeline = {"stages_s": {"prior": 210.0, "experts": 557.0, "meta": 266.0, "baseline": 878.0}, "wall_s": 1911.0,
+                "calls": 3, "device": "d", "launches": [launch]}  # fmt: skip
+    text = "\n".join(report.pipeline_lines(pipeline))
+    assert "31.9 min of stages, added up (prior 210 s" in text and "**31.9" not in text
+    assert "one call; stages side by side add up to more than the wall time below" in text
+    assert ("Launched as 4 processes (prior on 4; then experts, meta on 3 beside baseline on 1): **18.8 min** from "
+            "start to end (one call;") in text  # fmt: skip
+
+
 def test_report_shows_pipeline_time_and_baseline(tmp_path):
     text = report.build(_paper_run(tmp_path))
     assert "**1.5 min** in all (prior 5 s, experts 60 s, meta 10 s, filter 10 s, baseline 5 s" in text

@@ -89,10 +89,12 @@ def test_a_process_that_never_gets_ready_times_out(tmp_path):
         proc.wait()
 
 
-def test_the_eta_counts_what_is_left_by_its_copies():
-    steps = [(1, "experts"), (1, "filter"), (4, "experts"), (4, "filter")]
-    assert scaling.eta_s(100.0, steps, 2) == pytest.approx(400.0)  # 2 copies' worth took 100 s, 8 left
-    assert scaling.eta_s(100.0, steps, 4) == 0.0
+def test_the_eta_counts_a_fixed_cost_and_a_cost_per_copy():
+    # one workload measured: its mean cost for each left
+    assert scaling.eta_s([(1, 100.0), (1, 60.0)], [32, 32]) == pytest.approx(160.0)
+    # two: 40 s fixed + 5 s a copy (W=1 took 45 s, W=8 took 80 s)
+    assert scaling.eta_s([(1, 45.0), (8, 80.0)], [32]) == pytest.approx(40.0 + 5.0 * 32)
+    assert scaling.eta_s([(1, 45.0)], []) == 0.0 and scaling.eta_s([], [4]) == 0.0
 
 
 def _part(work: str, k: int, one: float, two: float) -> dict:

@@ -196,11 +196,13 @@ def pipeline_lines(pipeline: dict | None, own_s: dict[str, float] | None = None)
     if killed:
         how += f"; {killed} of them killed, each counted up to its stage's last write"
     launches = pipeline.get("launches")
+    total = f"**{pipeline['wall_s'] / 60:.1f} min** in all"
     if launches:  # several jobs per launched call, some side by side: the launches say the wall time
-        how = "one call" if len(launches) == 1 else f"resumed across {len(launches)} calls, each stage's time added up"
+        how = "one call" if len(launches) == 1 else f"resumed across {len(launches)} calls"
         how += "; stages side by side add up to more than the wall time below"
+        total = f"{pipeline['wall_s'] / 60:.1f} min of stages, added up"
     lines = [
-        f"The pipeline (`demo` or `reproduce`): **{pipeline['wall_s'] / 60:.1f} min** in all ({parts}; "
+        f"The pipeline (`demo` or `reproduce`): {total} ({parts}; "
         f"on {pipeline.get('device', 'the device above')}, {how}).",
         *([f"Note: {pipeline['note']}"] if pipeline.get("note") else []),
     ]
