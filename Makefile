@@ -9,10 +9,11 @@ PRESET ?= tiny
 
 .PHONY: install test lint demo reproduce report baseline render video publish bench-scene kick-prior train-experts bench bench-scaling meta-train filter clean
 
+# --no-compile: modules are byte-compiled when first imported, not every installed one up front.
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q --no-compile -e '.[test]'
 	touch $(STAMP)
 
 install: $(STAMP)
