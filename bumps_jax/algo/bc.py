@@ -407,10 +407,9 @@ def shared_chunk(chunk, states: dict, own: list, names: list, inputs: tuple, los
     mine, losses = chunk({n: states[n] for n in own}, *inputs) if own else ({}, {})
     states = {**states, **mine}
     blank = np.zeros(loss_shape, np.float32)  # another process's net: its shapes only
-    shared = sharding.from_owners([(states[n], np.asarray(losses.get(n, blank))) for n in names])
-    return {n: s for n, (s, _) in zip(names, shared, strict=True)}, {
-        n: x for n, (_, x) in zip(names, shared, strict=True)
-    }
+    shared = dict(zip(names, sharding.from_owners([(states[n], np.asarray(losses.get(n, blank))) for n in names]),
+                      strict=True))  # fmt: skip
+    return {n: s for n, (s, _) in shared.items()}, {n: x for n, (_, x) in shared.items()}
 
 
 def seed_keys(train_cfg) -> jax.Array:

@@ -374,12 +374,12 @@ def train_rings(cfg, stage_dir: Path, programs: Compiled, centre, rngs, say=prin
     chunk, unit = int(cfg.experts.updates_per_chunk), programs.env.UNIT
     rings = family_rings(tasks)
     parents = [rings[0], *ring_parents(tasks, rings)]
-    states, wall = [], 0.0
+    trained, state, wall = np.zeros(0, int), None, 0.0  # the experts trained so far (ring-major) and their state
     for r, ring in enumerate(rings):
         own, origins = tasks[ring], tasks[parents[r]]
         # ring 0: the centre candidate; then each expert's parent, by its place among the trained
-        place = [list(np.concatenate(rings[:r])).index(i) for i in parents[r]] if r else None
-        source = centre if r == 0 else jax.tree.map(lambda *xs, p=place: jnp.concatenate(xs)[np.asarray(p)], *states)
+        place = np.asarray([np.flatnonzero(trained == i)[0] for i in parents[r]]) if r else None
+        source = centre if r == 0 else jax.tree.map(lambda x, p=place: x[p], state)
         shown = ", ".join(task_env.format_context(t) for t in own)
         say(f"family: ring {r} of {len(rings) - 1} ({shown} {unit}), {total} updates")
         loop = chunked_loop(programs, own, functools.partial(family_state, source, rngs[ring]),
@@ -389,9 +389,9 @@ def train_rings(cfg, stage_dir: Path, programs: Compiled, centre, rngs, say=prin
         wall += out["wall_s"]
         if not out["finished"]:
             return {**out, "wall_s": wall}
-        states.append(out["state"])
-    order = np.argsort(np.concatenate(rings))  # ring-major -> task order
-    state = jax.tree.map(lambda *xs: jnp.concatenate(xs)[order], *states)
+        trained = np.concatenate([trained, ring])
+        state = out["state"] if r == 0 else jax.tree.map(lambda a, b: jnp.concatenate([a, b]), state, out["state"])
+    state = jax.tree.map(lambda x: x[np.argsort(trained)], state)  # ring-major -> task order
     logs = [(stage_dir / "rings" / f"ring{r}" / "progress.csv").read_text().splitlines() for r in range(len(rings))]
     rows = [logs[0][0], *(row for log in logs for row in log[1:])]  # one header, every ring's rows
     runio.write_text(stage_dir / "progress.csv", "\n".join(rows) + "\n")
