@@ -129,6 +129,7 @@ def test_step_reward_by_hand(ant, trace):
     m = states.metrics
     np.testing.assert_allclose(m["distance_l1"], l1, rtol=1e-5)
     np.testing.assert_allclose(m["reward_distance"], -l1, rtol=1e-5)
+    np.testing.assert_allclose(m["potential"], -l1, rtol=1e-5)  # the distance term, for PPO's shaping
     np.testing.assert_allclose(m["reward_ctrl"], -np.broadcast_to(ctrl, l1.shape), rtol=1e-5)
     np.testing.assert_allclose(m["reward_contact"], -contact, rtol=1e-5, atol=1e-9)
     np.testing.assert_array_equal(m["reward_survive"], 0.0)

@@ -100,3 +100,11 @@ def test_paper_clone_fits_the_kick_with_the_deep_net():
     # 500 steps (measured: loss 4e-4 after 200, 1.3e-4 after 500, 4.3e-5 after 2000).
     _, losses = jax.jit(lambda p: bc.clone_policy(networks, p, obs, actions, 500, lr))(policy)
     assert float(losses[-1]) < 1e-3, float(losses[-1])
+
+
+def test_one_seed_has_a_curve_without_a_band(tmp_path):
+    """One seed: the mean curve is that seed's, with no bootstrap band (None), and it plots."""
+    curve = baseline.bootstrap_curve(np.array([[1.0, 2.0, 3.0]]), 10)
+    assert curve == {"env_steps": [10, 20, 30], "mean": [1.0, 2.0, 3.0], "ci_low": None, "ci_high": None}
+    payload = {"seeds": 1, "device": "cpu", "preset": "tiny", "curve": curve, "error_curve": curve}
+    assert baseline.plot_curve(payload, tmp_path / "curve.png").exists()

@@ -161,26 +161,30 @@ def test_loss_and_gradient_equal_braxs(unroll):
 
 
 class _CountingEnv:
-    """A stand-in env of 3 steps: obs = step / 3, reward 1; `flag` keeps Brax's `info["truncation"]`."""
+    """A stand-in env of 3 steps: obs = step / 3, reward 1; `flag` keeps Brax's `info["truncation"]`;
+    `potential` reports metrics["potential"] = -(step + 1)."""
 
     n_steps = 3
     observation_size = 1
     action_size = 1
 
-    def __init__(self, flag: bool):
-        self.flag = flag
+    def __init__(self, flag: bool, potential: bool = False):
+        self.flag, self.potential = flag, potential
+
+    def _metrics(self, step):
+        return {"potential": -(step + 1.0)} if self.potential else {}
 
     def reset(self, rng, target=None):
         del rng, target
         info = {"step": jnp.zeros(())} | ({"truncation": jnp.zeros(())} if self.flag else {})
-        return State(None, jnp.zeros(1), jnp.zeros(()), jnp.zeros(()), {}, info)
+        return State(None, jnp.zeros(1), jnp.zeros(()), jnp.zeros(()), self._metrics(jnp.zeros(())), info)
 
     def step(self, state, action):
         del action
         step = state.info["step"] + 1
         done = (step >= self.n_steps).astype(jnp.float32)
         info = {"step": step} | ({"truncation": done} if self.flag else {})
-        return State(None, step[None] / 3, jnp.ones(()), done, {}, info)
+        return State(None, step[None] / 3, jnp.ones(()), done, self._metrics(step), info)
 
 
 @pytest.mark.parametrize("flag", [True, False])
@@ -197,6 +201,34 @@ def test_rollout_carries_the_envs_truncation(flag):
     np.testing.assert_array_equal(np.asarray(data.discount), [[1, 1, 0]] * 2)
 
 
+@pytest.mark.parametrize("flag", [True, False])
+def test_potential_shaping_adds_discounted_potential_differences(flag):
+    """With `potential_shaping` w the loss's rewards are r + w (discount phi(s') - phi(s)), phi of a
+    terminal state 0 (a truncated episode keeps its last potential); the logged return stays r."""
+    env = _CountingEnv(flag, potential=True)
+    overrides = {"num_envs": 2, "num_minibatches": 1, "total_env_steps": 6, "potential_shaping": 2.0, "discount": 0.9}
+    cfg = ppo_config.make_config(overrides=overrides)
+    networks = ppo.make_networks(cfg, env.observation_size, env.action_size)
+    ctx = ppo._Context(env, networks, ppo.make_optimizer(cfg, env.n_steps), cfg)
+    params = networks.policy_network.init(jax.random.PRNGKey(0))
+    _, data = ppo.rollout(ctx, ppo.init_normalizer(1), params, 0.0, jax.random.PRNGKey(1))
+    phi = -(np.arange(4) + 1.0)  # phi(s_0), ..., phi(s_3)
+    after = phi[1:].copy()
+    if not flag:
+        after[-1] = 0.0  # the episode's end is a termination
+    np.testing.assert_allclose(ppo.shaped_rewards(cfg, data), [1 + 2.0 * (0.9 * after - phi[:-1])] * 2, rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(data.reward), 1.0)
+    ppo.make_train(cfg, env)  # accepted: the env reports a potential
+
+
+def test_potential_shaping_needs_an_env_with_a_potential():
+    cfg = ppo_config.make_config(
+        overrides={"num_envs": 2, "num_minibatches": 1, "total_env_steps": 6, "potential_shaping": 1.0}
+    )
+    with pytest.raises(ValueError, match="potential_shaping 1.0 needs an env that reports"):
+        ppo.make_train(cfg, _CountingEnv(True))
+
+
 @pytest.mark.parametrize(
     ("overrides", "named"),
     [
@@ -208,6 +240,7 @@ def test_rollout_carries_the_envs_truncation(flag):
         ({"learning_rate": 0.0}, "learning_rate"),
         ({"discount": 1.5}, "discount"),
         ({"policy_hidden": ()}, "policy_hidden"),
+        ({"potential_shaping": -1.0}, "potential_shaping"),
     ],
 )
 def test_bad_ppo_config_names_the_value(overrides, named):

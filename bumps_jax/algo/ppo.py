@@ -206,6 +206,9 @@ def _env_step(ctx: _Context, normalizer, policy_params, carry: _RolloutCarry, _u
     raw = dist.sample_no_postprocessing(logits, key)
     log_prob = dist.log_prob(logits, raw)
     nxt = jax.vmap(ctx.env.step)(state, dist.postprocess(raw))
+    state_extras = {"truncation": truncation_of(nxt)}
+    if ctx.config.potential_shaping:  # the potentials the loss shapes the reward with
+        state_extras.update(potential=state.metrics["potential"], next_potential=nxt.metrics["potential"])
     transition = types.Transition(
         observation=state.obs,
         action=raw,
@@ -214,7 +217,7 @@ def _env_step(ctx: _Context, normalizer, policy_params, carry: _RolloutCarry, _u
         next_observation=nxt.obs,
         extras={
             "policy_extras": {"log_prob": log_prob, "raw_action": raw, "distribution_params": logits},
-            "state_extras": {"truncation": truncation_of(nxt)},
+            "state_extras": state_extras,
         },
     )
     return _RolloutCarry(nxt, rng), transition
@@ -251,6 +254,18 @@ class _SGDCarry(NamedTuple):
     rng: jax.Array
 
 
+def shaped_rewards(cfg, data) -> jax.Array:
+    """The env's rewards (T, M), plus potential-based shaping w * (discount * phi(s') - phi(s))
+    where `potential_shaping` w is set: phi of a terminal state is 0, and a truncated step's
+    reward is dropped by `advantages` anyway (its successor's value stands in)."""
+    w = cfg.potential_shaping
+    if not w:
+        return data.reward
+    extras = data.extras["state_extras"]
+    termination = (1 - data.discount) * (1 - extras["truncation"])
+    return data.reward + w * (cfg.discount * extras["next_potential"] * (1 - termination) - extras["potential"])
+
+
 def ppo_loss(ctx: _Context, params, normalizer, data, rng):
     """Brax's PPO loss (`ppo.losses.compute_ppo_loss` at our settings: no value clipping, no
     distributional critic) on a minibatch of whole episodes `data` (M, T), its GAE from
@@ -262,7 +277,7 @@ def ppo_loss(ctx: _Context, params, normalizer, data, rng):
     values = ctx.networks.value_network.apply(normalizer, params.value, data.observation)
     bootstrap = ctx.networks.value_network.apply(normalizer, params.value, data.next_observation[-1])
     truncation = data.extras["state_extras"]["truncation"]
-    rewards = data.reward * cfg.reward_scaling
+    rewards = shaped_rewards(cfg, data) * cfg.reward_scaling
     vs, advantage = advantages(
         rewards, values, 1 - data.discount, bootstrap, cfg.discount, cfg.gae_lambda, truncation, cfg.unroll_gae
     )
@@ -377,6 +392,12 @@ def make_optimizer(
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), adam)
 
 
+def reset_metrics(env) -> dict:
+    """The shapes of the metrics an episode of `env` starts with (nothing is computed)."""
+    target = jnp.zeros(task_env.context_shape(getattr(env, "CONTEXT_SIZE", 1)), jnp.float32)
+    return jax.eval_shape(env.reset, jax.random.key(0), target).metrics
+
+
 def make_train(config, env: task_env.ContextualEnv, traced_learning_rate: bool = False) -> Trainer:
     """Validate `config` (a PPO ConfigDict) and build the pure trainer for `env`.
 
@@ -387,6 +408,11 @@ def make_train(config, env: task_env.ContextualEnv, traced_learning_rate: bool =
     """
     cfg = ppo_config.make_config(config)
     ppo_config.validate_config(cfg, env.n_steps)
+    if cfg.potential_shaping and "potential" not in reset_metrics(env):
+        raise ValueError(
+            f"ppo.potential_shaping {cfg.potential_shaping!r} needs an env that reports metrics['potential']; "
+            f"{type(env).__name__} does not: set it to 0"
+        )
     networks = make_networks(cfg, env.observation_size, env.action_size)
     optimizer = make_optimizer(cfg, env.n_steps, traced_learning_rate)
     ctx = _Context(env, networks, optimizer, cfg)

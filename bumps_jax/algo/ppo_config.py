@@ -31,6 +31,9 @@ def default_config() -> ml_collections.ConfigDict:
     # Reward factor on top of the env's own 0.1 per-step factor (the paper's "x 0.1" in all).
     cfg.reward_scaling = 0.01
     cfg.normalize_advantage = True  # paper (Baselines PPO1): yes
+    # Weight w of potential-based shaping (Ng et al. 1999): training rewards get w * (discount *
+    # phi(s') - phi(s)) from the env's metrics["potential"]; the optimal policy is unchanged; 0: off.
+    cfg.potential_shaping = 0.0
     # GAE's backward recursion unrolled into one fused program (True) or a device loop of one
     # iteration per time step, as Brax's (False). The same numbers up to float rounding; speed only.
     cfg.unroll_gae = True
@@ -73,7 +76,7 @@ def validate_config(cfg: ml_collections.ConfigDict, n_steps: int, prefix: str = 
     for key in ("discount", "gae_lambda"):
         if not 0.0 <= cfg[key] <= 1.0:
             raise ValueError(f"{prefix}{key} must be in [0, 1], got {cfg[key]!r}")
-    for key in ("entropy_cost", "vf_coefficient"):
+    for key in ("entropy_cost", "vf_coefficient", "potential_shaping"):
         if cfg[key] < 0:
             raise ValueError(f"{prefix}{key} must be >= 0, got {cfg[key]!r}")
     for key in ("policy_hidden", "value_hidden"):

@@ -50,16 +50,21 @@ def start_policy(cfg, env, trainer: ppo.Trainer, run_dir: Path, say=print) -> tu
 
 
 def bootstrap_curve(returns: np.ndarray, steps_per_update: int) -> dict:
-    """Mean return over seeds (seeds, updates) with its 95 % bootstrap band, per env step."""
+    """Mean return over seeds (seeds, updates) with its 95 % bootstrap band, per env step; one
+    seed has no band (`ci_low`, `ci_high` None)."""
     from scipy import stats  # noqa: PLC0415
 
-    ci = stats.bootstrap((returns,), np.mean, axis=0, confidence_level=0.95, n_resamples=1000, random_state=0)
-    return {
+    curve = {
         "env_steps": (steps_per_update * np.arange(1, returns.shape[1] + 1)).tolist(),
         "mean": returns.mean(axis=0).tolist(),
-        "ci_low": np.asarray(ci.confidence_interval.low).tolist(),
-        "ci_high": np.asarray(ci.confidence_interval.high).tolist(),
+        "ci_low": None,
+        "ci_high": None,
     }
+    if returns.shape[0] > 1:
+        ci = stats.bootstrap((returns,), np.mean, axis=0, confidence_level=0.95, n_resamples=1000, random_state=0)
+        curve.update(ci_low=np.asarray(ci.confidence_interval.low).tolist(),
+                     ci_high=np.asarray(ci.confidence_interval.high).tolist())  # fmt: skip
+    return curve
 
 
 def learning_rates(b) -> tuple[float, ...]:
@@ -259,7 +264,8 @@ def plot_curve(payload: dict, path: Path, target_range=(7.0, 18.0), unit: str = 
             if c is None:
                 continue
             (line,) = ax.plot(c["env_steps"], c["mean"], label=f"{label}, mean over {payload['seeds']} seeds")
-            ax.fill_between(c["env_steps"], c["ci_low"], c["ci_high"], alpha=0.25, color=line.get_color())
+            if c["ci_low"] is not None:
+                ax.fill_between(c["env_steps"], c["ci_low"], c["ci_high"], alpha=0.25, color=line.get_color())
     ax_err.set_ylabel(f"training episodes' mean final error ({unit})")
     ax_ret.set_ylabel("mean episode return")
     for ax in (ax_err, ax_ret):

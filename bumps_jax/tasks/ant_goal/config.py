@@ -68,6 +68,10 @@ def experts() -> ml_collections.ConfigDict:
     experts.ppo.learning_rate = 3e-4
     experts.ppo.value_learning_rate = 3e-4  # Brax: one Adam for both nets
     experts.ppo.discount = 0.97
+    # The distance term as progress toward the goal: w = 1 / (1 - discount) turns -|p - g|_1 into
+    # (|p - g|_1 - |p' - g|_1) / (1 - discount) per step, an action's own effect, as Brax's ant
+    # pays forward speed (potential-based: the same optimal policy).
+    experts.ppo.potential_shaping = 1.0 / (1.0 - experts.ppo.discount)
     experts.ppo.gae_lambda = 0.95
     experts.ppo.clip_epsilon = 0.3
     experts.ppo.entropy_cost = 1e-2

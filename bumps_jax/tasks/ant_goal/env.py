@@ -352,6 +352,9 @@ class AntGoalEnv(task_env.ContextualEnv):
             "valid": (~info["overflow"] & jnp.isfinite(distance)).astype(jnp.float32),
             "final_position": xy,  # (2,) m: scores the episode against any goal
             "distance_l1": distance_l1,  # this step's |p - goal|_1 (m), what the reward pays
+            # The reward's distance term as a function of the state (0 at the goal): the potential
+            # that PPO's `potential_shaping` turns into progress toward the goal.
+            "potential": -self.config.reward.distance * jnp.sum(jnp.abs(xy - info["target"])),
             # This step's reward terms, weighted: reward = their sum.
             "reward_distance": reward_distance,
             "reward_ctrl": reward_ctrl,
