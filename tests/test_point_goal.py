@@ -103,6 +103,16 @@ def test_filtering_on_a_2d_grid_chooses_as_brute_force_does(env):
         assert mask[t, c] == (np.linalg.norm(contexts[c] - tasks[t]) <= width + 1e-6)
     chosen = filtering.evaluate_chosen(program, None, sel.contexts[sel.chosen], tasks, 2, jax.random.key(1), block=4)
     assert chosen["final_position"].shape == (3, 2, 2)
+    # Successive halving keeps its first rung's final positions, (C, rungs[0], 2): NaN where a
+    # context is no task's candidate.
+    halved = filtering.filter_policy(
+        program, None, contexts, tasks, width, 3, jax.random.key(0), task_range=(-1.0, 1.0), block=16,
+        rungs=(2, 3), **filtering.scoring(env),
+    )  # fmt: skip
+    assert halved.distance.shape == (len(contexts), 2, 2) and halved.valid.shape == (len(contexts), 2)
+    seen = mask.any(axis=0)
+    assert np.isfinite(halved.distance[seen]).all() and np.isnan(halved.distance[~seen]).all()
+    np.testing.assert_allclose(halved.distance[seen], sel.distance[seen][:, :2], rtol=1e-6)
 
 
 def test_the_tiny_pipeline_filters_better_than_doing_nothing(tmp_path):

@@ -320,7 +320,7 @@ def _halving_policy(grid, params, contexts, tasks, width, key, task_range, block
     rungs, keep = check_rungs(rungs, keep)
     tasks = np.asarray(tasks, np.float64)
     keys = stage_keys(key, len(contexts), rungs[-1]).reshape(len(contexts), rungs[-1])
-    first = {k: np.full((len(contexts), rungs[0]), np.nan) for k in (achieved, "valid")}
+    first = {}  # the first rung's (C, rungs[0], ...) achieved outcome (a vector for some tasks) and valid
 
     def errors_of(index, start, stop):
         r = stop - start
@@ -328,8 +328,8 @@ def _halving_policy(grid, params, contexts, tasks, width, key, task_range, block
         m = run_blocked(grid, params, flat_ctx, flat_ctx, keys[index, start:stop].reshape(-1), block, multiple)
         m = {k: v.reshape(len(index), r, *v.shape[1:]) for k, v in m.items()}
         if start == 0:
-            for k in first:
-                first[k][index] = m[k]
+            for k in (achieved, "valid"):
+                first.setdefault(k, np.full((len(contexts), *m[k].shape[1:]), np.nan))[index] = m[k]
         return errors(m, tasks)
 
     out = successive_halving(errors_of, candidate_mask(contexts, tasks, width, task_range), rungs, keep)
