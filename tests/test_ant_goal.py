@@ -274,7 +274,9 @@ def test_the_tiny_pipeline_runs_every_bumps_stage(tmp_path):
         assert np.isfinite(row["error_mean_m"]) and row["accuracy_mean"] == 1.0, name
         for context, task in zip(table2["chosen_contexts"].get(name, []), table2["tasks"], strict=False):
             assert np.linalg.norm(np.subtract(context, task)) <= cfg.filter.width + 1e-6
-    assert "BUMPS on ant_goal" in (tmp_path / "report.md").read_text()
+    report = (tmp_path / "report.md").read_text()
+    assert "BUMPS on ant_goal" in report and "(error_map.png)" in report  # the 2-D goals' error map
+    assert (tmp_path / "error_map.png").stat().st_size > 0
     # The DAgger round added (nets x goals x 1 episode x steps) pairs, its nets trained from the
     # first round's in the folders later stages read; the first round's checkpoints are gone; a rerun is up to date.
     n, steps, nets = len(cfg.experts.tasks), cfg.env.episode_steps, len(cfg.meta.nets)

@@ -95,6 +95,9 @@ def test_a_rerun_is_up_to_date_and_publishes_into_results(cheetah_run, tmp_path)
     names = sorted(p.name for p in written)
     assert {"experts.json", "table1.json", "table2.json", "pipeline.json", "baseline.json"} <= set(names)
     assert all(p.parent == tmp_path / "results" / "cheetah_vel" for p in written)
+    assert "error_map.png" not in names  # a scalar context has no map
+    report = (tmp_path / "results" / "cheetah_vel" / "report.md").read_text()  # its figures by their published names
+    assert "](context_map.png)" in report and "](filter/" not in report and "](baseline/" not in report
     with pytest.raises(ValueError, match="holds no kick run"):
         publish.publish_task(cheetah_run["dir"], "kick", root=tmp_path)
     with pytest.raises(ValueError, match="empty holds no stage results to publish"):

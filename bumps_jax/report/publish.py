@@ -49,6 +49,7 @@ TASK_PUBLISHED = {
     "filter/context_map.png": "context_map.png",
     "baseline/baseline.json": "baseline.json",
     "baseline/baseline_curve.png": "baseline_curve.png",
+    "error_map.png": "error_map.png",
 }
 
 
@@ -102,6 +103,8 @@ def write_report(run_dir: str | Path) -> Path:
     path = Path(run_dir) / "report.md"
     task = report_task.run_task(run_dir)
     paper_rows = tasks.get(task).report.paper_rows
+    if not paper_rows:
+        report_task.write_figures(run_dir)
     runio.write_text(path, report.build(run_dir) if paper_rows else report_task.build_task(run_dir, task))
     runio.sync("report")  # every process reads it back
     return path
@@ -115,6 +118,7 @@ def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list
     if not any((run_dir / rel).exists() for rel in TASK_PUBLISHED if rel.endswith(".json")):
         raise ValueError(f"{run_dir} holds no stage results to publish")
     tasks.check_record_task(report_task.run_task(run_dir), task, str(run_dir))
+    write_report(run_dir)  # from the records as they are now, not as the last stage left it
     written = []
     for rel, name in TASK_PUBLISHED.items():
         if (run_dir / rel).exists():
@@ -122,5 +126,11 @@ def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list
             dest.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(run_dir / rel, dest)
             written.append(dest)
+    report_md = root / "results" / tasks.folder(task) / "report.md"
+    text = report_md.read_text()
+    for rel, name in TASK_PUBLISHED.items():  # the report's figures under their published names
+        if rel.endswith(".png"):
+            text = text.replace(f"]({rel})", f"]({name})")
+    runio.write_text(report_md, text)
     blocks = tasks.get(task).report.published_blocks  # the task's rows beside others' published results
     return written + ([] if blocks is None else blocks(root))

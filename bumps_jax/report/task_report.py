@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bumps_jax.report import tables
+from bumps_jax.report import error_map, tables
 from bumps_jax.report.summary import EXTRAS, STAGES, load, pipeline_lines, preamble_lines, stages_table
 
 
@@ -22,12 +22,23 @@ def run_task(run_dir: str | Path) -> str:
     return tasks.DEFAULT
 
 
+def records(run_dir: Path) -> dict:
+    """The run's stage records (name -> record, or None where the stage has not written it)."""
+    found = {name: load(run_dir, STAGES[name]) for name in ("experts", "meta", "filter")}
+    found["baseline"] = load(run_dir, EXTRAS["baseline"])
+    return found
+
+
+def write_figures(run_dir: str | Path) -> None:
+    """The figures drawn from several stages' records: the error map of a 2-D context."""
+    error_map.write(run_dir, records(Path(run_dir)))
+
+
 def build_task(run_dir: str | Path, task: str) -> str:
     """The report's markdown of a run of `task` (not the kick): its stages' wall times, the
     experts, Table 1, Table 2 and the multi-task PPO baseline in the task's unit."""
     run_dir = Path(run_dir)
-    found = {name: load(run_dir, STAGES[name]) for name in ("experts", "meta", "filter")}
-    found["baseline"] = load(run_dir, EXTRAS["baseline"])
+    found = records(run_dir)
     lines = [f"# BUMPS on {task}: run `{run_dir.name}`", ""]
     first = next((v for v in found.values() if v), None)
     if first is None:
@@ -45,7 +56,7 @@ def build_task(run_dir: str | Path, task: str) -> str:
         lines += [tables.task_table2_markdown(found["filter"]["rows"], unit)]
     if found["baseline"]:
         lines += task_baseline_lines(found["baseline"], found["experts"], found["filter"], unit)
-    figures = sorted(p.relative_to(run_dir).as_posix() for p in run_dir.glob("*/*.png"))
+    figures = sorted(p.relative_to(run_dir).as_posix() for p in [*run_dir.glob("*.png"), *run_dir.glob("*/*.png")])
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
