@@ -4,10 +4,8 @@ velocities, the multi-task PPO baseline, the report and the published records.""
 
 import json
 
-import jax
 import numpy as np
 import pytest
-from rollout_memo import digest
 
 from bumps_jax import config
 from bumps_jax.algo import filtering
@@ -145,54 +143,3 @@ def test_filtering_scores_contexts_from_per_step_velocities():
     scores = errors.mean(axis=-1)
     chosen = filtering.select_contexts(scores, [1.0, 2.0], [1.0, 2.0], 1.0, (0.0, 3.0))
     assert chosen.tolist() == [0, 1]
-
-
-def test_outward_experts_continue_ring_by_ring_and_a_killed_run_resumes_to_the_same(tmp_path, monkeypatch):
-    """`experts.family.outward`: the centre (1 m/s) first, then 0.5 m/s, then 2 m/s, each from its
-    nearest trained expert (both from the centre); killed after every chunk and rerun, the same."""
-    from bumps_jax.pipeline.stages import experts as experts_stage  # noqa: PLC0415
-
-    cfg = config.make_config("tiny", {"task": "cheetah_vel", "experts.tasks": (0.5, 1.0, 2.0),
-                                      "experts.family.outward": True})  # fmt: skip
-    programs = experts_stage.compile_programs(cfg)
-    # Each PPO chunk runs once per input (state and targets): the rerun's chunks asked again from
-    # the same states replay the first run's outputs (on a CPU each costs seconds).
-    memo, real_chunk = {}, experts_stage.run_chunk
-
-    def run_chunk(programs_, state, targets):
-        key = digest((state, targets))
-        if key not in memo:
-            memo[key] = real_chunk(programs_, state, targets)
-        return memo[key]
-
-    monkeypatch.setattr(experts_stage, "run_chunk", run_chunk)
-    sources, real = [], experts_stage.family_state
-    monkeypatch.setattr(experts_stage, "family_state", lambda p, rngs: sources.append(p) or real(p, rngs))
-    whole = experts_stage.train(cfg, tmp_path / "whole", programs, say=lambda *a, **k: None)
-    assert whole["finished"] and len(sources) == 3  # one start per ring
-    centre_final = jax.tree.map(lambda x: x[1:2], whole["state"].params)
-    for ring in (1, 2):  # the 0.5 and 2 m/s experts start from the centre expert's trained policy
-        for a, b in zip(jax.tree.leaves(sources[ring].params), jax.tree.leaves(centre_final), strict=True):
-            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    stage = tmp_path / "whole" / "experts"
-    assert sorted(p.name for p in (stage / "rings").iterdir()) == ["ring0", "ring1", "ring2"]
-    rows = (stage / "progress.csv").read_text().strip().splitlines()
-    updates = programs.trainer.n_updates
-    assert len(rows) == 1 + 3 * updates and [r.split(",")[2] for r in rows[1:]] == ["1.0"] * updates + [
-        "0.5"] * updates + ["2.0"] * updates  # fmt: skip
-    assert (stage / "final_params").is_dir()
-    params = experts_stage.expert_params(whole["state"])  # the record names each ring's parents
-    record = experts_stage.evaluate_experts(cfg, stage, params, programs, whole["wall_s"], say=lambda *a, **k: None)
-    assert record["family_rings"] == [{"contexts": [1.0], "parents": [1.0]}, {"contexts": [0.5], "parents": [1.0]},
-                                      {"contexts": [2.0], "parents": [1.0]}]  # fmt: skip
-    said, done = [], False
-    while not done:  # a run killed after each chunk, rerun until it ends
-        part = experts_stage.train(
-            cfg, tmp_path / "split", programs, say=lambda *a, **k: said.append(a[0]), stop_after_chunks=1
-        )
-        done = part["finished"]
-    assert sum("resumed from update" in str(s) for s in said) >= 3
-    assert len(memo) == 2 + 3 * programs.trainer.n_updates  # the centre candidates' 2 chunks, then every ring's
-    for a, b in zip(jax.tree.leaves(whole["state"]), jax.tree.leaves(part["state"]), strict=True):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    assert (tmp_path / "split" / "experts" / "progress.csv").read_text() == (stage / "progress.csv").read_text()

@@ -16,7 +16,6 @@ from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.pipeline.stages import meta as meta_stage
 from bumps_jax.report import budgets, readme, seeds
-from bumps_jax.tasks.ant_goal import config as ant_config
 from bumps_jax.tasks.cheetah_vel import env as cheetah_env
 
 
@@ -25,46 +24,9 @@ def test_the_centre_is_the_context_nearest_the_mean_and_targets_ramp_out_from_it
     assert experts_stage.family_centre([[1.0, 1.0], [0.1, 0.0], [-1.0, -1.0]]) == 1
     tasks = np.array([0.0, 1.0, 3.0])
     # Chunks of 10 updates, a ramp of 30: a third of the way after the first chunk, all of it from the third on.
-    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, tasks[[1, 1, 1]], 0, 10, 30), [2 / 3, 1.0, 5 / 3])
-    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, tasks[[1, 1, 1]], 20, 10, 30), tasks)
-    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, tasks[[1, 1, 1]], 0, 10, 0), tasks)  # no ramp
-
-
-def test_rings_go_outward_from_the_centre_and_each_expert_continues_its_nearest_inner_one():
-    cheetah = np.arange(0.0, 3.01, 0.25)  # 13 targets, the centre 1.5 m/s
-    rings = experts_stage.family_rings(cheetah)
-    assert [r.tolist() for r in rings] == [[6], [5, 7], [4, 8], [3, 9], [2, 10], [1, 11], [0, 12]]
-    parents = experts_stage.ring_parents(cheetah, rings)
-    assert [p.tolist() for p in parents] == [[6, 6], [5, 7], [4, 8], [3, 9], [2, 10], [1, 11]]
-    # a vector context: the centre, then a ring of 4 at 1 m and one of 4 at 2 m, each from the one inside it
-    goals = np.array([[0, 0], [1, 0], [0, 1], [-1, 0], [0, -1], [2, 0], [0, 2], [-2, 0], [0, -2]], float)
-    rings = experts_stage.family_rings(goals)
-    assert [r.tolist() for r in rings] == [[0], [1, 2, 3, 4], [5, 6, 7, 8]]
-    assert [p.tolist() for p in experts_stage.ring_parents(goals, rings)] == [[0, 0, 0, 0], [1, 2, 3, 4]]
-    # the ant's 37 goals, written to three decimals: the centre and rings of 6, 12 and 18
-    assert [len(r) for r in experts_stage.family_rings(ant_config.TRAIN_TASKS)] == [1, 6, 12, 18]
-    # an uneven grid: the 2 m/s expert continues from the centre's 1 m/s, not from 0.5 one ring in
-    uneven = np.array([0.5, 1.0, 2.0])
-    rings = experts_stage.family_rings(uneven)
-    assert [r.tolist() for r in rings] == [[1], [0], [2]]
-    assert [p.tolist() for p in experts_stage.ring_parents(uneven, rings)] == [[1], [1]]
-    # ramped from each expert's parent's context to its own
-    ramp = experts_stage.ramped_targets(cheetah[[5, 7]], cheetah[[6, 6]], 0, 10, 20)
-    np.testing.assert_allclose(ramp, [1.375, 1.625])
-
-
-def test_every_expert_starts_as_its_parent_with_its_own_rng_and_no_updates():
-    parents = ppo.TrainState(
-        params={"w": jnp.arange(6.0).reshape(2, 3)}, opt_state={"m": jnp.ones((2, 3))},
-        normalizer={"n": jnp.array([7.0, 8.0])}, rng=jax.random.split(jax.random.PRNGKey(0), 2),
-        update=jnp.array([40, 40]), env_steps=jnp.array([4000, 4000]),
-    )  # fmt: skip
-    rngs = jax.random.split(jax.random.PRNGKey(1), 2)
-    state = experts_stage.family_state(parents, rngs)
-    np.testing.assert_array_equal(state.params["w"], np.arange(6.0).reshape(2, 3))
-    np.testing.assert_array_equal(state.normalizer["n"], [7.0, 8.0])
-    np.testing.assert_array_equal(state.rng, rngs)
-    assert state.update.tolist() == [0, 0] and state.env_steps.tolist() == [0, 0]
+    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, 1, 0, 10, 30), [2 / 3, 1.0, 5 / 3])
+    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, 1, 20, 10, 30), tasks)
+    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, 1, 0, 10, 0), tasks)  # no ramp
 
 
 def test_every_expert_starts_as_the_centre_with_its_own_rng_and_no_updates():
@@ -87,8 +49,6 @@ def test_every_expert_starts_as_the_centre_with_its_own_rng_and_no_updates():
         ({"experts.family.centre_updates": 3}, "must be a multiple of experts.updates_per_chunk"),
         ({"experts.family.ramp_updates": -1}, "experts.family.ramp_updates must be an integer >= 0, got -1"),
         ({"experts.family.candidates": 0}, "experts.family.candidates must be an integer >= 1, got 0"),
-        ({"experts.family.outward": 1}, "--set experts.family.outward=1: expected true or false"),
-        ({"experts.family.outward": True, "experts.family.centre_updates": 0}, "experts.family.outward needs a centre"),
         ({"meta.dataset.action_noise": -0.1}, "meta.dataset.action_noise must be a finite std >= 0, got -0.1"),
         ({"meta.dagger.rounds": 1, "meta.dagger.epochs": 15}, "meta.dagger.epochs 15 must be a multiple of"),
     ],

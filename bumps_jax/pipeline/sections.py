@@ -37,9 +37,6 @@ def family() -> ml_collections.ConfigDict:
     # Centre experts trained side by side (seeds of their own) before one is chosen: upright where
     # the env reports a posture, then the lowest error on the centre context (`choose_centre`).
     cfg.candidates = 1
-    # True: ring by ring outward from the centre (rings of equal distance to it), each expert
-    # continued from its nearest expert in the rings inside; False: every expert from the centre at once.
-    cfg.outward = False
     return cfg
 
 

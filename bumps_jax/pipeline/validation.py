@@ -88,8 +88,6 @@ def experts(e, task_range, n_steps: int, unit: str = "m", size: int = 1) -> None
                 f"experts.family.centre_updates {e.family.centre_updates} must be a multiple of "
                 f"experts.updates_per_chunk {e.updates_per_chunk} (one compiled chunk size)"
             )
-        if e.family.get("outward", False) and not e.family.centre_updates:
-            raise ValueError("experts.family.outward needs a centre to start from: experts.family.centre_updates is 0")
 
 
 def chunk_divides(section, prefix: str, total: int) -> None:

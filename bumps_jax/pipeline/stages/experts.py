@@ -215,44 +215,22 @@ def family_centre(tasks) -> int:
     return int(np.argmin(np.linalg.norm(t - t.mean(axis=0), axis=1)))
 
 
-def ramped_targets(tasks: np.ndarray, origins: np.ndarray, update: int, chunk: int, ramp: int) -> np.ndarray:
+def ramped_targets(tasks: np.ndarray, centre: int, update: int, chunk: int, ramp: int) -> np.ndarray:
     """Every expert's training target for the chunk after `update` updates: its own context, or
-    while the ramp lasts, the point (update + chunk) / ramp of the way from its origin (the
-    context of the expert it continues from) to it."""
+    while the ramp lasts, the point (update + chunk) / ramp of the way from the centre's to it."""
     frac = 1.0 if ramp <= 0 else min(1.0, (update + chunk) / ramp)
-    return origins + (tasks - origins) * frac
+    return tasks[centre] + (tasks - tasks[centre]) * frac
 
 
-def family_state(parents: ppo.TrainState, rngs) -> ppo.TrainState:
-    """The TrainState of the experts each expert continues from, (N, ...) or one (1, ...) for all
-    (N = len(rngs)): the same policy, value net, optimiser and observation statistics; each its
-    own rng, no updates yet."""
+def family_state(centre: ppo.TrainState, rngs) -> ppo.TrainState:
+    """The centre expert's TrainState (1, ...) copied to every expert (N = len(rngs)): the same
+    policy, value net, optimiser and observation statistics; each its own rng, no updates yet."""
     n = len(rngs)
-    state = jax.tree.map(lambda x: jnp.broadcast_to(x, (n, *x.shape[1:])), parents)
+    state = jax.tree.map(lambda x: jnp.repeat(x, n, axis=0), centre)
     zeros = jnp.zeros((n,), state.update.dtype)
     return state._replace(
         rng=jnp.asarray(rngs, state.rng.dtype), update=zeros, env_steps=zeros.astype(state.env_steps.dtype)
     )
-
-
-def family_rings(tasks) -> list[np.ndarray]:
-    """The experts' indices ring by ring outward from the family's centre: ring 0 the centre
-    alone, ring r the contexts at the r-th smallest distance from it (to 1e-3 of the context's
-    unit: goals written to three decimals share their ring), each ascending."""
-    t = np.asarray(tasks, np.float64).reshape(len(tasks), -1)
-    d = np.round(np.linalg.norm(t - t[family_centre(tasks)], axis=1), 3)
-    return [np.flatnonzero(d == v) for v in np.unique(d)]
-
-
-def ring_parents(tasks, rings: list[np.ndarray]) -> list[np.ndarray]:
-    """For every ring after the first, each member's parent: its nearest context in the rings
-    inside it (the lower index on a tie)."""
-    t = np.asarray(tasks, np.float64).reshape(len(tasks), -1)
-    out = []
-    for r in range(1, len(rings)):
-        inner = np.sort(np.concatenate(rings[:r]))
-        out.append(inner[np.argmin(np.linalg.norm(t[rings[r]][:, None] - t[inner][None], axis=-1), axis=1)])
-    return out
 
 
 def chunked_loop(programs: Compiled, tasks, init, targets_at, n_updates: int) -> runio.ChunkedTraining:
@@ -335,12 +313,13 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
 
     Returns {"state": TrainState (N, ...), "finished": bool, "wall_s": training seconds over every call}.
     """
+    import orbax.checkpoint as ocp  # noqa: PLC0415
+
     stage_dir = run_dir / "experts"
     tasks = task_env.as_contexts(cfg.experts.tasks, programs.env.CONTEXT_SIZE)  # (E,) or (E, K)
     total = programs.trainer.n_updates
     centre_updates, ramp = family_updates(cfg)
     centre_s = 0.0
-    origins = np.broadcast_to(tasks[family_centre(tasks)], tasks.shape)
     if centre_updates:
         centre = train_centre(cfg, run_dir, programs, say, stop_after_chunks)
         if not centre["finished"]:
@@ -349,65 +328,20 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
         c = choose_centre(cfg, run_dir, programs, centre["state"], say)["chosen"]
         chosen = jax.tree.map(lambda x: x[c : c + 1], centre["state"])
         rngs = jax.vmap(lambda k: jax.random.fold_in(k, 1))(task_rngs(cfg.experts.seed, len(tasks)))
-        if cfg.experts.family.get("outward", False):
-            out = train_rings(cfg, stage_dir, programs, chosen, rngs, say, stop_after_chunks)
-            return {**out, "wall_s": out["wall_s"] + centre_s}
         init = functools.partial(family_state, chosen, rngs)
     else:
         init = functools.partial(initial_state, cfg, run_dir, programs, say)
-    chunk = int(cfg.experts.updates_per_chunk)
-    loop = chunked_loop(programs, tasks, init, lambda u: ramped_targets(tasks, origins, u, chunk, ramp), total)
+    i, chunk = family_centre(tasks), int(cfg.experts.updates_per_chunk)
+    loop = chunked_loop(programs, tasks, init, lambda u: ramped_targets(tasks, i, u, chunk, ramp), total)
     out = runio.train_in_chunks(stage_dir, loop, total, cfg.experts.keep_checkpoints, say, stop_after_chunks)
     out["wall_s"] += centre_s
     if out["finished"]:
-        save_final(stage_dir, out["state"])
+        with ocp.StandardCheckpointer() as checkpointer:  # leaving the context waits for the write
+            params = runio.savable(expert_params(out["state"]))
+            checkpointer.save((stage_dir / "final_params").resolve(), params, force=True)
+        runio.write_checksums(stage_dir / "final_params")
+        runio.sync("final_params")
     return out
-
-
-def train_rings(cfg, stage_dir: Path, programs: Compiled, centre, rngs, say=print, stop_after_chunks=None) -> dict:
-    """`experts.family.outward`: the experts ring by ring (`family_rings`), each its PPO updates
-    continued from its parent's final state (`ring_parents`; ring 0 from the chosen centre
-    candidate `centre` (1, ...)), its target ramped from its parent's context to its own; each
-    ring resumable under stage_dir/rings/ring<r>. Returns `train`'s dict, the state in task order."""
-    tasks = task_env.as_contexts(cfg.experts.tasks, programs.env.CONTEXT_SIZE)
-    total, (_, ramp) = programs.trainer.n_updates, family_updates(cfg)
-    chunk, unit = int(cfg.experts.updates_per_chunk), programs.env.UNIT
-    rings = family_rings(tasks)
-    parents = [rings[0], *ring_parents(tasks, rings)]
-    trained, state, wall = np.zeros(0, int), None, 0.0  # the experts trained so far (ring-major) and their state
-    for r, ring in enumerate(rings):
-        own, origins = tasks[ring], tasks[parents[r]]
-        # ring 0: the centre candidate; then each expert's parent, by its place among the trained
-        place = np.asarray([np.flatnonzero(trained == i)[0] for i in parents[r]]) if r else None
-        source = centre if r == 0 else jax.tree.map(lambda x, p=place: x[p], state)
-        shown = ", ".join(task_env.format_context(t) for t in own)
-        say(f"family: ring {r} of {len(rings) - 1} ({shown} {unit}), {total} updates")
-        loop = chunked_loop(programs, own, functools.partial(family_state, source, rngs[ring]),
-                            lambda u, o=origins, t=own: ramped_targets(t, o, u, chunk, ramp), total)  # fmt: skip
-        out = runio.train_in_chunks(stage_dir / "rings" / f"ring{r}", loop, total, cfg.experts.keep_checkpoints, say,
-                                    stop_after_chunks)  # fmt: skip
-        wall += out["wall_s"]
-        if not out["finished"]:
-            return {**out, "wall_s": wall}
-        trained = np.concatenate([trained, ring])
-        state = out["state"] if r == 0 else jax.tree.map(lambda a, b: jnp.concatenate([a, b]), state, out["state"])
-    state = jax.tree.map(lambda x: x[np.argsort(trained)], state)  # ring-major -> task order
-    logs = [(stage_dir / "rings" / f"ring{r}" / "progress.csv").read_text().splitlines() for r in range(len(rings))]
-    rows = [logs[0][0], *(row for log in logs for row in log[1:])]  # one header, every ring's rows
-    runio.write_text(stage_dir / "progress.csv", "\n".join(rows) + "\n")
-    save_final(stage_dir, state)
-    return {"state": state, "finished": True, "wall_s": wall, "call_s": out["call_s"]}
-
-
-def save_final(stage_dir: Path, state: ppo.TrainState) -> None:
-    """The trained experts' parameters under stage_dir/final_params, with their checksums."""
-    import orbax.checkpoint as ocp  # noqa: PLC0415
-
-    with ocp.StandardCheckpointer() as checkpointer:  # leaving the context waits for the write
-        params = runio.savable(expert_params(state))
-        checkpointer.save((stage_dir / "final_params").resolve(), params, force=True)
-    runio.write_checksums(stage_dir / "final_params")
-    runio.sync("final_params")
 
 
 # What rebuilds an expert's policy besides the env's sizes: its PPO networks' keys.
@@ -497,13 +431,6 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
             record["env_steps_breakdown"]["family_centre_share"] = centre_steps // len(e.tasks)
             record["family_centre"] = {"context": task_env.context_json(e.tasks[family_centre(e.tasks)]),
                                        "updates": centre_updates, "env_steps": centre_steps}  # fmt: skip
-            if e.family.get("outward", False):  # each expert's parent, ring by ring
-                rings = family_rings(e.tasks)
-                record["family_rings"] = [
-                    {"contexts": [task_env.context_json(e.tasks[i]) for i in ring],
-                     "parents": [task_env.context_json(e.tasks[i]) for i in parents]}
-                    for ring, parents in zip(rings, [rings[0], *ring_parents(e.tasks, rings)], strict=True)
-                ]  # fmt: skip
             choice = stage_dir / "centre" / "choice.json"
             if choice.exists():  # the candidates and which one the family continued from (its episodes' steps)
                 chosen = runio.read_json(choice)
