@@ -132,5 +132,7 @@ def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list
         if rel.endswith(".png"):
             text = text.replace(f"]({rel})", f"]({name})")
     runio.write_text(report_md, text)
+    if (root / report.COMMITTED["experts"]).exists():  # the results page's env steps per arm span every task
+        written.append(report.write_committed(root))
     blocks = tasks.get(task).report.published_blocks  # the task's rows beside others' published results
     return written + ([] if blocks is None else blocks(root))
