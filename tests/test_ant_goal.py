@@ -272,6 +272,7 @@ def test_the_tiny_pipeline_runs_every_bumps_stage(tmp_path):
     assert table2["task"] == "ant_goal" and table2["tasks"] == [list(t) for t in cfg.filter.tasks]
     for name, row in table2["rows"].items():
         assert np.isfinite(row["error_mean_m"]) and row["accuracy_mean"] == 1.0, name
+        assert row["return_mean"] < 0.0, name  # the meta-test return, the papers' score, beside the distance
         for context, task in zip(table2["chosen_contexts"].get(name, []), table2["tasks"], strict=False):
             assert np.linalg.norm(np.subtract(context, task)) <= cfg.filter.width + 1e-6
     report = (tmp_path / "report.md").read_text()

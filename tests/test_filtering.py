@@ -7,7 +7,7 @@ import pytest
 from rollout_memo import EpisodeMemo
 
 from bumps_jax import config
-from bumps_jax.algo import filtering
+from bumps_jax.algo import evaluate, filtering
 from bumps_jax.tasks.kick import env as kick_env
 
 TASK_RANGE = (7.0, 18.0)
@@ -274,3 +274,18 @@ def test_bad_halving_config_names_the_key():
         config.make_config("tiny", {"filter.halving_rungs": (4, 2)})
     with pytest.raises(ValueError, match="filter.selection .* 'best'"):
         config.make_config("tiny", {"filter.selection": "best"})
+
+
+def test_rows_carry_the_mean_return_where_the_env_keeps_one():
+    """Table rows (Table 1's and Table 2's) report the mean episode return over tasks beside the
+    error when the metrics hold one, and no such key otherwise."""
+    metrics = {
+        "final_error": np.ones((2, 3)),
+        "valid": np.ones((2, 3)),
+        "return": np.array([[-1.0, -2, -3], [-5, -5, -5]]),
+    }
+    assert evaluate.table_row(evaluate.summarise_tasks(metrics))["return_mean"] == -3.5
+    assert filtering.table2_row(metrics, 4, np.zeros(2), 10)["return_mean"] == -3.5
+    del metrics["return"]
+    assert "return_mean" not in evaluate.table_row(evaluate.summarise_tasks(metrics))
+    assert "return_mean" not in filtering.table2_row(metrics, 4, np.zeros(2), 10)

@@ -31,6 +31,8 @@ def summarise_tasks(metrics: dict) -> dict:
     }
     if "rel_error" in metrics:
         out["rel_error_mean"] = np.asarray(metrics["rel_error"], np.float64).mean(axis=1)
+    if "return" in metrics:  # the episode's undiscounted return, where the env keeps it: what meta-RL papers report
+        out["return_mean"] = np.asarray(metrics["return"], np.float64).mean(axis=1)
     return out
 
 
@@ -51,7 +53,13 @@ def table_row(per_task: dict, threshold: float = ACCURACY_THRESHOLD) -> dict:
         "error_mean_all_m": float(err.mean()),
         "tasks_above_threshold": int(kept.sum()),
         "n_tasks": int(len(acc)),
+        **mean_return(per_task),
     }
+
+
+def mean_return(per_task: dict) -> dict:
+    """{"return_mean": the mean over tasks of their mean episode return} where the env keeps one, else {}."""
+    return {"return_mean": float(per_task["return_mean"].mean())} if "return_mean" in per_task else {}
 
 
 # -- single-task experts (Table 1, first row) ------------------------------------------------

@@ -249,6 +249,7 @@ def table2_row(metrics: dict, n_contexts: int, best_score, rollouts: int) -> dic
         "n_contexts": int(n_contexts),
         "rollouts": int(rollouts),
         "n_tasks": int(len(per_task["accuracy"])),
+        **evaluate.mean_return(per_task),
     }
 
 
