@@ -152,10 +152,23 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
     validation.validate(cfg)
 
 
+# Keys that joined a stage's section after runs were made, with the value that changes nothing:
+# a section leaves such a key out at that value, so runs made before it still resume.
+ADDED_KEYS = {"potential_shaping": 0.0}  # under any PPO section
+
+
 def section(cfg: ml_collections.ConfigDict, stage: str) -> dict:
     """What one stage's results depend on, as plain data: its section, the task, its env (as
-    records carry it) and the preset."""
-    return {"preset": cfg.preset, "task": cfg.task, "env": resolved_env(cfg), stage: jsonable(cfg[stage].to_dict())}
+    records carry it) and the preset; keys of `ADDED_KEYS` at their value that changes nothing left out."""
+    body = without_added(jsonable(cfg[stage].to_dict()))
+    return {"preset": cfg.preset, "task": cfg.task, "env": resolved_env(cfg), stage: body}
+
+
+def without_added(tree):
+    """A nested dict less every `ADDED_KEYS` key holding its value that changes nothing."""
+    if not isinstance(tree, dict):
+        return tree
+    return {k: without_added(v) for k, v in tree.items() if not (k in ADDED_KEYS and v == ADDED_KEYS[k])}
 
 
 def resolved_env(cfg: ml_collections.ConfigDict) -> dict:

@@ -16,6 +16,7 @@ from bumps_jax.tasks import registry as tasks
 # `pipeline.MANIFEST_SCHEMA`. Re-pinned when the losing arms' knobs left the tree (schema 2), and
 # when every section came to name its task (the kick's values unchanged: the pins without it held).
 # experts: the old pins' sections less the deleted losing-arm knobs (tune.scheme ... bc.common_start_strength).
+# Keys that join later at a value that changes nothing leave the pins as they are (`config.ADDED_KEYS`).
 # meta: re-pinned with schema 3, when closed-loop cloning's knobs (meta.dataset.action_noise,
 # clip_labels, meta.dagger) joined the tree at values that change nothing (the kick's pins held otherwise).
 KICK_SECTIONS = {
@@ -56,7 +57,13 @@ def test_a_tasks_tree_is_its_own():
     assert tuple(cfg.experts.tasks) == (0.5, 2.0) and cfg.env.episode_steps == 10
     section = config.section(cfg, "experts")
     assert section["task"] == "cheetah_vel" and section["env"]["physics_dt"] == pytest.approx(0.01)
-    assert section["experts"] == json.loads(json.dumps(cfg.experts.to_dict(), default=list))
+    assert section["experts"] == config.without_added(json.loads(json.dumps(cfg.experts.to_dict(), default=list)))
+    # A key that joined later is left out at its value that changes nothing (old runs resume), kept otherwise.
+    assert "potential_shaping" not in section["experts"]["ppo"]
+    shaped = config.section(
+        config.make_config("tiny", {"task": "cheetah_vel", "experts.ppo.potential_shaping": 2.0}), "experts"
+    )
+    assert shaped["experts"]["ppo"]["potential_shaping"] == 2.0
     # The default task is the kick's, with its own sections.
     kick = config.make_config("tiny")
     assert config.section(kick, "experts") == config.section(config.make_config("tiny", {"task": "kick"}), "experts")
