@@ -41,6 +41,7 @@ PUBLISHED = {
 # What `publish --task <task>` copies from a finished run: run file -> path under results/<task>/.
 TASK_PUBLISHED = {
     "experts/experts.json": "experts.json",
+    "experts/progress.csv": "experts_progress.csv",  # every expert's training curve
     "meta/table1.json": "table1.json",
     "filter/table2.json": "table2.json",
     "pipeline.json": "pipeline.json",
