@@ -208,8 +208,10 @@ def plot_error_vs_target(path, curves: dict, labels=("target", "mean final error
 
 def plot_context_map(path, maps: dict, task_range, labels=("context (m)", "achieved distance (m)")) -> Path:
     """Achieved distance (or the task's achieved quantity) vs context. maps: name -> (contexts (C,),
-    achieved (C, R)); labels: (x, y) axis names. Vector contexts (C, K) with achieved (C, R, K):
-    an arrow from each context to its mean achieved point, in the first two coordinates."""
+    achieved (C, R)); labels: (x, y) axis names. Vector contexts (C, K) with achieved (C, R, K), in
+    their first two coordinates: each context's mean achieved point, coloured by the context's
+    direction from the range's middle (hue) and sized by its distance from it; the contexts in grey.
+    A family that reaches its contexts redraws their pattern."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
@@ -218,11 +220,17 @@ def plot_context_map(path, maps: dict, task_range, labels=("context (m)", "achie
     fig, ax = plt.subplots(figsize=(6, 5))
     lo, hi = task_range
     if any(np.ndim(c) > 1 for c, _ in maps.values()):
+        middle = (lo + hi) / 2.0
         for i, (name, (contexts, achieved)) in enumerate(maps.items()):
             c, a = np.asarray(contexts)[:, :2], np.nanmean(np.asarray(achieved, dtype=float), axis=1)[:, :2]
-            ax.quiver(c[:, 0], c[:, 1], a[:, 0] - c[:, 0], a[:, 1] - c[:, 1], angles="xy", scale_units="xy",
-                      scale=1, width=0.003, color=f"C{i}", label=name)  # fmt: skip
-        ax.set(xlim=(lo, hi), ylim=(lo, hi), aspect="equal", title=f"{labels[0]} -> mean {labels[1]}")
+            rel = c - middle
+            hue = (np.arctan2(rel[:, 1], rel[:, 0]) / (2 * np.pi)) % 1.0
+            size = 4 + 30 * np.linalg.norm(rel, axis=1) / max(hi - middle, 1e-9)
+            if i == 0:
+                ax.scatter(c[:, 0], c[:, 1], s=2, c="0.8", label="contexts")
+            ax.scatter(a[:, 0], a[:, 1], s=size, c=hue, cmap="hsv", vmin=0.0, vmax=1.0, alpha=0.7,
+                       marker="os^"[i % 3], label=f"{name}: mean {labels[1]}")  # fmt: skip
+        ax.set(xlim=(lo, hi), ylim=(lo, hi), aspect="equal", title=f"mean {labels[1]} by {labels[0]}")
         ax.grid(alpha=0.3)
         ax.legend()
         return runio.save_figure(fig, path)
