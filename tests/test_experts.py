@@ -365,3 +365,22 @@ def test_trained_experts_without_a_record_are_evaluated_not_retrained(tmp_path, 
     assert seen == {"params": ("params of", stage_dir), "wall_s": 7.5}
     # With the record written, the training checkpoints are gone; final_params stays.
     assert final.exists() and not (stage_dir / "checkpoints").exists()
+
+
+def test_training_tail_tells_which_experts_were_still_learning(tmp_path):
+    """progress.csv's last tenth of updates against the tenth before, per expert: an expert whose
+    training error still fell by more than 5 % counts; a flat one does not."""
+    import csv
+
+    path = tmp_path / "progress.csv"
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["update", "env_steps", "target_m", "final_error"])
+        w.writeheader()
+        for u in range(1, 21):  # tenths of 2 updates: 17-18 against 19-20
+            w.writerow({"update": u, "env_steps": u, "target_m": 1.0, "final_error": 2.0 - 0.05 * u})  # falling
+            w.writerow({"update": u, "env_steps": u, "target_m": 2.0, "final_error": 0.5 + 0.001 * (u % 2)})  # flat
+    tail = experts.training_tail(path)
+    assert tail["updates_compared"] == 2 and tail["still_falling"] == 1 and tail["n_experts"] == 2
+    np.testing.assert_allclose(tail["per_task_drop"], [0.1, 0.0], atol=1e-12)
+    assert experts.tail_line(tail, "m").startswith("1 of 2 experts were still learning")
+    assert experts.training_tail(tmp_path / "missing.csv") is None and experts.tail_line(None, "m") == ""

@@ -415,6 +415,51 @@ def evaluate_on_own(cfg, programs: Compiled, params: ExpertParams) -> tuple[dict
     return own_context_rollouts(env, task_expert_policy(cfg, programs), params, targets, keys)
 
 
+# An expert whose training error fell by more than this fraction from one tenth of its updates to
+# the last tenth was still learning when its budget ended.
+STILL_FALLING = 0.05
+
+
+def training_tail(progress: Path) -> dict | None:
+    """Whether each expert was still learning at the end: from progress.csv, every expert's mean
+    training `final_error` over its last tenth of updates (at least one) against the tenth before.
+    None where there are fewer than two updates (or no log)."""
+    import csv  # noqa: PLC0415
+
+    if not progress.exists():
+        return None
+    with progress.open() as f:
+        rows = list(csv.DictReader(f))
+    target = next((k for k in (rows[0] if rows else {}) if k.startswith("target_")), None)
+    curves: dict[str, list[float]] = {}
+    for row in rows:
+        curves.setdefault(row[target], []).append(float(row["final_error"]))
+    n = min((len(c) for c in curves.values()), default=0)
+    if n < 2:
+        return None
+    k = max(1, n // 10)
+    before = np.array([np.mean(c[n - 2 * k : n - k]) for c in curves.values()])
+    last = np.array([np.mean(c[n - k : n]) for c in curves.values()])
+    falling = before - last > STILL_FALLING * np.abs(before)
+    return {
+        "updates_compared": k,
+        "threshold": STILL_FALLING,
+        "still_falling": int(falling.sum()),
+        "n_experts": len(curves),
+        "per_task_drop": (before - last).tolist(),  # in the order of progress.csv's first appearance
+    }
+
+
+def tail_line(tail: dict | None, unit: str) -> str:
+    """The training tail in words, or "" without one."""
+    if not tail:
+        return ""
+    k, pct = tail["updates_compared"], f"{tail['threshold']:.0%}"
+    return (f"{tail['still_falling']} of {tail['n_experts']} experts were still learning when their budget ended "
+            f"(training error over their last {k} updates below the {k} before by more than {pct}; "
+            f"largest drop {max(tail['per_task_drop']):.3g} {unit}).\n")  # fmt: skip
+
+
 def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compiled, wall_s: float, say=print) -> dict:
     """Every expert on its own task (`eval.repetitions` noisy episodes each): experts.json and experts.md."""
     start = time.perf_counter()
@@ -440,12 +485,16 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
     known = [v for v in record["env_steps_breakdown"].values() if v is not None]
     record["env_steps_total"] = int(sum(known))  # per expert, the parts that are known
     record["family_check"] = evaluate.family_check(programs.env, e.tasks, metrics, posture)
+    record["training_tail"] = training_tail(stage_dir / "progress.csv")
     record.update(runio.provenance(cfg.preset, wall_s + time.perf_counter() - start, config.resolved_env(cfg)))
     record.update(task=cfg.task, unit=task.unit, eval_repetitions=int(e.eval.repetitions))
     record["policy"] = policy_record(e.ppo, programs.env)  # what rebuilds the experts from final_params
     family = evaluate.family_table(record["family_check"], programs.env.UNIT)
     say(family)
-    runio.write_text(stage_dir / "experts.md", task.report.experts(record) + "\n" + family)
+    tail = tail_line(record["training_tail"], task.unit)
+    if tail:
+        say(tail)
+    runio.write_text(stage_dir / "experts.md", task.report.experts(record) + "\n" + tail + "\n" + family)
     runio.write_json(stage_dir / OUTPUT, record)
     return record
 
