@@ -125,14 +125,14 @@ def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list
         if (run_dir / rel).exists():
             dest = root / "results" / tasks.folder(task) / name
             dest.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(run_dir / rel, dest)
+            if rel == "report.md":  # its figures under their published names
+                text = (run_dir / rel).read_text()
+                for fig in (f for f in TASK_PUBLISHED if f.endswith(".png")):
+                    text = text.replace(f"]({fig})", f"]({TASK_PUBLISHED[fig]})")
+                runio.write_text(dest, text)
+            else:
+                shutil.copyfile(run_dir / rel, dest)
             written.append(dest)
-    report_md = root / "results" / tasks.folder(task) / "report.md"
-    text = report_md.read_text()
-    for rel, name in TASK_PUBLISHED.items():  # the report's figures under their published names
-        if rel.endswith(".png"):
-            text = text.replace(f"]({rel})", f"]({name})")
-    runio.write_text(report_md, text)
     if (root / report.COMMITTED["experts"]).exists():  # the results page's env steps per arm span every task
         written.append(report.write_committed(root))
     blocks = tasks.get(task).report.published_blocks  # the task's rows beside others' published results

@@ -420,20 +420,19 @@ def evaluate_on_own(cfg, programs: Compiled, params: ExpertParams) -> tuple[dict
 STILL_FALLING = 0.05
 
 
-def training_tail(progress: Path) -> dict | None:
-    """Whether each expert was still learning at the end: from progress.csv, every expert's mean
-    training `final_error` over its last tenth of updates (at least one) against the tenth before.
-    None where there are fewer than two updates (or no log)."""
+def training_tail(progress: Path, unit: str = "m") -> dict | None:
+    """Whether each expert was still learning at the end: from progress.csv (targets in `unit`),
+    every expert's mean training `final_error` over its last tenth of updates (at least one) against
+    the tenth before. None where there are fewer than two updates (or no log)."""
     import csv  # noqa: PLC0415
 
     if not progress.exists():
         return None
-    with progress.open() as f:
-        rows = list(csv.DictReader(f))
-    target = next((k for k in (rows[0] if rows else {}) if k.startswith("target_")), None)
+    target = csv_fields(unit)[2]
     curves: dict[str, list[float]] = {}
-    for row in rows:
-        curves.setdefault(row[target], []).append(float(row["final_error"]))
+    with progress.open() as f:
+        for row in csv.DictReader(f):
+            curves.setdefault(row[target], []).append(float(row["final_error"]))
     n = min((len(c) for c in curves.values()), default=0)
     if n < 2:
         return None
@@ -485,7 +484,7 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
     known = [v for v in record["env_steps_breakdown"].values() if v is not None]
     record["env_steps_total"] = int(sum(known))  # per expert, the parts that are known
     record["family_check"] = evaluate.family_check(programs.env, e.tasks, metrics, posture)
-    record["training_tail"] = training_tail(stage_dir / "progress.csv")
+    record["training_tail"] = training_tail(stage_dir / "progress.csv", programs.env.UNIT)
     record.update(runio.provenance(cfg.preset, wall_s + time.perf_counter() - start, config.resolved_env(cfg)))
     record.update(task=cfg.task, unit=task.unit, eval_repetitions=int(e.eval.repetitions))
     record["policy"] = policy_record(e.ppo, programs.env)  # what rebuilds the experts from final_params

@@ -297,7 +297,7 @@ class AntGoalEnv(task_env.ContextualEnv):
             # Brax's flag of an episode cut by its time limit: every episode ends so.
             "truncation": zero,
         }
-        metrics = self._metrics(data, info, (zero, zero, zero, zero), zero)
+        metrics = self._metrics(data, info, (zero, zero, zero, zero), self._distance_l1(data, goal))
         metrics["target_clipped"] = jnp.any(goal != target).astype(jnp.float32)
         return State(pipeline_state=data, obs=self._observe(data), reward=zero, done=zero, metrics=metrics, info=info)
 
@@ -320,8 +320,7 @@ class AntGoalEnv(task_env.ContextualEnv):
             data = mjx.rne_postconstraint(self.mjx_model, data)
 
         w = self.config.reward
-        xy = data.xpos[self.torso_body, :2]
-        distance_l1 = jnp.sum(jnp.abs(xy - info["target"]))
+        distance_l1 = self._distance_l1(data, info["target"])
         contact = contact_cost(data._impl.cfrc_ext) if self.contact_forces else jnp.zeros((), jnp.float32)
         terms = (
             -w.distance * distance_l1,
@@ -351,10 +350,10 @@ class AntGoalEnv(task_env.ContextualEnv):
             "final_error": distance,
             "valid": (~info["overflow"] & jnp.isfinite(distance)).astype(jnp.float32),
             "final_position": xy,  # (2,) m: scores the episode against any goal
-            "distance_l1": distance_l1,  # this step's |p - goal|_1 (m), what the reward pays
+            "distance_l1": distance_l1,  # |p - goal|_1 (m) now, what the step's reward pays
             # The reward's distance term as a function of the state (0 at the goal): the potential
             # that PPO's `potential_shaping` turns into progress toward the goal.
-            "potential": -self.config.reward.distance * jnp.sum(jnp.abs(xy - info["target"])),
+            "potential": -self.config.reward.distance * distance_l1,
             # This step's reward terms, weighted: reward = their sum.
             "reward_distance": reward_distance,
             "reward_ctrl": reward_ctrl,
@@ -366,6 +365,10 @@ class AntGoalEnv(task_env.ContextualEnv):
             # Physics steps whose solver stopped at its iteration limit (Warp only; MJX-JAX: 0).
             "solver_limit_steps": info["solver_limit_steps"].astype(jnp.float32),
         }
+
+    def _distance_l1(self, data, goal) -> jax.Array:
+        """|torso (x, y) - goal|_1 (m)."""
+        return jnp.sum(jnp.abs(data.xpos[self.torso_body, :2] - goal))
 
     def _observe(self, data) -> jax.Array:
         """qpos (15; without the torso's x and y, 13, unless `torso_xy`) and qvel (14)."""
