@@ -151,6 +151,24 @@ def test_headlines_over_seeds_are_means_with_every_seed_kept(tmp_path):
         seeds.seeds_record([tmp_path / "s0", tmp_path / "s2"], "publish")
 
 
+def test_returns_over_seeds_where_every_run_keeps_them(tmp_path):
+    for i, (ret, meta_ret) in enumerate([(-100.0, -300.0), (-200.0, None)]):
+        files = record("ant_goal", 1.0 + i, 1.5, 1.2)
+        files["filter/table2.json"]["rows"]["filtered_4x256"]["return_mean"] = ret
+        if meta_ret is not None:  # the second run's net has no return: no row of returns for it
+            files["meta/table1.json"]["rows"]["meta_4x256"]["return_mean"] = meta_ret
+        files["experts/experts.json"]["return_mean"] = 10.0 * (i + 1)
+        files["meta/table1.json"]["rows"]["experts"] = {"return_mean": -1e9}  # the experts' return is experts.json's
+        write_run(tmp_path / f"s{i}", files, i)
+    out = seeds.seeds_record([tmp_path / "s0", tmp_path / "s1"], "publish")
+    assert out["returns"]["filtered_4x256"]["per_seed"] == pytest.approx([-100.0, -200.0])
+    assert out["returns"]["filtered_4x256"]["mean"] == pytest.approx(-150.0)
+    assert out["returns"]["experts"]["per_seed"] == pytest.approx([10.0, 20.0])
+    assert "meta_4x256" not in out["returns"] and out["rows"]["meta_4x256"]["mean"] == pytest.approx(1.5)
+    write_run(tmp_path / "s2", record("ant_goal", 1.0, 1.5, 1.2), 2)  # no run keeps a return: no returns at all
+    assert "returns" not in seeds.seeds_record([tmp_path / "s0", tmp_path / "s2"], "publish")
+
+
 def test_the_kicks_seeds_are_published_beside_its_run_and_set_in_readmes_table(tmp_path):
     for i, (e, m, f, h) in enumerate([(0.3, 0.4, 0.2, 0.5), (0.5, 0.8, 0.4, 0.7)]):
         files = record("kick", e, m, f)

@@ -7,9 +7,10 @@ from pathlib import Path
 import pytest
 
 from bumps_jax import config, runio
-from bumps_jax.report import publish, tables
+from bumps_jax.report import publish, published, tables
 from bumps_jax.report import readme as readme_table
 from bumps_jax.report import summary as report
+from bumps_jax.tasks.ant_goal import table as ant_table
 from bumps_jax.tasks.cheetah_vel import table as cheetah_table
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -303,22 +304,23 @@ def test_cheetah_rows_are_the_records_and_replace_only_their_block(tmp_path):
     assert "3,000: 3 experts x 1,000 (PPO, the family's shared start included), then 600 env steps" in rows[0]
     assert "filtered_4x256: -50 (0.25 m/s; 20 selection rollouts per task)" in rows[1]
     assert "speed term -10 (mean speed error 0.050 m/s, mean of 2 seeds: 0.040, 0.060)" in rows[2]
-    doc = tmp_path / cheetah_table.DOC
+    doc = tmp_path / cheetah_table.BLOCKS.doc
     doc.parent.mkdir(parents=True)
-    doc.write_text(f"before\n{cheetah_table.BEGIN}\nstale row\n{cheetah_table.END}\nafter\n")
-    cheetah_table.write(tmp_path)
-    assert doc.read_text() == f"before\n{cheetah_table.block(tmp_path)}\nafter\n" and "stale" not in doc.read_text()
+    doc.write_text(f"before\n{cheetah_table.BLOCKS.begin}\nstale row\n{published.END}\nafter\n")
+    cheetah_table.BLOCKS.write(tmp_path)
+    assert doc.read_text() == f"before\n{cheetah_table.BLOCKS.block(tmp_path)}\nafter\n"
+    assert "stale" not in doc.read_text()
     doc.write_text("no markers\n")
     with pytest.raises(ValueError, match="has no generated rows"):
-        cheetah_table.write(tmp_path)
+        cheetah_table.BLOCKS.write(tmp_path)
 
 
 def test_committed_cheetah_rows_are_the_committed_records():
-    text = Path(cheetah_table.DOC).read_text()
-    assert cheetah_table.block() in text
+    text = Path(cheetah_table.BLOCKS.doc).read_text()
+    assert cheetah_table.BLOCKS.block() in text
     # README's sentences on the run are generated from the same records, each number its record's.
     readme = (ROOT / "README.md").read_text()
-    assert cheetah_table.readme_block(ROOT) in readme
+    assert cheetah_table.BLOCKS.readme_block(ROOT) in readme
     lines = cheetah_table.readme_lines(ROOT)
     baseline = json.loads((ROOT / "results" / "cheetah_vel" / "baseline.json").read_text())
     seeds = json.loads((ROOT / "results" / "cheetah_vel" / "seeds.json").read_text())
@@ -335,14 +337,59 @@ def test_readme_cheetah_sentences_follow_their_records(tmp_path):
     shutil.copytree(ROOT / "results" / "cheetah_vel", tmp_path / "results" / "cheetah_vel")
     path = tmp_path / "results" / "cheetah_vel" / "baseline.json"
     path.write_text(json.dumps({**json.loads(path.read_text()), "error_mean_m": 0.777}))
-    (tmp_path / "README.md").write_text(f"a\n{cheetah_table.README_BEGIN}\nold\n{cheetah_table.README_END}\nb\n")
-    cheetah_table.write_readme(tmp_path)
+    blocks = cheetah_table.BLOCKS
+    (tmp_path / "README.md").write_text(f"a\n{blocks.readme_begin}\nold\n{blocks.readme_end}\nb\n")
+    cheetah_table.BLOCKS.write_readme(tmp_path)
     text = (tmp_path / "README.md").read_text()
     assert "errs 0.78 m/s" in text and "old" not in text and text.startswith("a\n") and text.endswith("b\n")
     (tmp_path / "results" / "cheetah_vel" / "pipeline.json").unlink()
     assert not any("stage time" in line for line in cheetah_table.readme_lines(tmp_path))
     shutil.rmtree(tmp_path / "results")
-    assert "No HalfCheetah-Vel run is published yet" in cheetah_table.readme_block(tmp_path)
+    assert "No HalfCheetah-Vel run is published yet" in cheetah_table.BLOCKS.readme_block(tmp_path)
+
+
+def test_ant_rows_are_returns_over_seeds_from_their_records(tmp_path):
+    env = {"goal_radius": 3.0, "episode_steps": 200, "ctrl_dt": 0.05}
+
+    def spread(*values):
+        return {"mean": sum(values) / len(values), "std": 1.0, "per_seed": list(values)}
+
+    records = {
+        "experts": {"tasks_m": [[0.0, 0.0], [1.0, 0.0]], "env_steps_total": 1000},
+        "table1": {"env": env, "cloning": {"env_steps_total": 600}, "eval": {"repetitions": 20}},
+        "table2": {"env": env, "tasks": [[3.0, 4.0]] * 30,
+                   "rows": {"filtered_4x256": {"rollouts": 600, "n_tasks": 30, "error_mean_m": 1.0}}},
+        "baseline": {"env": env, "seeds": 2, "per_seed": [{"return_mean": -600.0}, {"return_mean": -620.0}],
+                     "error_mean_m": 1.9, "start": {"error_mean_m": 2.8}, "eval_tasks": [[1.0, 0.0]] * 30,
+                     "eval_repetitions": 20, "env_steps_per_seed": 2000},
+    }  # fmt: skip
+    for name, record in records.items():
+        runio.write_json(tmp_path / ant_table.RECORDS[name], record)
+    assert ant_table.rows(tmp_path) == [] and ant_table.readme_lines(tmp_path) == []  # no seeds.json yet
+    runio.write_json(tmp_path / ant_table.SEEDS, {
+        "n_seeds": 2, "unit": "m",
+        "rows": {"experts": spread(0.5, 1.5), "meta_4x256": spread(1.0, 2.0), "meta_11x128": spread(1.2, 2.2),
+                 "filtered_4x256": spread(0.8, 1.8)},
+        "returns": {"meta_4x256": spread(-300.0, -500.0), "meta_11x128": spread(-310.0, -510.0),
+                    "filtered_4x256": spread(-280.0, -480.0)},
+    })  # fmt: skip
+    rows = ant_table.rows(tmp_path)
+    assert "meta_4x256: -400 +- 1 (-300, -500) (final distance 1.50 m)" in rows[0]
+    assert "2,000: 2 experts x 1,000 (PPO, the family's centre included), then 600 env steps" in rows[0]
+    assert "filtered_4x256: -380 +- 1 (-280, -480) (final distance 1.30 m)" in rows[1] and "20 per goal" in rows[1]
+    assert "| -610 (seeds: -600, -620; final distance 1.90 m)" in rows[2] and "2,000 per seed" in rows[2]
+    lines = ant_table.readme_lines(tmp_path)
+    assert lines[0].startswith("Its 30 test goals lie 5.00 m from the start on average")
+    assert "filtered_4x256, the best filtered variant on the mean, 1.30 +- 1.00 m (0.80, 1.80)" in lines[1]
+    assert "ends 1.90 m from its goals, 2.80 m at its start" in lines[2]
+    assert lines[3].startswith("Mean episode returns of PEARL's reward: filtered_4x256 -380, the baseline -610")
+
+
+def test_committed_ant_rows_and_readme_lines_are_the_committed_records():
+    assert ant_table.BLOCKS.block(ROOT) in (ROOT / ant_table.BLOCKS.doc).read_text()
+    assert ant_table.BLOCKS.readme_block(ROOT) in (ROOT / "README.md").read_text()
+    seeds = json.loads((ROOT / ant_table.SEEDS).read_text())
+    assert seeds["n_seeds"] >= 2 and set(seeds["returns"]) >= {"meta_4x256", "filtered_ensemble"}
 
 
 def test_the_speed_section_reads_the_gae_record_and_says_which_is_older():

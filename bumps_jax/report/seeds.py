@@ -20,7 +20,8 @@ PIPELINE = ("pipeline.json", "pipeline.json")  # published beside them where the
 
 
 def run_rows(run_dir: Path) -> dict:
-    """One run's headline errors: {"experts": all tasks, each net unfiltered, each filtered variant}."""
+    """One run's headline errors: {"experts": all tasks, each net unfiltered, each filtered variant};
+    their mean episode returns beside them where the env keeps one."""
     rec = {name: runio.read_json(Path(run_dir) / rel, f"a finished run's {name}") for rel, name in RUN_RECORDS.items()}
     rows = {"experts": rec["experts.json"]["error_mean_all_m"]}
     rows.update({n: r["error_mean_all_m"] for n, r in rec["table1.json"]["rows"].items() if n.startswith("meta_")})
@@ -28,9 +29,19 @@ def run_rows(run_dir: Path) -> dict:
     if (Path(run_dir) / HELDOUT[0]).exists():
         rec[HELDOUT[1]] = runio.read_json(Path(run_dir) / HELDOUT[0])
         rows.update({f"heldout_{n}": r["error_mean_m"] for n, r in rec[HELDOUT[1]]["rows"].items()})
+    scored = {**rec["table1.json"]["rows"], **rec["table2.json"]["rows"], "experts": rec["experts.json"]}
+    returns = {n: r["return_mean"] for n, r in scored.items() if n in rows and r.get("return_mean") is not None}
     family = rec["experts.json"].get("family_check", {})
     n_experts = len(rec["experts.json"]["tasks_m"])
-    return {"rows": rows, "flipped_experts": family.get("flipped_experts"), "n_experts": n_experts, "records": rec}
+    return {"rows": rows, "returns": returns, "flipped_experts": family.get("flipped_experts"),
+            "n_experts": n_experts, "records": rec}  # fmt: skip
+
+
+def spread(values) -> dict:
+    """Mean, std, min, max and the values themselves (per seed, in order)."""
+    values = np.asarray(values, np.float64)
+    return {"mean": float(values.mean()), "std": float(values.std()), "min": float(values.min()),
+            "max": float(values.max()), "per_seed": values.tolist()}  # fmt: skip
 
 
 def seed_of(record: dict) -> dict:
@@ -49,17 +60,16 @@ def seeds_record(run_dirs, command: str) -> dict:
         records.check_same_env(other.get("env"), first.get("env"), f"{d / 'filter/table2.json'}")
         registry.check_record_task(other.get("task"), first.get("task"), str(d))
     names = [n for n in runs[0][1]["rows"] if all(n in r["rows"] for _, r in runs)]  # rows every run has
-    summary = {}
-    for name in names:
-        values = np.asarray([r["rows"][name] for _, r in runs], np.float64)
-        summary[name] = {"mean": float(values.mean()), "std": float(values.std()), "min": float(values.min()),
-                         "max": float(values.max()), "per_seed": values.tolist()}  # fmt: skip
+    summary = {name: spread([r["rows"][name] for _, r in runs]) for name in names}
+    returned = [n for n in names if all(n in r["returns"] for _, r in runs)]  # where the env keeps a return
+    returns = {name: spread([r["returns"][name] for _, r in runs]) for name in returned}
     pipelines = [runio.read_json(d / "pipeline.json") if (d / "pipeline.json").exists() else {} for d, _ in runs]
     out = {
         "task": first.get("task"),
         "unit": first.get("unit"),
         "n_seeds": len(runs),
         "rows": summary,
+        **({"returns": returns} if returns else {}),  # the same rows' mean episode return
         "runs": [
             {
                 "run": d.name,

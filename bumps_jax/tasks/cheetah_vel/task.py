@@ -10,6 +10,6 @@ TASK = Task(
     config=config,
     report=plain_report(
         ("target velocity (m/s)", "mean velocity error (m/s)", "achieved mean velocity (m/s)"),
-        published_blocks=table.publish,
+        published_blocks=table.BLOCKS.publish,
     ),
 )
