@@ -35,7 +35,7 @@ def experts() -> ml_collections.ConfigDict:
     # 8 epochs per batch, discount 0.95, lr 3e-4, entropy 1e-3, reward scaling 1, observation
     # normalisation; GAE lambda 0.95, clip 0.3 and value weight 0.5 are Brax's defaults.
     experts.ppo.num_envs = 512  # whole 200-step episodes per update: 102,400 steps (Brax: 327,680)
-    experts.ppo.num_minibatches = 16  # 32 episodes = 6,400 steps each (Brax: 10,240)
+    experts.ppo.num_minibatches = 4  # 128 episodes = 25,600 steps each (Brax: 10,240; docs/decisions.md)
     experts.ppo.num_epochs = 8
     # One family: the 1.5 m/s expert trains 130 updates alone, then all 13 continue from it for
     # 90 updates each, their targets moving out from 1.5 m/s over the first 30: 1,300 updates of
@@ -69,8 +69,9 @@ def baseline(experts: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     b.eval_repetitions = 20  # episodes per test velocity and seed (reset noise on)
     # ... and per seed the env steps that all of one BUMPS run's experts used together (the
     # centre's and 13 experts', 133.12 M): each update rolls out the episodes of all the experts'
-    # updates of one round (13 x 512), in the experts' 16 minibatches.
+    # updates of one round (13 x 512), in 16 minibatches of 83,200 steps.
     b.ppo.num_envs = len(experts.tasks) * experts.ppo.num_envs
+    b.ppo.num_minibatches = 16
     b.ppo.total_env_steps = len(experts.tasks) * experts.ppo.total_env_steps + (
         experts.family.candidates
         * experts.family.centre_updates
