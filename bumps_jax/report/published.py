@@ -69,6 +69,14 @@ class Blocks:
         return written + ([self.write_readme(root)] if (root / "README.md").exists() else [])
 
 
+def baseline_row(base: dict, score: str, context: str, contexts: str, version: str, record: str) -> str:
+    """Our multi-task PPO's row of a task's table of published results (six columns): its `score`,
+    over how many of its test `contexts` and episodes, its env steps, the env's `version`, its `record`."""
+    return (f"| multi-task PPO (ours; the {context} as input) | {score} over {len(base['eval_tasks'])} {contexts} x "
+            f"{base['eval_repetitions']} episodes | none: the {context} is an input | {base['env_steps_per_seed']:,} "
+            f"per seed (PPO) | {version} | `{record}` |")  # fmt: skip
+
+
 def seeds_cell(row: dict, unit: str, digits: int = 2) -> str:
     """One headline over seeds (`report.seeds`): its mean and spread, then every seed's value."""
     per_seed = ", ".join(f"{v:.{digits}f}" for v in row["per_seed"])

@@ -61,13 +61,9 @@ def rows(root: str | Path = ".") -> list[str]:
     )
     if base:
         returns = [s["return_mean"] for s in base["per_seed"]]
-        out.append(
-            f"| multi-task PPO (ours; the goal as input) | {np.mean(returns):.0f} (seeds: "
-            f"{', '.join(f'{r:.0f}' for r in returns)}; final distance {base['error_mean_m']:.2f} m) over "
-            f"{len(base['eval_tasks'])} test goals x {base['eval_repetitions']} episodes | none: the goal is an "
-            f"input | {base['env_steps_per_seed']:,} per seed (PPO) | {version(base['env'])} "
-            f"| `{RECORDS['baseline']}` |"
-        )
+        score = (f"{np.mean(returns):.0f} (seeds: {', '.join(f'{r:.0f}' for r in returns)}; final distance "
+                 f"{base['error_mean_m']:.2f} m)")  # fmt: skip
+        out.append(published.baseline_row(base, score, "goal", "test goals", version(base["env"]), RECORDS["baseline"]))
     return out
 
 

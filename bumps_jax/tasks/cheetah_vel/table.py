@@ -73,13 +73,9 @@ def rows(root: str | Path = ".") -> list[str]:
         )
     if base:
         seeds = ", ".join(f"{s['error_mean_m']:.3f}" for s in base["per_seed"])
-        term = speed_term(base["error_mean_m"], steps, weight)
-        out.append(
-            f"| multi-task PPO (ours; the target as input) | speed term {term} "
-            f"(mean speed error {base['error_mean_m']:.3f} m/s, mean of {base['seeds']} seeds: {seeds}) over "
-            f"{len(base['eval_tasks'])} test velocities x {base['eval_repetitions']} episodes | none: the target "
-            f"is an input | {base['env_steps_per_seed']:,} per seed (PPO) | {version} | `{RECORDS['baseline']}` |"
-        )
+        score = (f"speed term {speed_term(base['error_mean_m'], steps, weight)} (mean speed error "
+                 f"{base['error_mean_m']:.3f} m/s, mean of {base['seeds']} seeds: {seeds})")  # fmt: skip
+        out.append(published.baseline_row(base, score, "target", "test velocities", version, RECORDS["baseline"]))
     return out
 
 
