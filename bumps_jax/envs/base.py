@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import importlib.util
+import json
 import math
 
 import jax
@@ -48,6 +49,17 @@ def locked_config(config: ml_collections.ConfigDict, overrides: dict | None = No
             raise ValueError(f"unknown config key {key!r}")
         node[leaf] = value
     return cfg
+
+
+def with_model_options(env_cfg, timestep: float, iterations: int) -> dict:
+    """An env config as plain data, as records carry it, with its physics step and solver iterations
+    resolved: where they are None, the model's own `timestep` and `iterations`."""
+    d = env_cfg.to_dict() if isinstance(env_cfg, ml_collections.ConfigDict) else dict(env_cfg)
+    if d.get("physics_dt") is None:
+        d["physics_dt"] = timestep
+    if d.get("solver_iterations") is None:
+        d["solver_iterations"] = iterations
+    return json.loads(json.dumps(d, default=list))
 
 
 def validate_physics(cfg: ml_collections.ConfigDict, int_keys=()) -> None:

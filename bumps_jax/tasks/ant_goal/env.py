@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import functools
 import importlib.resources
-import json
 import math
 
 import jax
@@ -173,13 +172,7 @@ def noise_free(cfg: ml_collections.ConfigDict) -> dict:
 def resolved(env_cfg) -> dict:
     """An ant env config as plain data with its physics step and solver iterations resolved
     (None: the model's own), as records carry it."""
-    d = env_cfg.to_dict() if isinstance(env_cfg, ml_collections.ConfigDict) else dict(env_cfg)
-    timestep, iterations = _model_options(bool(d.get("all_contacts", True)))
-    if d.get("physics_dt") is None:
-        d["physics_dt"] = timestep
-    if d.get("solver_iterations") is None:
-        d["solver_iterations"] = iterations
-    return json.loads(json.dumps(d, default=list))
+    return task_env.with_model_options(env_cfg, *_model_options(bool(env_cfg.get("all_contacts", True))))
 
 
 def n_steps_of(cfg: ml_collections.ConfigDict) -> int:

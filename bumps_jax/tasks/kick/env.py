@@ -99,11 +99,7 @@ IMPLS = task_env.IMPLS
 def resolved(env_cfg) -> dict:
     """An env config as plain data with its physics step and solver iterations resolved (None:
     the scene's own), as records carry it; a record older than the backend keys reads as MJX-JAX."""
-    d = env_cfg.to_dict() if isinstance(env_cfg, ml_collections.ConfigDict) else dict(env_cfg)
-    if d.get("physics_dt") is None:
-        d["physics_dt"] = scene.default_timestep()
-    if d.get("solver_iterations") is None:
-        d["solver_iterations"] = _scene_iterations()
+    d = task_env.with_model_options(env_cfg, scene.default_timestep(), _scene_iterations())
     # A record from before the backend keys existed was made on MJX-JAX at the scene's iterations.
     d.setdefault("impl", "jax")
     defaults = default_config()

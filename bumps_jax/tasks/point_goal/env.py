@@ -18,7 +18,6 @@ scores the same episode against any other goal (`error_against`).
 from __future__ import annotations
 
 import functools
-import json
 import math
 
 import jax
@@ -112,12 +111,7 @@ def noise_free(cfg: ml_collections.ConfigDict) -> dict:
 def resolved(env_cfg) -> dict:
     """An env config as plain data with its physics step and solver iterations resolved (None:
     the model's own), as records carry it."""
-    d = env_cfg.to_dict() if isinstance(env_cfg, ml_collections.ConfigDict) else dict(env_cfg)
-    if d.get("physics_dt") is None:
-        d["physics_dt"] = MODEL_TIMESTEP
-    if d.get("solver_iterations") is None:
-        d["solver_iterations"] = _model_iterations()
-    return json.loads(json.dumps(d, default=list))
+    return task_env.with_model_options(env_cfg, MODEL_TIMESTEP, _model_iterations())
 
 
 @functools.cache
