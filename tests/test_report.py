@@ -367,7 +367,7 @@ def test_ant_rows_are_returns_over_seeds_from_their_records(tmp_path):
         runio.write_json(tmp_path / ant_table.RECORDS[name], record)
     assert ant_table.rows(tmp_path) == [] and ant_table.readme_lines(tmp_path) == []  # no seeds.json yet
     runio.write_json(tmp_path / ant_table.SEEDS, {
-        "n_seeds": 2, "unit": "m",
+        "n_seeds": 2, "unit": "m", "device": "GPU", "env": {"impl": "warp"}, "wall_s": 120.0,
         "rows": {"experts": spread(0.5, 1.5), "meta_4x256": spread(1.0, 2.0), "meta_11x128": spread(1.2, 2.2),
                  "filtered_4x256": spread(0.8, 1.8)},
         "returns": {"meta_4x256": spread(-300.0, -500.0), "meta_11x128": spread(-310.0, -510.0),
@@ -379,10 +379,11 @@ def test_ant_rows_are_returns_over_seeds_from_their_records(tmp_path):
     assert "filtered_4x256: -380 +- 1 (-280, -480) (final distance 1.30 m)" in rows[1] and "20 per goal" in rows[1]
     assert "| -610 (seeds: -600, -620; final distance 1.90 m)" in rows[2] and "2,000 per seed" in rows[2]
     lines = ant_table.readme_lines(tmp_path)
-    assert lines[0].startswith("Its 30 test goals lie 5.00 m from the start on average")
-    assert "filtered_4x256, the best filtered variant on the mean, 1.30 +- 1.00 m (0.80, 1.80)" in lines[1]
-    assert "ends 1.90 m from its goals, 2.80 m at its start" in lines[2]
-    assert lines[3].startswith("Mean episode returns of PEARL's reward: filtered_4x256 -380, the baseline -610")
+    assert lines[0].startswith("The paper preset's 2 training seeds on GPU (warp) took 120 s of stage time")
+    assert lines[1].startswith("Its 30 test goals lie 5.00 m from the start on average")
+    assert "filtered_4x256, the best filtered variant on the mean, 1.30 +- 1.00 m (0.80, 1.80)" in lines[2]
+    assert "ends 1.90 m from its goals, 2.80 m at its start" in lines[3]
+    assert lines[4].startswith("Mean episode returns of PEARL's reward: filtered_4x256 -380, the baseline -610")
 
 
 def test_committed_ant_rows_and_readme_lines_are_the_committed_records():

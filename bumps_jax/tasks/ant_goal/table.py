@@ -76,7 +76,9 @@ def readme_lines(root: str | Path = ".") -> list[str]:
     if not (experts and t2 and seeds):
         return []
     away = float(np.linalg.norm(np.asarray(t2["tasks"], np.float64), axis=1).mean())
-    out = [f"Its {len(t2['tasks'])} test goals lie {away:.2f} m from the start on average (the experts are scored "
+    out = [f"The paper preset's {seeds['n_seeds']} training seeds on {seeds['device']} ({seeds['env']['impl']}) took "
+           f"{seeds['wall_s']:.0f} s of stage time in all (`{SEEDS}`).",
+           f"Its {len(t2['tasks'])} test goals lie {away:.2f} m from the start on average (the experts are scored "
            f"on their own {len(experts['tasks_m'])} training goals); an error is the torso's final distance to the "
            "goal.", published.seeds_sentence(seeds, SEEDS)]  # fmt: skip
     if base:
