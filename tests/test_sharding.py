@@ -223,3 +223,15 @@ def test_gather_joins_every_process_rows_in_order():
             "u": [10, 10, 11, 11],
         }
     )
+
+
+def test_a_job_of_one_process_starts_no_coordinator(monkeypatch):
+    calls = []
+    monkeypatch.setattr(jax.distributed, "initialize", lambda **kw: calls.append(kw))
+    monkeypatch.setenv("JAX_NUM_PROCESSES", "1")
+    monkeypatch.setenv("JAX_PROCESS_ID", "0")
+    sharding.initialize_distributed()
+    assert calls == []  # one process: nothing to join
+    monkeypatch.setenv("JAX_NUM_PROCESSES", "2")
+    sharding.initialize_distributed()
+    assert calls == [{"num_processes": 2, "process_id": 0}]

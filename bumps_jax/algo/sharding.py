@@ -163,9 +163,11 @@ def initialize_distributed() -> None:
     Under SLURM `jax.distributed.initialize()` finds the coordinator, process count and id by
     itself; `launch` (and any other launcher) sets JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and
     JAX_PROCESS_ID instead. Afterwards `jax.process_count()` is the number of processes, and each
-    computes its share of every batch (`over_batch`).
+    computes its share of every batch (`over_batch`). A job of one process starts no coordinator.
     """
     count, index = os.environ.get("JAX_NUM_PROCESSES"), os.environ.get("JAX_PROCESS_ID")
+    if count is not None and int(count) == 1:
+        return  # a job of one process (a branch of `--processes` or `--seeds`): nothing to join
     if count is None or index is None:
         jax.distributed.initialize()
     else:
