@@ -24,8 +24,10 @@ def test_every_arm_with_2d_targets_gets_a_panel(tmp_path):
     targets, err = maps["multi-task PPO (3 seeds)"]
     assert targets.shape == (3, 2) and np.allclose(err, [1.0, 1.1, 1.2])
     assert error_map.write(tmp_path, r).stat().st_size > 0
-    # A missing stage leaves its panel out.
+    # A missing stage leaves its panel out; filtering without an ensemble shows its first variant.
     assert list(error_map.panels(r["experts"], None, None, None)) == ["experts (own targets)"]
+    single = {**r["filter"], "per_task_error_m": {"filtered_4x256": [0.2, 0.3, 0.4]}}
+    assert "BUMPS filtered 4x256" in error_map.panels(None, None, single, None)
 
 
 def test_a_scalar_context_has_no_map(tmp_path):

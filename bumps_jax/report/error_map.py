@@ -23,8 +23,10 @@ def panels(experts: dict | None, table1: dict | None, table2: dict | None, basel
     per_task = (table1 or {}).get("per_task", {})
     if "meta_4x256" in per_task:
         out["meta_4x256 unfiltered"] = (per_task["tasks"], per_task["meta_4x256"]["error_mean_m"])
-    if table2:
-        out["BUMPS filtered ensemble"] = (table2["tasks"], table2["per_task_error_m"]["filtered_ensemble"])
+    filtered = (table2 or {}).get("per_task_error_m", {})
+    if filtered:  # the ensemble where filtering ran it, else its first variant
+        name = "filtered_ensemble" if "filtered_ensemble" in filtered else next(iter(filtered))
+        out[f"BUMPS {name.replace('_', ' ')}"] = (table2["tasks"], filtered[name])
     if baseline and "per_task_error_m" in baseline:
         out[f"multi-task PPO ({baseline['seeds']} seeds)"] = (baseline["eval_tasks"], baseline["per_task_error_m"])
     return {k: (np.asarray(t, float), np.asarray(e, float)) for k, (t, e) in out.items() if np.ndim(t) == 2}

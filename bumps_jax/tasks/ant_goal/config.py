@@ -6,8 +6,9 @@ filtering's `context_range` is the box each coordinate spans (its grid is the 2-
 `context_step` over that box).
 
 The `paper` preset is sized for one GPU: its numbers are mapped from Brax's published ant PPO, a
-starting point; its one run (`results/ant_goal/`) learned little (docs/ant_goal.md). The `tiny` preset runs
-the whole pipeline on a CPU in minutes and trains nothing useful.
+starting point; of its three seeds (`results/ant_goal/`) one family learned to walk
+(docs/ant_goal.md). The `tiny` preset runs the whole pipeline on a CPU in minutes and trains
+nothing useful.
 """
 
 from __future__ import annotations

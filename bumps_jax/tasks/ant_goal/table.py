@@ -21,6 +21,7 @@ NETS = ("meta_4x256", "meta_11x128")
 
 
 def version(env: dict) -> str:
+    """The env-version cell of our rows: the goals' disc and the episode."""
     return (f"ours: goals on a disc of radius {env['goal_radius']:g} m, {env['episode_steps']} steps of "
             f"{env['ctrl_dt']:g} s (`docs/ant_goal.md`)")  # fmt: skip
 
