@@ -325,10 +325,19 @@ def test_committed_cheetah_rows_are_the_committed_records():
     baseline = json.loads((ROOT / "results" / "cheetah_vel" / "baseline.json").read_text())
     seeds = json.loads((ROOT / "results" / "cheetah_vel" / "seeds.json").read_text())
     assert len(lines) == 4 and f"errs {baseline['error_mean_m']:.2f} m/s" in lines[3]
+    assert f"baseline ({baseline['device']})" in lines[3]  # its run's device: it may not be the stages'
+    pipe = json.loads((ROOT / "results" / "cheetah_vel" / "pipeline.json").read_text())
+    assert f"({', '.join(pipe['stages_s'])};" in lines[0]  # the stages its time counts
     # The headlines over seeds: each row's mean, then every seed's value.
     assert f"Over {seeds['n_seeds']} training seeds" in lines[2]
     per_seed = ", ".join(f"{v:.2f}" for v in seeds["rows"]["experts"]["per_seed"])
     assert f"experts {seeds['rows']['experts']['mean']:.2f} +- " in lines[2] and f"({per_seed})" in lines[2]
+
+
+def test_span_names_one_value_where_the_ends_round_alike():
+    assert published.span([0.301, 0.304, 0.2996]) == "0.30"
+    assert published.span([0.29, 0.351]) == "0.29-0.35"
+    assert published.span([1.2345, 1.2349], digits=3) == "1.234-1.235"
 
 
 def test_readme_cheetah_sentences_follow_their_records(tmp_path):

@@ -83,6 +83,12 @@ def seeds_cell(row: dict, unit: str, digits: int = 2) -> str:
     return f"{row['mean']:.{digits}f} +- {row['std']:.{digits}f}{unit and ' ' + unit} ({per_seed})"
 
 
+def span(values, digits: int = 2) -> str:
+    """The range of `values` as "lo-hi", or one value where both round alike."""
+    lo, hi = f"{min(values):.{digits}f}", f"{max(values):.{digits}f}"
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
 def best_filtered(rows: dict) -> str:
     """The filtered variant with the lowest mean error over the seeds."""
     return min((n for n in rows if n.startswith(("filtered_", "high_sample"))), key=lambda n: rows[n]["mean"])

@@ -88,22 +88,23 @@ def readme_lines(root: str | Path = ".") -> list[str]:
     out = []
     if pipe:
         stage_s = sum(pipe["stages_s"].values())
+        stages = ", ".join(pipe["stages_s"])
         out.append(f"The paper preset's run on one {pipe['device']} ({pipe['env']['impl']}) took {stage_s:.0f} s "
-                   "of stage time (`results/cheetah_vel/pipeline.json`).")  # fmt: skip
+                   f"of stage time ({stages}; `results/cheetah_vel/pipeline.json`).")  # fmt: skip
     if experts and t1 and t2:
         unit = experts.get("unit", "m/s")
         nets = [n for n in ("meta_4x256", "meta_11x128") if n in t1["rows"]]
         filtered = [r["error_mean_m"] for r in t2["rows"].values()]
         unfiltered = " / ".join(f"{t1['rows'][n]['error_mean_all_m']:.2f}" for n in nets)
         out.append(f"On its {len(t2['tasks'])} test velocities the meta-policies err {unfiltered} {unit} unfiltered "
-                   f"and {min(filtered):.2f}-{max(filtered):.2f} {unit} filtered, beside their experts' own "
+                   f"and {published.span(filtered)} {unit} filtered, beside their experts' own "
                    f"{experts['error_mean_all_m']:.2f} {unit}.")  # fmt: skip
         seeds = load(root, SEEDS)
         if seeds:
             out.append(seeds_sentence(seeds))
         if base:
             total = experts.get("env_steps_total", experts["env_steps"]) * len(experts["tasks_m"])
-            out.append(f"The multi-task PPO baseline, with {base['env_steps_per_seed'] / 1e6:.0f} M env steps per "
+            out.append(f"The multi-task PPO baseline ({base['device']}), with {base['env_steps_per_seed'] / 1e6:.0f} M env steps per "
                        f"seed (the {len(experts['tasks_m'])} experts: {total / 1e6:.0f} M in all), errs "
                        f"{base['error_mean_m']:.2f} {unit} (`results/cheetah_vel/report.md`).")  # fmt: skip
     return out
