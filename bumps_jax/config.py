@@ -16,7 +16,8 @@ stage it runs plus the env every stage builds its simulation from:
     heldout   the held-out evaluation (`evaluate --heldout`), where the task has one
 
 and the sections its plug-ins read (the kick's `prior` and `dev`). Defaults are the `paper`
-preset; a preset is dotted overrides of them (`Task.presets`). Every value a user can set is a
+preset; a preset is dotted overrides of them (`Task.presets`); a task's derived keys (the
+baseline's budget from its experts') follow both (`derive`). Every value a user can set is a
 leaf with a comment saying what it does; `docs/decisions.md` says how the numbers were chosen
 and which settings lost; the kick's `config.py` says which of its paper values are not the paper's.
 """
@@ -42,7 +43,17 @@ def default_config(task: str = tasks.DEFAULT) -> ml_collections.ConfigDict:
     cfg.task = tasks.check_task(task)  # the contextual task every stage runs (set by `make_config`)
     for name, section in tasks.get(task).sections().items():
         cfg[name] = section
+    derive(cfg)
     return cfg
+
+
+def derive(cfg: ml_collections.ConfigDict, given=frozenset()) -> None:
+    """Set the task's derived keys (its config module's `DERIVED`: (key, function of the tree)
+    pairs, in order, each seeing those before it), but the keys in `given` (set by the preset or
+    the user): a value computed from others follows them after every override."""
+    for key, compute in getattr(tasks.get(cfg.task).config, "DERIVED", ()):
+        if key not in given:
+            set_leaf(cfg, key, compute(cfg))
 
 
 def make_config(preset: str = "tiny", overrides: dict | None = None) -> ml_collections.ConfigDict:
@@ -60,8 +71,10 @@ def make_config(preset: str = "tiny", overrides: dict | None = None) -> ml_colle
     cfg = default_config(task)
     cfg.preset = preset
     cfg.lock()
-    for key, value in {**presets[preset], **overrides}.items():
+    given = {**presets[preset], **overrides}
+    for key, value in given.items():
         set_leaf(cfg, key, value)
+    derive(cfg, frozenset(given))
     validate(cfg)
     return cfg
 

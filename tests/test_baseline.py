@@ -108,3 +108,36 @@ def test_one_seed_has_a_curve_without_a_band(tmp_path):
     assert curve == {"env_steps": [10, 20, 30], "mean": [1.0, 2.0, 3.0], "ci_low": None, "ci_high": None}
     payload = {"seeds": 1, "device": "cpu", "preset": "tiny", "curve": curve, "error_curve": curve}
     assert baseline.plot_curve(payload, tmp_path / "curve.png").exists()
+
+
+# Centre candidates whose steps buy whole compiled chunks of the baseline (else a clear error).
+@pytest.mark.parametrize(("task", "candidates"), [("cheetah_vel", 3), ("ant_goal", 4)])
+def test_baseline_budget_follows_the_experts_overrides(task, candidates):
+    """The baseline's per-seed budget is the experts' whole (`DERIVED`), recomputed after --set:
+    more centre candidates or a longer PPO move it; a budget set by hand stays as set."""
+    paper = config.make_config("paper", {"task": task})
+    e, steps = paper.experts, paper.env.episode_steps
+    per_update = e.ppo.num_envs * steps
+    assert paper.baseline.ppo.total_env_steps == (
+        len(e.tasks) * e.ppo.total_env_steps + e.family.candidates * e.family.centre_updates * per_update
+    )
+    more = config.make_config("paper", {"task": task, "experts.family.candidates": candidates})
+    extra = (candidates - e.family.candidates) * e.family.centre_updates * per_update
+    assert more.baseline.ppo.total_env_steps == paper.baseline.ppo.total_env_steps + extra
+    longer = config.make_config(
+        "paper",
+        {"task": task, "experts.ppo.total_env_steps": 2 * e.ppo.total_env_steps, "baseline.updates_per_chunk": 1},
+    )
+    assert (
+        longer.baseline.ppo.total_env_steps - paper.baseline.ppo.total_env_steps == len(e.tasks) * e.ppo.total_env_steps
+    )
+    # The episodes of one baseline update and Warp's contact pool follow the experts' batch.
+    doubled = {"experts.ppo.num_envs": 2 * e.ppo.num_envs, "experts.ppo.total_env_steps": 2 * e.ppo.total_env_steps}
+    wide = config.make_config("paper", {"task": task, **doubled})
+    assert wide.baseline.ppo.num_envs == 2 * paper.baseline.ppo.num_envs
+    assert wide.env.warp_contacts == 2 * paper.env.warp_contacts
+    one_chunk = paper.baseline.ppo.num_envs * steps * paper.baseline.updates_per_chunk
+    fixed = config.make_config(
+        "paper", {"task": task, "experts.family.candidates": candidates, "baseline.ppo.total_env_steps": one_chunk}
+    )
+    assert fixed.baseline.ppo.total_env_steps == one_chunk

@@ -40,6 +40,14 @@ def family() -> ml_collections.ConfigDict:
     return cfg
 
 
+def experts_env_steps(experts: ml_collections.ConfigDict, episode_steps: int) -> int:
+    """Env steps of one run's experts together: every expert's PPO and the family's centre
+    candidates' (the budget a baseline of the same cost gets per seed)."""
+    family = experts.family
+    centre = family.candidates * family.centre_updates * experts.ppo.num_envs * episode_steps
+    return len(experts.tasks) * experts.ppo.total_env_steps + centre
+
+
 def meta(eval_tasks) -> ml_collections.ConfigDict:
     """Behaviour cloning into the contextual meta-policies, and their unfiltered evaluation."""
     cfg = ml_collections.ConfigDict()

@@ -115,7 +115,9 @@ class Task:
     # Its config (its folder's `config` module): `sections()`, its tree but `preset` and `task`
     # (`env` and a section per stage, `pipeline.sections`, at the `paper` preset's values, plus what
     # its plug-ins read); `PRESETS`, preset name -> dotted overrides of them ("tiny": CPU size);
-    # `validate(cfg)`, its own checks of a whole config, after the stages'.
+    # `validate(cfg)`, its own checks of a whole config, after the stages'; optional `DERIVED`,
+    # (key, function of the tree) pairs recomputed after the preset and --set (`config.derive`)
+    # and `TRAINING_SEEDS`, keys a pipeline seed sets besides the stages'.
     config: Any
     report: Report
     expert_start: ExpertStart | None = None  # None: experts start from a fresh policy

@@ -85,7 +85,7 @@ def experts() -> ml_collections.ConfigDict:
     return experts
 
 
-def baseline(experts: ml_collections.ConfigDict, episode_steps: int) -> ml_collections.ConfigDict:
+def baseline(experts: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """Multi-task PPO: one policy that sees the goal, trained from a fresh init by the experts'
     PPO (hyperparameters and nets) on goals drawn per episode from the box (-3, 3)^2 m (each
     coordinate U[-3, 3]: the goal disc and its corners beyond it), scored on the test goals as
@@ -94,13 +94,9 @@ def baseline(experts: ml_collections.ConfigDict, episode_steps: int) -> ml_colle
     b.seeds = 3  # independent runs, trained side by side
     b.updates_per_chunk = 6  # speed and logging only: PPO updates per compiled chunk (of 102)
     b.eval_repetitions = 20  # episodes per test goal and seed (reset noise on)
-    # ... and per seed the env steps that all of one BUMPS run's experts used together (the
-    # centre's and the 37 experts', 386.5 M): each update rolls out the episodes of all the
-    # experts' updates of one round (37 x 512), in the experts' 16 minibatches: 102 updates.
-    b.ppo.num_envs = len(experts.tasks) * experts.ppo.num_envs
-    b.ppo.total_env_steps = len(experts.tasks) * experts.ppo.total_env_steps + (
-        experts.family.candidates * experts.family.centre_updates * experts.ppo.num_envs * episode_steps
-    )
+    # ... and per seed the env steps of one BUMPS run's experts together (`DERIVED`): each update
+    # rolls out the episodes of all the experts' updates of one round (37 x 512), in the experts'
+    # 16 minibatches: 102 updates.
     b.extra_learning_rate = None  # one arm only
     return b
 
@@ -111,11 +107,7 @@ def sections() -> ml_collections.ConfigDict:
     cfg = ml_collections.ConfigDict()
     cfg.env = ant_env.default_config()  # the ant's physics, reset noise and reward
     cfg.experts = experts()
-    cfg.baseline = baseline(cfg.experts, cfg.env.episode_steps)
-    # Warp's contact pool holds the larger of the two training programs: the experts' 37 x 512
-    # episodes, or the baseline's seeds x arms x 37 x 512.
-    largest = max(len(cfg.experts.tasks) * cfg.experts.ppo.num_envs, validation.baseline_runs(cfg.baseline))
-    cfg.env.warp_contacts = ant_env.MAX_CONTACTS[True] * largest
+    cfg.baseline = baseline(cfg.experts)
     cfg.meta = stage_sections.meta(TEST_TASKS)
     cfg.meta.dataset.repetitions = 8  # episodes per expert, reset noise on: the states a closed loop meets
     cfg.meta.dataset.action_noise = 0.2  # DART: the recorded episodes act with this noise (the cheetah's)
@@ -132,6 +124,20 @@ def sections() -> ml_collections.ConfigDict:
     cfg.filter.halving_rungs = (2, 8, 32)
     cfg.filter.eval_repetitions = 20
     return cfg
+
+
+def largest_program(cfg) -> int:
+    """Episodes of the larger training program: the experts' 37 x 512, or the baseline's seeds x
+    arms x 37 x 512."""
+    return max(len(cfg.experts.tasks) * cfg.experts.ppo.num_envs, validation.baseline_runs(cfg.baseline))
+
+
+# Keys computed from others, after the preset and `--set` (`config.derive`), unless set there.
+DERIVED = (
+    ("baseline.ppo.num_envs", lambda cfg: len(cfg.experts.tasks) * cfg.experts.ppo.num_envs),
+    ("baseline.ppo.total_env_steps", lambda cfg: stage_sections.experts_env_steps(cfg.experts, cfg.env.episode_steps)),
+    ("env.warp_contacts", lambda cfg: ant_env.MAX_CONTACTS[True] * largest_program(cfg)),  # Warp's contact pool
+)
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
@@ -206,7 +212,6 @@ PRESETS: dict[str, dict] = {
         "baseline.ppo.num_envs": 4,
         "baseline.ppo.num_minibatches": 2,
         "baseline.ppo.num_epochs": 2,
-        "baseline.ppo.total_env_steps": (3 * 2 + 2) * 4 * 5,  # the 3 tiny experts' and the centre's steps
         "baseline.ppo.policy_hidden": (16, 16),
         "baseline.ppo.value_hidden": (16, 16),
     },

@@ -10,8 +10,6 @@ import ml_collections
 from bumps_jax.algo import ppo_config
 from bumps_jax.pipeline import sections as stage_sections
 from bumps_jax.pipeline import validation
-
-# Meta-training velocities (m/s): a grid of 0.25 m/s over PEARL's U[0, 3] range.
 from bumps_jax.tasks.cheetah_vel import env as cheetah_env
 
 # Meta-training velocities (m/s): a grid of 0.25 m/s over PEARL's U[0, 3] range.
@@ -67,17 +65,10 @@ def baseline(experts: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     b.seeds = 3  # independent runs, trained side by side
     b.updates_per_chunk = 10  # speed and logging only: PPO updates per compiled chunk
     b.eval_repetitions = 20  # episodes per test velocity and seed (reset noise on)
-    # ... and per seed the env steps that all of one BUMPS run's experts used together (the
-    # centre's and 13 experts', 133.12 M): each update rolls out the episodes of all the experts'
-    # updates of one round (13 x 512), in 16 minibatches of 83,200 steps.
-    b.ppo.num_envs = len(experts.tasks) * experts.ppo.num_envs
+    # ... and per seed the env steps of one BUMPS run's experts together (`DERIVED`): each update
+    # rolls out the episodes of all the experts' updates of one round (13 x 512), in 16
+    # minibatches of 83,200 steps.
     b.ppo.num_minibatches = 16
-    b.ppo.total_env_steps = len(experts.tasks) * experts.ppo.total_env_steps + (
-        experts.family.candidates
-        * experts.family.centre_updates
-        * experts.ppo.num_envs
-        * cheetah_env.default_config().episode_steps
-    )
     b.extra_learning_rate = None  # one arm only
     return b
 
@@ -89,10 +80,6 @@ def sections() -> ml_collections.ConfigDict:
     cfg.env = cheetah_env.default_config()  # the cheetah's physics, reset noise and reward
     cfg.experts = experts()
     cfg.baseline = baseline(cfg.experts)
-    # Warp's contact pool holds the larger of the two training programs: the experts' 13 x 512
-    # episodes, or the baseline's seeds x arms x 13 x 512.
-    largest = max(len(cfg.experts.tasks) * cfg.experts.ppo.num_envs, validation.baseline_runs(cfg.baseline))
-    cfg.env.warp_contacts = cheetah_env.CONTACTS_PER_GEOM * 8 * largest
     cfg.meta = stage_sections.meta(TEST_TASKS)
     cfg.meta.dataset.repetitions = 8  # episodes per expert, reset noise on: the states a closed loop meets
     cfg.meta.dataset.action_noise = 0.2  # DART: the recorded episodes act with this noise (docs/decisions.md)
@@ -108,6 +95,20 @@ def sections() -> ml_collections.ConfigDict:
     cfg.filter.halving_rungs = (2, 8, 32)
     cfg.filter.eval_repetitions = 20
     return cfg
+
+
+def largest_program(cfg) -> int:
+    """Episodes of the larger training program: the experts' 13 x 512, or the baseline's seeds x
+    arms x 13 x 512."""
+    return max(len(cfg.experts.tasks) * cfg.experts.ppo.num_envs, validation.baseline_runs(cfg.baseline))
+
+
+# Keys computed from others, after the preset and `--set` (`config.derive`), unless set there.
+DERIVED = (
+    ("baseline.ppo.num_envs", lambda cfg: len(cfg.experts.tasks) * cfg.experts.ppo.num_envs),
+    ("baseline.ppo.total_env_steps", lambda cfg: stage_sections.experts_env_steps(cfg.experts, cfg.env.episode_steps)),
+    ("env.warp_contacts", lambda cfg: cheetah_env.CONTACTS_PER_GEOM * 8 * largest_program(cfg)),  # Warp's contact pool
+)
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
@@ -126,7 +127,8 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
 
 
 # Each preset: dotted overrides of the defaults. "tiny": HalfCheetah-Vel at CPU size: 10-step
-# episodes, 2 experts of 2 PPO updates after a centre of 2, a short BC; a baseline of 2 seeds x 6 updates.
+# episodes, 2 experts of 2 PPO updates after a centre of 2, a short BC; a baseline of 2 seeds x 8 updates
+# (the experts' and the centres' steps).
 PRESETS: dict[str, dict] = {
     "paper": {},
     "tiny": {
@@ -170,7 +172,6 @@ PRESETS: dict[str, dict] = {
         "baseline.ppo.num_envs": 4,
         "baseline.ppo.num_minibatches": 2,
         "baseline.ppo.num_epochs": 2,
-        "baseline.ppo.total_env_steps": 4 * 4 * 10 * 2,  # the tiny experts' and 2 centres' steps: 8 updates
         "baseline.ppo.policy_hidden": (32, 32),
         "baseline.ppo.value_hidden": (32, 32),
     },

@@ -104,8 +104,8 @@ def readme_lines(root: str | Path = ".") -> list[str]:
             out.append(seeds_sentence(seeds))
         if base:
             total = experts.get("env_steps_total", experts["env_steps"]) * len(experts["tasks_m"])
-            out.append(f"The multi-task PPO baseline ({base['device']}), with {base['env_steps_per_seed'] / 1e6:.0f} M env steps per "
-                       f"seed (the {len(experts['tasks_m'])} experts: {total / 1e6:.0f} M in all), errs "
+            out.append(f"The multi-task PPO baseline ({base['device']}), with {base['env_steps_per_seed'] / 1e6:.0f} M "
+                       f"env steps per seed (the {len(experts['tasks_m'])} experts: {total / 1e6:.0f} M in all), errs "
                        f"{base['error_mean_m']:.2f} {unit} (`results/cheetah_vel/report.md`).")  # fmt: skip
     return out
 
