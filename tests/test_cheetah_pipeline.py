@@ -33,14 +33,22 @@ def test_the_tiny_pipeline_runs_the_cheetahs_stages(cheetah_run):
     assert experts["task"] == "cheetah_vel" and experts["unit"] == "m/s"
     assert experts["tasks_m"] == list(view.experts.tasks)
     assert experts["env_steps"] == view.experts.ppo.total_env_steps
-    # One family: two centre candidates trained first (their own progress), every expert from the
-    # one chosen (upright first, then the lower error on the centre context); each expert's budget
-    # counts its share of the candidates' steps.
+    # One family: two centre candidates trained side by side for one update (their own progress),
+    # the one chosen (upright first, then the lower error on the centre context) alone for two more,
+    # every expert from it; each expert's budget counts its share of the centre's steps, every
+    # candidate's included.
     fam = view.experts.family
-    centre_steps = fam.candidates * fam.centre_updates * view.experts.ppo.num_envs * view.env.episode_steps
+    assert (fam.candidates, fam.choose_after, fam.centre_updates) == (2, 1, 3)
+    centre_steps = (2 * 1 + 2) * view.experts.ppo.num_envs * view.env.episode_steps
     centre = experts["family_centre"]
-    assert {k: centre[k] for k in ("context", "updates", "env_steps")} == {"context": 0.5, "updates": 2,
-                                                                          "env_steps": centre_steps}  # fmt: skip
+    assert {k: centre[k] for k in ("context", "updates", "choose_after", "env_steps")} == {
+        "context": 0.5, "updates": 3, "choose_after": 1, "env_steps": centre_steps}  # fmt: skip
+    rows = {
+        part: (run_dir / "experts" / part / "progress.csv").read_text().split()[1:]
+        for part in ("centre", "centre_chosen")
+    }
+    updates = {part: [int(r.split(",")[0]) for r in lines] for part, lines in rows.items()}
+    assert updates == {"centre": [1, 1], "centre_chosen": [2, 3]}  # the candidates' rows, then the chosen one's
     candidates = centre["candidates"]
     assert len(candidates) == 2 and centre["choice_env_steps"] == 2 * view.experts.eval.repetitions * 10
     assert all(set(c) == {"error_m", "pitch_rad", "flipped_fraction", "height_m"} for c in candidates)
@@ -50,7 +58,8 @@ def test_the_tiny_pipeline_runs_the_cheetahs_stages(cheetah_run):
     assert experts["env_steps_breakdown"] == {"ppo": experts["env_steps"], "family_centre_share": centre_steps // 2}
     assert experts["env_steps_total"] == experts["env_steps"] + centre_steps // 2
     assert (run_dir / "experts" / "centre" / "progress.csv").exists()
-    assert not (run_dir / "experts" / "centre" / "checkpoints").exists()  # scratch, gone with the record
+    for part in ("centre", "centre_chosen"):
+        assert not (run_dir / "experts" / part / "checkpoints").exists()  # scratch, gone with the record
     # The family check: each expert's posture beside its neighbour's error, in the record and experts.md.
     check = experts["family_check"]
     assert [r["target_m"] for r in check["per_task"]] == list(view.experts.tasks)

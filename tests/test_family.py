@@ -49,12 +49,21 @@ def test_every_expert_starts_as_the_centre_with_its_own_rng_and_no_updates():
         ({"experts.family.centre_updates": 3}, "must be a multiple of experts.updates_per_chunk"),
         ({"experts.family.ramp_updates": -1}, "experts.family.ramp_updates must be an integer >= 0, got -1"),
         ({"experts.family.candidates": 0}, "experts.family.candidates must be an integer >= 1, got 0"),
+        (
+            {"experts.family.choose_after": 4},
+            r"choose_after must be an integer in \[0, experts.family.centre_updates 2\], got 4",
+        ),
+        (
+            {"experts.family.choose_after": 1},
+            "experts.family.choose_after 1 must be a multiple of experts.updates_per_chunk 2",
+        ),
         ({"meta.dataset.action_noise": -0.1}, "meta.dataset.action_noise must be a finite std >= 0, got -0.1"),
         ({"meta.dagger.rounds": 1, "meta.dagger.epochs": 15}, "meta.dagger.epochs 15 must be a multiple of"),
     ],
 )
 def test_bad_family_and_cloning_settings_are_named(overrides, message):
-    base = {"task": "cheetah_vel", "experts.updates_per_chunk": 2, "experts.family.centre_updates": 2}
+    base = {"task": "cheetah_vel", "experts.updates_per_chunk": 2, "experts.family.centre_updates": 2,
+            "experts.family.choose_after": 0}  # fmt: skip
     with pytest.raises(ValueError, match=message):
         config.make_config("tiny", {**base, **overrides})
 
@@ -241,3 +250,35 @@ def test_seeds_run_the_pipeline_per_seed_the_baseline_once_and_summarise(tmp_pat
     assert "experts: 0.200 +- 0.100 over 2 seeds" in capsys.readouterr().out
     with pytest.raises(ValueError, match="--seeds: 2 given twice"):
         cli.run_seeds([2, 2], ("experts",), cfg, tmp_path)
+
+
+def test_an_interrupted_family_resumes_to_the_uninterrupted_result(tmp_path):
+    """Candidates compared after one update, the chosen one alone for two more, then the family:
+    each call stops after one chunk of the phase it is in (a finished phase is read back from its
+    checkpoints), and the run ends where an uninterrupted one does, bit for bit."""
+    family = {"experts.family.centre_updates": 3, "experts.family.candidates": 2, "experts.family.choose_after": 1}
+    small = {"experts.updates_per_chunk": 1, "experts.ppo.num_envs": 8, "experts.ppo.num_minibatches": 2}
+    cfg = config.make_config(
+        "tiny", {"task": "point_goal", "experts.ppo.total_env_steps": 8 * 30 * 2, **small, **family}
+    )
+    programs = experts_stage.compile_programs(cfg)
+    quiet = {"say": lambda *a, **k: None}
+    whole = experts_stage.train(cfg, tmp_path / "whole", programs, **quiet)
+    assert whole["finished"]
+    said, calls = [], 0
+    while True:
+        calls += 1
+        out = experts_stage.train(
+            cfg, tmp_path / "split", programs, stop_after_chunks=1, say=lambda *a, **k: said.append(a[0])
+        )
+        if out["finished"]:
+            break
+    # Call 1: the candidates' update (their phase done), the choice, the chosen one's first; call 2:
+    # its second (resumed), the family's first; call 3: the family's second. One choice made.
+    assert calls == 3 and sum("centre candidates' errors" in s for s in said) == 1
+    assert sum("resumed from update 2" in s for s in said) == 1  # the chosen one, after the choice's update 1
+    for x, y in zip(jax.tree.leaves(whole["state"]), jax.tree.leaves(out["state"]), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    for part in ("centre", "centre_chosen", ""):
+        rows = (tmp_path / "split" / "experts" / part / "progress.csv").read_text()
+        assert rows == (tmp_path / "whole" / "experts" / part / "progress.csv").read_text()

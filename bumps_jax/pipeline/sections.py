@@ -37,14 +37,35 @@ def family() -> ml_collections.ConfigDict:
     # Centre experts trained side by side (seeds of their own) before one is chosen: upright where
     # the env reports a posture, then the lowest error on the centre context (`choose_centre`).
     cfg.candidates = 1
+    # PPO updates the candidates train side by side before the choice; the chosen one then goes
+    # on alone to centre_updates (0: the choice after all of them).
+    cfg.choose_after = 0
     return cfg
+
+
+def equal_budget(experts: ml_collections.ConfigDict, episode_steps: int, per_update: int) -> int:
+    """The baseline's env steps per seed for a cost equal to one run's experts' (`experts_env_steps`):
+    the nearest whole number of its updates of `per_update` steps each."""
+    return max(1, round(experts_env_steps(experts, episode_steps) / per_update)) * per_update
+
+
+def chunk_size(updates: int, most: int) -> int:
+    """The largest number of updates, at most `most`, that divides `updates` (a compiled chunk)."""
+    return max(d for d in range(1, most + 1) if updates % d == 0)
+
+
+def centre_env_updates(family: ml_collections.ConfigDict) -> int:
+    """PPO updates of the family's centre phase, every candidate's counted: the candidates' side
+    by side until the choice, then the chosen one's alone."""
+    n = int(family.centre_updates)
+    m = int(family.get("choose_after", 0)) or n
+    return int(family.get("candidates", 1)) * m + (n - m)
 
 
 def experts_env_steps(experts: ml_collections.ConfigDict, episode_steps: int) -> int:
     """Env steps of one run's experts together: every expert's PPO and the family's centre
     candidates' (the budget a baseline of the same cost gets per seed)."""
-    family = experts.family
-    centre = family.candidates * family.centre_updates * experts.ppo.num_envs * episode_steps
+    centre = centre_env_updates(experts.family) * experts.ppo.num_envs * episode_steps
     return len(experts.tasks) * experts.ppo.total_env_steps + centre
 
 

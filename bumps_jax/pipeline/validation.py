@@ -88,6 +88,17 @@ def experts(e, task_range, n_steps: int, unit: str = "m", size: int = 1) -> None
                 f"experts.family.centre_updates {e.family.centre_updates} must be a multiple of "
                 f"experts.updates_per_chunk {e.updates_per_chunk} (one compiled chunk size)"
             )
+        m = e.family.get("choose_after", 0)
+        if isinstance(m, bool) or not isinstance(m, int | np.integer) or not 0 <= m <= e.family.centre_updates:
+            raise ValueError(
+                f"experts.family.choose_after must be an integer in [0, experts.family.centre_updates "
+                f"{e.family.centre_updates}], got {m!r}"
+            )
+        if m % e.updates_per_chunk:
+            raise ValueError(
+                f"experts.family.choose_after {m} must be a multiple of experts.updates_per_chunk "
+                f"{e.updates_per_chunk} (one compiled chunk size)"
+            )
 
 
 def chunk_divides(section, prefix: str, total: int) -> None:

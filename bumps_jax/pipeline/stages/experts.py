@@ -27,6 +27,7 @@ import numpy as np
 from bumps_jax import config, runio
 from bumps_jax.algo import evaluate, ppo, rollout, sharding
 from bumps_jax.envs import base as task_env
+from bumps_jax.pipeline import sections as stage_sections
 from bumps_jax.records import jsonable
 from bumps_jax.tasks import registry as tasks
 
@@ -209,6 +210,13 @@ def centre_candidates(cfg) -> int:
     return 1 if fam is None else int(fam.get("candidates", 1))
 
 
+def choice_update(cfg) -> int:
+    """After how many updates the centre candidates are compared (`experts.family.choose_after`;
+    0: after all of the centre's updates)."""
+    n, _ = family_updates(cfg)
+    return int(cfg.experts.family.get("choose_after", 0)) or n
+
+
 def family_centre(tasks) -> int:
     """The family's centre: the index of the training context nearest the contexts' mean."""
     t = np.asarray(tasks, np.float64).reshape(len(tasks), -1)
@@ -251,22 +259,33 @@ def chunked_loop(programs: Compiled, tasks, init, targets_at, n_updates: int) ->
 
 def train_centre(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: int | None = None) -> dict:
     """The family's centre experts alone: `experts.family.candidates` of them side by side, each
-    `experts.family.centre_updates` PPO updates from a fresh policy of its own seed (the first
+    PPO updates up to the choice (`choice_update`) from a fresh policy of its own seed (the first
     the centre task's own) on the centre context, under run_dir/experts/centre (resumable as the
     experts are). Returns `runio.train_in_chunks`'s dict, its state (K, ...)."""
     tasks = task_env.as_contexts(cfg.experts.tasks, programs.env.CONTEXT_SIZE)
     i, k = family_centre(tasks), centre_candidates(cfg)
-    n, _ = family_updates(cfg)
-    each = "" if k == 1 else f", {k} candidates side by side"
-    say(
-        f"family: the centre expert at {task_env.format_context(tasks[i])} {programs.env.UNIT} first, {n} updates{each}"
-    )
+    (total, _), n = family_updates(cfg), choice_update(cfg)
+    each = "" if k == 1 else f", {k} candidates side by side" + ("" if n == total else f" for the first {n}")
+    where = f"{task_env.format_context(tasks[i])} {programs.env.UNIT}"
+    say(f"family: the centre expert at {where} first, {total} updates{each}")
     own = task_rngs(cfg.experts.seed, len(tasks))[i]
     rngs = jnp.stack([own, *(jax.random.fold_in(own, 10_000 + c) for c in range(1, k))])
     centre = np.repeat(tasks[i : i + 1], k, axis=0)
     start = np.zeros((k, programs.start_size))
     loop = chunked_loop(programs, centre, lambda: run_init(programs, rngs, centre, start)[0], lambda _: centre, n)
     stage_dir = run_dir / "experts" / "centre"
+    return runio.train_in_chunks(stage_dir, loop, n, cfg.experts.keep_checkpoints, say, stop_after_chunks)
+
+
+def train_chosen(cfg, run_dir: Path, programs: Compiled, chosen: ppo.TrainState, say=print, stop_after_chunks=None):
+    """The chosen centre candidate (1, ...) alone from the choice to `experts.family.centre_updates`,
+    under run_dir/experts/centre_chosen (resumable). Returns `runio.train_in_chunks`'s dict."""
+    tasks = task_env.as_contexts(cfg.experts.tasks, programs.env.CONTEXT_SIZE)
+    i, (n, _) = family_centre(tasks), family_updates(cfg)
+    centre = tasks[i : i + 1]
+    say(f"family: the chosen centre alone from update {choice_update(cfg)} to {n}")
+    loop = chunked_loop(programs, centre, lambda: chosen, lambda _: centre, n)
+    stage_dir = run_dir / "experts" / "centre_chosen"
     return runio.train_in_chunks(stage_dir, loop, n, cfg.experts.keep_checkpoints, say, stop_after_chunks)
 
 
@@ -327,6 +346,12 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
         centre_s = centre["wall_s"]
         c = choose_centre(cfg, run_dir, programs, centre["state"], say)["chosen"]
         chosen = jax.tree.map(lambda x: x[c : c + 1], centre["state"])
+        if choice_update(cfg) < centre_updates:  # the chosen one goes on alone
+            alone = train_chosen(cfg, run_dir, programs, chosen, say, stop_after_chunks)
+            centre_s += alone["wall_s"]
+            if not alone["finished"]:
+                return {**alone, "wall_s": centre_s, "finished": False}
+            chosen = alone["state"]
         rngs = jax.vmap(lambda k: jax.random.fold_in(k, 1))(task_rngs(cfg.experts.seed, len(tasks)))
         init = functools.partial(family_state, chosen, rngs)
     else:
@@ -469,12 +494,15 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
     task = tasks.get(cfg.task)
     centre_updates, _ = family_updates(cfg)
     if task.expert_start is None:  # every env step an expert cost is PPO's (its share of the centre's)
-        centre_steps = centre_candidates(cfg) * centre_updates * programs.trainer.steps_per_update
+        centre_steps = (
+            stage_sections.centre_env_updates(e.family) * programs.trainer.steps_per_update if centre_updates else 0
+        )
         record["env_steps_breakdown"] = {"ppo": record["env_steps"]}
         if centre_steps:
             record["env_steps_breakdown"]["family_centre_share"] = centre_steps // len(e.tasks)
             record["family_centre"] = {"context": task_env.context_json(e.tasks[family_centre(e.tasks)]),
-                                       "updates": centre_updates, "env_steps": centre_steps}  # fmt: skip
+                                       "updates": centre_updates, "choose_after": choice_update(cfg),
+                                       "env_steps": centre_steps}  # fmt: skip
             choice = stage_dir / "centre" / "choice.json"
             if choice.exists():  # the candidates and which one the family continued from (its episodes' steps)
                 chosen = runio.read_json(choice)
@@ -507,7 +535,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         say(f"experts already trained ({stage_dir / 'final_params'}): evaluating them")
         params = load_final_params(stage_dir, policy_record(cfg.experts.ppo, programs.env), n)
         wall = 0.0
-        for clock_path in (stage_dir / "wall_time.json", stage_dir / "centre" / "wall_time.json"):
+        for clock_path in (stage_dir / part / "wall_time.json" for part in ("", "centre", "centre_chosen")):
             clock = runio.read_json(clock_path) if clock_path.exists() else {}
             wall += max([0.0, *map(float, clock.values())])
     else:
@@ -518,7 +546,12 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     # (most of a paper run directory's size) go, once final_params is verified.
     runio.verify_checksums(stage_dir / "final_params")
     start = tasks.get(cfg.task).expert_start
-    for scratch in ("checkpoints", "centre/checkpoints", *(() if start is None else start.scratch())):
+    for scratch in (
+        "checkpoints",
+        "centre/checkpoints",
+        "centre_chosen/checkpoints",
+        *(() if start is None else start.scratch()),
+    ):
         runio.remove(stage_dir / scratch)
     say(tasks.get(cfg.task).report.experts(record))
     return record

@@ -85,6 +85,10 @@ def experts() -> ml_collections.ConfigDict:
     return experts
 
 
+# The baseline's PPO updates per compiled chunk, at most (`DERIVED` takes a divisor of its updates).
+BASELINE_CHUNK = 6
+
+
 def baseline(experts: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """Multi-task PPO: one policy that sees the goal, trained from a fresh init by the experts'
     PPO (hyperparameters and nets) on goals drawn per episode from the box (-3, 3)^2 m (each
@@ -92,7 +96,7 @@ def baseline(experts: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     BUMPS is."""
     b = stage_sections.baseline(copy.deepcopy(experts.ppo), TEST_TASKS, (-3.0, 3.0))  # each coordinate, m
     b.seeds = 3  # independent runs, trained side by side
-    b.updates_per_chunk = 6  # speed and logging only: PPO updates per compiled chunk (of 102)
+    b.updates_per_chunk = BASELINE_CHUNK  # speed and logging only: PPO updates per compiled chunk
     b.eval_repetitions = 20  # episodes per test goal and seed (reset noise on)
     # ... and per seed the env steps of one BUMPS run's experts together (`DERIVED`): each update
     # rolls out the episodes of all the experts' updates of one round (37 x 512), in the experts'
@@ -126,6 +130,11 @@ def sections() -> ml_collections.ConfigDict:
     return cfg
 
 
+def baseline_update(cfg) -> int:
+    """Env steps of one baseline update."""
+    return cfg.baseline.ppo.num_envs * cfg.env.episode_steps
+
+
 def largest_program(cfg) -> int:
     """Episodes of the larger training program: the experts' 37 x 512, or the baseline's seeds x
     arms x 37 x 512."""
@@ -135,7 +144,14 @@ def largest_program(cfg) -> int:
 # Keys computed from others, after the preset and `--set` (`config.derive`), unless set there.
 DERIVED = (
     ("baseline.ppo.num_envs", lambda cfg: len(cfg.experts.tasks) * cfg.experts.ppo.num_envs),
-    ("baseline.ppo.total_env_steps", lambda cfg: stage_sections.experts_env_steps(cfg.experts, cfg.env.episode_steps)),
+    (
+        "baseline.ppo.total_env_steps",
+        lambda cfg: stage_sections.equal_budget(cfg.experts, cfg.env.episode_steps, baseline_update(cfg)),
+    ),
+    (
+        "baseline.updates_per_chunk",
+        lambda cfg: stage_sections.chunk_size(cfg.baseline.ppo.total_env_steps // baseline_update(cfg), BASELINE_CHUNK),
+    ),
     ("env.warp_contacts", lambda cfg: ant_env.MAX_CONTACTS[True] * largest_program(cfg)),  # Warp's contact pool
 )
 

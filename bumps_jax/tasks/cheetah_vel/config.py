@@ -57,13 +57,17 @@ def experts() -> ml_collections.ConfigDict:
     return experts
 
 
+# The baseline's PPO updates per compiled chunk, at most (`DERIVED` takes a divisor of its updates).
+BASELINE_CHUNK = 10
+
+
 def baseline(experts: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """Multi-task PPO: one policy that sees the target velocity, trained from a fresh init by the
     experts' PPO (hyperparameters and nets) on velocities drawn per episode from their range,
     scored on the held-out test velocities as BUMPS is."""
     b = stage_sections.baseline(copy.deepcopy(experts.ppo), TEST_TASKS, (min(experts.tasks), max(experts.tasks)))
     b.seeds = 3  # independent runs, trained side by side
-    b.updates_per_chunk = 10  # speed and logging only: PPO updates per compiled chunk
+    b.updates_per_chunk = BASELINE_CHUNK  # speed and logging only: PPO updates per compiled chunk
     b.eval_repetitions = 20  # episodes per test velocity and seed (reset noise on)
     # ... and per seed the env steps of one BUMPS run's experts together (`DERIVED`): each update
     # rolls out the episodes of all the experts' updates of one round (13 x 512), in 16
@@ -97,6 +101,11 @@ def sections() -> ml_collections.ConfigDict:
     return cfg
 
 
+def baseline_update(cfg) -> int:
+    """Env steps of one baseline update."""
+    return cfg.baseline.ppo.num_envs * cfg.env.episode_steps
+
+
 def largest_program(cfg) -> int:
     """Episodes of the larger training program: the experts' 13 x 512, or the baseline's seeds x
     arms x 13 x 512."""
@@ -106,7 +115,14 @@ def largest_program(cfg) -> int:
 # Keys computed from others, after the preset and `--set` (`config.derive`), unless set there.
 DERIVED = (
     ("baseline.ppo.num_envs", lambda cfg: len(cfg.experts.tasks) * cfg.experts.ppo.num_envs),
-    ("baseline.ppo.total_env_steps", lambda cfg: stage_sections.experts_env_steps(cfg.experts, cfg.env.episode_steps)),
+    (
+        "baseline.ppo.total_env_steps",
+        lambda cfg: stage_sections.equal_budget(cfg.experts, cfg.env.episode_steps, baseline_update(cfg)),
+    ),
+    (
+        "baseline.updates_per_chunk",
+        lambda cfg: stage_sections.chunk_size(cfg.baseline.ppo.total_env_steps // baseline_update(cfg), BASELINE_CHUNK),
+    ),
     ("env.warp_contacts", lambda cfg: cheetah_env.CONTACTS_PER_GEOM * 8 * largest_program(cfg)),  # Warp's contact pool
 )
 
@@ -127,8 +143,8 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
 
 
 # Each preset: dotted overrides of the defaults. "tiny": HalfCheetah-Vel at CPU size: 10-step
-# episodes, 2 experts of 2 PPO updates after a centre of 2, a short BC; a baseline of 2 seeds x 8 updates
-# (the experts' and the centres' steps).
+# episodes, 2 experts of 2 PPO updates after a centre of 3 (2 candidates compared after 1), a short BC;
+# a baseline of 2 seeds x 8 updates (the experts' and the centre's steps).
 PRESETS: dict[str, dict] = {
     "paper": {},
     "tiny": {
@@ -141,9 +157,10 @@ PRESETS: dict[str, dict] = {
         "experts.ppo.num_minibatches": 2,
         "experts.ppo.num_epochs": 2,
         "experts.ppo.total_env_steps": 4 * 10 * 2,
-        "experts.family.centre_updates": 2,
+        "experts.family.centre_updates": 3,
         "experts.family.ramp_updates": 1,
         "experts.family.candidates": 2,
+        "experts.family.choose_after": 1,  # the candidates' 1 update, then the chosen one's 2
         "experts.ppo.policy_hidden": (32, 32),
         "experts.ppo.value_hidden": (32, 32),
         "experts.eval.repetitions": 2,
