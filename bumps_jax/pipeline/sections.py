@@ -11,6 +11,7 @@ import ml_collections
 from ml_collections import FieldReference
 
 from bumps_jax.algo import ppo_config
+from bumps_jax.pipeline import validation
 
 
 def experts(tasks) -> ml_collections.ConfigDict:
@@ -58,7 +59,7 @@ def centre_env_updates(family: ml_collections.ConfigDict) -> int:
     """PPO updates of the family's centre phase, every candidate's counted: the candidates' side
     by side until the choice, then the chosen one's alone."""
     n = int(family.centre_updates)
-    m = int(family.get("choose_after", 0)) or n
+    m = min(int(family.get("choose_after", 0)) or n, n)
     return int(family.get("candidates", 1)) * m + (n - m)
 
 
@@ -156,3 +157,26 @@ def heldout(targets, seed: int) -> ml_collections.ConfigDict:
     # context itself within +- filter.width, each rolled out this many times on its own episodes.
     cfg.selection_repetitions = 10
     return cfg
+
+
+def equal_budget_derived(contacts_per_episode: int, most_chunk: int) -> tuple:
+    """A task's `DERIVED` (`config.derive`) where the baseline costs what one run's experts cost:
+    an update rolls out every expert's batch, its budget per seed is the experts' whole in whole
+    updates (`equal_budget`), in chunks of at most `most_chunk` updates that divide them, and
+    Warp's contact pool holds the larger training program at `contacts_per_episode`."""
+
+    def per_update(cfg) -> int:
+        return cfg.baseline.ppo.num_envs * cfg.env.episode_steps
+
+    def largest_program(cfg) -> int:  # episodes: the experts' together, or the baseline's seeds x arms
+        return max(len(cfg.experts.tasks) * cfg.experts.ppo.num_envs, validation.baseline_runs(cfg.baseline))
+
+    return (
+        ("baseline.ppo.num_envs", lambda cfg: len(cfg.experts.tasks) * cfg.experts.ppo.num_envs),
+        ("baseline.ppo.total_env_steps", lambda cfg: equal_budget(cfg.experts, cfg.env.episode_steps, per_update(cfg))),
+        (
+            "baseline.updates_per_chunk",
+            lambda cfg: chunk_size(cfg.baseline.ppo.total_env_steps // per_update(cfg), most_chunk),
+        ),
+        ("env.warp_contacts", lambda cfg: contacts_per_episode * largest_program(cfg)),
+    )

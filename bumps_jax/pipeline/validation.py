@@ -88,17 +88,22 @@ def experts(e, task_range, n_steps: int, unit: str = "m", size: int = 1) -> None
                 f"experts.family.centre_updates {e.family.centre_updates} must be a multiple of "
                 f"experts.updates_per_chunk {e.updates_per_chunk} (one compiled chunk size)"
             )
-        m = e.family.get("choose_after", 0)
-        if isinstance(m, bool) or not isinstance(m, int | np.integer) or not 0 <= m <= e.family.centre_updates:
-            raise ValueError(
-                f"experts.family.choose_after must be an integer in [0, experts.family.centre_updates "
-                f"{e.family.centre_updates}], got {m!r}"
-            )
-        if m % e.updates_per_chunk:
-            raise ValueError(
-                f"experts.family.choose_after {m} must be a multiple of experts.updates_per_chunk "
-                f"{e.updates_per_chunk} (one compiled chunk size)"
-            )
+        if e.family.centre_updates:  # a centre phase: when its candidates are compared
+            choose_after(e)
+
+
+def choose_after(e) -> None:
+    """`experts.family.choose_after`: within the centre's updates, on a chunk's boundary."""
+    m, n = e.family.get("choose_after", 0), e.family.centre_updates
+    if isinstance(m, bool) or not isinstance(m, int | np.integer) or not 0 <= m <= n:
+        raise ValueError(
+            f"experts.family.choose_after must be an integer in [0, experts.family.centre_updates {n}], got {m!r}"
+        )
+    if m % e.updates_per_chunk:
+        raise ValueError(
+            f"experts.family.choose_after {m} must be a multiple of experts.updates_per_chunk "
+            f"{e.updates_per_chunk} (one compiled chunk size)"
+        )
 
 
 def chunk_divides(section, prefix: str, total: int) -> None:

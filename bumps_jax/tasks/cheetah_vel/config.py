@@ -101,30 +101,10 @@ def sections() -> ml_collections.ConfigDict:
     return cfg
 
 
-def baseline_update(cfg) -> int:
-    """Env steps of one baseline update."""
-    return cfg.baseline.ppo.num_envs * cfg.env.episode_steps
-
-
-def largest_program(cfg) -> int:
-    """Episodes of the larger training program: the experts' 13 x 512, or the baseline's seeds x
-    arms x 13 x 512."""
-    return max(len(cfg.experts.tasks) * cfg.experts.ppo.num_envs, validation.baseline_runs(cfg.baseline))
-
-
-# Keys computed from others, after the preset and `--set` (`config.derive`), unless set there.
-DERIVED = (
-    ("baseline.ppo.num_envs", lambda cfg: len(cfg.experts.tasks) * cfg.experts.ppo.num_envs),
-    (
-        "baseline.ppo.total_env_steps",
-        lambda cfg: stage_sections.equal_budget(cfg.experts, cfg.env.episode_steps, baseline_update(cfg)),
-    ),
-    (
-        "baseline.updates_per_chunk",
-        lambda cfg: stage_sections.chunk_size(cfg.baseline.ppo.total_env_steps // baseline_update(cfg), BASELINE_CHUNK),
-    ),
-    ("env.warp_contacts", lambda cfg: cheetah_env.CONTACTS_PER_GEOM * 8 * largest_program(cfg)),  # Warp's contact pool
-)
+# Keys computed from others after the preset and `--set` (`config.derive`), unless set there: the
+# baseline's budget per seed is one run's experts' (centre candidates included), and Warp's
+# contact pool holds the larger training program.
+DERIVED = stage_sections.equal_budget_derived(cheetah_env.CONTACTS_PER_GEOM * 8, BASELINE_CHUNK)
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
