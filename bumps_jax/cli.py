@@ -258,10 +258,13 @@ def dispatch(args) -> None:
 
             for name in stages:
                 tasks.check_stage(cfg.task, name)
-        with lock:
-            if args.seeds is None:
+        if args.seeds is None:
+            with lock:
                 pipeline.run_pipeline(stages, cfg, run_dir, force=args.force)
-            else:
+        elif args.distributed:  # the launcher that started this process holds the run directory
+            run_seeds(args.seeds, stages, cfg, Path(run_dir), args.force, lock=lambda _: contextlib.nullcontext())
+        else:  # commands of other seeds may write into the same run directory, each its own seeds'
+            with runio.run_lock(run_dir, shared=True):
                 run_seeds(args.seeds, stages, cfg, Path(run_dir), args.force)
     else:
         from bumps_jax.pipeline import commands  # noqa: PLC0415
@@ -271,9 +274,11 @@ def dispatch(args) -> None:
             commands.run(args.command, cfg, run_dir, args)
 
 
-def run_seeds(seeds, stages, cfg, run_dir: Path, force: bool = False) -> None:
+def run_seeds(seeds, stages, cfg, run_dir: Path, force: bool = False, lock=None) -> None:
     """The pipeline once per training seed into run_dir/seed<S> (the baseline, seeded itself, in
-    the first only), then run_dir/seeds.json over the runs that finished experts, meta and filter."""
+    the first only), each holding `lock(seed_dir)` (default: `runio.run_lock`, so that commands
+    of other seeds run side by side in one run directory), then run_dir/seeds.json over the runs
+    that finished experts, meta and filter."""
     from bumps_jax import config, runio  # noqa: PLC0415
     from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
     from bumps_jax.report import seeds as seeds_report  # noqa: PLC0415
@@ -286,7 +291,8 @@ def run_seeds(seeds, stages, cfg, run_dir: Path, force: bool = False) -> None:
     for i, (seed, seeded) in enumerate(zip(seeds, configs, strict=True)):
         seed_dir = run_dir / f"seed{seed}"
         print(f"== training seed {seed} ({i + 1} of {len(seeds)}): {seed_dir}", flush=True)
-        pipeline.run_pipeline(tuple(s for s in stages if i == 0 or s != "baseline"), seeded, seed_dir, force=force)
+        with (lock or runio.run_lock)(seed_dir):
+            pipeline.run_pipeline(tuple(s for s in stages if i == 0 or s != "baseline"), seeded, seed_dir, force=force)
         runs.append(seed_dir)
     done = [d for d in runs if not pipeline.unfinished(d, ("experts", "meta", "filter"), cfg.task)]
     if len(done) > 1:

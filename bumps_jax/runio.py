@@ -386,18 +386,19 @@ def check_writable(directory: str | os.PathLike) -> Path:
 
 
 @contextlib.contextmanager
-def run_lock(run_dir: str | os.PathLike):
+def run_lock(run_dir: str | os.PathLike, shared: bool = False):
     """Hold run_dir/.lock while a command writes stages into `run_dir`: two processes in one run
     directory would interleave its checkpoints and `pipeline.json`. ValueError at once, naming
     the holder's process id, if another process holds it; the lock goes with the process that
-    holds it, however that process ends."""
+    holds it, however that process ends. shared: held beside other shared holders (commands of
+    `--seeds` that each lock their own seed's directory), never beside an exclusive one."""
     import fcntl  # noqa: PLC0415 (POSIX only, as the rest of the tooling)
 
     run_dir = check_writable(run_dir)
     fd = os.open(run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
     try:
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
             raise ValueError(

@@ -154,11 +154,11 @@ def test_env_overrides_reach_every_stage():
         env_records.check_same_env(kick_env.resolved(config.make_config("tiny").env), cfg.env, "kick prior x")
 
 
-@pytest.mark.parametrize("command", ["kick-prior", "reproduce"])
+@pytest.mark.parametrize("command", [["kick-prior"], ["reproduce"], ["reproduce", "--seeds", "0"]])
 def test_a_run_directory_in_use_stops_a_stage_command_in_one_line(tmp_path, command):
     with runio.run_lock(tmp_path / "run"):  # as another process holding it would
         with pytest.raises(SystemExit, match=r"error: run directory .* is in use by another process"):
-            cli.main([command, "--preset", "tiny" if command == "kick-prior" else "paper", "--run-dir",
+            cli.main([*command, "--preset", "tiny" if command[0] == "kick-prior" else "paper", "--run-dir",
                       str(tmp_path / "run")])  # fmt: skip
 
 

@@ -252,6 +252,26 @@ def test_seeds_run_the_pipeline_per_seed_the_baseline_once_and_summarise(tmp_pat
         cli.run_seeds([2, 2], ("experts",), cfg, tmp_path)
 
 
+def test_commands_of_other_seeds_run_side_by_side_in_one_run_directory(tmp_path, monkeypatch):
+    """One command a seed (a GPU each, a SLURM array): each holds its seed's directory and shares
+    the run directory; the same seed twice, or a whole-directory command beside them, is refused."""
+    from bumps_jax import cli, runio
+
+    def fake_pipeline(stages, cfg, run_dir, force=False):
+        write_run(run_dir, record("cheetah_vel", 0.1, 0.1, 0.1), cfg.experts.seed)
+
+    monkeypatch.setattr(pipeline, "run_pipeline", fake_pipeline)
+    cfg = config.make_config("tiny", {"task": "cheetah_vel"})
+    with runio.run_lock(tmp_path, shared=True), runio.run_lock(tmp_path / "seed0"):  # another command, at seed 0
+        with runio.run_lock(tmp_path, shared=True):
+            cli.run_seeds([1], ("experts", "meta", "filter"), cfg, tmp_path)
+        assert (tmp_path / "seed1" / "experts").is_dir()
+        with pytest.raises(ValueError, match=r"seed0 is in use by another process \(pid \d+\)"):
+            cli.run_seeds([0], ("experts",), cfg, tmp_path)
+        with pytest.raises(ValueError, match="is in use by another process"), runio.run_lock(tmp_path):
+            pass
+
+
 def test_an_interrupted_family_resumes_to_the_uninterrupted_result(tmp_path):
     """Candidates compared after one update, the chosen one alone for two more, then the family:
     each call stops after one chunk of the phase it is in (a finished phase is read back from its
