@@ -177,6 +177,25 @@ def section(cfg: ml_collections.ConfigDict, stage: str) -> dict:
     return {"preset": cfg.preset, "task": cfg.task, "env": resolved_env(cfg), stage: body}
 
 
+# Sections deleted from the tree (their experiment lost; docs/decisions.md), each with the key and
+# value at which an older record's result is one made without them: such a record still matches.
+REMOVED_SECTIONS = {"meta.dagger": ("rounds", 0)}  # DAgger: 0 rounds was plain cloning
+
+
+def without_removed(tree: dict) -> dict:
+    """An older record's stage section (`section`'s layout) less every `REMOVED_SECTIONS` section
+    that holds its value that changes nothing; one that did something is kept, and so differs."""
+    out = json.loads(json.dumps(tree))
+    for dotted, (key, inert) in REMOVED_SECTIONS.items():
+        *parents, leaf = dotted.split(".")
+        node = out
+        for part in parents:
+            node = node.get(part) if isinstance(node, dict) else None
+        if isinstance(node, dict) and isinstance(node.get(leaf), dict) and node[leaf].get(key) == inert:
+            del node[leaf]
+    return out
+
+
 def without_added(tree):
     """A nested dict less every `ADDED_KEYS` key holding its value that changes nothing."""
     if not isinstance(tree, dict):

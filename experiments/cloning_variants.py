@@ -1,5 +1,6 @@
 """Cloning variants side by side: finished meta stages that cloned the same experts in different
-ways (`meta.dataset`, `meta.dagger`), each scored unfiltered on the same contexts.
+ways (`meta.dataset`; DAgger's rounds, `meta.dagger`, until they were removed), each scored
+unfiltered on the same contexts.
 
 Reads each run's meta/table1.json (and the experts' record it names) and writes one record: per
 variant, its cloning in words, the env steps it spent, the pairs it trained on, its training

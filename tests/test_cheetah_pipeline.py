@@ -77,9 +77,9 @@ def test_the_tiny_pipeline_runs_the_cheetahs_stages(cheetah_run):
     assert table1["obs_size"] == 18 and table1["n_actions"] == 6  # the state (17) and the context
     # The meta-policies see the state normalised by the dataset's statistics, kept with the nets.
     assert len(table1["obs_shift"]) == len(table1["obs_scale"]) == 18 and min(table1["obs_scale"]) > 0
-    # Cloned with the preset's DART noise and clipped labels, no DAgger: its env steps are the recording's.
+    # Cloned with the preset's DART noise and clipped labels: its env steps are the recording's.
     assert table1["cloning"]["variant"] == "2 episode(s) per expert, DART action noise 0.2, labels clipped"
-    assert table1["cloning"]["env_steps"] == {"dataset": table1["dataset_pairs"], "dagger": 0}
+    assert table1["cloning"]["env_steps"] == {"dataset": table1["dataset_pairs"]}
     assert table1["dataset_pairs"] == 2 * view.meta.dataset.repetitions * view.env.episode_steps
     for name in ("meta_4x256", "meta_11x128"):
         assert np.isfinite(table1["rows"][name]["error_mean_all_m"])

@@ -1,5 +1,5 @@
 """One family of experts (a centre expert first, every expert continued from it), the family
-check, closed-loop cloning (DART noise, clipped labels, DAgger), headlines over seeds and the
+check, closed-loop cloning (DART noise, clipped labels), headlines over seeds and the
 env-step table."""
 
 import json
@@ -58,7 +58,6 @@ def test_every_expert_starts_as_the_centre_with_its_own_rng_and_no_updates():
             "experts.family.choose_after 1 must be a multiple of experts.updates_per_chunk 2",
         ),
         ({"meta.dataset.action_noise": -0.1}, "meta.dataset.action_noise must be a finite std >= 0, got -0.1"),
-        ({"meta.dagger.rounds": 1, "meta.dagger.epochs": 15}, "meta.dagger.epochs 15 must be a multiple of"),
     ],
 )
 def test_bad_family_and_cloning_settings_are_named(overrides, message):

@@ -19,6 +19,7 @@ from bumps_jax.tasks import registry as tasks
 # Keys that join later at a value that changes nothing leave the pins as they are (`config.ADDED_KEYS`).
 # meta: re-pinned with schema 3, when closed-loop cloning's knobs (meta.dataset.action_noise,
 # clip_labels, meta.dagger) joined the tree at values that change nothing (the kick's pins held otherwise).
+# Sections deleted since (`config.REMOVED_SECTIONS`) are put back as the pinned records held them.
 KICK_SECTIONS = {
     "tiny": {
         "prior": "c77d5ee26ce79ab481bb9e662a761800766d5204f5cb12fa5c4abe3858fe232d",
@@ -39,16 +40,41 @@ KICK_SECTIONS = {
 }
 
 
+# What the pinned records held of each section since deleted: DAgger's, at 0 rounds (plain cloning).
+PINNED_REMOVED = {"meta": {"dagger": {"rounds": 0, "repetitions": 4, "epochs": 100}}}
+
+
 def digest(section: dict) -> str:
     return hashlib.sha256(json.dumps(section, sort_keys=True).encode()).hexdigest()
+
+
+def pinned(cfg, stage: str) -> dict:
+    """`config.section` as the pinned records hold it: with the sections deleted since, put back."""
+    section = config.section(cfg, stage)
+    section[stage].update(PINNED_REMOVED.get(stage, {}))
+    return section
 
 
 @pytest.mark.parametrize("preset", sorted(KICK_SECTIONS))
 def test_the_kicks_stage_sections_are_unchanged(preset):
     cfg = config.make_config(preset)
     assert cfg.task == "kick"
-    sections = {s: digest(config.section(cfg, s)) for s in KICK_SECTIONS[preset]}
+    sections = {s: digest(pinned(cfg, s)) for s in KICK_SECTIONS[preset]}
     assert sections == KICK_SECTIONS[preset]
+
+
+def test_a_stage_made_before_a_section_was_deleted_still_matches(tmp_path):
+    """A meta stage whose manifest holds DAgger at 0 rounds (plain cloning) resumes; one that ran
+    DAgger rounds is another config's, named."""
+    cfg = config.make_config("tiny")
+    wanted = pipeline.manifest(config.section(cfg, "meta"), {})
+    pipeline.write_manifest(tmp_path, pipeline.manifest(pinned(cfg, "meta"), {}))
+    assert pipeline.check_manifest(tmp_path, wanted) == "same"
+    older = pinned(cfg, "meta")
+    older["meta"]["dagger"]["rounds"] = 2
+    pipeline.write_manifest(tmp_path, pipeline.manifest(older, {}))
+    with pytest.raises(pipeline.StaleRunError, match=r"other inputs \(meta\.dagger\)"):
+        pipeline.check_manifest(tmp_path, wanted)
 
 
 def test_a_tasks_tree_is_its_own():

@@ -438,7 +438,7 @@ def train(model: MetaPolicy, data: Dataset, train_cfg, out_dir, say=print, max_c
 
 
 def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print, max_chunks=None,
-               trainer=None, start=None) -> dict:  # fmt: skip
+               trainer=None) -> dict:  # fmt: skip
     """Train (or resume) every net of `models` (name -> MetaPolicy) on data (N pairs) in one loop
     (with several processes, each process's share of the nets: `shared_chunk`); returns {name:
     final TrainState} on every process, whose `step` counts gradient steps (train_cfg.epochs x
@@ -450,8 +450,6 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
     files are those of a net trained alone. A rerun resumes from the newest step every net holds
     readably and ends where an uninterrupted run would.
     max_chunks: stop after this many chunks in this call (tests of the resume path).
-    start: {name: params (S, ...)} each net begins from instead of its initialisation (with a
-    fresh optimiser), e.g. a previous round's; a checkpoint in out_dirs still comes first.
     """
     import orbax.checkpoint as ocp  # noqa: PLC0415
 
@@ -477,8 +475,6 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
             for name in names
         }
         fresh = init(keys)
-        if start is not None:
-            fresh = {name: fresh[name]._replace(params=start[name]) for name in names}
         restore = {name: ocp.args.StandardRestore(fresh[name]) for name in names}
         step, states = runio.restore_latest_common(managers, restore, say)
         if step is None:

@@ -294,7 +294,8 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, finished:
     or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
     StaleRunError naming the differing keys and the two ways on. Warp's buffer sizes
     (`env.warp_contacts`, `env.warp_constraints_per_world`) are not compared, nor keys that change
-    no result (`NO_RESULT_KEYS`; `NO_RESULT_ONCE_FINISHED` where the stage has `finished`). A
+    no result (`NO_RESULT_KEYS`; `NO_RESULT_ONCE_FINISHED` where the stage has `finished`), nor
+    an older manifest's sections since removed at their value that did nothing (`config.without_removed`). A
     manifest without `MANIFEST_SCHEMA` (an older version's) is refused in one line, whatever it holds.
     """
     from bumps_jax import records as env_records  # noqa: PLC0415
@@ -321,7 +322,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, finished:
                 "version): use a new --run-dir, or --force to recompute this stage and every stage after it"
             )
         diff = env_records.differing_keys(
-            {"config": have.get("config", {}), "inputs": _hashes(have.get("inputs", {}))},
+            {"config": config.without_removed(have.get("config", {})), "inputs": _hashes(have.get("inputs", {}))},
             {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
         )
         diff = [key for key in diff if not _capacity(key) and not _changes_no_result(key, finished)]

@@ -82,13 +82,6 @@ def meta(eval_tasks) -> ml_collections.ConfigDict:
     # noise of this std (labels stay the expert's own action); 0: the expert's action.
     cfg.dataset.action_noise = 0.0
     cfg.dataset.clip_labels = False  # labels clipped to the env's action bound (`ACTION_BOUND`)
-    # DAgger: after cloning, `rounds` times: each net runs `repetitions` episodes at every
-    # expert's context, its states are labelled by that expert, added to the pairs, and every
-    # net trains `epochs` more epochs on them all. 0 rounds: plain cloning (the paper).
-    cfg.dagger = ml_collections.ConfigDict()
-    cfg.dagger.rounds = 0
-    cfg.dagger.repetitions = 4  # episodes per net and expert context, each round
-    cfg.dagger.epochs = 100  # epochs of training after each round
     cfg.train = ml_collections.ConfigDict()  # behaviour cloning (`bc.make_trainer`: every net in one program)
     cfg.train.learning_rate = 3e-4  # Adam, times decay_rate every decay_every epochs
     cfg.train.decay_rate = 0.8  # factor on the rate every decay_every epochs

@@ -127,12 +127,6 @@ def meta(m, task_range, unit: str = "m", size: int = 1) -> None:
     noise = m.dataset.action_noise
     if isinstance(noise, bool) or not isinstance(noise, int | float) or not math.isfinite(noise) or noise < 0:
         raise ValueError(f"{p}dataset.action_noise must be a finite std >= 0, got {noise!r}")
-    rounds = m.dagger.rounds
-    if isinstance(rounds, bool) or not isinstance(rounds, int | np.integer) or rounds < 0:
-        raise ValueError(f"{p}dagger.rounds must be an integer >= 0, got {rounds!r}")
-    positive_ints(m.dagger, f"{p}dagger.", ("repetitions", "epochs"))
-    if rounds and m.dagger.epochs % m.train.chunk:
-        raise ValueError(f"{p}dagger.epochs {m.dagger.epochs} must be a multiple of {p}train.chunk {m.train.chunk}")
     positive_ints(m.eval, f"{p}eval.", ("repetitions",))
     targets(m.eval.tasks, task_range, f"{p}eval.tasks", unit, size)
     for name, arch in m.nets.items():

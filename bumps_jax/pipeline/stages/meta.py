@@ -134,22 +134,6 @@ def collect_dataset(env, family, repetitions: int, seed: int = 0, action_noise: 
     return data, {k: np.asarray(v) for k, v in metrics.items()}
 
 
-def relabelled(
-    env, family, apply_fn, params, repetitions: int, seed: int, clip_labels: bool
-) -> tuple[bc.Dataset, dict]:
-    """DAgger's pairs: one policy (a net's params) runs `repetitions` episodes at every expert's
-    context, and each step's contextual observation is labelled with that expert's action:
-    (bc.Dataset of E * K * T pairs, the policy's final metrics of (E, K))."""
-    targets = env.check_targets(family.tasks).astype(np.float32)
-    program = rollout.matched_fn(env, apply_fn, record="trajectory")
-    stacked = jax.tree.map(lambda a: np.broadcast_to(a, (len(targets), *a.shape)), params)
-    metrics, (obs, _) = program(stacked, targets, targets, rollout.repetition_keys(seed, len(targets), repetitions))
-    labels = jax.jit(jax.vmap(lambda p, o: family.apply_fn(p, o)))(family.params, obs)  # expert i on its states
-    return pairs(targets, obs, clipped(env, np.asarray(labels), clip_labels)), {
-        k: np.asarray(v) for k, v in metrics.items()
-    }
-
-
 def save_dataset(path, data: bc.Dataset) -> Path:
     """npz with obs, actions, task; written atomically."""
     runio.write_npz(path, **data._asdict())
@@ -213,14 +197,12 @@ def cloning_variant(m) -> str:
         parts.append(f"DART action noise {d.action_noise:g}")
     if d.clip_labels:
         parts.append("labels clipped")
-    if m.dagger.rounds:
-        parts.append(f"DAgger {m.dagger.rounds} x {m.dagger.repetitions} episodes, {m.dagger.epochs} epochs")
     return ", ".join(parts) if len(parts) > 1 or d.repetitions == 1 else parts[0] + " (plain cloning)"
 
 
-def cloning_record(cfg, env, n_nets: int) -> dict:
+def cloning_record(cfg, env) -> dict:
     """table1.json's "cloning": the variant in words and the env steps it spent."""
-    steps = cloning_env_steps(cfg, env, n_nets)
+    steps = cloning_env_steps(cfg, env)
     return {"variant": cloning_variant(cfg.meta), "env_steps": steps, "env_steps_total": int(sum(steps.values()))}
 
 
@@ -235,51 +217,15 @@ def evaluate_unfiltered(grid, params, tasks, repetitions: int, seed: int) -> dic
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def dagger_dirs(stage_dir: Path, names, r: int, rounds: int) -> dict:
-    """Where each net trains in round r: stage_dir/<net> for the last (what later stages read),
-    stage_dir/dagger/round<r>/<net> before it."""
-    return {n: stage_dir / n if r == rounds else stage_dir / "dagger" / f"round{r}" / n for n in names}
-
-
-def dagger_data(cfg, run_dir: Path, r: int, data: bc.Dataset, models: dict, states: dict, say=print) -> bc.Dataset:
-    """Round r's pairs: `data` and, from each net (its first seed) run at every expert's context,
-    its states labelled by that expert (`relabelled`); saved as meta/dagger/round<r>.npz and
-    reused when the stage resumes."""
-    path = Path(run_dir) / "meta" / "dagger" / f"round{r}.npz"
-    if path.exists():
-        try:
-            return load_dataset(path)
-        except runio.CorruptError as err:  # this stage's own intermediate: made again
-            say(f"dagger: {err}; relabelling again")
-    g = cfg.meta.dagger
-    env, family = tasks.make_env(cfg.task, cfg.env), experts_stage.load_family(cfg, run_dir)
-    parts, errors = [data], []
-    for i, (name, model) in enumerate(models.items()):
-        params = jax.tree.map(lambda a: a[0], states[name].params)
-        seed = cfg.meta.dataset.seed + 1000 * r + i
-        new, metrics = relabelled(env, family, bc.policy_apply(model), params, g.repetitions, seed,
-                                  bool(cfg.meta.dataset.clip_labels))  # fmt: skip
-        parts.append(new)
-        errors.append(f"{name} {metrics['final_error'].mean():.3f}")
-    out = bc.Dataset(*(np.concatenate(field) for field in zip(*parts, strict=True)))
-    save_dataset(path, out)
-    say(f"dagger round {r}: {len(out.obs)} pairs; nets' error at the experts' contexts {', '.join(errors)} {env.UNIT}")
-    return out
-
-
-def cloning_env_steps(cfg, env, n_nets: int) -> dict:
-    """The env steps cloning spends: the experts' recorded episodes and DAgger's."""
-    m, n = cfg.meta, len(cfg.experts.tasks)
-    dataset = n * m.dataset.repetitions * env.n_steps
-    return {"dataset": int(dataset), "dagger": int(m.dagger.rounds * n_nets * n * m.dagger.repetitions * env.n_steps)}
+def cloning_env_steps(cfg, env) -> dict:
+    """The env steps cloning spends: the experts' recorded episodes."""
+    return {"dataset": int(len(cfg.experts.tasks) * cfg.meta.dataset.repetitions * env.n_steps)}
 
 
 def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict, dict, dict, int]:
     """Train (or resume) every net of cfg.meta.nets into stage_dir/<net>, all stacked in one
-    program (`bc.make_trainer`); with `meta.dagger.rounds`, each round's relabelled pairs added
-    and the nets trained on from where they were (`dagger_data`). Returns ({net: bc.MetaPolicy},
-    {net: final bc.TrainState}, {net: train_wall_s}: the nets share one loop, so each shows its
-    whole time, the pairs of the last round)."""
+    program (`bc.make_trainer`). Returns ({net: bc.MetaPolicy}, {net: final bc.TrainState},
+    {net: train_wall_s}: the nets share one loop, so each shows its whole time, the pairs)."""
     m = cfg.meta
     obs_norm = net_obs_norm(cfg, env, data)
     names = net_names(m.nets)
@@ -301,14 +247,7 @@ def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict,
     # Training seconds over every process (a killed call's up to its last progress line), compiling
     # and checkpoints included; the nets share one loop, so each shows its whole time.
     clock = runio.CarriedClock(stage_dir / "train_wall_time.json")
-    rounds = int(m.dagger.rounds)
-    states = bc.train_nets(models, data, m.train, dagger_dirs(stage_dir, names, 0, rounds), timed(clock))
-    for r in range(1, rounds + 1):
-        data = dagger_data(cfg, stage_dir.parent, r, data, models, states, say)
-        more = copy.deepcopy(m.train)
-        more.epochs = m.dagger.epochs
-        start = {name: states[name].params for name in names}
-        states = bc.train_nets(models, data, more, dagger_dirs(stage_dir, names, r, rounds), timed(clock), start=start)
+    states = bc.train_nets(models, data, m.train, {name: stage_dir / name for name in names}, timed(clock))
     return models, states, dict.fromkeys(names, clock.save()), len(data.obs)
 
 
@@ -372,7 +311,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         "per_task": per_task,
         "eval": {"repetitions": e.repetitions, "n_tasks": len(e.tasks), "seed": e.seed},
         "dataset_pairs": n_pairs,
-        "cloning": cloning_record(cfg, env, len(models)),
+        "cloning": cloning_record(cfg, env),
         "timings": timings,
         "config": cfg.meta.to_dict(),  # what the filter stage checks its nets against
         **runio.provenance(cfg.preset, time.perf_counter() - t_start, config.resolved_env(cfg)),
@@ -385,9 +324,6 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     # ones go, as the experts' and the baseline's do once their records are written.
     for name in models:
         runio.keep_newest_checkpoint(stage_dir / name / "checkpoints")
-    for r in range(cfg.meta.dagger.rounds):  # the earlier rounds' nets: the last round started from them
-        for d in dagger_dirs(stage_dir, models, r, cfg.meta.dagger.rounds).values():
-            runio.remove(d / "checkpoints")
     markdown = tasks.get(cfg.task).report.table1(rows, env.UNIT)
     runio.write_text(stage_dir / "table1.md", markdown)
     return runio.json_safe(payload)
