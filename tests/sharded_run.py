@@ -49,6 +49,11 @@ EXPERTS = {
     "experts.ppo.num_minibatches": 2,
     "experts.ppo.num_epochs": 1,
     "experts.ppo.total_env_steps": 4 * N_STEPS * 2,
+    # One family: 2 centre candidates compared after 1 update (the choice made by the first
+    # process, read by the other), the chosen one alone for 1 more, every expert from it.
+    "experts.family.centre_updates": 2,
+    "experts.family.candidates": 2,
+    "experts.family.choose_after": 1,
 }
 
 

@@ -45,7 +45,8 @@ def sharded_vs_single(tmp_path_factory):
     cfg = sharded_run.experts_config()
     env = sharded_run.make_env(cfg)
     programs = experts.compile_programs(cfg, env)
-    out = experts.train(cfg, tmp_path_factory.mktemp("one_device"), programs, say=lambda *a, **k: None)
+    one_device = tmp_path_factory.mktemp("one_device")
+    out = experts.train(cfg, one_device, programs, say=lambda *a, **k: None)
     leaves = jax.tree.leaves(experts.expert_params(out["state"]))
     grid, params = sharded_run.contextual_grid(env)
     single = {
@@ -53,6 +54,11 @@ def sharded_vs_single(tmp_path_factory):
         "filter": sharded_run.filter_synthetic(env, grid, params, 1),
         "nets": sharded_run.train_nets(tmp_path_factory.mktemp("nets")),
     }
+    # Both sides trained a family: candidates, a choice (on both sides the same one), the chosen alone.
+    choices = [
+        json.loads((d / "experts" / "centre" / "choice.json").read_text())["chosen"] for d in (one_device, run_dir)
+    ]
+    assert choices[0] == choices[1] and (run_dir / "experts" / "centre_chosen" / "progress.csv").exists()
     return single, sharded
 
 
