@@ -209,14 +209,17 @@ def resolved_env(cfg: ml_collections.ConfigDict) -> dict:
 
 
 def overrides_of(cfg: ml_collections.ConfigDict) -> dict:
-    """{dotted key: value} of every leaf where `cfg` differs from its preset."""
+    """{dotted key: value} of every leaf where `cfg` differs from its preset, but a derived key
+    (`derive`) that holds what the rest of the tree gives it: it followed an override, none itself."""
     base, mine = jsonable(make_config(cfg.preset, {"task": cfg.task}).to_dict()), jsonable(cfg.to_dict())
+    derived = dict(getattr(tasks.get(cfg.task).config, "DERIVED", ()))
     out = {}
     for key in differing_keys(base, mine):
         value = mine
         for part in key.split("."):
             value = value[part]
-        out[key] = value
+        if key not in derived or value != jsonable(derived[key](cfg)):
+            out[key] = value
     return out
 
 

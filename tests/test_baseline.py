@@ -122,6 +122,7 @@ def test_baseline_budget_follows_the_experts_overrides(task, candidates):
         len(e.tasks) * e.ppo.total_env_steps + e.family.candidates * e.family.centre_updates * per_update
     )
     more = config.make_config("paper", {"task": task, "experts.family.candidates": candidates})
+    assert config.overrides_of(more) == {"experts.family.candidates": candidates}  # what followed it is no override
     extra = (candidates - e.family.candidates) * e.family.centre_updates * per_update
     assert more.baseline.ppo.total_env_steps == paper.baseline.ppo.total_env_steps + extra
     longer = config.make_config(
@@ -141,3 +142,4 @@ def test_baseline_budget_follows_the_experts_overrides(task, candidates):
         "paper", {"task": task, "experts.family.candidates": candidates, "baseline.ppo.total_env_steps": one_chunk}
     )
     assert fixed.baseline.ppo.total_env_steps == one_chunk
+    assert config.overrides_of(fixed)["baseline.ppo.total_env_steps"] == one_chunk  # set by hand: an override
