@@ -50,7 +50,8 @@ EXPERTS = {
     "experts.ppo.num_epochs": 1,
     "experts.ppo.total_env_steps": 4 * N_STEPS * 2,
     # One family: 2 centre candidates compared after 1 update (the choice made by the first
-    # process, read by the other), the chosen one alone for 1 more, every expert from it.
+    # process, read by the other), the chosen one alone for 1 more, every expert from it; the
+    # sharded side stops after one chunk of each phase and resumes (`train`).
     "experts.family.centre_updates": 2,
     "experts.family.candidates": 2,
     "experts.family.choose_after": 1,

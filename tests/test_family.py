@@ -269,35 +269,3 @@ def test_commands_of_other_seeds_run_side_by_side_in_one_run_directory(tmp_path,
             cli.run_seeds([0], ("experts",), cfg, tmp_path)
         with pytest.raises(ValueError, match="is in use by another process"), runio.run_lock(tmp_path):
             pass
-
-
-def test_an_interrupted_family_resumes_to_the_uninterrupted_result(tmp_path):
-    """Candidates compared after one update, the chosen one alone for two more, then the family:
-    each call stops after one chunk of the phase it is in (a finished phase is read back from its
-    checkpoints), and the run ends where an uninterrupted one does, bit for bit."""
-    family = {"experts.family.centre_updates": 3, "experts.family.candidates": 2, "experts.family.choose_after": 1}
-    small = {"experts.updates_per_chunk": 1, "experts.ppo.num_envs": 8, "experts.ppo.num_minibatches": 2}
-    cfg = config.make_config(
-        "tiny", {"task": "point_goal", "experts.ppo.total_env_steps": 8 * 30 * 2, **small, **family}
-    )
-    programs = experts_stage.compile_programs(cfg)
-    quiet = {"say": lambda *a, **k: None}
-    whole = experts_stage.train(cfg, tmp_path / "whole", programs, **quiet)
-    assert whole["finished"]
-    said, calls = [], 0
-    while True:
-        calls += 1
-        out = experts_stage.train(
-            cfg, tmp_path / "split", programs, stop_after_chunks=1, say=lambda *a, **k: said.append(a[0])
-        )
-        if out["finished"]:
-            break
-    # Call 1: the candidates' update (their phase done), the choice, the chosen one's first; call 2:
-    # its second (resumed), the family's first; call 3: the family's second. One choice made.
-    assert calls == 3 and sum("centre candidates' errors" in s for s in said) == 1
-    assert sum("resumed from update 2" in s for s in said) == 1  # the chosen one, after the choice's update 1
-    for x, y in zip(jax.tree.leaves(whole["state"]), jax.tree.leaves(out["state"]), strict=True):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    for part in ("centre", "centre_chosen", ""):
-        rows = (tmp_path / "split" / "experts" / part / "progress.csv").read_text()
-        assert rows == (tmp_path / "whole" / "experts" / part / "progress.csv").read_text()
