@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from bumps_jax import records, runio
+from bumps_jax.algo.evaluate import FLIPPED
 
 PROVENANCE = ("device", "n_devices", "versions", "preset", "env", "task", "unit")
-FLIPPED = 0.5  # a candidate is on its back where most of its steps are (as the choice counts it)
 
 
 def run_summary(run_dir: Path) -> dict:

@@ -135,12 +135,17 @@ def nearest_others(tasks, k: int = 2) -> list[list[int]]:
     return [sorted(np.argsort(row, kind="stable")[: min(k, len(t) - 1)].tolist()) for row in dist]
 
 
+# An expert (or a centre candidate) runs on its back where a posture's `flipped_fraction`, the
+# share of its steps flipped, is above this.
+FLIPPED = 0.5
+
+
 def family_check(env: task_env.ContextualEnv, tasks, metrics: dict, posture: dict | None = None) -> dict:
     """Whether the experts are one family, before any net is cloned from them: per expert, what
     its episodes achieved (`env.ACHIEVED`), its error on its own context and at its nearest
     neighbours' (`nearest_others`), and the env's `posture` statistics ({name: (E,)}); in all,
     whether what they achieve rises with the context (a scalar one) and how many spend most
-    of their steps flipped (a posture's `flipped_fraction` above 0.5).
+    of their steps flipped (a posture's `flipped_fraction` above `FLIPPED`).
     metrics: final metrics of (E, R) (`evaluate_experts`)."""
     posture = posture or {}
     tasks = np.asarray(tasks, np.float64)
@@ -161,7 +166,7 @@ def family_check(env: task_env.ContextualEnv, tasks, metrics: dict, posture: dic
         order = np.argsort(tasks)
         out["achieved_rises"] = bool(np.all(np.diff(achieved[order]) > 0))
     if "flipped_fraction" in posture:
-        out["flipped_experts"] = int((np.asarray(posture["flipped_fraction"]) > 0.5).sum())
+        out["flipped_experts"] = int((np.asarray(posture["flipped_fraction"]) > FLIPPED).sum())
     return out
 
 

@@ -55,11 +55,17 @@ def chunk_size(updates: int, most: int) -> int:
     return max(d for d in range(1, most + 1) if updates % d == 0)
 
 
+def choice_update(family: ml_collections.ConfigDict) -> int:
+    """After how many of the centre's updates its candidates are compared (`choose_after`; 0:
+    after all of them)."""
+    n = int(family.centre_updates)
+    return min(int(family.get("choose_after", 0)) or n, n)
+
+
 def centre_env_updates(family: ml_collections.ConfigDict) -> int:
     """PPO updates of the family's centre phase, every candidate's counted: the candidates' side
     by side until the choice, then the chosen one's alone."""
-    n = int(family.centre_updates)
-    m = min(int(family.get("choose_after", 0)) or n, n)
+    n, m = int(family.centre_updates), choice_update(family)
     return int(family.get("candidates", 1)) * m + (n - m)
 
 

@@ -211,10 +211,8 @@ def centre_candidates(cfg) -> int:
 
 
 def choice_update(cfg) -> int:
-    """After how many updates the centre candidates are compared (`experts.family.choose_after`;
-    0: after all of the centre's updates)."""
-    n, _ = family_updates(cfg)
-    return int(cfg.experts.family.get("choose_after", 0)) or n
+    """After how many updates the centre candidates are compared (`sections.choice_update`)."""
+    return stage_sections.choice_update(cfg.experts.family)
 
 
 def family_centre(tasks) -> int:
@@ -313,7 +311,7 @@ def centre_choice(cfg, programs: Compiled, state: ppo.TrainState, say=print) -> 
     apply = task_expert_policy(cfg, programs)
     metrics, posture = own_context_rollouts(env, apply, expert_params(state), targets, keys)
     errors = np.asarray(metrics["final_error"], np.float64).mean(axis=1)
-    flipped = posture.get("flipped_fraction", np.zeros(k)) > 0.5
+    flipped = posture.get("flipped_fraction", np.zeros(k)) > evaluate.FLIPPED
     chosen = int(min(range(k), key=lambda c: (bool(flipped[c]), float(errors[c]))))
     candidates = [{"error_m": float(errors[c]), **{n: float(v[c]) for n, v in posture.items()}} for c in range(k)]
     steps = k * int(e.eval.repetitions) * env.n_steps  # the choice's episodes

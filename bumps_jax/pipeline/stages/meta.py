@@ -222,10 +222,10 @@ def cloning_env_steps(cfg, env) -> dict:
     return {"dataset": int(len(cfg.experts.tasks) * cfg.meta.dataset.repetitions * env.n_steps)}
 
 
-def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict, dict, dict, int]:
+def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict, dict, dict]:
     """Train (or resume) every net of cfg.meta.nets into stage_dir/<net>, all stacked in one
     program (`bc.make_trainer`). Returns ({net: bc.MetaPolicy}, {net: final bc.TrainState},
-    {net: train_wall_s}: the nets share one loop, so each shows its whole time, the pairs)."""
+    {net: train_wall_s}: the nets share one loop, so each shows its whole time)."""
     m = cfg.meta
     obs_norm = net_obs_norm(cfg, env, data)
     names = net_names(m.nets)
@@ -248,7 +248,7 @@ def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict,
     # and checkpoints included; the nets share one loop, so each shows its whole time.
     clock = runio.CarriedClock(stage_dir / "train_wall_time.json")
     states = bc.train_nets(models, data, m.train, {name: stage_dir / name for name in names}, timed(clock))
-    return models, states, dict.fromkeys(names, clock.save()), len(data.obs)
+    return models, states, dict.fromkeys(names, clock.save())
 
 
 def evaluate_net(cfg, name: str, model: bc.MetaPolicy, state: bc.TrainState, env, say=print) -> dict:
@@ -299,7 +299,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     if start_row in experts_record:
         rows[start_row], per_task[start_row] = experts_row(experts_record[start_row], record_path)
     rows_per_seed, timings = {}, {}
-    models, states, train_s, n_pairs = train(cfg, stage_dir, data, env, say)
+    models, states, train_s = train(cfg, stage_dir, data, env, say)
     for name, model in models.items():
         out = evaluate_net(cfg, name, model, states[name], env, say)
         rows[name], rows_per_seed[name], per_task[name] = out["row"], out["rows_per_seed"], out["per_task"]
@@ -310,7 +310,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         "rows_per_seed": rows_per_seed,
         "per_task": per_task,
         "eval": {"repetitions": e.repetitions, "n_tasks": len(e.tasks), "seed": e.seed},
-        "dataset_pairs": n_pairs,
+        "dataset_pairs": len(data.obs),
         "cloning": cloning_record(cfg, env),
         "timings": timings,
         "config": cfg.meta.to_dict(),  # what the filter stage checks its nets against
