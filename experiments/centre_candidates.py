@@ -34,8 +34,11 @@ def run_summary(run_dir: Path) -> dict:
     return {
         "run": run_dir.name,
         "seed": config["seed"],
-        "candidates": len(upright),
+        "candidates": int(config["family"].get("candidates", 1)),  # per round
         "choose_after": centre.get("choose_after", centre["updates"]),
+        "rounds_allowed": int(config["family"].get("rounds", 1)),
+        "rounds": centre.get("rounds", 1),  # rounds drawn: another only where every candidate ran flipped
+        "candidates_drawn": len(upright),
         "centre_updates": centre["updates"],
         "candidate_errors": [c["error_m"] for c in centre["candidates"]],
         "upright_candidates": int(sum(upright)),
@@ -51,21 +54,25 @@ def run_summary(run_dir: Path) -> dict:
 
 
 def settings(runs: list[dict]) -> list[dict]:
-    """The runs grouped by (candidates, choose_after): seeds, how many chose an upright centre, the
-    families' mean error and flipped experts, and the env steps of one run's experts."""
+    """The runs grouped by (candidates, choose_after, rounds allowed): seeds, rounds drawn, how many
+    chose an upright centre, the families' mean error and flipped experts, and the env steps of
+    each run's experts."""
     out = []
-    for key in sorted({(r["candidates"], r["choose_after"]) for r in runs}):
-        group = [r for r in runs if (r["candidates"], r["choose_after"]) == key]
+    setting = lambda r: (r["candidates"], r["choose_after"], r["rounds_allowed"])  # noqa: E731
+    for key in sorted({setting(r) for r in runs}):
+        group = [r for r in runs if setting(r) == key]
         upright = sum(r["upright_candidates"] for r in group)
         out.append({
             "candidates": key[0],
             "choose_after": key[1],
+            "rounds_allowed": key[2],
             "seeds": [r["seed"] for r in group],
+            "rounds": [r["rounds"] for r in group],
             "upright_chosen": sum(r["chosen_upright"] for r in group),
-            "upright_candidates": f"{upright} of {sum(r['candidates'] for r in group)}",
+            "upright_candidates": f"{upright} of {sum(r['candidates_drawn'] for r in group)}",
             "error_mean_all": float(np.mean([r["error_mean_all"] for r in group])),
             "flipped_experts": [r["flipped_experts"] for r in group],
-            "env_steps_all_experts": sorted({r["env_steps_all_experts"] for r in group}),
+            "env_steps_all_experts": [r["env_steps_all_experts"] for r in group],
         })  # fmt: skip
     return out
 
@@ -98,7 +105,8 @@ def main() -> None:
         raise SystemExit(f"error: {err}") from None
     runio.write_json(args.out, rec)
     for s in rec["settings"]:
-        print(f"{s['candidates']} candidates compared after {s['choose_after']} updates, seeds {s['seeds']}: "
+        print(f"{s['candidates']} candidates compared after {s['choose_after']} updates (at most "
+              f"{s['rounds_allowed']} rounds; drawn {s['rounds']}), seeds {s['seeds']}: "
               f"upright centre chosen in {s['upright_chosen']} of {len(s['seeds'])} (upright candidates "
               f"{s['upright_candidates']}), experts {s['error_mean_all']:.3f} {rec.get('unit', '')}, flipped "
               f"{s['flipped_experts']}")  # fmt: skip

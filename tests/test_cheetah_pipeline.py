@@ -10,6 +10,7 @@ import pytest
 from bumps_jax import config
 from bumps_jax.algo import filtering
 from bumps_jax.pipeline import runner as pipeline
+from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.report import publish
 from bumps_jax.tasks.cheetah_vel import env as cheetah_env
 
@@ -22,7 +23,20 @@ def cheetah_run(tmp_path_factory):
     # Both meta-policies of one small architecture: one compiled rollout program serves the two.
     nets = {f"meta.nets.{name}": (1, 16) for name in ("meta_4x256", "meta_11x128")}
     cfg = config.make_config("tiny", {"task": "cheetah_vel", **nets})
-    timing = pipeline.run_pipeline(pipeline.ORDER, cfg, run_dir, say=lambda *a, **k: None)
+    # The first round's candidates are made to look flipped (their measured posture replaced), so
+    # the run draws its second round; every later rollout is the real one.
+    real, calls = experts_stage.own_context_rollouts, []
+
+    def first_round_flipped(*args):
+        metrics, posture = real(*args)
+        calls.append(len(calls))
+        if len(calls) == 1:
+            posture = {**posture, "flipped_fraction": np.ones_like(posture["flipped_fraction"])}
+        return metrics, posture
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(experts_stage, "own_context_rollouts", first_round_flipped)
+        timing = pipeline.run_pipeline(pipeline.ORDER, cfg, run_dir, say=lambda *a, **k: None)
     return {"cfg": cfg, "dir": run_dir, "timing": timing}
 
 
@@ -33,32 +47,36 @@ def test_the_tiny_pipeline_runs_the_cheetahs_stages(cheetah_run):
     assert experts["task"] == "cheetah_vel" and experts["unit"] == "m/s"
     assert experts["tasks_m"] == list(view.experts.tasks)
     assert experts["env_steps"] == view.experts.ppo.total_env_steps
-    # One family: two centre candidates trained side by side for one update (their own progress),
-    # the one chosen (upright first, then the lower error on the centre context) alone for two more,
-    # every expert from it; each expert's budget counts its share of the centre's steps, every
-    # candidate's included.
+    # One family: two centre candidates trained side by side for one update (their own progress);
+    # every one of them flipped (made to look so), so two fresh ones for one update more; of those
+    # the one chosen (upright first, then the lower error on the centre context) alone for two
+    # more, every expert from it; each expert's budget counts its share of the centre's steps,
+    # every candidate's of both rounds included.
     fam = view.experts.family
-    assert (fam.candidates, fam.choose_after, fam.centre_updates) == (2, 1, 3)
-    centre_steps = (2 * 1 + 2) * view.experts.ppo.num_envs * view.env.episode_steps
+    assert (fam.candidates, fam.choose_after, fam.centre_updates, fam.rounds) == (2, 1, 3, 2)
+    centre_steps = (2 * 2 * 1 + 2) * view.experts.ppo.num_envs * view.env.episode_steps
     centre = experts["family_centre"]
-    assert {k: centre[k] for k in ("context", "updates", "choose_after", "env_steps")} == {
-        "context": 0.5, "updates": 3, "choose_after": 1, "env_steps": centre_steps}  # fmt: skip
-    rows = {
-        part: (run_dir / "experts" / part / "progress.csv").read_text().split()[1:]
-        for part in ("centre", "centre_chosen")
-    }
+    assert {k: centre[k] for k in ("context", "updates", "choose_after", "env_steps", "rounds")} == {
+        "context": 0.5, "updates": 3, "choose_after": 1, "env_steps": centre_steps, "rounds": 2}  # fmt: skip
+    parts = ("centre", "centre_round2", "centre_chosen")
+    rows = {part: (run_dir / "experts" / part / "progress.csv").read_text().split()[1:] for part in parts}
     updates = {part: [int(r.split(",")[0]) for r in lines] for part, lines in rows.items()}
-    assert updates == {"centre": [1, 1], "centre_chosen": [2, 3]}  # the candidates' rows, then the chosen one's
+    # The candidates' rows of each round, then the chosen one's.
+    assert updates == {"centre": [1, 1], "centre_round2": [1, 1], "centre_chosen": [2, 3]}
+    assert rows["centre"] != rows["centre_round2"]  # fresh candidates: their own seeds
     candidates = centre["candidates"]
-    assert len(candidates) == 2 and centre["choice_env_steps"] == 2 * view.experts.eval.repetitions * 10
-    assert all(set(c) == {"error_m", "pitch_rad", "flipped_fraction", "height_m"} for c in candidates)
-    rank = [(c["flipped_fraction"] > 0.5, c["error_m"]) for c in candidates]
-    assert centre["chosen"] == rank.index(min(rank))
-    assert json.loads((run_dir / "experts" / "centre" / "choice.json").read_text())["chosen"] == centre["chosen"]
+    assert [c["round"] for c in candidates] == [1, 1, 2, 2]
+    assert centre["choice_env_steps"] == 2 * 2 * view.experts.eval.repetitions * 10
+    assert all(set(c) == {"error_m", "pitch_rad", "flipped_fraction", "height_m", "round"} for c in candidates)
+    assert [c["flipped_fraction"] for c in candidates[:2]] == [1.0, 1.0]
+    rank = [(c["flipped_fraction"] > 0.5, c["error_m"]) for c in candidates[2:]]
+    assert centre["chosen"] == 2 + rank.index(min(rank))  # from the second round
+    for r, part in enumerate(parts[:2]):
+        choice = json.loads((run_dir / "experts" / part / "choice.json").read_text())
+        assert len(choice["candidates"]) == 2 and (r == 0 or choice["chosen"] == centre["chosen"] - 2)
     assert experts["env_steps_breakdown"] == {"ppo": experts["env_steps"], "family_centre_share": centre_steps // 2}
     assert experts["env_steps_total"] == experts["env_steps"] + centre_steps // 2
-    assert (run_dir / "experts" / "centre" / "progress.csv").exists()
-    for part in ("centre", "centre_chosen"):
+    for part in parts:
         assert not (run_dir / "experts" / part / "checkpoints").exists()  # scratch, gone with the record
     # The family check: each expert's posture beside its neighbour's error, in the record and experts.md.
     check = experts["family_check"]
@@ -119,9 +137,14 @@ def test_the_baseline_trains_one_policy_on_the_experts_velocities_and_scores_the
     saved = json.loads((run_dir / "baseline" / "baseline.json").read_text())
     assert saved["task"] == "cheetah_vel" and saved["unit"] == "m/s" and "bc_final_loss" not in saved
     assert saved["sample_task_range"] == [min(view.experts.tasks), max(view.experts.tasks)]
-    # Per seed, the env steps all of BUMPS's experts used together (2 centres' 160 and 2 experts x 80).
+    # Per seed, the env steps all of BUMPS's experts use together in one round of centre
+    # candidates (2 candidates' 40 each, the chosen one's 80 and 2 experts x 80); this run drew a
+    # second round (2 x 40 more), which its record counts.
     experts = json.loads((run_dir / "experts" / "experts.json").read_text())
-    assert saved["env_steps_per_seed"] == b.ppo.total_env_steps == len(experts["tasks_m"]) * experts["env_steps_total"]
+    fam, per_update = view.experts.family, view.experts.ppo.num_envs * view.env.episode_steps
+    second_round = fam.candidates * fam.choose_after * per_update
+    assert saved["env_steps_per_seed"] == b.ppo.total_env_steps == 320
+    assert len(experts["tasks_m"]) * experts["env_steps_total"] == 320 + second_round == 400
     n_updates = b.ppo.total_env_steps // (b.ppo.num_envs * view.env.episode_steps)
     for curve in (saved["curve"], saved["error_curve"]):
         assert len(curve["mean"]) == len(curve["env_steps"]) == n_updates == 8

@@ -41,6 +41,9 @@ def family() -> ml_collections.ConfigDict:
     # PPO updates the candidates train side by side before the choice; the chosen one then goes
     # on alone to centre_updates (0: the choice after all of them).
     cfg.choose_after = 0
+    # Rounds of fresh candidates at most: the next round is drawn only when every candidate of
+    # the last one runs flipped (the env's posture check); 1: one round, whatever its posture.
+    cfg.rounds = 1
     return cfg
 
 
@@ -62,16 +65,17 @@ def choice_update(family: ml_collections.ConfigDict) -> int:
     return min(int(family.get("choose_after", 0)) or n, n)
 
 
-def centre_env_updates(family: ml_collections.ConfigDict) -> int:
+def centre_env_updates(family: ml_collections.ConfigDict, rounds: int = 1) -> int:
     """PPO updates of the family's centre phase, every candidate's counted: the candidates' side
-    by side until the choice, then the chosen one's alone."""
+    by side until the choice (in each of `rounds` rounds), then the chosen one's alone."""
     n, m = int(family.centre_updates), choice_update(family)
-    return int(family.get("candidates", 1)) * m + (n - m)
+    return rounds * int(family.get("candidates", 1)) * m + (n - m)
 
 
 def experts_env_steps(experts: ml_collections.ConfigDict, episode_steps: int) -> int:
     """Env steps of one run's experts together: every expert's PPO and the family's centre
-    candidates' (the budget a baseline of the same cost gets per seed)."""
+    candidates' of one round (the budget a baseline of the same cost gets per seed; a run that
+    draws another round spends more, and its record says so)."""
     centre = centre_env_updates(experts.family) * experts.ppo.num_envs * episode_steps
     return len(experts.tasks) * experts.ppo.total_env_steps + centre
 

@@ -80,9 +80,10 @@ def experts(e, task_range, n_steps: int, unit: str = "m", size: int = 1) -> None
             value = e.family[key]
             if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
                 raise ValueError(f"experts.family.{key} must be an integer >= 0, got {value!r}")
-        value = e.family.get("candidates", 1)
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-            raise ValueError(f"experts.family.candidates must be an integer >= 1, got {value!r}")
+        for key in ("candidates", "rounds"):
+            value = e.family.get(key, 1)
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+                raise ValueError(f"experts.family.{key} must be an integer >= 1, got {value!r}")
         if e.family.centre_updates % e.updates_per_chunk:
             raise ValueError(
                 f"experts.family.centre_updates {e.family.centre_updates} must be a multiple of "

@@ -255,24 +255,66 @@ def chunked_loop(programs: Compiled, tasks, init, targets_at, n_updates: int) ->
     )
 
 
-def train_centre(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: int | None = None) -> dict:
-    """The family's centre experts alone: `experts.family.candidates` of them side by side, each
-    PPO updates up to the choice (`choice_update`) from a fresh policy of its own seed (the first
-    the centre task's own) on the centre context, under run_dir/experts/centre (resumable as the
-    experts are). Returns `runio.train_in_chunks`'s dict, its state (K, ...)."""
+def centre_rounds(cfg) -> int:
+    """At most how many rounds of fresh centre candidates are drawn (`experts.family.rounds`)."""
+    fam = cfg.experts.get("family")
+    return 1 if fam is None else int(fam.get("rounds", 1))
+
+
+def round_dir(run_dir: Path, r: int) -> Path:
+    """Round r's centre candidates (0: the first): run_dir/experts/centre, then centre_round2, ..."""
+    return Path(run_dir) / "experts" / ("centre" if r == 0 else f"centre_round{r + 1}")
+
+
+def round_rngs(own, k: int, r: int):
+    """Round r's K candidates' rngs: round 0's first is the centre task's own, every other one
+    folded from it, none twice over the rounds."""
+    first = [own] if r == 0 else [jax.random.fold_in(own, 10_000 + r * k)]
+    return jnp.stack([*first, *(jax.random.fold_in(own, 10_000 + r * k + c) for c in range(1, k))])
+
+
+def train_centre(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: int | None = None, r=0) -> dict:
+    """Round r of the family's centre experts alone: `experts.family.candidates` of them side by
+    side, each PPO updates up to the choice (`choice_update`) from a fresh policy of its own seed
+    (`round_rngs`) on the centre context, under `round_dir` (resumable as the experts are).
+    Returns `runio.train_in_chunks`'s dict, its state (K, ...)."""
     tasks = task_env.as_contexts(cfg.experts.tasks, programs.env.CONTEXT_SIZE)
     i, k = family_centre(tasks), centre_candidates(cfg)
     (total, _), n = family_updates(cfg), choice_update(cfg)
     each = "" if k == 1 else f", {k} candidates side by side" + ("" if n == total else f" for the first {n}")
     where = f"{task_env.format_context(tasks[i])} {programs.env.UNIT}"
-    say(f"family: the centre expert at {where} first, {total} updates{each}")
-    own = task_rngs(cfg.experts.seed, len(tasks))[i]
-    rngs = jnp.stack([own, *(jax.random.fold_in(own, 10_000 + c) for c in range(1, k))])
+    rounds = centre_rounds(cfg)
+    which = "" if rounds == 1 else f" (round {r + 1} of at most {rounds})"
+    say(f"family: the centre expert at {where} first, {total} updates{each}{which}")
+    rngs = round_rngs(task_rngs(cfg.experts.seed, len(tasks))[i], k, r)
     centre = np.repeat(tasks[i : i + 1], k, axis=0)
     start = np.zeros((k, programs.start_size))
     loop = chunked_loop(programs, centre, lambda: run_init(programs, rngs, centre, start)[0], lambda _: centre, n)
-    stage_dir = run_dir / "experts" / "centre"
-    return runio.train_in_chunks(stage_dir, loop, n, cfg.experts.keep_checkpoints, say, stop_after_chunks)
+    return runio.train_in_chunks(round_dir(run_dir, r), loop, n, cfg.experts.keep_checkpoints, say, stop_after_chunks)
+
+
+def upright(candidate: dict) -> bool:
+    """A candidate of a choice record stands upright (or its env reports no posture)."""
+    return candidate.get("flipped_fraction", 0.0) <= evaluate.FLIPPED
+
+
+def train_rounds(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks=None) -> dict:
+    """The centre candidates' rounds (`train_centre`, `choose_centre`): another round only while
+    every candidate of the last one runs flipped, at most `experts.family.rounds`. Returns
+    {"state": the chosen candidate (1, ...), "finished", "wall_s"} (its state, unfinished)."""
+    wall, rounds = 0.0, centre_rounds(cfg)
+    for r in range(rounds):
+        out = train_centre(cfg, run_dir, programs, say, stop_after_chunks, r)
+        wall += out["wall_s"]
+        if not out["finished"]:
+            return {**out, "wall_s": wall}
+        choice = choose_centre(cfg, run_dir, programs, out["state"], say, r)
+        c = choice["chosen"]
+        if upright(choice["candidates"][c]) or r + 1 == rounds:
+            chosen = jax.tree.map(lambda x, c=c: x[c : c + 1], out["state"])
+            return {"state": chosen, "finished": True, "wall_s": wall}
+        say(f"family: every candidate of round {r + 1} runs flipped: {centre_candidates(cfg)} fresh ones")
+    raise AssertionError("unreachable: the last round returns")
 
 
 def train_chosen(cfg, run_dir: Path, programs: Compiled, chosen: ppo.TrainState, say=print, stop_after_chunks=None):
@@ -287,13 +329,13 @@ def train_chosen(cfg, run_dir: Path, programs: Compiled, chosen: ppo.TrainState,
     return runio.train_in_chunks(stage_dir, loop, n, cfg.experts.keep_checkpoints, say, stop_after_chunks)
 
 
-def choose_centre(cfg, run_dir: Path, programs: Compiled, state: ppo.TrainState, say=print) -> dict:
-    """Which centre candidate the family continues from: each runs `experts.eval.repetitions`
-    noisy episodes on the centre context (the same keys for all); the upright ones (where the env
-    reports a posture: most steps not flipped) first, then the lowest error. Written to
-    run_dir/experts/centre/choice.json on the first call and read back on the next, so a resumed
-    run continues from the same one. Returns that record ({"chosen", "candidates": [...]})."""
-    path = Path(run_dir) / "experts" / "centre" / "choice.json"
+def choose_centre(cfg, run_dir: Path, programs: Compiled, state: ppo.TrainState, say=print, r: int = 0) -> dict:
+    """Which of round r's centre candidates the family continues from: each runs
+    `experts.eval.repetitions` noisy episodes on the centre context (the same keys for all); the
+    upright ones (where the env reports a posture: most steps not flipped) first, then the lowest
+    error. Written to choice.json in `round_dir` on the first call and read back on the next, so a
+    resumed run continues from the same one. Returns that record ({"chosen", "candidates": [...]})."""
+    path = round_dir(run_dir, r) / "choice.json"
     runio.sync("centre choice")  # every process sees the same: the choice made, or not yet
     if not path.exists():
         runio.write_json(path, centre_choice(cfg, programs, state, say))
@@ -338,12 +380,10 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
     centre_updates, ramp = family_updates(cfg)
     centre_s = 0.0
     if centre_updates:
-        centre = train_centre(cfg, run_dir, programs, say, stop_after_chunks)
+        centre = train_rounds(cfg, run_dir, programs, say, stop_after_chunks)
         if not centre["finished"]:
-            return {**centre, "finished": False}
-        centre_s = centre["wall_s"]
-        c = choose_centre(cfg, run_dir, programs, centre["state"], say)["chosen"]
-        chosen = jax.tree.map(lambda x: x[c : c + 1], centre["state"])
+            return centre
+        centre_s, chosen = centre["wall_s"], centre["state"]
         if choice_update(cfg) < centre_updates:  # the chosen one goes on alone
             alone = train_chosen(cfg, run_dir, programs, chosen, say, stop_after_chunks)
             centre_s += alone["wall_s"]
@@ -492,8 +532,13 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
     task = tasks.get(cfg.task)
     centre_updates, _ = family_updates(cfg)
     if task.expert_start is None:  # every env step an expert cost is PPO's (its share of the centre's)
+        made = (round_dir(stage_dir.parent, r) / "choice.json" for r in range(centre_rounds(cfg)))
+        choices = [runio.read_json(path) for path in made if path.exists()]
+        used = max(1, len(choices))  # rounds of candidates the run drew
         centre_steps = (
-            stage_sections.centre_env_updates(e.family) * programs.trainer.steps_per_update if centre_updates else 0
+            stage_sections.centre_env_updates(e.family, used) * programs.trainer.steps_per_update
+            if centre_updates
+            else 0
         )
         record["env_steps_breakdown"] = {"ppo": record["env_steps"]}
         if centre_steps:
@@ -501,10 +546,15 @@ def evaluate_experts(cfg, stage_dir: Path, params: ExpertParams, programs: Compi
             record["family_centre"] = {"context": task_env.context_json(e.tasks[family_centre(e.tasks)]),
                                        "updates": centre_updates, "choose_after": choice_update(cfg),
                                        "env_steps": centre_steps}  # fmt: skip
-            choice = stage_dir / "centre" / "choice.json"
-            if choice.exists():  # the candidates and which one the family continued from (its episodes' steps)
-                chosen = runio.read_json(choice)
-                record["family_centre"].update(chosen, env_steps=centre_steps, choice_env_steps=chosen["env_steps"])
+            if choices:  # every round's candidates and the one the family continued from (their episodes' steps)
+                offset = sum(len(c["candidates"]) for c in choices[:-1])
+                record["family_centre"].update(
+                    chosen=offset + choices[-1]["chosen"],
+                    candidates=[{**c, "round": r + 1} for r, ch in enumerate(choices) for c in ch["candidates"]],
+                    repetitions=choices[-1]["repetitions"],
+                    rounds=used,
+                    choice_env_steps=sum(ch["env_steps"] for ch in choices),
+                )
     else:
         record.update(task.expert_start.describe(cfg, stage_dir.parent, stage_dir, programs.env, record))
     known = [v for v in record["env_steps_breakdown"].values() if v is not None]
@@ -533,7 +583,8 @@ def run(cfg, run_dir: Path, say=print) -> dict:
         say(f"experts already trained ({stage_dir / 'final_params'}): evaluating them")
         params = load_final_params(stage_dir, policy_record(cfg.experts.ppo, programs.env), n)
         wall = 0.0
-        for clock_path in (stage_dir / part / "wall_time.json" for part in ("", "centre", "centre_chosen")):
+        rounds = [round_dir(run_dir, r).name for r in range(centre_rounds(cfg))]
+        for clock_path in (stage_dir / part / "wall_time.json" for part in ("", *rounds, "centre_chosen")):
             clock = runio.read_json(clock_path) if clock_path.exists() else {}
             wall += max([0.0, *map(float, clock.values())])
     else:
@@ -546,7 +597,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     start = tasks.get(cfg.task).expert_start
     for scratch in (
         "checkpoints",
-        "centre/checkpoints",
+        *(f"{round_dir(run_dir, r).name}/checkpoints" for r in range(centre_rounds(cfg))),
         "centre_chosen/checkpoints",
         *(() if start is None else start.scratch()),
     ):

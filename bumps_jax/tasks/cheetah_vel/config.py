@@ -35,11 +35,15 @@ def experts() -> ml_collections.ConfigDict:
     experts.ppo.num_envs = 512  # whole 200-step episodes per update: 102,400 steps (Brax: 327,680)
     experts.ppo.num_minibatches = 4  # 128 episodes = 25,600 steps each (Brax: 10,240; docs/decisions.md)
     experts.ppo.num_epochs = 8
-    # One family: the 1.5 m/s expert trains 130 updates alone, then all 13 continue from it for
-    # 90 updates each, their targets moving out from 1.5 m/s over the first 30: 1,300 updates of
-    # 102,400 steps in all (133.12 M), as 13 experts of 100 updates each.
+    # One family: 8 candidates for the 1.5 m/s expert train 40 updates side by side, the upright
+    # one of least error goes on alone to 130 (another 8 where all 8 run flipped, at most 3
+    # rounds), then all 13 continue from it for 90 updates each, their targets moving out from
+    # 1.5 m/s over the first 30: 1,580 updates of 102,400 steps in one round (161.79 M).
     experts.family = stage_sections.family()
     experts.family.centre_updates = 130
+    experts.family.candidates = 8
+    experts.family.choose_after = 40
+    experts.family.rounds = 3
     experts.family.ramp_updates = 30
     experts.ppo.total_env_steps = 512 * 200 * 90  # 9.216 M per expert after the centre's 13.312 M
     experts.ppo.learning_rate = 3e-4
@@ -123,7 +127,8 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
 
 
 # Each preset: dotted overrides of the defaults. "tiny": HalfCheetah-Vel at CPU size: 10-step
-# episodes, 2 experts of 2 PPO updates after a centre of 3 (2 candidates compared after 1), a short BC;
+# episodes, 2 experts of 2 PPO updates after a centre of 3 (2 candidates compared after 1, in up to 2
+# rounds), a short BC;
 # a baseline of 2 seeds x 8 updates (the experts' and the centre's steps).
 PRESETS: dict[str, dict] = {
     "paper": {},
@@ -141,6 +146,7 @@ PRESETS: dict[str, dict] = {
         "experts.family.ramp_updates": 1,
         "experts.family.candidates": 2,
         "experts.family.choose_after": 1,  # the candidates' 1 update, then the chosen one's 2
+        "experts.family.rounds": 2,  # a second round of candidates where the first all run flipped
         "experts.ppo.policy_hidden": (32, 32),
         "experts.ppo.value_hidden": (32, 32),
         "experts.eval.repetitions": 2,
