@@ -90,6 +90,15 @@ def test_empty_run_dir_says_so(tmp_path):
     assert "No stage has written results" in report.build(tmp_path)
 
 
+def test_a_run_of_the_baseline_alone_is_reported_as_its_task(tmp_path):
+    """A run directory holding only another task's baseline: its task's report, its stage named."""
+    committed = json.loads((ROOT / "results" / "cheetah_vel" / "baseline.json").read_text())
+    runio.write_json(tmp_path / "baseline" / "baseline.json", {**committed, "wall_s": 517.0})
+    text = publish.write_report(tmp_path).read_text()
+    assert text.startswith(f"# BUMPS on cheetah_vel: run `{tmp_path.name}`") and "No stage has written" not in text
+    assert re.search(r"\| baseline \| 517 \|", text) and "| experts | not run |" in text
+
+
 def _paper_run(tmp_path):
     """A run directory with every stage's results, a pipeline record and a baseline."""
     run = tmp_path / "run"

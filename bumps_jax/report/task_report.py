@@ -12,10 +12,10 @@ from bumps_jax.report.summary import EXTRAS, STAGES, load, pipeline_lines, pream
 
 def run_task(run_dir: str | Path) -> str:
     """The task a run's records name (`task`; records from before they named one are the default
-    task's, the only one there was)."""
+    task's, the only one there was): its stages', or a baseline's run alone."""
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
-    for rel in (STAGES["experts"], STAGES["meta"], STAGES["filter"]):
+    for rel in (STAGES["experts"], STAGES["meta"], STAGES["filter"], EXTRAS["baseline"]):
         record = load(Path(run_dir), rel)
         if record:
             return record.get("task", tasks.DEFAULT)
