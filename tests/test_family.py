@@ -49,6 +49,7 @@ def test_every_expert_starts_as_the_centre_with_its_own_rng_and_no_updates():
         ({"experts.family.centre_updates": 3}, "must be a multiple of experts.updates_per_chunk"),
         ({"experts.family.ramp_updates": -1}, "experts.family.ramp_updates must be an integer >= 0, got -1"),
         ({"experts.family.candidates": 0}, "experts.family.candidates must be an integer >= 1, got 0"),
+        ({"experts.family.rounds": 0}, "experts.family.rounds must be an integer >= 1, got 0"),
         (
             {"experts.family.choose_after": 4},
             r"choose_after must be an integer in \[0, experts.family.centre_updates 2\], got 4",
