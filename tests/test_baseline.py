@@ -9,6 +9,7 @@ import pytest
 
 from bumps_jax import config
 from bumps_jax.algo import bc, evaluate, ppo
+from bumps_jax.pipeline import sections
 from bumps_jax.pipeline.stages import baseline
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
@@ -118,13 +119,17 @@ def test_baseline_budget_follows_the_experts_overrides(task, candidates):
     paper = config.make_config("paper", {"task": task})
     e, steps = paper.experts, paper.env.episode_steps
     per_update = e.ppo.num_envs * steps
-    assert paper.baseline.ppo.total_env_steps == (
-        len(e.tasks) * e.ppo.total_env_steps + e.family.candidates * e.family.centre_updates * per_update
-    )
+    # The candidates side by side until the choice, then the chosen one alone: one round's.
+    m = sections.choice_update(e.family)
+    centre = e.family.candidates * m + e.family.centre_updates - m
+    # ... in whole updates of the baseline's batch, the nearest number of them.
+    whole = lambda n: round(n / (paper.baseline.ppo.num_envs * steps)) * paper.baseline.ppo.num_envs * steps  # noqa: E731
+    experts_steps = len(e.tasks) * e.ppo.total_env_steps + centre * per_update
+    assert paper.baseline.ppo.total_env_steps == whole(experts_steps)
     more = config.make_config("paper", {"task": task, "experts.family.candidates": candidates})
     assert config.overrides_of(more) == {"experts.family.candidates": candidates}  # what followed it is no override
-    extra = (candidates - e.family.candidates) * e.family.centre_updates * per_update
-    assert more.baseline.ppo.total_env_steps == paper.baseline.ppo.total_env_steps + extra
+    extra = (candidates - e.family.candidates) * m * per_update
+    assert more.baseline.ppo.total_env_steps == whole(experts_steps + extra)
     longer = config.make_config(
         "paper",
         {"task": task, "experts.ppo.total_env_steps": 2 * e.ppo.total_env_steps, "baseline.updates_per_chunk": 1},
