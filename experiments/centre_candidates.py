@@ -19,6 +19,7 @@ import numpy as np
 
 from bumps_jax import records, runio
 from bumps_jax.algo.evaluate import FLIPPED
+from bumps_jax.pipeline.stages.experts import upright as stands_upright
 
 PROVENANCE = ("device", "n_devices", "versions", "preset", "env", "task", "unit")
 
@@ -30,7 +31,7 @@ def run_summary(run_dir: Path) -> dict:
     centre = experts.get("family_centre")
     if centre is None or "candidates" not in centre:
         raise ValueError(f"{run_dir}: its experts are no family with a centre choice (experts.family)")
-    upright = [c.get("flipped_fraction", 0.0) <= FLIPPED for c in centre["candidates"]]
+    upright = [stands_upright(c) for c in centre["candidates"]]
     return {
         "run": run_dir.name,
         "seed": config["seed"],

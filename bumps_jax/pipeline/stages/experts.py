@@ -309,12 +309,11 @@ def train_rounds(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_c
         if not out["finished"]:
             return {**out, "wall_s": wall}
         choice = choose_centre(cfg, run_dir, programs, out["state"], say, r)
-        c = choice["chosen"]
-        if upright(choice["candidates"][c]) or r + 1 == rounds:
-            chosen = jax.tree.map(lambda x, c=c: x[c : c + 1], out["state"])
-            return {"state": chosen, "finished": True, "wall_s": wall}
+        if upright(choice["candidates"][choice["chosen"]]) or r + 1 == rounds:
+            break
         say(f"family: every candidate of round {r + 1} runs flipped: {centre_candidates(cfg)} fresh ones")
-    raise AssertionError("unreachable: the last round returns")
+    c = choice["chosen"]
+    return {"state": jax.tree.map(lambda x: x[c : c + 1], out["state"]), "finished": True, "wall_s": wall}
 
 
 def train_chosen(cfg, run_dir: Path, programs: Compiled, chosen: ppo.TrainState, say=print, stop_after_chunks=None):
@@ -353,15 +352,12 @@ def centre_choice(cfg, programs: Compiled, state: ppo.TrainState, say=print) -> 
     apply = task_expert_policy(cfg, programs)
     metrics, posture = own_context_rollouts(env, apply, expert_params(state), targets, keys)
     errors = np.asarray(metrics["final_error"], np.float64).mean(axis=1)
-    flipped = posture.get("flipped_fraction", np.zeros(k)) > evaluate.FLIPPED
-    chosen = int(min(range(k), key=lambda c: (bool(flipped[c]), float(errors[c]))))
     candidates = [{"error_m": float(errors[c]), **{n: float(v[c]) for n, v in posture.items()}} for c in range(k)]
+    chosen = min(range(k), key=lambda c: (not upright(candidates[c]), candidates[c]["error_m"]))
     steps = k * int(e.eval.repetitions) * env.n_steps  # the choice's episodes
     record = {"chosen": chosen, "candidates": candidates, "repetitions": int(e.eval.repetitions), "env_steps": steps}
     if k > 1:
-        shown = ", ".join(
-            f"{c['error_m']:.3f}" + (" (flipped)" if f else "") for c, f in zip(candidates, flipped, strict=True)
-        )
+        shown = ", ".join(f"{c['error_m']:.3f}" + ("" if upright(c) else " (flipped)") for c in candidates)
         say(f"family: centre candidates' errors {shown} {env.UNIT}: continuing from candidate {chosen}")
     return record
 

@@ -45,7 +45,7 @@ def experts() -> ml_collections.ConfigDict:
     experts.family.choose_after = 40
     experts.family.rounds = 3
     experts.family.ramp_updates = 30
-    experts.ppo.total_env_steps = 512 * 200 * 90  # 9.216 M per expert after the centre's 13.312 M
+    experts.ppo.total_env_steps = 512 * 200 * 90  # 9.216 M per expert after the centre's 41.98 M
     experts.ppo.learning_rate = 3e-4
     experts.ppo.value_learning_rate = 3e-4  # Brax: one Adam for both nets
     experts.ppo.discount = 0.95
@@ -128,8 +128,7 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
 
 # Each preset: dotted overrides of the defaults. "tiny": HalfCheetah-Vel at CPU size: 10-step
 # episodes, 2 experts of 2 PPO updates after a centre of 3 (2 candidates compared after 1, in up to 2
-# rounds), a short BC;
-# a baseline of 2 seeds x 8 updates (the experts' and the centre's steps).
+# rounds), a short BC; a baseline of 2 seeds x 8 updates (the experts' and one round's centre steps).
 PRESETS: dict[str, dict] = {
     "paper": {},
     "tiny": {
