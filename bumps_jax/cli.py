@@ -179,6 +179,10 @@ def add_run_options(p, name: str) -> None:
         p.add_argument("--seed-runs", nargs="+", type=Path, default=[], metavar="RUN_DIR",
                        help="finished runs of the same config with other training seeds (experts, meta, filter): "
                             "every headline published as mean and spread over them and --run-dir")  # fmt: skip
+        p.add_argument("--baseline-at-budget", action="store_true",
+                       help="the run's baseline only, trained at BUMPS' experts' whole budget (its env steps per "
+                            "seed within one update of the committed experts'): published beside the preset's own "
+                            "baseline as results/[<task>/]baseline_at_budget.json")  # fmt: skip
         p.add_argument("--records-only", action="store_true",
                        help="the run's records, tables and figures only; assets/ (the kick prior later runs "
                             "start from, the shipped policies) kept as they are")  # fmt: skip

@@ -245,3 +245,11 @@ def test_seeds_over_processes_run_side_by_side_the_baseline_with_the_first():
         ({"--seeds": [0, 2], "--stages": every}, 1),
         ({"--seeds": [1], "--stages": ["prior", "experts", "meta"]}, 1),
     ]
+
+
+def test_a_baseline_at_budget_is_published_alone_and_needs_its_record(tmp_path):
+    (tmp_path / "run").mkdir()
+    with pytest.raises(SystemExit, match="^error: --baseline-at-budget publishes one baseline run: not with --seed"):
+        cli.main(["publish", "--run-dir", str(tmp_path / "run"), "--baseline-at-budget", "--seed-runs", str(tmp_path)])
+    with pytest.raises(SystemExit, match=r"^error: .*baseline.json: no such file \(a finished baseline"):
+        cli.main(["publish", "--run-dir", str(tmp_path / "run"), "--baseline-at-budget"])

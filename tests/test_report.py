@@ -464,3 +464,61 @@ def test_readme_findings_are_the_committed_records(tmp_path):
     assert ": 0.78 / " in unfiltered and "not all within the paper's 0.72 / 0.68 m" in unfiltered
     assert "worst meta-test task 2.50 / " in unfiltered
     assert len(lines) == 6 and not any(line.startswith("- Baseline") for line in lines)
+
+
+def _at_budget_run(tmp_path, per_seed: int, task: str = "kick"):
+    """A run holding only a baseline of one seed at `per_seed` env steps (the committed kick
+    baseline's record otherwise), and a repository copy with the committed records and README."""
+    import shutil
+
+    root = tmp_path / "repo"
+    shutil.copytree(ROOT / "results", root / "results")
+    shutil.copyfile(ROOT / "README.md", root / "README.md")
+    record = json.loads((ROOT / "results" / "baseline.json").read_text())
+    updates = len(record["curve"]["env_steps"])
+    step = 441_600  # 5,888 episodes of 75 steps an update
+    curve = {**record["curve"], "env_steps": [step * (i + 1) for i in range(updates)]}
+    command = "python -m bumps_jax reproduce --stages baseline --set baseline.seeds=1"
+    record.update(seeds=1, env_steps=per_seed, env_steps_per_seed=per_seed, error_mean_m=0.301, curve=curve,
+                  task=task, command=command)  # fmt: skip
+    run = tmp_path / "run"
+    runio.write_json(run / "baseline" / "baseline.json", record)
+    return run, root
+
+
+def _experts_total():
+    """The committed kick experts' env steps in all, and the nearest whole number of updates of 441,600."""
+    experts = json.loads((ROOT / "results" / "experts.json").read_text())
+    total = len(experts["tasks_m"]) * sum(experts["env_steps_breakdown"].values())
+    return total, round(total / 441_600) * 441_600
+
+
+def test_a_baseline_at_bumps_budget_is_published_beside_the_presets_own(tmp_path):
+    total, nearest = _experts_total()
+    run, root = _at_budget_run(tmp_path, nearest)
+    written = {p.relative_to(root).as_posix() for p in publish.publish_at_budget(run, "kick", root)}
+    assert written == {"results/baseline_at_budget.json", "docs/results.md", "README.md"}
+    assert json.loads((root / "results" / "baseline_at_budget.json").read_text())["env_steps_per_seed"] == nearest
+    text = (root / "docs" / "results.md").read_text()
+    assert "At BUMPS' budget (`results/baseline_at_budget.json`, `python -m bumps_jax reproduce --stages" in text
+    assert f"1 seed of {nearest:,} env steps (BUMPS' experts: {total:,} in all), 441,600 a PPO update" in text
+    assert "meta-test error 0.30 m" in text and "and the one at BUMPS' budget's 0.30 m on the same" in text
+    assert f"| baseline | multi-task PPO at BUMPS' experts' budget, per seed (1 seed) | {nearest:,} |" in text
+    readme = (root / "README.md").read_text()
+    assert f"| multi-task PPO baseline at BUMPS' budget (1 seed, {nearest / 1e6:.2f} M steps each), error |" in readme
+    assert f"at BUMPS' budget ({nearest / 1e6:.0f} M env steps, 1 seed) the baseline errs 0.30 m" in readme
+    # The paper preset's own baseline stays where it was.
+    assert (root / "results" / "baseline.json").read_text() == (ROOT / "results" / "baseline.json").read_text()
+
+
+def test_a_baseline_off_bumps_budget_or_of_another_task_is_refused_before_any_copy(tmp_path):
+    run, root = _at_budget_run(tmp_path, 12_000_000)
+    total, nearest = _experts_total()
+    refused = (rf"ran 12,000,000 env steps per seed, not BUMPS' experts' {total:,} within one update "
+               rf"\(441,600\): train it with baseline.ppo.total_env_steps={nearest}")  # fmt: skip
+    with pytest.raises(ValueError, match=refused):
+        publish.publish_at_budget(run, "kick", root)
+    run, root = _at_budget_run(tmp_path / "other", nearest, task="cheetah_vel")
+    with pytest.raises(ValueError, match="cheetah_vel"):
+        publish.publish_at_budget(run, "kick", root)
+    assert not (root / "results" / "baseline_at_budget.json").exists()

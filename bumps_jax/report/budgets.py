@@ -11,6 +11,8 @@ import ml_collections
 # Where each task's committed records are: the default task's under results/, another's under
 # results/<task>/ (`publish` and `publish --task`).
 RECORDS = ("experts.json", "table1.json", "table2.json", "baseline.json")
+# A baseline arm trained at BUMPS' whole budget, beside the preset's own (`publish --baseline-at-budget`).
+AT_BUDGET = "baseline_at_budget.json"
 
 
 def task_records(root: Path, task: str) -> dict:
@@ -18,7 +20,20 @@ def task_records(root: Path, task: str) -> dict:
     from bumps_jax.tasks import registry  # noqa: PLC0415
 
     folder = Path(root) / "results" / registry.folder(task)
-    return {n: json.loads((folder / n).read_text()) if (folder / n).exists() else None for n in RECORDS}
+    return {n: json.loads((folder / n).read_text()) if (folder / n).exists() else None for n in (*RECORDS, AT_BUDGET)}
+
+
+def seeds_phrase(n: int) -> str:
+    """'1 seed', '3 seeds'."""
+    return f"{n} seed" if n == 1 else f"{n} seeds"
+
+
+def experts_total(experts: dict | None) -> int | None:
+    """BUMPS' experts' env steps, every part of every expert's budget (None: a part unrecorded)."""
+    if not experts or "tasks_m" not in experts:
+        return None
+    parts = experts.get("env_steps_breakdown", {"ppo": experts.get("env_steps")}).values()
+    return None if None in parts else len(experts["tasks_m"]) * sum(parts)
 
 
 def episode_steps(task: str, env: dict) -> int:
@@ -49,6 +64,10 @@ def rows(task: str, rec: dict) -> list[tuple[str, str, int | None]]:
                             r["rollouts"] * steps))  # fmt: skip
     if base and "env_steps_per_seed" in base:
         out.append(("baseline", f"multi-task PPO, per seed ({base['seeds']} seeds)", base["env_steps_per_seed"]))
+    at_budget = rec.get(AT_BUDGET)
+    if at_budget:
+        what = f"multi-task PPO at BUMPS' experts' budget, per seed ({seeds_phrase(at_budget['seeds'])})"
+        out.append(("baseline", what, at_budget["env_steps_per_seed"]))
     return out
 
 

@@ -8,6 +8,7 @@ import shutil
 from pathlib import Path
 
 from bumps_jax import config, runio
+from bumps_jax.report import budgets
 from bumps_jax.report import readme as readme_table
 from bumps_jax.report import summary as report
 from bumps_jax.report import task_report as report_task
@@ -137,3 +138,38 @@ def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list
         written.append(report.write_committed(root))
     blocks = tasks.get(task).report.published_blocks  # the task's rows beside others' published results
     return written + ([] if blocks is None else blocks(root))
+
+
+def publish_at_budget(run_dir: str | Path, task: str, root: str | Path = ".") -> list[Path]:
+    """A finished baseline run whose env steps per seed are BUMPS' experts' whole (the task's
+    committed experts record) to within one of its updates, into the task's results folder as
+    `budgets.AT_BUDGET`, beside the preset's own baseline; then the results page and, for the
+    task with the paper's rows, README. ValueError naming what does not fit, before any copy."""
+    run_dir, root = Path(run_dir), Path(root)
+    record = runio.read_json(run_dir / "baseline" / "baseline.json", "a finished baseline: run its stage first")
+    tasks.check_record_task(record.get("task", tasks.DEFAULT), task, str(run_dir))
+    experts = budgets.task_records(root, task)["experts.json"]
+    total = budgets.experts_total(experts)
+    if total is None:
+        raise ValueError(f"--baseline-at-budget: no committed experts record of {task} with its env steps to match")
+    ours, theirs = report.physics_step(record), report.physics_step(experts)
+    if ours != theirs:
+        raise ValueError(f"--baseline-at-budget: {runio.shown(run_dir)}'s baseline ran on {ours} physics, "
+                         f"the committed experts on {theirs}")  # fmt: skip
+    per_seed, per_update = int(record["env_steps_per_seed"]), int(record["curve"]["env_steps"][0])
+    if abs(per_seed - total) > per_update:
+        nearest = max(1, round(total / per_update)) * per_update
+        raise ValueError(
+            f"--baseline-at-budget: {runio.shown(run_dir)}'s baseline ran {per_seed:,} env steps per seed, not BUMPS' "
+            f"experts' {total:,} within one update ({per_update:,}): train it with "
+            f"baseline.ppo.total_env_steps={nearest}"
+        )
+    dest = root / "results" / tasks.folder(task) / budgets.AT_BUDGET
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(run_dir / "baseline" / "baseline.json", dest)
+    written = [dest]
+    if (root / report.COMMITTED["experts"]).exists():  # the results page's env steps per arm span every task
+        written.append(report.write_committed(root))
+    if tasks.get(task).report.paper_rows and (root / "README.md").exists():
+        written.append(readme_table.write_readme(root))
+    return written

@@ -48,8 +48,15 @@ def has_results(run_dir: Path) -> bool:
     return any((Path(run_dir) / rel).exists() for rel in STAGES.values())
 
 
-def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*", title: str | None = None) -> str:
-    """The report's markdown for `run_dir` (stage files `STAGES`, or `files` relative to it)."""
+def build(
+    run_dir: str | Path,
+    files: dict | None = None,
+    figures_dir: str = "*",
+    title: str | None = None,
+    at_budget: dict | None = None,
+) -> str:
+    """The report's markdown for `run_dir` (stage files `STAGES`, or `files` relative to it;
+    `at_budget`: a baseline record trained at BUMPS' budget, set beside the run's own)."""
     run_dir = Path(run_dir)
     found = {name: load(run_dir, rel) for name, rel in (files or {**STAGES, **EXTRAS}).items()}
     extras = {name: found.pop(name, None) for name in EXTRAS}
@@ -90,7 +97,7 @@ def build(run_dir: str | Path, files: dict | None = None, figures_dir: str = "*"
         lines += ["## Held-out targets (`evaluate --heldout`; no paper column: the paper has none)", ""]
         lines += [*differing_env_lines({"Tables 1-2": found["filter"] or found["meta"], "held-out": extras["heldout"]})]
         lines += [*tables.heldout_lines(extras["heldout"]), ""]
-    lines += baseline_lines(extras["baseline"], found["experts"], rows2)
+    lines += baseline_lines(extras["baseline"], found["experts"], rows2, at_budget)
     pictures = [*run_dir.glob(f"{figures_dir}/*.png"), *run_dir.glob(f"{figures_dir}/*.gif")]
     figures = sorted(p.relative_to(run_dir).as_posix() for p in pictures)
     if figures:
@@ -233,7 +240,9 @@ def launch_lines(launches: list | None) -> list[str]:
     ]
 
 
-def baseline_lines(baseline: dict | None, experts: dict | None, filtered: dict | None = None) -> list[str]:
+def baseline_lines(
+    baseline: dict | None, experts: dict | None, filtered: dict | None = None, at_budget: dict | None = None
+) -> list[str]:
     lines = ["## Multi-task PPO baseline (the paper's Figure 1)", ""]
     if not baseline:
         return [*lines, "Not run (`make baseline`).", ""]
@@ -262,13 +271,32 @@ def baseline_lines(baseline: dict | None, experts: dict | None, filtered: dict |
             f"BUMPS's experts used {total:,} PPO env steps in all ({len(experts['tasks_m'])} experts of "
             f"{experts['env_steps']:,}); the baseline {baseline['seeds'] * baseline['env_steps']:,} over its seeds."
         )
+    if at_budget:
+        lines += at_budget_lines(at_budget, experts)
     if filtered:
         name, best = min(filtered.items(), key=lambda kv: kv[1]["error_mean_m"])
+        beside = f" and the one at BUMPS' budget's {at_budget['error_mean_m']:.2f} m" if at_budget else ""
         lines.append(
             f"Best BUMPS variant ({name}): {best['error_mean_m']:.2f} m against the baseline's "
-            f"{baseline['error_mean_m']:.2f} m on the same meta-test tasks."
+            f"{baseline['error_mean_m']:.2f} m{beside} on the same meta-test tasks."
         )
     return [*lines, ""]
+
+
+def at_budget_lines(b: dict, experts: dict | None) -> list[str]:
+    """The baseline arm trained at BUMPS' whole budget (`budgets.AT_BUDGET`): its budget beside the
+    experts', its meta-test error and its training curve."""
+    total = budgets.experts_total(experts)
+    spent = f" (BUMPS' experts: {total:,} in all)" if total else ""
+    per_update = b["curve"]["env_steps"][0]
+    curve = b.get("error_curve")
+    trend = f"; training episodes' error {curve['mean'][0]:.2f} -> {curve['mean'][-1]:.2f} m" if curve else ""
+    return [
+        f"At BUMPS' budget (`results/{budgets.AT_BUDGET}`, `{b.get('command', '?')}`): "
+        f"{budgets.seeds_phrase(b['seeds'])} of {b['env_steps_per_seed']:,} env steps{spent}, {per_update:,} a PPO "
+        f"update, learning rate {b['learning_rate']:g}: meta-test error {b['error_mean_m']:.2f} m, accuracy "
+        f"{b['accuracy_mean']:.2f}{trend} ({b.get('device', 'device unknown')}, physics step {physics_step(b)})."
+    ]
 
 
 def scale_out_line(scaling: dict) -> str:
@@ -409,7 +437,13 @@ def provenance_note(root: Path, pipeline: dict | None) -> str:
 def write_committed(root: str | Path = ".") -> Path:
     """docs/results.md from the committed GPU results (results/, figures in docs/)."""
     root = Path(root)
-    text = build(root, COMMITTED, figures_dir="docs", title="BUMPS on the simulated NAO: committed GPU results")
+    text = build(
+        root,
+        COMMITTED,
+        figures_dir="docs",
+        title="BUMPS on the simulated NAO: committed GPU results",
+        at_budget=load(root, f"results/{budgets.AT_BUDGET}"),
+    )
     path = root / "docs" / "results.md"
     path.parent.mkdir(parents=True, exist_ok=True)
     note = provenance_note(root, load(root, COMMITTED["pipeline"]))
