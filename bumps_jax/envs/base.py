@@ -107,6 +107,23 @@ def validate_episode(cfg: ml_collections.ConfigDict, int_keys=()) -> None:
     validate_physics_dt(cfg)
 
 
+def validate_weights(weights: ml_collections.ConfigDict, prefix: str = "env.reward.") -> None:
+    """ValueError naming the first of a section's weights (`prefix` + its name) that is not a
+    finite number >= 0."""
+    for name, value in weights.items():
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"{prefix}{name} must be a finite weight >= 0, got {value!r}")
+
+
+def goal_errors(metrics: dict, goals) -> np.ndarray:
+    """Final distances (m) of finished episodes to other goals: `final_position` (S..., 2) against
+    goals (..., 2) broadcasting with it, e.g. (C, R, 2) against (T, 1, 1, 2) -> (T, C, R); an
+    invalid episode scores inf. A goal-reaching env's `error_against`."""
+    pos = np.asarray(metrics["final_position"], np.float64)
+    err = np.linalg.norm(pos - np.asarray(goals, np.float64), axis=-1)
+    return np.where(np.asarray(metrics["valid"]) > 0, err, np.inf)
+
+
 def check_targets(targets, task_range, unit: str = "m", size: int = 1) -> np.ndarray:
     """Targets as a float array, or ValueError naming the first one outside `task_range` (in `unit`).
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import functools
 import importlib.resources
-import math
 import re
 
 import jax
@@ -96,9 +95,7 @@ def validate_config(cfg: ml_collections.ConfigDict) -> None:
     task_env.validate_episode(cfg, ("episode_steps",))
     if not cfg.reset_noise >= 0:
         raise ValueError(f"env.reset_noise must be >= 0, got {cfg.reset_noise!r}")
-    for name, value in cfg.reward.items():
-        if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"env.reward.{name} must be a finite weight >= 0, got {value!r}")
+    task_env.validate_weights(cfg.reward)
 
 
 def load_model(all_contacts: bool = True) -> mujoco.MjModel:

@@ -93,9 +93,7 @@ def validate_config(cfg: ml_collections.ConfigDict) -> None:
     for key in ("gear", "damping", "reset_noise"):
         if not (math.isfinite(cfg[key]) and cfg[key] >= 0):
             raise ValueError(f"env.{key} must be a finite number >= 0, got {cfg[key]!r}")
-    for name, value in cfg.reward.items():
-        if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"env.reward.{name} must be a finite weight >= 0, got {value!r}")
+    task_env.validate_weights(cfg.reward)
 
 
 def load_model(gear: float = 2.0, damping: float = 1.0) -> mujoco.MjModel:
@@ -247,12 +245,8 @@ class PointGoalEnv(task_env.ContextualEnv):
         return self.observation_size + CONTEXT_SIZE
 
     def error_against(self, metrics: dict, targets) -> np.ndarray:
-        """Final distances (m) of finished episodes to other goals: `final_position` (S..., 2)
-        against goals (..., 2) broadcasting with it, e.g. (C, R, 2) against (T, 1, 1, 2) ->
-        (T, C, R); an invalid episode scores inf."""
-        pos = np.asarray(metrics["final_position"], np.float64)
-        err = np.linalg.norm(pos - np.asarray(targets, np.float64), axis=-1)
-        return np.where(np.asarray(metrics["valid"]) > 0, err, np.inf)
+        """Final distances (m) to other goals (`task_env.goal_errors`)."""
+        return task_env.goal_errors(metrics, targets)
 
     def with_context(self, obs: jax.Array, context) -> jax.Array:
         """What a contextual (meta-)policy observes: obs (..., 4) with the normalised goal
