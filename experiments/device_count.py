@@ -40,11 +40,15 @@ def permutation_p(a, b) -> float:
 
 
 def arm(run_dir: Path) -> dict:
-    """One arm: its seeds.json, the seeds of each run, and the processes each run's experts ran on."""
+    """One arm: its seeds.json, the seeds of each run, and the processes each run's experts ran on.
+    `run_dir`: a run folder (`run/<seed run>/experts/experts.json`) or a published task's results
+    (`seeds/<seed run>/experts.json`, `publish --seed-runs`)."""
     seeds = runio.read_json(run_dir / "seeds.json", "an arm's headlines over seeds (reproduce --seeds)")
     processes = []
     for r in seeds["runs"]:
-        experts = runio.read_json(run_dir / r["run"] / "experts" / "experts.json", "a run's experts record")
+        published = run_dir / "seeds" / r["run"] / "experts.json"
+        path = published if published.is_file() else run_dir / r["run"] / "experts" / "experts.json"
+        experts = runio.read_json(path, "a run's experts record")
         processes.append(experts.get("n_processes", 1))
     return {"dir": run_dir.name, "seeds": [r["seeds"] for r in seeds["runs"]], "processes": processes, "record": seeds}
 

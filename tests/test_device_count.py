@@ -45,3 +45,12 @@ def test_arms_of_the_same_seeds_are_compared_row_by_row(tmp_path):
     other_env = write_arm(tmp_path / "env", {"experts": [0.2, 0.2]}, env={"impl": "jax", "physics_dt": 0.01})
     with pytest.raises(ValueError, match="another env config"):
         device_count.compare(one, other_env)
+
+
+def test_a_published_task_is_an_arm():
+    """The committed cheetah seeds (results/cheetah_vel: seeds.json, seeds/seed<S>/experts.json)
+    read as the one-process arm, as published."""
+    from pathlib import Path
+
+    published = device_count.arm(Path(__file__).resolve().parent.parent / "results" / "cheetah_vel")
+    assert published["processes"] == [1, 1, 1] and len(published["seeds"]) == 3
