@@ -483,6 +483,7 @@ def _at_budget_run(tmp_path, per_seed: int, task: str = "kick"):
                   task=task, command=command)  # fmt: skip
     run = tmp_path / "run"
     runio.write_json(run / "baseline" / "baseline.json", record)
+    (run / "baseline" / "baseline_curve.png").write_bytes(b"\x89PNG fake")
     return run, root
 
 
@@ -497,13 +498,15 @@ def test_a_baseline_at_bumps_budget_is_published_beside_the_presets_own(tmp_path
     total, nearest = _experts_total()
     run, root = _at_budget_run(tmp_path, nearest)
     written = {p.relative_to(root).as_posix() for p in publish.publish_at_budget(run, "kick", root)}
-    assert written == {"results/baseline_at_budget.json", "docs/results.md", "README.md"}
+    assert written == {"results/baseline_at_budget.json", "docs/baseline_at_budget_curve.png", "docs/results.md",
+                       "README.md"}  # fmt: skip
     assert json.loads((root / "results" / "baseline_at_budget.json").read_text())["env_steps_per_seed"] == nearest
     text = (root / "docs" / "results.md").read_text()
     assert "At BUMPS' budget (`results/baseline_at_budget.json`, `python -m bumps_jax reproduce --stages" in text
     assert f"1 seed of {nearest:,} env steps (BUMPS' experts: {total:,} in all), 441,600 a PPO update" in text
     assert "meta-test error 0.30 m" in text and "and the one at BUMPS' budget's 0.30 m on the same" in text
     assert f"| baseline | multi-task PPO at BUMPS' experts' budget, per seed (1 seed) | {nearest:,} |" in text
+    assert "![docs/baseline_at_budget_curve.png](baseline_at_budget_curve.png)" in text
     readme = (root / "README.md").read_text()
     assert f"| multi-task PPO baseline at BUMPS' budget (1 seed, {nearest / 1e6:.2f} M steps each), error |" in readme
     assert f"at BUMPS' budget ({nearest / 1e6:.0f} M env steps, 1 seed) the baseline errs 0.30 m" in readme

@@ -15,6 +15,7 @@ from bumps_jax.report import task_report as report_task
 from bumps_jax.tasks import registry as tasks
 
 POLICIES = "assets/policies"  # the shipped policies (`policies.write`)
+AT_BUDGET_CURVE = "baseline_at_budget_curve.png"  # the training curve of `publish_at_budget`'s baseline
 # What `publish` copies from a finished paper run into the repository: run file -> committed path.
 PUBLISHED = {
     "prior/kick_prior.json": "results/kick_prior.json",
@@ -164,12 +165,19 @@ def publish_at_budget(run_dir: str | Path, task: str, root: str | Path = ".") ->
             f"experts' {total:,} within one update ({per_update:,}): train it with "
             f"baseline.ppo.total_env_steps={nearest}"
         )
-    dest = root / "results" / tasks.folder(task) / budgets.AT_BUDGET
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(run_dir / "baseline" / "baseline.json", dest)
-    written = [dest]
+    folder = root / "results" / tasks.folder(task)
+    paper_rows = tasks.get(task).report.paper_rows
+    # Its training curve beside the record (the kick's figures sit in docs/, on the results page).
+    figures = root / "docs" if paper_rows else folder
+    copies = {"baseline.json": folder / budgets.AT_BUDGET, "baseline_curve.png": figures / AT_BUDGET_CURVE}
+    written = []
+    for name, dest in copies.items():
+        if (run_dir / "baseline" / name).exists():
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(run_dir / "baseline" / name, dest)
+            written.append(dest)
     if (root / report.COMMITTED["experts"]).exists():  # the results page's env steps per arm span every task
         written.append(report.write_committed(root))
-    if tasks.get(task).report.paper_rows and (root / "README.md").exists():
+    if paper_rows and (root / "README.md").exists():
         written.append(readme_table.write_readme(root))
     return written
