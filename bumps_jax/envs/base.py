@@ -23,10 +23,12 @@ import json
 import math
 
 import jax
+import jax.numpy as jnp
 import ml_collections
 import mujoco
 import numpy as np
 from brax.envs.base import Env
+from mujoco import mjx
 
 from bumps_jax.envs import physics
 
@@ -201,6 +203,21 @@ class ContextualEnv(Env):
         # Episodes one physics call holds: Warp's contact pool; None: no limit (MJX-JAX).
         self.max_episodes = cfg.warp_contacts // self.contacts_per_episode if cfg.impl == "warp" else None
         self.mjx_model, self._warp_data = physics.put_physics(mj_model, cfg)
+
+    def start_data(self, qpos: jax.Array, qvel: jax.Array) -> tuple:
+        """A new episode's physics data at (qpos, qvel) with no control, after a forward pass:
+        (data, whether a Warp buffer overflowed ())."""
+        blank = physics.blank_data(self.mjx_model, self._warp_data)
+        data = blank.replace(qpos=qpos, qvel=qvel, ctrl=jnp.zeros(self.mj_model.nu))
+        data, overflow, _ = physics.read_flags(mjx.forward(self.mjx_model, data))
+        return data, overflow
+
+    def gym_start(self, rng_q: jax.Array, rng_v: jax.Array) -> tuple:
+        """`start_data` as Gym's MuJoCo envs start an episode: the model's qpos0 + U[-s, s], joint
+        velocities s * N(0, 1), s the config's `reset_noise`."""
+        s, nq, nv = self.config.reset_noise, self.mj_model.nq, self.mj_model.nv
+        qpos = jnp.asarray(self.mj_model.qpos0, jnp.float32) + jax.random.uniform(rng_q, (nq,), minval=-s, maxval=s)
+        return self.start_data(qpos, s * jax.random.normal(rng_v, (nv,)))
 
     # -- brax's Env interface ------------------------------------------------------------
     @property

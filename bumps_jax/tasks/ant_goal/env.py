@@ -47,7 +47,6 @@ from brax.envs.base import State
 from mujoco import mjx
 
 from bumps_jax.envs import base as task_env
-from bumps_jax.envs import physics
 from bumps_jax.envs.physics import read_flags
 
 TORSO = "torso"
@@ -245,7 +244,6 @@ class AntGoalEnv(task_env.ContextualEnv):
         root = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_JOINT, ROOT)
         if self.mj_model.jnt_qposadr[root] != 0 or self.mj_model.jnt_type[root] != mujoco.mjtJoint.mjJNT_FREE:
             raise ValueError(f"the model's {ROOT!r} joint is not a free joint at its first coordinate")
-        self._qpos0 = jnp.asarray(self.mj_model.qpos0, jnp.float32)
         self._ctrl_lo = jnp.asarray(self.mj_model.actuator_ctrlrange[:, 0], jnp.float32)
         self._ctrl_hi = jnp.asarray(self.mj_model.actuator_ctrlrange[:, 1], jnp.float32)
 
@@ -271,13 +269,7 @@ class AntGoalEnv(task_env.ContextualEnv):
         target = jnp.asarray(target, jnp.float32)
         goal = jnp.clip(target, lo, hi)
 
-        s = cfg.reset_noise
-        nq, nv = self.mj_model.nq, self.mj_model.nv
-        qpos = self._qpos0 + jax.random.uniform(rng_q, (nq,), minval=-s, maxval=s)
-        qvel = s * jax.random.normal(rng_v, (nv,))
-        blank = physics.blank_data(self.mjx_model, self._warp_data)
-        data = blank.replace(qpos=qpos, qvel=qvel, ctrl=jnp.zeros(self.mj_model.nu))
-        data, overflow, _ = read_flags(mjx.forward(self.mjx_model, data))
+        data, overflow = self.gym_start(rng_q, rng_v)
         zero = jnp.zeros((), jnp.float32)
         info = {
             "target": goal,

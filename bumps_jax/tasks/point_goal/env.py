@@ -29,7 +29,6 @@ from brax.envs.base import State
 from mujoco import mjx
 
 from bumps_jax.envs import base as task_env
-from bumps_jax.envs import physics
 from bumps_jax.envs.physics import read_flags
 
 # The model: a 1 kg sphere on slide joints x and y (damped), one motor per joint, no contacts.
@@ -179,9 +178,7 @@ class PointGoalEnv(task_env.ContextualEnv):
         s = cfg.reset_noise
         qpos = jax.random.uniform(rng_q, (2,), minval=-s, maxval=s)
         qvel = jax.random.uniform(rng_v, (2,), minval=-s, maxval=s)
-        data = physics.blank_data(self.mjx_model, self._warp_data)
-        data = data.replace(qpos=qpos, qvel=qvel, ctrl=jnp.zeros(2))
-        data, overflow, _ = read_flags(mjx.forward(self.mjx_model, data))
+        data, overflow = self.start_data(qpos, qvel)
         zero = jnp.zeros((), jnp.float32)
         info = {
             "target": goal,
