@@ -48,6 +48,23 @@ def default_config() -> ml_collections.ConfigDict:
     return cfg
 
 
+def brax_defaults() -> ml_collections.ConfigDict:
+    """`default_config()` at the defaults of Brax's PPO (`brax.training.agents.ppo`), which its
+    locomotion notebooks keep: one Adam at 3e-4 for both nets, GAE lambda 0.95, clip 0.3,
+    observation normalisation, a 4 x 32 policy and a 5 x 256 value net, the tanh-normal's std
+    softplus(0) = 0.69 at the start. A task sets its own batch, discount, entropy and reward scale."""
+    cfg = default_config()
+    cfg.learning_rate = 3e-4
+    cfg.value_learning_rate = 3e-4  # Brax: one Adam for both nets
+    cfg.gae_lambda = 0.95
+    cfg.clip_epsilon = 0.3
+    cfg.normalize_observations = True
+    cfg.policy_hidden = (32, 32, 32, 32)
+    cfg.value_hidden = (256, 256, 256, 256, 256)
+    cfg.init_log_std = -0.37  # std 0.69
+    return cfg
+
+
 def make_config(config=None, overrides: dict | None = None) -> ml_collections.ConfigDict:
     """A locked copy of a PPO section (default: `default_config()`) with dotted `overrides`."""
     return locked_config(default_config() if config is None else config, overrides)

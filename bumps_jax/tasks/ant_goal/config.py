@@ -50,7 +50,7 @@ def experts() -> ml_collections.ConfigDict:
     experts = stage_sections.experts(TRAIN_TASKS)  # goals (x, y) m, one expert each
     # Speed and logging only: PPO updates per compiled chunk (2 divides the centre's 74 updates).
     experts.updates_per_chunk = 2
-    experts.ppo = ppo_config.default_config()
+    experts.ppo = ppo_config.brax_defaults()
     # Brax's ant PPO (its training notebook, notebooks/training.ipynb): 4096 envs, 5-step
     # unrolls, batch 2048 x 32 minibatches (327,680 steps per batch, 10,240 per minibatch),
     # 4 epochs per batch (num_updates_per_batch), discount 0.97, lr 3e-4, entropy 1e-2, reward
@@ -66,21 +66,13 @@ def experts() -> ml_collections.ConfigDict:
     experts.family.centre_updates = 74  # 2 x 37: the baseline's budget is whole updates of all 37
     experts.family.ramp_updates = 30
     experts.ppo.total_env_steps = 512 * 200 * 100  # 10.24 M per expert after the centre's 7.58 M
-    experts.ppo.learning_rate = 3e-4
-    experts.ppo.value_learning_rate = 3e-4  # Brax: one Adam for both nets
     experts.ppo.discount = 0.97
     # The distance term as progress toward the goal: w = 1 / (1 - discount) turns -|p - g|_1 into
     # (|p - g|_1 - |p' - g|_1) / (1 - discount) per step, an action's own effect, as Brax's ant
     # pays forward speed (potential-based: the same optimal policy).
     experts.ppo.potential_shaping = 1.0 / (1.0 - experts.ppo.discount)
-    experts.ppo.gae_lambda = 0.95
-    experts.ppo.clip_epsilon = 0.3
     experts.ppo.entropy_cost = 1e-2
     experts.ppo.reward_scaling = 10.0
-    experts.ppo.normalize_observations = True
-    experts.ppo.policy_hidden = (32, 32, 32, 32)  # Brax's default PPO nets
-    experts.ppo.value_hidden = (256, 256, 256, 256, 256)
-    experts.ppo.init_log_std = -0.37  # std 0.69: Brax's tanh-normal starts at softplus(0)
     experts.eval.repetitions = 20  # episodes per expert on its own goal (reset noise on)
     return experts
 

@@ -28,7 +28,7 @@ def experts() -> ml_collections.ConfigDict:
     200-step episodes."""
     experts = stage_sections.experts(TRAIN_TASKS)  # m/s, one expert each
     experts.updates_per_chunk = 10  # speed and logging only: PPO updates per compiled chunk
-    experts.ppo = ppo_config.default_config()
+    experts.ppo = ppo_config.brax_defaults()
     # Brax's halfcheetah PPO (its training notebook): 2048 envs x 20-step unrolls, 32 minibatches,
     # 8 epochs per batch, discount 0.95, lr 3e-4, entropy 1e-3, reward scaling 1, observation
     # normalisation; GAE lambda 0.95, clip 0.3 and value weight 0.5 are Brax's defaults.
@@ -46,17 +46,9 @@ def experts() -> ml_collections.ConfigDict:
     experts.family.rounds = 3
     experts.family.ramp_updates = 30
     experts.ppo.total_env_steps = 512 * 200 * 90  # 9.216 M per expert after the centre's 41.98 M
-    experts.ppo.learning_rate = 3e-4
-    experts.ppo.value_learning_rate = 3e-4  # Brax: one Adam for both nets
     experts.ppo.discount = 0.95
-    experts.ppo.gae_lambda = 0.95
-    experts.ppo.clip_epsilon = 0.3
     experts.ppo.entropy_cost = 1e-3
     experts.ppo.reward_scaling = 1.0
-    experts.ppo.normalize_observations = True
-    experts.ppo.policy_hidden = (32, 32, 32, 32)  # Brax's default PPO nets
-    experts.ppo.value_hidden = (256, 256, 256, 256, 256)
-    experts.ppo.init_log_std = -0.37  # std 0.69: Brax's tanh-normal starts at softplus(0)
     experts.eval.repetitions = 20  # episodes per expert on its own velocity (reset noise on)
     return experts
 
