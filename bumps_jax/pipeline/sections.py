@@ -108,6 +108,24 @@ def meta(eval_tasks) -> ml_collections.ConfigDict:
     return cfg
 
 
+def closed_loop_meta(eval_tasks, action_noise: float = 0.2, clip_labels: bool = True) -> ml_collections.ConfigDict:
+    """`meta` for a policy that reads its state (closed loop), at a GPU's size: 8 recorded episodes
+    per expert with reset noise, each acting with DART's `action_noise` (0: the expert's action)
+    and labelled with the expert's action, clipped to the env's bound with `clip_labels`; 300
+    epochs of Adam at 1e-3 on batches of 256 (x 0.8 every 50); 20 evaluation episodes a context."""
+    cfg = meta(eval_tasks)
+    cfg.dataset.repetitions = 8
+    cfg.dataset.action_noise = action_noise
+    cfg.dataset.clip_labels = clip_labels
+    cfg.train.learning_rate = 1e-3
+    cfg.train.batch_size = 256
+    cfg.train.epochs = 300
+    cfg.train.decay_every = 50
+    cfg.train.chunk = 25
+    cfg.eval.repetitions = 20
+    return cfg
+
+
 def filtering(tasks, context_range, context_step, high_context_step, width) -> ml_collections.ConfigDict:
     """Policy filtering over sampled contexts (Table 2)."""
     cfg = ml_collections.ConfigDict()

@@ -104,16 +104,8 @@ def sections() -> ml_collections.ConfigDict:
     cfg.env = ant_env.default_config()  # the ant's physics, reset noise and reward
     cfg.experts = experts()
     cfg.baseline = baseline(cfg.experts)
-    cfg.meta = stage_sections.meta(TEST_TASKS)
-    cfg.meta.dataset.repetitions = 8  # episodes per expert, reset noise on: the states a closed loop meets
-    cfg.meta.dataset.action_noise = 0.2  # DART: the recorded episodes act with this noise (the cheetah's)
-    cfg.meta.dataset.clip_labels = True  # the env clips actions to [-1, 1]: so are the labels
-    cfg.meta.train.learning_rate = 1e-3
-    cfg.meta.train.batch_size = 256
-    cfg.meta.train.epochs = 300  # 59,200 pairs: 232 steps per epoch
-    cfg.meta.train.decay_every = 50
-    cfg.meta.train.chunk = 25
-    cfg.meta.eval.repetitions = 20
+    # DART cloning as the cheetah's (its noise 0.2, labels clipped to [-1, 1]); 59,200 pairs: 232 steps an epoch
+    cfg.meta = stage_sections.closed_loop_meta(TEST_TASKS)
     # m: each coordinate of the sampled goals' grid over (-3, 3) of step 0.25 (25 x 25; the high
     # sample rate's 0.125: 49 x 49); a test goal's candidates lie within 0.5 m of it.
     cfg.filter = stage_sections.filtering(TEST_TASKS, (-3.0, 3.0), 0.25, 0.125, 0.5)

@@ -80,16 +80,8 @@ def sections() -> ml_collections.ConfigDict:
     cfg.env = cheetah_env.default_config()  # the cheetah's physics, reset noise and reward
     cfg.experts = experts()
     cfg.baseline = baseline(cfg.experts)
-    cfg.meta = stage_sections.meta(TEST_TASKS)
-    cfg.meta.dataset.repetitions = 8  # episodes per expert, reset noise on: the states a closed loop meets
-    cfg.meta.dataset.action_noise = 0.2  # DART: the recorded episodes act with this noise (docs/decisions.md)
-    cfg.meta.dataset.clip_labels = True  # the env clips actions to [-1, 1]: so are the labels
-    cfg.meta.train.learning_rate = 1e-3
-    cfg.meta.train.batch_size = 256
-    cfg.meta.train.epochs = 300  # 20,800 pairs: 82 steps per epoch
-    cfg.meta.train.decay_every = 50
-    cfg.meta.train.chunk = 25
-    cfg.meta.eval.repetitions = 20
+    # DART cloning (noise 0.2, labels clipped to [-1, 1]; docs/decisions.md); 20,800 pairs: 82 steps an epoch
+    cfg.meta = stage_sections.closed_loop_meta(TEST_TASKS)
     # m/s: contexts on a 0.1 grid over 0-3 (31; the high sample rate's 0.02: 151), within +- 0.3.
     cfg.filter = stage_sections.filtering(TEST_TASKS, (0.0, 3.0), 0.1, 0.02, 0.3)
     cfg.filter.halving_rungs = (2, 8, 32)

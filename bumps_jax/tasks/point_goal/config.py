@@ -67,14 +67,7 @@ def sections() -> ml_collections.ConfigDict:
     cfg.env = point_env.default_config()  # the point mass's physics, reset noise and reward
     cfg.experts = experts()
     cfg.baseline = baseline(cfg.experts)
-    cfg.meta = stage_sections.meta(TEST_TASKS)
-    cfg.meta.dataset.repetitions = 8  # episodes per expert, reset noise on
-    cfg.meta.train.learning_rate = 1e-3
-    cfg.meta.train.batch_size = 256
-    cfg.meta.train.epochs = 300
-    cfg.meta.train.decay_every = 50
-    cfg.meta.train.chunk = 25
-    cfg.meta.eval.repetitions = 20
+    cfg.meta = stage_sections.closed_loop_meta(TEST_TASKS, action_noise=0.0, clip_labels=False)  # no DART
     # m: each coordinate of the sampled goals' grid over (-1, 1) of step 0.1 (21 x 21; the high
     # sample rate's 0.05: 41 x 41); a test goal's candidates lie within 0.3 m of it.
     cfg.filter = stage_sections.filtering(TEST_TASKS, (-1.0, 1.0), 0.1, 0.05, 0.3)
