@@ -39,10 +39,14 @@ def parse_args(argv=None):
     parser.add_argument("--processes", type=int, default=2, help="N: processes, one device (GPU) each")
     parser.add_argument("--episodes", type=int, default=4096, help="episodes per process in one call")
     parser.add_argument("--out", type=Path, required=True, help="the record to write (.json)")
+    parser.add_argument("--limit-s", type=float, default=900.0,
+                        help="seconds the processes may take; then stopped, the ways not done named")  # fmt: skip
     parser.add_argument("--worker", type=Path, help=argparse.SUPPRESS)  # a measuring process's folder
     args = parser.parse_args(argv)
     if args.processes < 2:
         parser.error(f"--processes must be at least 2 (one process has no mesh of processes), got {args.processes}")
+    if not args.limit_s > 0:
+        parser.error(f"--limit-s must be > 0, got {args.limit_s}")
     if args.episodes < 1:
         parser.error(f"--episodes must be a positive integer, got {args.episodes}")
     return args
@@ -166,7 +170,7 @@ def main(argv=None) -> None:
             env = launch.process_env(i, args.processes, port, gpus)
             procs.append((subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT), log))
         print(f"[global_mesh] {args.processes} processes x {args.episodes} episodes, both ways", flush=True)
-        failed = wait_all([proc for proc, _ in procs])
+        failed = wait_all([proc for proc, _ in procs], limit_s=args.limit_s)
         for _, log in procs:
             log.close()
         results = []
@@ -204,11 +208,18 @@ def main(argv=None) -> None:
     print(f"same final metrics: {record.get('same_metrics')}; wrote {args.out}")
 
 
-def wait_all(procs, grace_s: float = 10.0):
+def wait_all(procs, grace_s: float = 10.0, limit_s: float = float("inf")):
     """Wait for every process; once one fails, stop the others after `grace_s` (a peer of a
-    crashed process can wait forever in a collective). (index, exit code) of the first failure, or None."""
-    failed = None
+    crashed process can wait forever in a collective), and all of them after `limit_s`.
+    (index, exit code) of the first failure, or None."""
+    failed, limit = None, time.monotonic() + limit_s
     while any(p.poll() is None for p in procs):
+        if time.monotonic() > limit:
+            running = [i for i, p in enumerate(procs) if p.poll() is None]
+            for i in running:
+                procs[i].kill()
+                procs[i].wait()
+            return failed or (running[0], f"stopped after --limit-s {limit_s:g}")
         if failed is None:
             failed = next(((i, p.returncode) for i, p in enumerate(procs) if p.poll() not in (None, 0)), None)
             if failed is not None:

@@ -44,3 +44,6 @@ def test_a_crashed_process_stops_its_peers_and_is_named():
     began = time.monotonic()
     assert global_mesh.wait_all(procs, grace_s=0.5) == (0, 3)
     assert procs[1].returncode != 0 and time.monotonic() - began < 30  # the waiting peer was stopped
+    hung = [subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"]) for _ in range(2)]
+    assert global_mesh.wait_all(hung, limit_s=1.0) == (0, "stopped after --limit-s 1")
+    assert all(p.returncode is not None for p in hung)
