@@ -349,7 +349,7 @@ def main(argv=None) -> None:
     except ValueError as err:
         sys.exit(f"error: {err}")
     args = build_parser(with_keys=any(a in ("-h", "--help") for a in argv)).parse_args(argv)
-    from bumps_jax import runio  # noqa: PLC0415
+    from bumps_jax import resumable, runio  # noqa: PLC0415
 
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task)
     try:
@@ -366,7 +366,7 @@ def main(argv=None) -> None:
         dispatch(args)
     except ValueError as err:  # bad config values, missing or stale inputs: one clear line
         leave(args, f"error: {err}")
-    except (KeyboardInterrupt, runio.Interrupted):  # the checkpoints are the state
+    except (KeyboardInterrupt, resumable.Interrupted):  # the checkpoints are the state
         leave(
             args,
             f"interrupted: rerun the same command to resume {run_dir} from what it saved (the stage in flight's "

@@ -71,7 +71,7 @@ import scipy.stats
 from brax import envs as brax_envs
 from jax.experimental.compilation_cache import compilation_cache as cc
 
-from bumps_jax import cli, config, runio
+from bumps_jax import cli, config, resumable, runio
 from bumps_jax import records as env_records
 from bumps_jax.algo import ppo, ppo_config, rollout
 from bumps_jax.pipeline.stages import experts
@@ -351,7 +351,7 @@ class Progress:
     the ETA runs long while Brax's seeds remain."""
 
     def __init__(self, total_updates: int, say=print):
-        self.total, self.done, self.say, self.pace = total_updates, 0, say, runio.Clock(total_updates)
+        self.total, self.done, self.say, self.pace = total_updates, 0, say, resumable.Clock(total_updates)
 
     def __call__(self, updates: int, text: str) -> None:
         self.done += updates

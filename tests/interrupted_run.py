@@ -5,7 +5,7 @@ import sys
 
 import numpy as np
 
-from bumps_jax import config, runio
+from bumps_jax import config, resumable
 from bumps_jax.algo import bc
 
 
@@ -16,7 +16,7 @@ def main(out_dir: str) -> None:
                       task=np.zeros(64, np.float32))  # fmt: skip
     try:
         bc.train(bc.MetaPolicy(1, 8), data, cfg.meta.train, out_dir, say=lambda *a, **k: print(*a, flush=True))
-    except runio.Interrupted:
+    except resumable.Interrupted:
         sys.exit(f"interrupted: rerun the same command to resume {out_dir} from its last checkpoint")  # as cli.main
     print("finished", flush=True)
 

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from bumps_jax import cli, config, runio
+from bumps_jax import cli, config, resumable, runio
 from bumps_jax import records as env_records
 from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.tasks.kick import env as kick_env
@@ -113,7 +113,7 @@ def test_a_truncated_experts_record_is_named_at_once(tmp_path):  # defect 7
 
 def test_an_interrupted_stage_says_how_to_resume(tmp_path, monkeypatch):
     def interrupted(*args, **kwargs):
-        raise runio.Interrupted
+        raise resumable.Interrupted
 
     monkeypatch.setattr(pipeline, "run_stage", interrupted)
     with pytest.raises(SystemExit, match=f"interrupted: rerun the same command to resume {tmp_path}"):

@@ -9,7 +9,7 @@ import ml_collections
 import numpy as np
 import pytest
 
-from bumps_jax import config
+from bumps_jax import config, resumable
 from bumps_jax.algo import sharding
 from bumps_jax.tasks.kick import cmaes
 from bumps_jax.tasks.kick import keyframes as kick_model
@@ -332,14 +332,12 @@ def test_a_stopped_tuning_resumes_with_the_runs_not_kept(env, monkeypatch, tmp_p
     import os  # noqa: PLC0415
     import signal  # noqa: PLC0415
 
-    from bumps_jax import runio  # noqa: PLC0415
-
     common = dict(fitness=FITNESS, say=lambda *a, **k: None)
     _stand_in_tuning(monkeypatch)
     whole = cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, **common)
 
     keys = _stand_in_tuning(monkeypatch, during_run=lambda k: k == 0 and os.kill(os.getpid(), signal.SIGINT))
-    with pytest.raises(runio.Interrupted):
+    with pytest.raises(resumable.Interrupted):
         cmaes.tune_for_tasks(env, [8.0, 12.0], STARTS, RESTARTS_3, 2, 0.5, keep_dir=tmp_path, **common)
     assert len(keys) == 3 and sorted(p.name for p in tmp_path.iterdir()) == [f"tuning_run_{k}.json" for k in (1, 2, 3)]
 

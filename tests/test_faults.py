@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bumps_jax import runio
+from bumps_jax import resumable, runio
 from bumps_jax.tasks.kick import policies
 
 # -- checksums ---------------------------------------------------------------------------------
@@ -36,10 +36,10 @@ class Said(list):
         self.append(str(line))
 
 
-def counting_loop() -> runio.ChunkedTraining:
+def counting_loop() -> resumable.ChunkedTraining:
     """A chunked 'training' of a (64,) vector: chunk k adds 1 to it; its state is checkpointed."""
     fresh = {"w": jnp.zeros(64), "n": jnp.array(0)}
-    return runio.ChunkedTraining(
+    return resumable.ChunkedTraining(
         init=lambda: fresh,
         chunk=lambda s: ({"w": s["w"] + 1.0, "n": s["n"] + 1}, {}),
         abstract=fresh,
@@ -52,13 +52,13 @@ def counting_loop() -> runio.ChunkedTraining:
 
 def test_a_flipped_checkpoint_falls_back_to_an_older_one_saying_which_file(tmp_path):
     said = Said()
-    runio.train_in_chunks(tmp_path, counting_loop(), 3, keep=3, say=said)
+    resumable.train_in_chunks(tmp_path, counting_loop(), 3, keep=3, say=said)
     newest = tmp_path / "checkpoints" / "3"
     assert (newest / runio.CHECKSUMS).is_file()
     bad = largest_file(newest)
     flip_bytes(bad)
     said.clear()
-    out = runio.train_in_chunks(tmp_path, counting_loop(), 5, keep=3, say=said)
+    out = resumable.train_in_chunks(tmp_path, counting_loop(), 5, keep=3, say=said)
     corrupt = [line for line in said if "corrupt" in line]
     assert len(corrupt) == 1 and bad.name in corrupt[0] and "checksum mismatch" in corrupt[0]
     assert any("resumed from update 2" in line for line in said)
@@ -68,14 +68,14 @@ def test_a_flipped_checkpoint_falls_back_to_an_older_one_saying_which_file(tmp_p
 
 def test_a_truncated_checkpoint_names_its_reason_not_a_repr(tmp_path):
     said = Said()
-    runio.train_in_chunks(tmp_path, counting_loop(), 2, keep=3, say=said)
+    resumable.train_in_chunks(tmp_path, counting_loop(), 2, keep=3, say=said)
     for p in (tmp_path / "checkpoints" / "2").rglob("*"):  # no checksums: the old version's case
         if p.name == runio.CHECKSUMS:
             p.unlink()
     bad = largest_file(tmp_path / "checkpoints" / "2")
     bad.write_bytes(bad.read_bytes()[:10])
     said.clear()
-    out = runio.train_in_chunks(tmp_path, counting_loop(), 3, keep=3, say=said)
+    out = resumable.train_in_chunks(tmp_path, counting_loop(), 3, keep=3, say=said)
     unreadable = [line for line in said if "unreadable" in line]
     assert len(unreadable) == 1 and "<bound method" not in unreadable[0]
     assert int(out["state"]["n"]) == 3
@@ -101,10 +101,10 @@ def test_sealed_directory_and_file_name_the_changed_file(tmp_path):
 
 
 def test_a_finished_stage_keeps_its_checkpoints_until_the_newest_verifies(tmp_path):
-    runio.train_in_chunks(tmp_path, counting_loop(), 2, keep=3, say=lambda *a, **k: None)
+    resumable.train_in_chunks(tmp_path, counting_loop(), 2, keep=3, say=lambda *a, **k: None)
     flip_bytes(largest_file(tmp_path / "checkpoints" / "2"))
     with pytest.raises(runio.CorruptError):
-        runio.keep_newest_checkpoint(tmp_path / "checkpoints")
+        resumable.keep_newest_checkpoint(tmp_path / "checkpoints")
     assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["0", "1", "2"]
 
 
@@ -196,7 +196,7 @@ def test_a_search_stopped_by_ctrl_c_resumes_after_its_last_generation(tmp_path, 
             os.kill(os.getpid(), signal.SIGINT)
 
     said = Said()
-    with pytest.raises(runio.Interrupted):
+    with pytest.raises(resumable.Interrupted):
         cmaes.run_search(search, x0, [14.0], free, 5, 3, say=said, resume_path=state, on_generation=press_at_gen_2)
     assert sum("gen " in line for line in said) == 2 and state.is_file()
     said.clear()
@@ -280,7 +280,7 @@ def test_records_name_paths_inside_the_run_directory_relative_to_it(tmp_path):
 def test_a_phase_clock_adds_up_every_process(tmp_path):
     path = tmp_path / "wall.json"
     runio.write_json(path, {"seconds": 3.5})  # a killed process's seconds up to its last save
-    clock = runio.CarriedClock(path)
+    clock = resumable.CarriedClock(path)
     assert 3.5 <= clock.save() < 10.0 and runio.read_json(path)["seconds"] >= 3.5
 
 

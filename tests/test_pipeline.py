@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from bumps_jax import config, runio
+from bumps_jax import config, resumable, runio
 from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.report import publish
 from bumps_jax.report import summary as report
@@ -226,7 +226,7 @@ def test_ctrl_c_in_a_stage_without_chunks_ends_the_call_after_that_stage(tmp_pat
     monkeypatch.setattr(modules["experts"], "run", pressed_during)
     before = signal.getsignal(signal.SIGINT)
     said = []
-    with pytest.raises(runio.Interrupted):
+    with pytest.raises(resumable.Interrupted):
         pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path, say=lambda *a, **k: said.append(a[0]))
     assert signal.getsignal(signal.SIGINT) is before
     assert log == ["experts"] and (tmp_path / "experts" / "out.json").exists()

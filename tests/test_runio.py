@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from bumps_jax import runio
+from bumps_jax import resumable, runio
 from bumps_jax.pipeline import runner as pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -18,12 +18,12 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_sigint_sets_a_flag_and_a_second_one_stops_at_once():  # the second: SIGINT's default action
     said = []
     before = signal.getsignal(signal.SIGINT)  # a test worker may run with SIGINT ignored
-    with runio.stop_on_interrupt(lambda *a, **k: said.append(a[0])) as stop:
+    with resumable.stop_on_interrupt(lambda *a, **k: said.append(a[0])) as stop:
         stop.check()  # nothing pressed yet
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(0.05)  # the handler runs between bytecodes: no exception here
         assert stop.requested and "stopping after this chunk" in said[0]
-        with pytest.raises(runio.Interrupted):
+        with pytest.raises(resumable.Interrupted):
             stop.check()
         # a second Ctrl-C ends the process at once (the default action), even inside a compiled program
         assert signal.getsignal(signal.SIGINT) is signal.SIG_DFL
@@ -34,13 +34,13 @@ def test_a_loop_inside_a_guard_shares_its_flag():
     """A chunk loop inside a stage's guard sees an interrupt the guard caught before the loop began."""
     said = []
     before = signal.getsignal(signal.SIGINT)
-    with runio.stop_on_interrupt(lambda *a, **k: said.append(a[0]), at="this stage") as guard:
+    with resumable.stop_on_interrupt(lambda *a, **k: said.append(a[0]), at="this stage") as guard:
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(0.05)
         assert said == ["\ninterrupt: stopping after this stage, saving it (Ctrl-C again to stop at once, losing it)"]
-        with runio.stop_on_interrupt() as loop:
+        with resumable.stop_on_interrupt() as loop:
             assert loop is guard
-            with pytest.raises(runio.Interrupted):
+            with pytest.raises(resumable.Interrupted):
                 loop.check()
         assert signal.getsignal(signal.SIGINT) is signal.SIG_DFL  # the inner one left it: a second Ctrl-C stops
     assert signal.getsignal(signal.SIGINT) is before
@@ -129,15 +129,15 @@ def test_nets_resume_from_the_newest_step_all_hold_and_drop_the_steps_past_it(tm
         manager.wait_until_finished()
 
     args = {name: ocp.args.StandardRestore({"w": np.zeros(3)}) for name in ("a", "b")}
-    with runio.checkpoint_manager(tmp_path / "a", 3) as a, runio.checkpoint_manager(tmp_path / "b", 3) as b:
+    with resumable.checkpoint_manager(tmp_path / "a", 3) as a, resumable.checkpoint_manager(tmp_path / "b", 3) as b:
         save(a, 1)  # killed before b saved its first chunk
-        assert runio.restore_latest_common({"a": a, "b": b}, args) == (None, None)
+        assert resumable.restore_latest_common({"a": a, "b": b}, args) == (None, None)
         assert a.all_steps() == []
         for step in (1, 2):
             save(a, step)
             save(b, step)
         save(a, 3)  # killed between the two saves of chunk 3
-        step, restored = runio.restore_latest_common({"a": a, "b": b}, args)
+        step, restored = resumable.restore_latest_common({"a": a, "b": b}, args)
         assert step == 2 and list(restored["a"]["w"]) == list(restored["b"]["w"]) == [2.0] * 3
         assert list(a.all_steps()) == [1, 2] and list(b.all_steps()) == [1, 2]
 
@@ -165,10 +165,10 @@ def test_the_progress_clock_takes_its_eta_from_the_chunks_after_the_first(monkey
     compiled (40 s), then chunks of 25 updates in 25 s each: the ETA is 1 s an update, not the
     13.6 s an update of everything so far."""
     now = [0.0]
-    monkeypatch.setattr(runio.time, "perf_counter", lambda: now[0])
+    monkeypatch.setattr(resumable.time, "perf_counter", lambda: now[0])
     start = now[0]
     now[0] = 300.0
-    pace = runio.Clock(100, since=start)
+    pace = resumable.Clock(100, since=start)
     now[0] += 40.0
     assert pace.tick(25) == "340.0 s (compile included)"
     now[0] += 25.0
@@ -177,7 +177,7 @@ def test_the_progress_clock_takes_its_eta_from_the_chunks_after_the_first(monkey
     assert pace.tick(75) == "390.0 s, ETA 25 s"
     now[0] += 25.0
     assert pace.tick(100) == "415.0 s, ETA 0 s"
-    long = runio.Clock(10_000)
+    long = resumable.Clock(10_000)
     now[0] += 1.0
     long.tick(1)
     now[0] += 1.0

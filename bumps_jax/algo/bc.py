@@ -31,7 +31,7 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
-from bumps_jax import runio
+from bumps_jax import resumable, runio
 from bumps_jax.algo import ppo, sharding
 
 # Gradient steps per iteration of the compiled epoch loop (lax.scan's unroll; at most an epoch's):
@@ -470,13 +470,13 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
     with contextlib.ExitStack() as managers_open:
         managers = {
             name: managers_open.enter_context(
-                runio.checkpoint_manager(out_dirs[name] / "checkpoints", KEEP_CHECKPOINTS)
+                resumable.checkpoint_manager(out_dirs[name] / "checkpoints", KEEP_CHECKPOINTS)
             )
             for name in names
         }
         fresh = init(keys)
         restore = {name: ocp.args.StandardRestore(fresh[name]) for name in names}
-        step, states = runio.restore_latest_common(managers, restore, say)
+        step, states = resumable.restore_latest_common(managers, restore, say)
         if step is None:
             states = fresh
         else:
@@ -487,8 +487,8 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
             runio.trim_csv(out_dirs[name] / "progress.csv", CSV_FIELDS, "step", done)
         loss_shape = (len(keys), int(train_cfg.chunk) * epoch_steps)  # a chunk's losses of one net
         obs, actions = jnp.asarray(data.obs), jnp.asarray(data.actions)  # resident on the device
-        done_chunks, pace = 0, runio.Clock(total_steps)
-        with runio.stop_on_interrupt(say) as stop:
+        done_chunks, pace = 0, resumable.Clock(total_steps)
+        with resumable.stop_on_interrupt(say) as stop:
             while done < total_steps and (max_chunks is None or done_chunks < max_chunks):
                 t0 = time.perf_counter()
                 if own == names:
@@ -538,7 +538,7 @@ def load_policy(
     target = {"params": init(seed_keys(train_cfg))["net"].params}
     restore_args = ocp.checkpoint_utils.construct_restore_args(target)
     args = ocp.args.PyTreeRestore(item=target, restore_args=restore_args, partial_restore=True)
-    with runio.checkpoint_manager(path, KEEP_CHECKPOINTS, read_only=True) as manager:
+    with resumable.checkpoint_manager(path, KEEP_CHECKPOINTS, read_only=True) as manager:
         latest = manager.latest_step()
         if latest is None:
             raise ValueError(f"{path}: no checkpoint (run meta-train first)")

@@ -23,7 +23,7 @@ import json
 import time
 from pathlib import Path
 
-from bumps_jax import config, runio
+from bumps_jax import config, resumable, runio
 from bumps_jax.tasks import registry as tasks
 from bumps_jax.tasks.protocol import STAGE_ORDER
 
@@ -108,7 +108,7 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
     # Ctrl-C only asks the stage to stop (a KeyboardInterrupt raised inside a Warp callback
     # crashed the process): its chunk loops stop at their next chunk, a stage without chunks
     # when it is done, and the call then ends as an interrupted one.
-    with runio.stop_on_interrupt(say, at="this chunk, or at the end of this stage") as stop:
+    with resumable.stop_on_interrupt(say, at="this chunk, or at the end of this stage") as stop:
         try:
             record = module.run(cfg, run_dir, say=say)
         except ValueError:

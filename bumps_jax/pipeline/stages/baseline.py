@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import config, runio
+from bumps_jax import config, resumable, runio
 from bumps_jax.algo import evaluate, ppo, rollout, sharding
 from bumps_jax.envs import base as task_env
 from bumps_jax.pipeline.stages import experts as experts_stage
@@ -78,7 +78,7 @@ CSV_FIELDS = ("update", "env_steps", "run", "learning_rate", "seed", *ppo.Update
 TRAIN_TARGET = 12.0
 
 
-def training_loop(cfg, trainer: ppo.Trainer, policy0, unit: str = "m", mesh=None) -> runio.ChunkedTraining:
+def training_loop(cfg, trainer: ppo.Trainer, policy0, unit: str = "m", mesh=None) -> resumable.ChunkedTraining:
     """Every arm's seeds from `policy0`, vmapped over runs, in chunks of updates (errors in `unit`).
     The runs are independent: they are split over `mesh` (default: this process's devices for
     the task's physics) and the processes (`sharding.over_batch`), and gathered after each chunk."""
@@ -123,7 +123,7 @@ def training_loop(cfg, trainer: ppo.Trainer, policy0, unit: str = "m", mesh=None
         )
         return f"baseline update {update}/{total}  {arms}  {eta}"
 
-    return runio.ChunkedTraining(
+    return resumable.ChunkedTraining(
         init=fresh,
         chunk=chunk,
         abstract=jax.eval_shape(lambda: jax.tree.map(lambda x: x.astype(x.dtype), init_runs(rngs, lrs))),
@@ -164,7 +164,7 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
     say(f"training {len(rates)} arm(s) x {b.seeds} seeds x {trainer.n_updates} updates, "
         f"{b.updates_per_chunk} per compiled chunk (compiling first)", flush=True)  # fmt: skip
     loop = training_loop(cfg, trainer, policy0, unit)
-    out = runio.train_in_chunks(stage_dir, loop, trainer.n_updates, b.keep_checkpoints, say, max_chunks)
+    out = resumable.train_in_chunks(stage_dir, loop, trainer.n_updates, b.keep_checkpoints, say, max_chunks)
     if not out["finished"]:
         return None
     state, train_s = out["state"], out["wall_s"]
@@ -196,7 +196,7 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
     # Per eval task, the first arm's mean error over its seeds (unit), as BUMPS's tables list them.
     payload["per_task_error_m"] = per_task[1 : 1 + b.seeds].mean(axis=0).tolist()
     runio.write_json(stage_dir / OUTPUT, payload)
-    runio.keep_newest_checkpoint(stage_dir / "checkpoints")  # the trained policies; the rest is history
+    resumable.keep_newest_checkpoint(stage_dir / "checkpoints")  # the trained policies; the rest is history
     plot_curve(payload, stage_dir / "baseline_curve.png", tuple(b.ppo.sample_task_range), unit)
     for arm in arms:
         say(f"baseline, lr {arm['learning_rate']:g}: error {arm['error_mean_m']:.2f} {unit}, "

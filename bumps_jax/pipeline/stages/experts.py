@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from bumps_jax import config, runio
+from bumps_jax import config, resumable, runio
 from bumps_jax.algo import evaluate, ppo, rollout, sharding
 from bumps_jax.envs import base as task_env
 from bumps_jax.pipeline import sections as stage_sections
@@ -239,12 +239,12 @@ def family_state(centre: ppo.TrainState, rngs) -> ppo.TrainState:
     )
 
 
-def chunked_loop(programs: Compiled, tasks, init, targets_at, n_updates: int) -> runio.ChunkedTraining:
-    """`runio.ChunkedTraining` of experts on `tasks` (N,) or (N, K), starting from `init()`;
+def chunked_loop(programs: Compiled, tasks, init, targets_at, n_updates: int) -> resumable.ChunkedTraining:
+    """`resumable.ChunkedTraining` of experts on `tasks` (N,) or (N, K), starting from `init()`;
     targets_at(updates done) -> the chunk's training targets."""
     unit = programs.env.UNIT
     fields = csv_fields(unit)
-    return runio.ChunkedTraining(
+    return resumable.ChunkedTraining(
         init=init,
         chunk=lambda state: run_chunk(programs, state, targets_at(int(np.asarray(state.update)[0]))),
         abstract=abstract_state(programs, len(tasks)),
@@ -277,7 +277,7 @@ def train_centre(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_c
     """Round r of the family's centre experts alone: `experts.family.candidates` of them side by
     side, each PPO updates up to the choice (`choice_update`) from a fresh policy of its own seed
     (`round_rngs`) on the centre context, under `round_dir` (resumable as the experts are).
-    Returns `runio.train_in_chunks`'s dict, its state (K, ...)."""
+    Returns `resumable.train_in_chunks`'s dict, its state (K, ...)."""
     tasks = task_env.as_contexts(cfg.experts.tasks, programs.env.CONTEXT_SIZE)
     i, k = family_centre(tasks), centre_candidates(cfg)
     (total, _), n = family_updates(cfg), choice_update(cfg)
@@ -290,7 +290,9 @@ def train_centre(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_c
     centre = np.repeat(tasks[i : i + 1], k, axis=0)
     start = np.zeros((k, programs.start_size))
     loop = chunked_loop(programs, centre, lambda: run_init(programs, rngs, centre, start)[0], lambda _: centre, n)
-    return runio.train_in_chunks(round_dir(run_dir, r), loop, n, cfg.experts.keep_checkpoints, say, stop_after_chunks)
+    return resumable.train_in_chunks(
+        round_dir(run_dir, r), loop, n, cfg.experts.keep_checkpoints, say, stop_after_chunks
+    )
 
 
 def upright(candidate: dict) -> bool:
@@ -318,14 +320,14 @@ def train_rounds(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_c
 
 def train_chosen(cfg, run_dir: Path, programs: Compiled, chosen: ppo.TrainState, say=print, stop_after_chunks=None):
     """The chosen centre candidate (1, ...) alone from the choice to `experts.family.centre_updates`,
-    under run_dir/experts/centre_chosen (resumable). Returns `runio.train_in_chunks`'s dict."""
+    under run_dir/experts/centre_chosen (resumable). Returns `resumable.train_in_chunks`'s dict."""
     tasks = task_env.as_contexts(cfg.experts.tasks, programs.env.CONTEXT_SIZE)
     i, (n, _) = family_centre(tasks), family_updates(cfg)
     centre = tasks[i : i + 1]
     say(f"family: the chosen centre alone from update {choice_update(cfg)} to {n}")
     loop = chunked_loop(programs, centre, lambda: chosen, lambda _: centre, n)
     stage_dir = run_dir / "experts" / "centre_chosen"
-    return runio.train_in_chunks(stage_dir, loop, n, cfg.experts.keep_checkpoints, say, stop_after_chunks)
+    return resumable.train_in_chunks(stage_dir, loop, n, cfg.experts.keep_checkpoints, say, stop_after_chunks)
 
 
 def choose_centre(cfg, run_dir: Path, programs: Compiled, state: ppo.TrainState, say=print, r: int = 0) -> dict:
@@ -392,11 +394,11 @@ def train(cfg, run_dir: Path, programs: Compiled, say=print, stop_after_chunks: 
         init = functools.partial(initial_state, cfg, run_dir, programs, say)
     i, chunk = family_centre(tasks), int(cfg.experts.updates_per_chunk)
     loop = chunked_loop(programs, tasks, init, lambda u: ramped_targets(tasks, i, u, chunk, ramp), total)
-    out = runio.train_in_chunks(stage_dir, loop, total, cfg.experts.keep_checkpoints, say, stop_after_chunks)
+    out = resumable.train_in_chunks(stage_dir, loop, total, cfg.experts.keep_checkpoints, say, stop_after_chunks)
     out["wall_s"] += centre_s
     if out["finished"]:
         with ocp.StandardCheckpointer() as checkpointer:  # leaving the context waits for the write
-            params = runio.savable(expert_params(out["state"]))
+            params = resumable.savable(expert_params(out["state"]))
             checkpointer.save((stage_dir / "final_params").resolve(), params, force=True)
         runio.write_checksums(stage_dir / "final_params")
         runio.sync("final_params")

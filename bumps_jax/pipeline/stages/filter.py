@@ -16,7 +16,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from bumps_jax import config, runio
+from bumps_jax import config, resumable, runio
 from bumps_jax import records as env_records
 from bumps_jax.algo import bc, evaluate, filtering, sharding
 from bumps_jax.envs import base as task_env
@@ -100,7 +100,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     selections, evals, rows, timings = {}, {}, {}, {}
     unit, sizes = env.UNIT, (env.context_observation_size, env.action_size)
     obs_norm = meta_stage.run_obs_norm(run_dir)
-    pace, done = runio.Clock(len(VARIANTS)), 0  # progress over the variants, with an ETA from their pace
+    pace, done = resumable.Clock(len(VARIANTS)), 0  # progress over the variants, with an ETA from their pace
     for net in meta_stage.NETS:
         depth, width = cfg.meta.nets[net]
         _, params = bc.load_policy(run_dir / "meta" / net, depth, width, cfg.meta.train, *sizes, obs_norm)

@@ -22,7 +22,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from bumps_jax import config, runio
+from bumps_jax import config, resumable, runio
 from bumps_jax import records as env_records
 from bumps_jax.algo import bc, evaluate, rollout, sharding
 from bumps_jax.envs import base as task_env
@@ -246,7 +246,7 @@ def train(cfg, stage_dir: Path, data: bc.Dataset, env, say=print) -> tuple[dict,
 
     # Training seconds over every process (a killed call's up to its last progress line), compiling
     # and checkpoints included; the nets share one loop, so each shows its whole time.
-    clock = runio.CarriedClock(stage_dir / "train_wall_time.json")
+    clock = resumable.CarriedClock(stage_dir / "train_wall_time.json")
     states = bc.train_nets(models, data, m.train, {name: stage_dir / name for name in names}, timed(clock))
     return models, states, dict.fromkeys(names, clock.save())
 
@@ -323,7 +323,7 @@ def run(cfg, run_dir: Path, say=print) -> dict:
     # From here on each net is read from its newest checkpoint (the trained policy): the older
     # ones go, as the experts' and the baseline's do once their records are written.
     for name in models:
-        runio.keep_newest_checkpoint(stage_dir / name / "checkpoints")
+        resumable.keep_newest_checkpoint(stage_dir / name / "checkpoints")
     markdown = tasks.get(cfg.task).report.table1(rows, env.UNIT)
     runio.write_text(stage_dir / "table1.md", markdown)
     return runio.json_safe(payload)

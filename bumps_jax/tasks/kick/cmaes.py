@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bumps_jax import runio
+from bumps_jax import resumable, runio
 from bumps_jax.algo import sharding
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
@@ -182,7 +182,7 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
     carry = jax.tree.map(lambda x: x.astype(x.dtype), carry)
     x0, targets, scale, leash = sharding.place((x0, targets, scale, leash), search.mesh)
     centre, extra = x0, sharding.place(extra, search.mesh)
-    history, pace = [], runio.Clock(generations)
+    history, pace = [], resumable.Clock(generations)
 
     def follow(fn, carry):  # fn of every search's current CMA-ES mean params, padded and placed
         means = x0[:n] + scale[:n] * carry.es.mean[:n]
@@ -205,7 +205,7 @@ def run_search(search: Search, x0, targets, free, generations: int, seed, extra=
         if on_resume is not None:
             on_resume(first, history)
     # With its state saved after every generation, Ctrl-C stops the search after the one in flight.
-    guard = contextlib.nullcontext() if resume_path is None else runio.stop_on_interrupt(say, at="this generation")
+    guard = contextlib.nullcontext() if resume_path is None else resumable.stop_on_interrupt(say, at="this generation")
     with guard as stop:
         for gen in range(first, generations):
             key, gen_keys = draw(key)
@@ -478,7 +478,7 @@ def tune_for_tasks(env, targets, starts, tune_cfg, generations: int, sigma_init:
         _check_pool(env, most, f"the {len(left)} tuning runs batched (runs x tasks x population x repetitions)")
     # With runs kept, Ctrl-C stops after the generation in flight (the search's state saved, resumed
     # by a rerun) or between runs (their files written).
-    guard = contextlib.nullcontext() if keep_dir is None else runio.stop_on_interrupt(say, at="this generation")
+    guard = contextlib.nullcontext() if keep_dir is None else resumable.stop_on_interrupt(say, at="this generation")
     with guard as stop:
         for batch in [left] if batched else [[k] for k in left]:
             if batched:
