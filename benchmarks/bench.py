@@ -40,7 +40,7 @@ import numpy as np
 from benchmarks import scene_bench
 from bumps_jax import cli, config, runio
 from bumps_jax.algo import bc, filtering, rollout, sharding
-from bumps_jax.pipeline.stages import experts
+from bumps_jax.pipeline import expert_programs
 from bumps_jax.tasks.kick import cmaes, starting_kicks
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
@@ -131,14 +131,14 @@ def experts_work(cfg, updates: int, mesh, workload: int = 1, seed: int | None = 
     updates of every task at once (K = `workload` copies of each, seeds from `seed`, default the
     config's); the same state goes in at every call, so each call does the same work."""
     cut = expert_config(cfg, updates, workload)
-    programs = experts.compile_programs(cut, mesh=mesh)
+    programs = expert_programs.compile_programs(cut, mesh=mesh)
     tasks = np.asarray(cut.experts.tasks, np.float32)
     n = len(tasks)
     record = kick_model.load_record(kick_model.ASSET)  # the starting kicks are a workload here, whatever the env
     kicks, _ = starting_kicks.starting_kicks(cut, record)
     seed = cut.experts.seed if seed is None else seed
-    state, _ = experts.run_init(programs, experts.task_rngs(seed, n), tasks, kicks)
-    run = lambda: experts.run_chunk(programs, state, tasks)  # noqa: E731
+    state, _ = expert_programs.run_init(programs, expert_programs.task_rngs(seed, n), tasks, kicks)
+    run = lambda: expert_programs.run_chunk(programs, state, tasks)  # noqa: E731
     return Work(run, n * updates * programs.trainer.steps_per_update, {"n_tasks": n})
 
 

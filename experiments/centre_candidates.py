@@ -19,7 +19,7 @@ import numpy as np
 
 from bumps_jax import records, runio
 from bumps_jax.algo.evaluate import FLIPPED
-from bumps_jax.pipeline.stages.experts import upright as stands_upright
+from bumps_jax.pipeline.family import upright as stands_upright
 
 PROVENANCE = ("device", "n_devices", "versions", "preset", "env", "task", "unit")
 

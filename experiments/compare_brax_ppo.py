@@ -74,7 +74,7 @@ from jax.experimental.compilation_cache import compilation_cache as cc
 from bumps_jax import cli, config, resumable, runio
 from bumps_jax import records as env_records
 from bumps_jax.algo import ppo, ppo_config, rollout
-from bumps_jax.pipeline.stages import experts
+from bumps_jax.pipeline import expert_programs
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 from experiments import brax_compat
@@ -118,12 +118,14 @@ def run_brax(cfg, env, init_state: ppo.TrainState, seed: int):
         run_evals=False,
     )
     jax.block_until_ready(policy)
-    return experts.ExpertParams(norm, policy), time.perf_counter() - start
+    return expert_programs.ExpertParams(norm, policy), time.perf_counter() - start
 
 
-def score(env, networks, params: experts.ExpertParams, target: float, n_episodes: int, seed: int) -> dict:
+def score(env, networks, params: expert_programs.ExpertParams, target: float, n_episodes: int, seed: int) -> dict:
     """Deterministic policy on fixed noisy episodes: mean return, final error, valid fraction."""
-    episodes = jax.jit(rollout.over_reps(rollout.episode_fn(env, experts.expert_policy(networks), record="return")))
+    episodes = jax.jit(
+        rollout.over_reps(rollout.episode_fn(env, expert_programs.expert_policy(networks), record="return"))
+    )
     keys = jax.random.split(jax.random.key(seed), n_episodes)
     metrics, ret = episodes(params, jnp.float32(target), jnp.float32(target), keys)
     return {
@@ -140,14 +142,14 @@ def compare(target: float = 16.0, n_updates: int = 8, num_envs: int = 16, eval_e
     start = time.perf_counter()
     cfg = comparison_config(target, n_updates, num_envs, overrides)
     env = kick_env.KickEnv(cfg.env)
-    programs = experts.compile_programs(cfg, env)
+    programs = expert_programs.compile_programs(cfg, env)
     targets = jnp.asarray([target], jnp.float32)
     record = kick_model.load_record(kick_model.ASSET, env_cfg=cfg.env)
     # The one 12 m prior kick: it overshoots 16 m by ~4 m, so there is room to improve.
     kicks = record["anchors"][None, kick_model.ANCHORS.index("main")]
-    state0, _ = experts.run_init(programs, experts.task_rngs(seed, 1), targets, kicks)
+    state0, _ = expert_programs.run_init(programs, expert_programs.task_rngs(seed, 1), targets, kicks)
     t0 = time.perf_counter()
-    ours, metrics = experts.run_chunk(programs, state0, targets)
+    ours, metrics = expert_programs.run_chunk(programs, state0, targets)
     jax.block_until_ready(ours)
     ours_wall = time.perf_counter() - t0
 
@@ -162,8 +164,8 @@ def compare(target: float = 16.0, n_updates: int = 8, num_envs: int = 16, eval_e
         "env_steps": int(cfg.experts.ppo.total_env_steps),
         "eval_episodes": eval_episodes,
         "ppo": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.experts.ppo.items()},
-        "bc_start": score(env, networks, first(experts.expert_params(state0)), target, eval_episodes, seed + 1),
-        "ours": score(env, networks, first(experts.expert_params(ours)), target, eval_episodes, seed + 1),
+        "bc_start": score(env, networks, first(expert_programs.expert_params(state0)), target, eval_episodes, seed + 1),
+        "ours": score(env, networks, first(expert_programs.expert_params(ours)), target, eval_episodes, seed + 1),
         "brax": score(env, networks, brax_params, target, eval_episodes, seed + 1),
         "ours_training_return_curve": [float(r) for r in np.asarray(metrics.episode_return[0])],
         # Both walls include compiling: on a CPU that is most of it.

@@ -47,9 +47,9 @@ def contextual(env):
 def expert_programs(env):
     """The tiny experts' programs (tiny_experts.py), compiled on first use: test_experts.py
     trains with them."""
-    from bumps_jax.pipeline.stages import experts as experts_stage
+    from bumps_jax.pipeline import expert_programs  # noqa: PLC0415
 
-    return experts_stage.compile_programs(tiny_experts.pipeline_config(), env)
+    return expert_programs.compile_programs(tiny_experts.pipeline_config(), env)
 
 
 # The slowest test files (on a 2-core CPU), slowest first. `make test` runs each file whole on

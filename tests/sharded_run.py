@@ -25,6 +25,7 @@ import numpy as np
 
 from bumps_jax import config
 from bumps_jax.algo import bc, filtering, rollout, sharding
+from bumps_jax.pipeline import expert_programs
 from bumps_jax.pipeline.stages import experts
 from bumps_jax.tasks import registry
 from bumps_jax.tasks.kick import env as kick_env
@@ -75,11 +76,11 @@ def quiet(*args, **kwargs):
 
 def train(env, run_dir: Path) -> dict:
     cfg = experts_config()  # 3 tasks on 2 devices of 2 processes: one padded copy
-    programs = experts.compile_programs(cfg, env, mesh=sharding.device_mesh(N_DEVICES, impl="warp"))
+    programs = expert_programs.compile_programs(cfg, env, mesh=sharding.device_mesh(N_DEVICES, impl="warp"))
     # Stop after one chunk and resume: the sharded path must also restore checkpoints.
     experts.train(cfg, run_dir, programs, say=quiet, stop_after_chunks=1)
     out = experts.train(cfg, run_dir, programs, say=quiet)
-    leaves = jax.tree.leaves(experts.expert_params(out["state"]))
+    leaves = jax.tree.leaves(expert_programs.expert_params(out["state"]))
     return {"params": [np.asarray(x).tolist() for x in leaves], "finished": out["finished"]}
 
 

@@ -9,8 +9,8 @@ import pytest
 
 from bumps_jax import config
 from bumps_jax.algo import filtering
+from bumps_jax.pipeline import expert_programs, family
 from bumps_jax.pipeline import runner as pipeline
-from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.report import publish
 from bumps_jax.tasks.cheetah_vel import env as cheetah_env
 
@@ -25,7 +25,7 @@ def cheetah_run(tmp_path_factory):
     cfg = config.make_config("tiny", {"task": "cheetah_vel", **nets})
     # The first round's candidates are made to look flipped (their measured posture replaced), so
     # the run draws its second round; every later rollout is the real one.
-    real, calls = experts_stage.own_context_rollouts, []
+    real, calls = expert_programs.own_context_rollouts, []
 
     def first_round_flipped(*args):
         metrics, posture = real(*args)
@@ -35,7 +35,7 @@ def cheetah_run(tmp_path_factory):
         return metrics, posture
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(experts_stage, "own_context_rollouts", first_round_flipped)
+        patch.setattr(family, "own_context_rollouts", first_round_flipped)  # the centre's choice
         timing = pipeline.run_pipeline(pipeline.ORDER, cfg, run_dir, say=lambda *a, **k: None)
     return {"cfg": cfg, "dir": run_dir, "timing": timing}
 

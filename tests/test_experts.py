@@ -15,6 +15,7 @@ from tiny_experts import N_STEPS, pipeline_config
 
 from bumps_jax import config, runio
 from bumps_jax.algo import rollout
+from bumps_jax.pipeline import expert_programs
 from bumps_jax.pipeline.stages import experts
 from bumps_jax.tasks.kick import cmaes, starting_kicks
 from bumps_jax.tasks.kick import keyframes as kick_model
@@ -152,9 +153,11 @@ def test_vmapped_training_equals_each_task_alone(programs):
     quiet = dict(say=lambda *a, **k: None)
     targets = jnp.asarray(cfg.experts.tasks)
     kicks, _ = starting_kicks.starting_kicks(cfg, kick_model.load_record(), **quiet)
-    state, bc_losses = experts.run_init(programs, experts.task_rngs(cfg.experts.seed, 2), targets, kicks)
+    state, bc_losses = expert_programs.run_init(
+        programs, expert_programs.task_rngs(cfg.experts.seed, 2), targets, kicks
+    )
     assert np.all(np.asarray(bc_losses[:, -1]) < 0.2 * np.asarray(bc_losses[:, 0]))
-    together, metrics = experts.run_chunk(programs, state, targets)
+    together, metrics = expert_programs.run_chunk(programs, state, targets)
     # One PPO update of both tasks ran on Warp (the tiny env's backend), every metric finite.
     assert programs.env.config.impl == "warp" and np.asarray(together.update).tolist() == [1, 1]
     assert all(np.isfinite(np.asarray(v)).all() for v in metrics)
@@ -162,8 +165,10 @@ def test_vmapped_training_equals_each_task_alone(programs):
     other_targets = jnp.asarray([8.0, 16.0])
     other_cfg = pipeline_config(**{"experts.tasks": (8.0, 16.0)})
     other_kicks, _ = starting_kicks.starting_kicks(other_cfg, kick_model.load_record(), **quiet)
-    other_state, _ = experts.run_init(programs, experts.task_rngs(cfg.experts.seed, 2), other_targets, other_kicks)
-    other, _ = experts.run_chunk(programs, other_state, other_targets)
+    other_state, _ = expert_programs.run_init(
+        programs, expert_programs.task_rngs(cfg.experts.seed, 2), other_targets, other_kicks
+    )
+    other, _ = expert_programs.run_chunk(programs, other_state, other_targets)
     for a, b in zip(jax.tree_util.tree_leaves(together), jax.tree_util.tree_leaves(other), strict=True):
         np.testing.assert_array_equal(np.asarray(a)[0], np.asarray(b)[0])
 
@@ -189,7 +194,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
     # the same state gets the first one's outputs (on a CPU each costs seconds). The inputs asked
     # for are checked below.
     done, asked = {}, []
-    real_chunk = experts.run_chunk
+    real_chunk = expert_programs.run_chunk
 
     def run_chunk(programs_, state, targets):
         key = (id(programs_), digest((state, targets)))
@@ -198,7 +203,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
         asked.append(key)
         return done[key]
 
-    monkeypatch.setattr(experts, "run_chunk", run_chunk)
+    monkeypatch.setattr(expert_programs, "run_chunk", run_chunk)  # what the chunked loop calls
     # Likewise each physics program of the starting kicks' tuning (the CMA-ES generation, the
     # scoring of kicks) runs once per input: the interrupted run's tuning asks for the whole run's.
     tuned = []
@@ -247,7 +252,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(programs, tmp_path, monk
     assert len(whole_csv.strip().splitlines()) == 1 + 2 * 2
 
     # The loader the meta stage uses rebuilds the same experts from the run directory alone.
-    want = experts.expert_params(whole["state"])
+    want = expert_programs.expert_params(whole["state"])
     # What the experts' record says of their policy rebuilds them: no trainer is made to read them.
     policy = experts.policy_record(cfg.experts.ppo, programs.env)
     assert policy["obs_size"] == programs.env.observation_size and policy["policy_hidden"] == [64, 64]

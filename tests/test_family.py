@@ -12,21 +12,21 @@ import pytest
 
 from bumps_jax import config
 from bumps_jax.algo import evaluate, ppo, rollout
+from bumps_jax.pipeline import family
 from bumps_jax.pipeline import runner as pipeline
-from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.pipeline.stages import meta as meta_stage
 from bumps_jax.report import budgets, readme, seeds
 from bumps_jax.tasks.cheetah_vel import env as cheetah_env
 
 
 def test_the_centre_is_the_context_nearest_the_mean_and_targets_ramp_out_from_it():
-    assert experts_stage.family_centre([0.0, 0.5, 1.0, 1.5, 3.0]) == 2  # mean 1.2
-    assert experts_stage.family_centre([[1.0, 1.0], [0.1, 0.0], [-1.0, -1.0]]) == 1
+    assert family.family_centre([0.0, 0.5, 1.0, 1.5, 3.0]) == 2  # mean 1.2
+    assert family.family_centre([[1.0, 1.0], [0.1, 0.0], [-1.0, -1.0]]) == 1
     tasks = np.array([0.0, 1.0, 3.0])
     # Chunks of 10 updates, a ramp of 30: a third of the way after the first chunk, all of it from the third on.
-    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, 1, 0, 10, 30), [2 / 3, 1.0, 5 / 3])
-    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, 1, 20, 10, 30), tasks)
-    np.testing.assert_allclose(experts_stage.ramped_targets(tasks, 1, 0, 10, 0), tasks)  # no ramp
+    np.testing.assert_allclose(family.ramped_targets(tasks, 1, 0, 10, 30), [2 / 3, 1.0, 5 / 3])
+    np.testing.assert_allclose(family.ramped_targets(tasks, 1, 20, 10, 30), tasks)
+    np.testing.assert_allclose(family.ramped_targets(tasks, 1, 0, 10, 0), tasks)  # no ramp
 
 
 def test_every_expert_starts_as_the_centre_with_its_own_rng_and_no_updates():
@@ -35,7 +35,7 @@ def test_every_expert_starts_as_the_centre_with_its_own_rng_and_no_updates():
         rng=jax.random.split(jax.random.PRNGKey(0), 1), update=jnp.array([40]), env_steps=jnp.array([4000]),
     )  # fmt: skip
     rngs = jax.random.split(jax.random.PRNGKey(1), 4)
-    state = experts_stage.family_state(centre, rngs)
+    state = family.family_state(centre, rngs)
     np.testing.assert_array_equal(state.params["w"], np.tile(np.arange(3.0), (4, 1)))
     np.testing.assert_array_equal(state.opt_state["m"], np.ones((4, 3)))
     np.testing.assert_array_equal(state.normalizer["n"], np.full(4, 7.0))

@@ -13,7 +13,7 @@ from brax.training.agents.ppo import losses as ppo_losses
 
 from bumps_jax import config
 from bumps_jax.algo import ppo, ppo_config
-from bumps_jax.pipeline.stages import experts
+from bumps_jax.pipeline import expert_programs
 
 N_STEPS = 75
 
@@ -304,11 +304,11 @@ def test_ppo_improves_the_return_on_the_warp_backend():
         "baseline.updates_per_chunk": 1,  # the tiny baseline's 240 steps are 3 updates of these episodes
     }
     view = config.make_config("tiny", {"task": "cheetah_vel", **overrides})
-    programs = experts.compile_programs(view)
+    programs = expert_programs.compile_programs(view)
     assert programs.env.config.impl == "warp"
     tasks = jnp.asarray(view.experts.tasks)
-    state, _ = experts.run_init(programs, experts.task_rngs(0, 1), tasks, np.zeros((1, 0)))
-    _, metrics = experts.run_chunk(programs, state, tasks)
+    state, _ = expert_programs.run_init(programs, expert_programs.task_rngs(0, 1), tasks, np.zeros((1, 0)))
+    _, metrics = expert_programs.run_chunk(programs, state, tasks)
     returns, errors = np.asarray(metrics.episode_return)[0], np.asarray(metrics.final_error)[0]
     assert np.isfinite(returns).all() and returns.shape == (n,)
     assert returns[-3:].mean() > returns[:3].mean() + 3.0

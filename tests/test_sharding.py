@@ -16,6 +16,7 @@ import sharded_run
 
 from bumps_jax import launch
 from bumps_jax.algo import sharding
+from bumps_jax.pipeline import expert_programs
 from bumps_jax.pipeline.stages import experts
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,10 +45,10 @@ def sharded_vs_single(tmp_path_factory):
     # of 8 episodes (the split one's 2 on each device of each process).
     cfg = sharded_run.experts_config()
     env = sharded_run.make_env(cfg)
-    programs = experts.compile_programs(cfg, env)
+    programs = expert_programs.compile_programs(cfg, env)
     one_device = tmp_path_factory.mktemp("one_device")
     out = experts.train(cfg, one_device, programs, say=lambda *a, **k: None)
-    leaves = jax.tree.leaves(experts.expert_params(out["state"]))
+    leaves = jax.tree.leaves(expert_programs.expert_params(out["state"]))
     grid, params = sharded_run.contextual_grid(env)
     single = {
         "experts": {"params": [np.asarray(x) for x in leaves], "finished": out["finished"]},

@@ -28,6 +28,7 @@ import numpy as np
 from bumps_jax import config, resumable, runio
 from bumps_jax.algo import evaluate, ppo, rollout, sharding
 from bumps_jax.envs import base as task_env
+from bumps_jax.pipeline import expert_programs
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.tasks import registry as tasks
 
@@ -213,16 +214,16 @@ def evaluate_runs(cfg, env, trainer, policy0, state) -> tuple[list[dict], np.nda
     errors per eval task, (1 + runs, tasks). Each policy sees the contextual observation
     (`env.with_context`), as it trained."""
     b = cfg.baseline
-    cloned = experts_stage.ExpertParams(ppo.init_normalizer(task_env.ContextObserved(env).observation_size), policy0)
+    cloned = expert_programs.ExpertParams(ppo.init_normalizer(task_env.ContextObserved(env).observation_size), policy0)
     params = jax.tree.map(
         lambda a, s: jnp.concatenate([jnp.asarray(a, s.dtype)[None], s]),
         cloned,
-        jax.vmap(experts_stage.expert_params)(state),
+        jax.vmap(expert_programs.expert_params)(state),
     )
     eval_tasks = np.asarray(b.eval_tasks, np.float32)
     keys = rollout.repetition_keys(b.eval_seed, len(eval_tasks), b.eval_repetitions)
     mesh = sharding.device_mesh(impl=cfg.env.impl)  # the (task, repetition) pairs split over devices and processes
-    grid = rollout.grid_fn(env, experts_stage.expert_policy(trainer.networks), mesh)
+    grid = rollout.grid_fn(env, expert_programs.expert_policy(trainer.networks), mesh)
     m = grid(params, eval_tasks, eval_tasks, keys)  # (1 + runs, tasks, reps)
     summaries = [evaluate.summarise_tasks({k: v[s] for k, v in m.items()}) for s in range(len(m["valid"]))]
     return [evaluate.table_row(x) for x in summaries], np.stack([x["error_mean_m"] for x in summaries])
