@@ -14,7 +14,7 @@ Writes one record: each way's episodes per second (every process's work over the
 process's time), whether both gave the same final metrics, or the line that stopped a way.
 
     python experiments/global_mesh.py --processes 2 --out experiments/results/global_mesh_gpu.json
-    JAX_PLATFORMS=cpu python experiments/global_mesh.py --processes 2 --preset tiny --episodes 16 --out /tmp/gm.json
+    JAX_PLATFORMS=cpu python experiments/global_mesh.py --processes 2 --preset tiny --episodes 16 --out runs/global_mesh_cpu.json
 """
 
 from __future__ import annotations
