@@ -14,7 +14,7 @@ Writes one record: each way's episodes per second (every process's work over the
 process's time), whether both gave the same final metrics, or the line that stopped a way.
 
     python experiments/global_mesh.py --processes 2 --out experiments/results/global_mesh_gpu.json
-    JAX_PLATFORMS=cpu python experiments/global_mesh.py --processes 2 --preset tiny --episodes 16 --out runs/global_mesh_cpu.json
+    JAX_PLATFORMS=cpu python experiments/global_mesh.py --processes 2 --preset tiny --episodes 16 --out runs/gm.json
 """
 
 from __future__ import annotations
@@ -100,8 +100,8 @@ def worker(args) -> None:
     local = sharding.device_mesh(impl=cfg.env.impl)
     per_process = sharding.over_batch(batch(env), local, (False, True, True, True))
 
-    def run_per_process():
-        return per_process(params, contexts, contexts, keys)
+    def per_process_way():
+        return lambda: per_process(params, contexts, contexts, keys)
 
     # global_mesh: one program over every process's device, the env's arrays as arguments
     mesh = Mesh(np.asarray(jax.devices()), (sharding.AXIS,))
@@ -113,19 +113,25 @@ def worker(args) -> None:
     specs = (P(), P(), P(sharding.AXIS), P(sharding.AXIS), P(sharding.AXIS))
     mapped = jax.jit(jax.shard_map(program, mesh=mesh, in_specs=specs, out_specs=P(sharding.AXIS), check_vma=False))
 
-    def run_global():
+    def global_mesh_way():
+        # The replicated arguments are placed once, as the per-process way's env arrays sit on its
+        # device already; each call places only the batch's rows, as `over_batch` does.
         host = multihost_utils.host_local_array_to_global_array
         placed = [host(x, mesh, P()) for x in (jax.tree.map(np.asarray, arrays), np.asarray(params))]
-        rows = sharding.own_rows((contexts, contexts, np.asarray(jax.random.key_data(keys))))
-        rows = [host(x, mesh, P(sharding.AXIS)) for x in rows[:2]] + [
-            jax.random.wrap_key_data(host(rows[2], mesh, P(sharding.AXIS)))
-        ]
-        result = mapped(*placed, *rows)
-        return multihost_utils.process_allgather(result, tiled=True)
+
+        def run():
+            rows = sharding.own_rows((contexts, contexts, np.asarray(jax.random.key_data(keys))))
+            rows = [host(x, mesh, P(sharding.AXIS)) for x in rows[:2]] + [
+                jax.random.wrap_key_data(host(rows[2], mesh, P(sharding.AXIS)))
+            ]
+            return multihost_utils.process_allgather(mapped(*placed, *rows), tiled=True)
+
+        return run
 
     finals = {}
-    for name, run in (("per_process", run_per_process), ("global_mesh", run_global)):
+    for name, way in (("per_process", per_process_way), ("global_mesh", global_mesh_way)):
         try:
+            run = way()
             t0 = time.perf_counter()
             jax.block_until_ready(run())
             first = time.perf_counter() - t0

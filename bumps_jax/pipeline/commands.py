@@ -43,14 +43,14 @@ def publish(cfg, run_dir: Path, args) -> None:
     from bumps_jax.report import seeds  # noqa: PLC0415
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
-    # A run with a stage unfinished would leave that stage's committed record from an older run
-    # beside the new ones (and the report would set them side by side): refused, naming them.
     if getattr(args, "baseline_at_budget", False):  # the run's baseline alone, beside the preset's own
         if getattr(args, "seed_runs", []) or getattr(args, "records_only", False):
             raise ValueError("--baseline-at-budget publishes one baseline run: not with --seed-runs or --records-only")
         for path in publish_mod.publish_at_budget(run_dir, cfg.task):
             print(f"wrote {path}")
         return
+    # A run with a stage unfinished would leave that stage's committed record from an older run
+    # beside the new ones (and the report would set them side by side): refused, naming them.
     missing = pipeline.unfinished(run_dir, tasks.get(cfg.task).stages, cfg.task)
     if missing:
         records = ", ".join(f"{m}/{pipeline.stage_module(m, cfg.task).OUTPUT}" for m in missing)

@@ -29,11 +29,11 @@ def seeds_phrase(n: int) -> str:
 
 
 def experts_total(experts: dict | None) -> int | None:
-    """BUMPS' experts' env steps, every part of every expert's budget (None: a part unrecorded)."""
-    if not experts or "tasks_m" not in experts:
+    """BUMPS' experts' env steps in all: every expert's whole budget (the record's
+    `env_steps_total`) times the experts (None: a record without it)."""
+    if not experts or "env_steps_total" not in experts:
         return None
-    parts = experts.get("env_steps_breakdown", {"ppo": experts.get("env_steps")}).values()
-    return None if None in parts else len(experts["tasks_m"]) * sum(parts)
+    return len(experts["tasks_m"]) * int(experts["env_steps_total"])
 
 
 def episode_steps(task: str, env: dict) -> int:

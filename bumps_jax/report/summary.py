@@ -35,6 +35,7 @@ SCALING = "benchmarks/results/scaling.json"
 GAE = "benchmarks/results/experts_gae.json"  # `bench --skip ...` keeping only the experts' GAE comparison
 PRIOR_ASSET = "assets/kick_prior.json"
 SEEDS = "results/seeds.json"  # the headlines over training seeds (`publish --seed-runs`)
+AT_BUDGET = f"results/{budgets.AT_BUDGET}"  # the kick's baseline at BUMPS' budget (`publish --baseline-at-budget`)
 
 
 def load(run_dir: Path, rel: str) -> dict | None:
@@ -292,7 +293,7 @@ def at_budget_lines(b: dict, experts: dict | None) -> list[str]:
     curve = b.get("error_curve")
     trend = f"; training episodes' error {curve['mean'][0]:.2f} -> {curve['mean'][-1]:.2f} m" if curve else ""
     return [
-        f"At BUMPS' budget (`results/{budgets.AT_BUDGET}`, `{b.get('command', '?')}`): "
+        f"At BUMPS' budget (`{AT_BUDGET}`, `{b.get('command', '?')}`): "
         f"{budgets.seeds_phrase(b['seeds'])} of {b['env_steps_per_seed']:,} env steps{spent}, {per_update:,} a PPO "
         f"update, learning rate {b['learning_rate']:g}: meta-test error {b['error_mean_m']:.2f} m, accuracy "
         f"{b['accuracy_mean']:.2f}{trend} ({b.get('device', 'device unknown')}, physics step {physics_step(b)})."
@@ -442,7 +443,7 @@ def write_committed(root: str | Path = ".") -> Path:
         COMMITTED,
         figures_dir="docs",
         title="BUMPS on the simulated NAO: committed GPU results",
-        at_budget=load(root, f"results/{budgets.AT_BUDGET}"),
+        at_budget=load(root, AT_BUDGET),
     )
     path = root / "docs" / "results.md"
     path.parent.mkdir(parents=True, exist_ok=True)
