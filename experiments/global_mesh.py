@@ -23,6 +23,7 @@ import argparse
 import copy
 import datetime
 import json
+import re
 import subprocess
 import sys
 import tempfile
@@ -174,6 +175,7 @@ def main(argv=None) -> None:
             cmd = [sys.executable, __file__, "--task", args.task, "--preset", args.preset, "--out", str(args.out), *own]
             log = open(Path(tmp) / f"log.{i}", "w")  # noqa: SIM115 (closed with its process)
             env = launch.process_env(i, args.processes, port, gpus)
+            env["PYTHONFAULTHANDLER"] = "1"  # a crash prints its Python frames
             procs.append((subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT), log))
         print(f"[global_mesh] {args.processes} processes x {args.episodes} episodes, both ways", flush=True)
         failed = wait_all([proc for proc, _ in procs], limit_s=args.limit_s)
@@ -241,9 +243,14 @@ def wait_all(procs, grace_s: float = 10.0, limit_s: float = float("inf")):
 
 
 def last_line(folder: Path, i: int) -> str:
-    """The last line process `i` printed."""
+    """The last line process `i` printed; for a crash, the fatal error and its innermost Python frame."""
     log = folder / f"log.{i}"
     lines = log.read_text().strip().splitlines() if log.exists() else []
+    fatal = [k for k, line in enumerate(lines) if line.startswith("Fatal Python error")]
+    if fatal:
+        frames = [line.strip() for line in lines[fatal[-1] :] if line.strip().startswith("File ")]
+        frames = [re.sub(r'File ".*/site-packages/', 'File "', frame) for frame in frames]  # the package's own path
+        return "; ".join([lines[fatal[-1]], *frames[:3]])
     return lines[-1] if lines else "(no output)"
 
 

@@ -203,21 +203,32 @@ def findings(root: str | Path = ".") -> list[str]:
         arms = "; ".join(f"learning rate {a['learning_rate']:g}: {a['error_mean_m']:.2f} m" for a in b.get("arms", []))
         line = "- Baseline (multi-task PPO): " + (f"from {start:.2f} m at its start to " if start is not None else "")
         line += f"{b['error_mean_m']:.2f} m" + (f" ({arms})" if arms else "")
-        if rows2:
-            name, best = min(rows2.items(), key=lambda kv: kv[1]["error_mean_m"])
-            line += f"; the best BUMPS variant ({name}) {best['error_mean_m']:.2f} m"
+        best = min(rows2.items(), key=lambda kv: kv[1]["error_mean_m"]) if rows2 else None
+        if best:
+            line += f"; the best BUMPS variant ({best[0]}) {best[1]['error_mean_m']:.2f} m"
         at = load(root, AT_BUDGET)
         bumps = budgets.experts_total(e)
         if bumps:
             line += (f". Not an equal budget: {b['env_steps_per_seed'] / 1e6:.0f} M env steps per baseline seed "
                      f"against BUMPS' experts' {bumps / 1e6:.0f} M")  # fmt: skip
+            where = "docs/results.md, env steps per arm"
             if at:
                 line += (f"; at BUMPS' budget ({at['env_steps_per_seed'] / 1e6:.0f} M env steps, "
-                         f"{budgets.seeds_phrase(at['seeds'])}) the baseline errs {at['error_mean_m']:.2f} m "
-                         f"(`{AT_BUDGET}`)")  # fmt: skip
-            line += " (docs/results.md, env steps per arm)"
+                         f"{budgets.seeds_phrase(at['seeds'])}) the baseline errs {at['error_mean_m']:.2f} m"
+                         f"{than_best(at['error_mean_m'], best)}")  # fmt: skip
+                where = f"`{AT_BUDGET}`; {where}"
+            line += f" ({where})"
         out.append(line + ".")
     return out
+
+
+def than_best(error_m: float, best: tuple[str, dict] | None) -> str:
+    """', below the best BUMPS variant's 0.35 m' (or above, or level with it at the shown precision)."""
+    if best is None:
+        return ""
+    theirs = best[1]["error_mean_m"]
+    side = "level with" if f"{error_m:.2f}" == f"{theirs:.2f}" else "below" if error_m < theirs else "above"
+    return f", {side} the best BUMPS variant's {theirs:.2f} m"
 
 
 def findings_block(root: str | Path = ".") -> str:
