@@ -99,6 +99,18 @@ def test_a_run_of_the_baseline_alone_is_reported_as_its_task(tmp_path):
     assert re.search(r"\| baseline \| 517 \|", text) and "| experts | not run |" in text
 
 
+def test_a_kick_run_of_the_baseline_alone_is_reported_with_its_baseline(tmp_path):
+    """The kick's report of a run holding only its baseline (one seed): the stage's row and its
+    section, not 'no stage has written results'; `report` accepts the directory."""
+    committed = json.loads((ROOT / "results" / "baseline.json").read_text())
+    runio.write_json(tmp_path / "baseline" / "baseline.json", {**committed, "seeds": 1, "wall_s": 1957.0})
+    assert report.has_results(tmp_path)
+    text = publish.write_report(tmp_path).read_text()
+    assert text.startswith(f"# BUMPS on the simulated NAO: run `{tmp_path.name}`") and "No stage has" not in text
+    assert re.search(r"\| baseline \| 1957 \|", text) and "| experts | not run |" in text
+    assert f"U[7, 18] m, 1 seed, {committed['env_steps']:,} env steps per seed: meta-test error" in text
+
+
 def _paper_run(tmp_path):
     """A run directory with every stage's results, a pipeline record and a baseline."""
     run = tmp_path / "run"

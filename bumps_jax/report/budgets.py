@@ -63,7 +63,8 @@ def rows(task: str, rec: dict) -> list[tuple[str, str, int | None]]:
                 out.append(("BUMPS", f"filtering: {name}'s selection rollouts ({r['n_tasks']} test contexts)",
                             r["rollouts"] * steps))  # fmt: skip
     if base and "env_steps_per_seed" in base:
-        out.append(("baseline", f"multi-task PPO, per seed ({base['seeds']} seeds)", base["env_steps_per_seed"]))
+        seeds = seeds_phrase(base["seeds"])
+        out.append(("baseline", f"multi-task PPO, per seed ({seeds})", base["env_steps_per_seed"]))
     at_budget = rec.get(AT_BUDGET)
     if at_budget:
         what = f"multi-task PPO at BUMPS' experts' budget, per seed ({seeds_phrase(at_budget['seeds'])})"

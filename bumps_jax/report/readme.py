@@ -80,7 +80,8 @@ def readme_rows(root: str | Path = ".") -> list[tuple[str, str, str, str, str, t
     if b:
         start = b.get("start", {}).get("error_mean_all_m")
         head = f"{start:.2f} m at its start -> " if start is not None else ""
-        rows.append((f"multi-task PPO baseline ({b['seeds']} seeds, {b['env_steps'] / 1e6:.2f} M steps each), error",
+        seeds = budgets.seeds_phrase(b["seeds"])
+        rows.append((f"multi-task PPO baseline ({seeds}, {b['env_steps'] / 1e6:.2f} M steps each), error",
                      f"{head}{b['error_mean_m']:.2f} m, accuracy {b['accuracy_mean']:.2f}", "reward collapsed",
                      physics_step(b), COMMITTED["baseline"], ()))  # fmt: skip
     at = load(root, AT_BUDGET)

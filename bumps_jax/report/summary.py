@@ -46,7 +46,8 @@ def load(run_dir: Path, rel: str) -> dict | None:
 
 def has_results(run_dir: Path) -> bool:
     """Whether any stage has written its record under run_dir."""
-    return any((Path(run_dir) / rel).exists() for rel in STAGES.values())
+    stages = [*STAGES.values(), EXTRAS["baseline"], EXTRAS["heldout"]]
+    return any((Path(run_dir) / rel).exists() for rel in stages)
 
 
 def build(
@@ -61,14 +62,14 @@ def build(
     run_dir = Path(run_dir)
     found = {name: load(run_dir, rel) for name, rel in (files or {**STAGES, **EXTRAS}).items()}
     extras = {name: found.pop(name, None) for name in EXTRAS}
-    first = next((v for v in found.values() if v), None)
+    # The held-out evaluation and the baseline are stages of the pipeline too; a row where they ran.
+    ran = {name: extras[name] for name in ("heldout", "baseline") if extras[name]}
+    first = next((v for v in [*found.values(), *ran.values()] if v), None)
     lines = [f"# {title or f'BUMPS on the simulated NAO: run `{run_dir.name}`'}", ""]
     if first is None:
         return "\n".join([*lines, "No stage has written results in this directory yet.", ""])
-    presets = sorted({v["preset"] for v in found.values() if v})
+    presets = sorted({v["preset"] for v in [*found.values(), *ran.values()] if v})
     lines += [*preamble_lines(presets, first), "## Stages", ""]
-    # The held-out evaluation and the baseline are stages of the pipeline too; a row where they ran.
-    ran = {name: extras[name] for name in ("heldout", "baseline") if extras[name]}
     stage_lines, own_s = stages_table({**found, **ran})
     lines += stage_lines
     lines += mixed_steps_lines({**found, **ran})
@@ -248,7 +249,8 @@ def baseline_lines(
     if not baseline:
         return [*lines, "Not run (`make baseline`).", ""]
     lines += [
-        f"One contextual policy trained by PPO on targets drawn from U[7, 18] m, {baseline['seeds']} seeds, "
+        "One contextual policy trained by PPO on targets drawn from U[7, 18] m, "
+        f"{budgets.seeds_phrase(baseline['seeds'])}, "
         f"{baseline['env_steps']:,} env steps per seed: meta-test error {baseline['error_mean_m']:.2f} m over all "
         f"{len(baseline['eval_tasks'])} tasks, accuracy {baseline['accuracy_mean']:.2f} ({baseline['preset']} preset, "
         f"{baseline.get('device', 'device unknown')}, physics step {physics_step(baseline)}).",

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bumps_jax.report import error_map, tables
+from bumps_jax.report import budgets, error_map, tables
 from bumps_jax.report.summary import EXTRAS, STAGES, load, pipeline_lines, preamble_lines, stages_table
 
 
@@ -70,7 +70,7 @@ def task_baseline_lines(baseline: dict, experts: dict | None, filtered: dict | N
         "## Multi-task PPO baseline (one policy for every target, the same PPO)",
         "",
         f"One policy over (state, target) trained by PPO from a fresh init on targets drawn from U[{lo:g}, {hi:g}] "
-        f"{unit}, {baseline['seeds']} seeds x {baseline['env_steps_per_seed']:,} env steps: test error "
+        f"{unit}, {budgets.seeds_phrase(baseline['seeds'])} x {baseline['env_steps_per_seed']:,} env steps: test error "
         f"{baseline['error_mean_m']:.2f} {unit} over {len(baseline['eval_tasks'])} test targets, accuracy "
         f"{baseline['accuracy_mean']:.2f} (at the start: {start['error_mean_all_m']:.2f} {unit}).",
     ]
