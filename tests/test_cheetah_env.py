@@ -211,6 +211,7 @@ def test_model_options():
         ({"task_range": (3.0, 0.0)}, "env.task_range must be finite with low < high"),
         ({"ctrl_dt": 0.055}, "not a multiple of the physics step"),
         ({"reward.ctrl": -0.05}, "env.reward.ctrl must be a finite weight"),
+        ({"reset_noise": float("inf")}, "env.reset_noise must be a finite number >= 0, got inf"),
         ({"rewards.ctrl": 0.05}, "unknown config key 'rewards.ctrl'"),
     ],
 )

@@ -109,12 +109,17 @@ def validate_episode(cfg: ml_collections.ConfigDict, int_keys=()) -> None:
     validate_physics_dt(cfg)
 
 
+def validate_nonnegative(name: str, value, what: str = "number") -> None:
+    """ValueError naming `name` unless `value` is a finite number >= 0."""
+    if not (math.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be a finite {what} >= 0, got {value!r}")
+
+
 def validate_weights(weights: ml_collections.ConfigDict, prefix: str = "env.reward.") -> None:
     """ValueError naming the first of a section's weights (`prefix` + its name) that is not a
     finite number >= 0."""
     for name, value in weights.items():
-        if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"{prefix}{name} must be a finite weight >= 0, got {value!r}")
+        validate_nonnegative(f"{prefix}{name}", value, "weight")
 
 
 def goal_errors(metrics: dict, goals) -> np.ndarray:

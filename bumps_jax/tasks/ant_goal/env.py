@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import functools
 import importlib.resources
-import math
 
 import jax
 import jax.numpy as jnp
@@ -119,8 +118,7 @@ def validate_config(cfg: ml_collections.ConfigDict) -> None:
     if not 0 < cfg.goal_radius <= min(-lo, hi):
         raise ValueError(f"env.goal_radius must be in (0, {min(-lo, hi)}] (inside the task range), "
                          f"got {cfg.goal_radius!r}")  # fmt: skip
-    if not (math.isfinite(cfg.reset_noise) and cfg.reset_noise >= 0):
-        raise ValueError(f"env.reset_noise must be a finite number >= 0, got {cfg.reset_noise!r}")
+    task_env.validate_nonnegative("env.reset_noise", cfg.reset_noise)
     task_env.validate_weights(cfg.reward)
 
 

@@ -92,8 +92,7 @@ def make_config(config=None, overrides: dict | None = None) -> ml_collections.Co
 def validate_config(cfg: ml_collections.ConfigDict) -> None:
     """ValueError naming the first bad value of a cheetah env config."""
     task_env.validate_episode(cfg, ("episode_steps",))
-    if not cfg.reset_noise >= 0:
-        raise ValueError(f"env.reset_noise must be >= 0, got {cfg.reset_noise!r}")
+    task_env.validate_nonnegative("env.reset_noise", cfg.reset_noise)
     task_env.validate_weights(cfg.reward)
 
 

@@ -18,7 +18,6 @@ scores the same episode against any other goal (`error_against`).
 from __future__ import annotations
 
 import functools
-import math
 
 import jax
 import jax.numpy as jnp
@@ -90,8 +89,7 @@ def validate_config(cfg: ml_collections.ConfigDict) -> None:
         raise ValueError(f"env.goal_radius must be in (0, {min(-lo, hi)}] (inside the task range), "
                          f"got {cfg.goal_radius!r}")  # fmt: skip
     for key in ("gear", "damping", "reset_noise"):
-        if not (math.isfinite(cfg[key]) and cfg[key] >= 0):
-            raise ValueError(f"env.{key} must be a finite number >= 0, got {cfg[key]!r}")
+        task_env.validate_nonnegative(f"env.{key}", cfg[key])
     task_env.validate_weights(cfg.reward)
 
 
