@@ -47,3 +47,28 @@ def test_a_crashed_process_stops_its_peers_and_is_named():
     hung = [subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"]) for _ in range(2)]
     assert global_mesh.wait_all(hung, limit_s=1.0) == (0, "stopped after --limit-s 1")
     assert all(p.returncode is not None for p in hung)
+
+
+def test_a_segfaulted_process_is_named_by_its_fatal_error_and_innermost_frames(tmp_path):
+    """A process killed by a signal with the fault handler on: the record names the error and the
+    innermost frames (package paths from the package on), not the module list after them."""
+    crash = "import ctypes, faulthandler; faulthandler.enable(); ctypes.string_at(0)"
+    with open(tmp_path / "log.0", "w") as log:
+        code = subprocess.run([sys.executable, "-c", crash], stdout=log, stderr=subprocess.STDOUT, check=False)
+    assert code.returncode != 0
+    line = global_mesh.last_line(tmp_path, 0)
+    assert line.startswith("Fatal Python error: Segmentation fault; File ")
+    assert "site-packages" not in line and "Extension modules" not in line
+    (tmp_path / "log.1").write_text(
+        "Fatal Python error: Segmentation fault\n\nCurrent thread 0x1 (most recent call first):\n"
+        '  File "/opt/env/lib/python3.12/site-packages/jax/_src/compiler.py", line 395 in backend_compile_and_load\n'
+        '  File "/opt/env/lib/python3.12/site-packages/jax/_src/profiler.py", line 420 in wrapper\n\n'
+        "Extension modules: numpy, jaxlib (total: 2)\n"
+    )
+    assert global_mesh.last_line(tmp_path, 1) == (
+        'Fatal Python error: Segmentation fault; File "jax/_src/compiler.py", line 395 in backend_compile_and_load; '
+        'File "jax/_src/profiler.py", line 420 in wrapper'
+    )
+    (tmp_path / "log.2").write_text("step 1\nerror: out of memory\n")
+    assert global_mesh.last_line(tmp_path, 2) == "error: out of memory"
+    assert global_mesh.last_line(tmp_path, 3) == "(no output)"
