@@ -11,6 +11,7 @@ from bumps_jax import config
 from bumps_jax.algo import bc, evaluate, ppo
 from bumps_jax.pipeline import sections
 from bumps_jax.pipeline.stages import baseline
+from bumps_jax.report import curves
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 from bumps_jax.tasks.kick import start as kick_start
@@ -108,7 +109,9 @@ def test_one_seed_has_a_curve_without_a_band(tmp_path):
     curve = baseline.bootstrap_curve(np.array([[1.0, 2.0, 3.0]]), 10)
     assert curve == {"env_steps": [10, 20, 30], "mean": [1.0, 2.0, 3.0], "ci_low": None, "ci_high": None}
     payload = {"seeds": 1, "device": "cpu", "preset": "tiny", "curve": curve, "error_curve": curve}
-    assert baseline.plot_curve(payload, tmp_path / "curve.png").exists()
+    assert curves.baseline(payload, tmp_path / "curve.png").exists()
+    assert curves.arm_label({"learning_rate": 1e-6}, 1) == "lr 1e-06, 1 seed"
+    assert curves.arm_label({"learning_rate": 1e-6}, 6) == "lr 1e-06, mean over 6 seeds"
 
 
 # Centre candidates whose steps buy whole compiled chunks of the baseline (else a clear error).

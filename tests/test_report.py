@@ -495,7 +495,6 @@ def _at_budget_run(tmp_path, per_seed: int, task: str = "kick"):
                   task=task, command=command)  # fmt: skip
     run = tmp_path / "run"
     runio.write_json(run / "baseline" / "baseline.json", record)
-    (run / "baseline" / "baseline_curve.png").write_bytes(b"\x89PNG fake")
     return run, root
 
 
@@ -519,6 +518,8 @@ def test_a_baseline_at_bumps_budget_is_published_beside_the_presets_own(tmp_path
     assert "meta-test error 0.30 m" in text and "and the one at BUMPS' budget's 0.30 m on the same" in text
     assert f"| baseline | multi-task PPO at BUMPS' experts' budget, per seed (1 seed) | {nearest:,} |" in text
     assert "![docs/baseline_at_budget_curve.png](baseline_at_budget_curve.png)" in text
+    drawn = (root / "docs" / "baseline_at_budget_curve.png").read_bytes()  # drawn from the record
+    assert drawn.startswith(b"\x89PNG") and len(drawn) > 10_000
     readme = (root / "README.md").read_text()
     assert f"| multi-task PPO baseline at BUMPS' budget (1 seed, {nearest / 1e6:.2f} M steps each), error |" in readme
     best = min(r["error_mean_m"] for r in json.loads((ROOT / "results" / "table2.json").read_text())["rows"].values())

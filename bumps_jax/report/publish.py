@@ -8,7 +8,7 @@ import shutil
 from pathlib import Path
 
 from bumps_jax import config, runio
-from bumps_jax.report import budgets
+from bumps_jax.report import budgets, curves
 from bumps_jax.report import readme as readme_table
 from bumps_jax.report import summary as report
 from bumps_jax.report import task_report as report_task
@@ -167,15 +167,11 @@ def publish_at_budget(run_dir: str | Path, task: str, root: str | Path = ".") ->
         )
     folder = root / "results" / tasks.folder(task)
     paper_rows = tasks.get(task).report.paper_rows
-    # Its training curve beside the record (the kick's figures sit in docs/, on the results page).
-    figures = root / "docs" if paper_rows else folder
-    copies = {"baseline.json": folder / budgets.AT_BUDGET, "baseline_curve.png": figures / AT_BUDGET_CURVE}
-    written = []
-    for name, dest in copies.items():
-        if (run_dir / "baseline" / name).exists():
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(run_dir / "baseline" / name, dest)
-            written.append(dest)
+    dest = folder / budgets.AT_BUDGET
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(run_dir / "baseline" / "baseline.json", dest)
+    # Its training curve, drawn from the record (the kick's figures sit in docs/, on the results page).
+    written = [dest, curves.baseline(record, (root / "docs" if paper_rows else folder) / AT_BUDGET_CURVE)]
     if (root / report.COMMITTED["experts"]).exists():  # the results page's env steps per arm span every task
         written.append(report.write_committed(root))
     if paper_rows and (root / "README.md").exists():

@@ -30,6 +30,7 @@ from bumps_jax.algo import evaluate, ppo, rollout, sharding
 from bumps_jax.envs import base as task_env
 from bumps_jax.pipeline import expert_programs
 from bumps_jax.pipeline.stages import experts as experts_stage
+from bumps_jax.report import curves as figures
 from bumps_jax.tasks import registry as tasks
 
 OUTPUT = "baseline.json"
@@ -198,7 +199,7 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
     payload["per_task_error_m"] = per_task[1 : 1 + b.seeds].mean(axis=0).tolist()
     runio.write_json(stage_dir / OUTPUT, payload)
     resumable.keep_newest_checkpoint(stage_dir / "checkpoints")  # the trained policies; the rest is history
-    plot_curve(payload, stage_dir / "baseline_curve.png", tuple(b.ppo.sample_task_range), unit)
+    figures.baseline(payload, stage_dir / "baseline_curve.png")
     for arm in arms:
         say(f"baseline, lr {arm['learning_rate']:g}: error {arm['error_mean_m']:.2f} {unit}, "
             f"accuracy {arm['accuracy_mean']:.2f}, {env_steps:,} env steps per seed")  # fmt: skip
@@ -246,33 +247,3 @@ def arms_of(rates, seeds: int, run_rows: list[dict], curves: dict, steps_per_upd
             "per_seed": per_seed,
         })  # fmt: skip
     return arms
-
-
-def plot_curve(payload: dict, path: Path, target_range=(7.0, 18.0), unit: str = "m") -> Path:
-    """Per arm, over env steps: the training episodes' mean final error (`unit`) and mean return,
-    each with its 95 % bootstrap band over seeds; `target_range`: the training targets' U[low, high]."""
-    import matplotlib  # noqa: PLC0415
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
-
-    arms = payload.get("arms") or [payload]
-    fig, (ax_err, ax_ret) = plt.subplots(1, 2, figsize=(10, 4))
-    for arm in arms:
-        label = f"lr {arm['learning_rate']:g}" if "learning_rate" in arm else "baseline"
-        for ax, key in ((ax_err, "error_curve"), (ax_ret, "curve")):
-            c = arm.get(key)
-            if c is None:
-                continue
-            (line,) = ax.plot(c["env_steps"], c["mean"], label=f"{label}, mean over {payload['seeds']} seeds")
-            if c["ci_low"] is not None:
-                ax.fill_between(c["env_steps"], c["ci_low"], c["ci_high"], alpha=0.25, color=line.get_color())
-    ax_err.set_ylabel(f"training episodes' mean final error ({unit})")
-    ax_ret.set_ylabel("mean episode return")
-    for ax in (ax_err, ax_ret):
-        ax.set_xlabel("environment steps (per seed)")
-        ax.legend(fontsize=8, title="95% bootstrap bands", title_fontsize=8)
-    lo, hi = target_range
-    targets = f"targets U[{lo:g}, {hi:g}] {unit}"
-    fig.suptitle(f"Multi-task PPO, {targets} ({payload['device']}, {payload['preset']})", fontsize=9)
-    return runio.save_figure(fig, path)
