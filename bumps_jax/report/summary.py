@@ -278,7 +278,10 @@ def baseline_lines(
         lines += at_budget_lines(at_budget, experts)
     if filtered:
         name, best = min(filtered.items(), key=lambda kv: kv[1]["error_mean_m"])
-        beside = f" and the one at BUMPS' budget's {at_budget['error_mean_m']:.2f} m" if at_budget else ""
+        beside = ""
+        if at_budget:
+            steps, theirs = baseline["env_steps"], at_budget["error_mean_m"]
+            beside = f" ({steps:,} env steps a seed) and {theirs:.2f} m at BUMPS' budget"
         lines.append(
             f"Best BUMPS variant ({name}): {best['error_mean_m']:.2f} m against the baseline's "
             f"{baseline['error_mean_m']:.2f} m{beside} on the same meta-test tasks."
