@@ -9,7 +9,7 @@ stage it runs plus the env every stage builds its simulation from:
     preset    "tiny" (a CPU, minutes) | "paper" (the paper's budgets, a GPU)
     task      the contextual task every stage runs (`tasks.registry`; the kick by default)
     env       the task's physics, noise and reward
-    experts   one PPO expert per training context (`pipeline.sections.experts`)
+    experts   one PPO expert per training context (`schema.sections.experts`)
     meta      behaviour cloning into the contextual meta-policies, and their evaluation
     filter    policy filtering over sampled contexts (Table 2)
     baseline  the multi-task PPO baseline (the paper's Figure 1)
@@ -159,10 +159,24 @@ def coerce(key: str, value, kind: type, current, optional: bool = False):
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
-    """Every section's range checks; ValueError naming the first bad value."""
-    from bumps_jax.pipeline import validation  # noqa: PLC0415 (the checks import the algorithm modules)
+    """Every section's range checks, then the task's own (`Task.validate`: its env, its plug-ins'
+    sections, its capacities); ValueError naming the first bad value."""
+    from bumps_jax.schema import validation  # noqa: PLC0415 (the checks import the algorithm modules)
 
-    validation.validate(cfg)
+    task = tasks.get(cfg.task)
+    n_steps, task_range, unit = task.env_class.n_steps_of(cfg.env), tuple(cfg.env.task_range), task.unit
+    size = task.env_class.CONTEXT_SIZE  # numbers in one context
+    validation.experts(cfg.experts, task_range, n_steps, unit, size)
+    validation.meta(cfg.meta, task_range, unit, size)
+    validation.filtering(cfg.filter, task_range, unit, size)
+    validation.baseline(cfg.baseline, task_range, n_steps, unit, size)
+    if "heldout" in cfg:
+        validation.heldout(cfg.heldout, task_range)
+    if cfg.filter.net_seed >= cfg.meta.train.n_seeds:
+        raise ValueError(
+            f"filter.net_seed {cfg.filter.net_seed} names no network: meta.train.n_seeds is {cfg.meta.train.n_seeds}"
+        )
+    task.validate(cfg)
 
 
 # Keys that joined a stage's section after runs were made, with the value that changes nothing:

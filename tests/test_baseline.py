@@ -9,9 +9,9 @@ import pytest
 
 from bumps_jax import config
 from bumps_jax.algo import bc, evaluate, ppo
-from bumps_jax.pipeline import sections
 from bumps_jax.pipeline.stages import baseline
 from bumps_jax.report import curves
+from bumps_jax.schema import sections
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 from bumps_jax.tasks.kick import start as kick_start

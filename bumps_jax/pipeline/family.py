@@ -14,7 +14,6 @@ import numpy as np
 from bumps_jax import resumable, runio
 from bumps_jax.algo import evaluate, ppo, rollout
 from bumps_jax.envs import base as task_env
-from bumps_jax.pipeline import sections as stage_sections
 from bumps_jax.pipeline.expert_programs import (
     Compiled,
     chunked_loop,
@@ -24,6 +23,7 @@ from bumps_jax.pipeline.expert_programs import (
     task_expert_policy,
     task_rngs,
 )
+from bumps_jax.schema import sections as stage_sections
 
 
 def family_updates(cfg) -> tuple[int, int]:

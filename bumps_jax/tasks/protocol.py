@@ -113,7 +113,7 @@ class Task:
     env_class: type[ContextualEnv]
     stages: tuple[str, ...]  # the stages it runs, a subset of STAGE_ORDER in that order
     # Its config (its folder's `config` module): `sections()`, its tree but `preset` and `task`
-    # (`env` and a section per stage, `pipeline.sections`, at the `paper` preset's values, plus what
+    # (`env` and a section per stage, `schema.sections`, at the `paper` preset's values, plus what
     # its plug-ins read); `PRESETS`, preset name -> dotted overrides of them ("tiny": CPU size);
     # `validate(cfg)`, its own checks of a whole config, after the stages'; optional `DERIVED`,
     # (key, function of the tree) pairs recomputed after the preset and --set (`config.derive`)

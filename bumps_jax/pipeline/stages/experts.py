@@ -26,7 +26,6 @@ import numpy as np
 from bumps_jax import config, resumable, runio
 from bumps_jax.algo import evaluate, ppo, rollout
 from bumps_jax.envs import base as task_env
-from bumps_jax.pipeline import sections as stage_sections
 from bumps_jax.pipeline.expert_programs import (
     Compiled,
     ExpertParams,
@@ -52,6 +51,7 @@ from bumps_jax.pipeline.family import (
     train_rounds,
 )
 from bumps_jax.records import jsonable
+from bumps_jax.schema import sections as stage_sections
 from bumps_jax.tasks import registry as tasks
 
 OUTPUT = "experts.json"

@@ -1,4 +1,4 @@
-"""Ant-Goal's config: its env and stage sections (`pipeline.sections` with its goals and sizes),
+"""Ant-Goal's config: its env and stage sections (`schema.sections` with its goals and sizes),
 its presets and its checks.
 
 A context is a goal (x, y) m, so every list of contexts is a tuple of (x, y) pairs, and
@@ -20,8 +20,8 @@ import ml_collections
 import numpy as np
 
 from bumps_jax.algo import ppo_config
-from bumps_jax.pipeline import sections as stage_sections
-from bumps_jax.pipeline import validation
+from bumps_jax.schema import sections as stage_sections
+from bumps_jax.schema import validation
 from bumps_jax.tasks.ant_goal import env as ant_env
 
 # Training goals (m): the centre and three rings about it, a hexagonal pattern of about 1 m

@@ -1,4 +1,4 @@
-"""HalfCheetah-Vel's config: its env and stage sections (the stages' own, `pipeline.sections`,
+"""HalfCheetah-Vel's config: its env and stage sections (the stages' own, `schema.sections`,
 with its velocities and sizes), its presets and its checks."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import copy
 import ml_collections
 
 from bumps_jax.algo import ppo_config
-from bumps_jax.pipeline import sections as stage_sections
-from bumps_jax.pipeline import validation
+from bumps_jax.schema import sections as stage_sections
+from bumps_jax.schema import validation
 from bumps_jax.tasks.cheetah_vel import env as cheetah_env
 
 # Meta-training velocities (m/s): a grid of 0.25 m/s over PEARL's U[0, 3] range.

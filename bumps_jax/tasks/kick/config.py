@@ -27,9 +27,9 @@ import math
 import ml_collections
 import numpy as np
 
-from bumps_jax.pipeline import sections as stage_sections
-from bumps_jax.pipeline import validation
-from bumps_jax.pipeline.validation import positive_floats, positive_ints, targets
+from bumps_jax.schema import sections as stage_sections
+from bumps_jax.schema import validation
+from bumps_jax.schema.validation import positive_floats, positive_ints, targets
 from bumps_jax.tasks.kick import env as kick_env
 from bumps_jax.tasks.kick import keyframes as kick_model
 from bumps_jax.tasks.kick.targets import DEV_TARGETS, HELDOUT_TARGETS

@@ -1,4 +1,4 @@
-"""PointGoal's config: its env and stage sections (`pipeline.sections` with its goals and sizes),
+"""PointGoal's config: its env and stage sections (`schema.sections` with its goals and sizes),
 its presets and its checks.
 
 A context is a goal (x, y) m, so every list of contexts is a tuple of (x, y) pairs, and
@@ -13,7 +13,7 @@ import copy
 import ml_collections
 import numpy as np
 
-from bumps_jax.pipeline import sections as stage_sections
+from bumps_jax.schema import sections as stage_sections
 from bumps_jax.tasks.point_goal import env as point_env
 
 # Training goals (m): the 0.5 m grid's points on the unit disc (13 goals).

@@ -11,7 +11,7 @@ import ml_collections
 from ml_collections import FieldReference
 
 from bumps_jax.algo import ppo_config
-from bumps_jax.pipeline import validation
+from bumps_jax.schema import validation
 
 
 def experts(tasks) -> ml_collections.ConfigDict:

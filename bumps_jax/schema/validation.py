@@ -1,4 +1,4 @@
-"""Range checks of the whole config tree, run before anything compiles.
+"""Range checks of the stages' config sections, run before anything compiles (`config.validate` runs them all).
 
 Each raises ValueError naming the dotted key, the bad value and what is allowed.
 """
@@ -7,33 +7,11 @@ from __future__ import annotations
 
 import math
 
-import ml_collections
 import numpy as np
 
 from bumps_jax.algo import ppo_config
 
 SELECTIONS = ("fixed", "halving")  # filter.selection
-
-
-def validate(cfg: ml_collections.ConfigDict) -> None:
-    """Every section of a pipeline config (`config.make_config`): the stages' sections, then the
-    task's own checks (`Task.validate`: its env, its plug-ins' sections, its capacities)."""
-    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
-
-    task = tasks.get(cfg.task)
-    n_steps, task_range, unit = task.env_class.n_steps_of(cfg.env), tuple(cfg.env.task_range), task.unit
-    size = task.env_class.CONTEXT_SIZE  # numbers in one context
-    experts(cfg.experts, task_range, n_steps, unit, size)
-    meta(cfg.meta, task_range, unit, size)
-    filtering(cfg.filter, task_range, unit, size)
-    baseline(cfg.baseline, task_range, n_steps, unit, size)
-    if "heldout" in cfg:
-        heldout(cfg.heldout, task_range)
-    if cfg.filter.net_seed >= cfg.meta.train.n_seeds:
-        raise ValueError(
-            f"filter.net_seed {cfg.filter.net_seed} names no network: meta.train.n_seeds is {cfg.meta.train.n_seeds}"
-        )
-    task.validate(cfg)
 
 
 def positive_ints(node, prefix: str, keys) -> None:

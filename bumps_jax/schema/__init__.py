@@ -1,0 +1,1 @@
+"""The config tree's schema: the stages' sections at their defaults, and their checks."""
