@@ -13,7 +13,7 @@ two ways, each timed after a compiling call:
 Writes one record: each way's episodes per second (every process's work over the slowest
 process's time), whether both gave the same final metrics, or the line that stopped a way.
 
-    python experiments/global_mesh.py --processes 2 --out experiments/results/global_mesh_gpu.json
+    python experiments/global_mesh.py --processes 4 --out runs/global_mesh_4gpu.json
     JAX_PLATFORMS=cpu python experiments/global_mesh.py --processes 2 --preset tiny --episodes 16 --out runs/gm.json
 """
 
