@@ -350,7 +350,12 @@ def main(argv=None) -> None:
         sys.exit(f"error: {err}")
     args = build_parser(with_keys=any(a in ("-h", "--help") for a in argv)).parse_args(argv)
     from bumps_jax import resumable, runio  # noqa: PLC0415
+    from bumps_jax.tasks import registry  # noqa: PLC0415
 
+    try:
+        registry.check_task(args.task or registry.DEFAULT)
+    except ValueError as err:
+        sys.exit(f"error: --task: {err}")
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task)
     try:
         if args.processes != 1 and not args.distributed:

@@ -98,6 +98,15 @@ def test_stages_on_an_empty_directory_say_what_to_do(tmp_path):  # defect 6
         cli.main(["report", "--run-dir", str(tmp_path)])
     with pytest.raises(SystemExit, match="^error: .*filter/table2.json: no such file"):
         cli.main(["video", "--run-dir", str(tmp_path)])
+
+
+def test_report_on_a_folder_of_seed_runs_names_them(tmp_path):
+    """`reproduce --seeds` writes one run per seed under the run directory: report names them."""
+    for seed in (0, 1):
+        runio.write_json(tmp_path / f"seed{seed}" / "baseline" / "baseline.json", {"seeds": 1})
+    with pytest.raises(SystemExit, match=r"^error: .* holds one run per seed \(seed0, seed1\): report one of them, "
+                                         r"e\.g\. --run-dir .*seed0$"):  # fmt: skip
+        cli.main(["report", "--run-dir", str(tmp_path)])
     with pytest.raises(SystemExit, match="^error: run directory '/dev/null/run' is not writable"):
         cli.main(["train-experts", "--run-dir", "/dev/null/run"])
     with pytest.raises(SystemExit, match="^error: --episodes must be a positive integer, got -3"):
@@ -160,6 +169,14 @@ def test_a_run_directory_in_use_stops_a_stage_command_in_one_line(tmp_path, comm
         with pytest.raises(SystemExit, match=r"error: run directory .* is in use by another process"):
             cli.main([*command, "--preset", "tiny" if command[0] == "kick-prior" else "paper", "--run-dir",
                       str(tmp_path / "run")])  # fmt: skip
+
+
+@pytest.mark.parametrize("command", [["demo"], ["reproduce"], ["config"], ["train-experts", "--run-dir", "run"]])
+def test_an_unknown_task_is_one_line_before_any_work(tmp_path, monkeypatch, command):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit, match=r"^error: --task: unknown task 'nope'; choose one of \('kick', "):
+        cli.main([*command, "--task", "nope"])
+    assert not any(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("value", ["0", "-2"])

@@ -30,6 +30,10 @@ def report(cfg, run_dir: Path, args) -> None:
     if not run_dir.is_dir():
         raise ValueError(f"no run directory {str(run_dir)!r}: run a stage first (e.g. python -m bumps_jax demo)")
     if not report_mod.has_results(run_dir):
+        seeds = sorted(p.name for p in run_dir.glob("seed*") if report_mod.has_results(p))
+        if seeds:  # `reproduce --seeds`: one run directory per seed under it
+            raise ValueError(f"{run_dir} holds one run per seed ({', '.join(seeds)}): report one of them, "
+                             f"e.g. --run-dir {run_dir / seeds[0]}")  # fmt: skip
         raise ValueError(f"{run_dir} holds no stage results yet: run a stage first")
     path = publish_mod.write_report(run_dir)
     print(path.read_text())
