@@ -227,6 +227,20 @@ def command_config(args, section: str | None = None):
     return config.make_config(args.preset, overrides)
 
 
+def check_run_task(run_dir: Path, task: str) -> None:
+    """ValueError unless the run's records (where it has some) name `task`: a command given
+    another task's run directory is refused before it reads the run under the wrong config."""
+    from bumps_jax.report import task_report  # noqa: PLC0415
+
+    try:
+        found = task_report.written_task(run_dir) if run_dir.is_dir() else None
+    except ValueError:  # an unreadable record: the stage that reads it names it
+        return
+    if found is not None and found != task:
+        raise ValueError(f"{run_dir} holds a {found} run (its records say so), not {task}: add --task {found}, "
+                         "or give another --run-dir")  # fmt: skip
+
+
 def dispatch(args) -> None:
     """Run one parsed command; ValueError for every user mistake."""
     from bumps_jax import runio  # noqa: PLC0415
@@ -242,6 +256,8 @@ def dispatch(args) -> None:
             print(f"{key} = {json.dumps(value)}")
         return
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, cfg.task)
+    if args.command != "report":  # the report reads the run's task from its records
+        check_run_task(Path(run_dir), cfg.task)
     # One command at a time writes stages into a run directory; with --distributed every host runs
     # the same command into the same directory, by design.
     lock = contextlib.nullcontext() if args.distributed else runio.run_lock(run_dir)

@@ -270,3 +270,14 @@ def test_a_baseline_at_budget_is_published_alone_and_needs_its_record(tmp_path):
         cli.main(["publish", "--run-dir", str(tmp_path / "run"), "--baseline-at-budget", "--seed-runs", str(tmp_path)])
     with pytest.raises(SystemExit, match=r"^error: .*baseline.json: no such file \(a finished baseline"):
         cli.main(["publish", "--run-dir", str(tmp_path / "run"), "--baseline-at-budget"])
+
+
+@pytest.mark.parametrize("command", [["filter"], ["meta-train"], ["publish"], ["baseline", "--task", "point_goal"]])
+def test_another_tasks_run_directory_is_refused_in_one_line(tmp_path, command):
+    """A command given the run directory of another task than its --task (the kick by default)
+    says whose run it is before it reads anything under the wrong config."""
+    runio.write_json(tmp_path / "experts" / "experts.json", {"task": "cheetah_vel"})
+    refused = r"^error: .* holds a cheetah_vel run \(its records say so\), not (kick|point_goal): "
+    with pytest.raises(SystemExit, match=refused + "add --task cheetah_vel, or give another --run-dir$"):
+        cli.main([*command, "--run-dir", str(tmp_path)])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["experts"]  # nothing written

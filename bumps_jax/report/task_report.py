@@ -10,16 +10,24 @@ from bumps_jax.report import budgets, error_map, tables
 from bumps_jax.report.summary import EXTRAS, STAGES, load, pipeline_lines, preamble_lines, stages_table
 
 
-def run_task(run_dir: str | Path) -> str:
+def written_task(run_dir: str | Path) -> str | None:
     """The task a run's records name (`task`; records from before they named one are the default
-    task's, the only one there was): its stages', or a baseline's run alone."""
+    task's, the only one there was): its stages', or a baseline's run alone; None where none has
+    written its record yet."""
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
     for rel in (STAGES["experts"], STAGES["meta"], STAGES["filter"], EXTRAS["baseline"]):
         record = load(Path(run_dir), rel)
         if record:
             return record.get("task", tasks.DEFAULT)
-    return tasks.DEFAULT
+    return None
+
+
+def run_task(run_dir: str | Path) -> str:
+    """The task a run's records name (`written_task`), the default task where none has written yet."""
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
+
+    return written_task(run_dir) or tasks.DEFAULT
 
 
 def records(run_dir: Path) -> dict:
