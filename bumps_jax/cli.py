@@ -307,6 +307,8 @@ def run_seeds(seeds, stages, cfg, run_dir: Path, force: bool = False, lock=None)
     if repeated:
         raise ValueError(f"--seeds: {repeated[0]} given twice")
     configs = [config.seeded(cfg, s) for s in seeds]  # every seed's config checked before any work
+    for seed in seeds:  # and every seed's run directory holds this task's run, if any
+        check_run_task(run_dir / f"seed{seed}", cfg.task)
     runs = []
     for i, (seed, seeded) in enumerate(zip(seeds, configs, strict=True)):
         seed_dir = run_dir / f"seed{seed}"

@@ -281,3 +281,10 @@ def test_another_tasks_run_directory_is_refused_in_one_line(tmp_path, command):
     with pytest.raises(SystemExit, match=refused + "add --task cheetah_vel, or give another --run-dir$"):
         cli.main([*command, "--run-dir", str(tmp_path)])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["experts"]  # nothing written
+
+
+def test_another_tasks_seed_run_is_refused_before_any_seed_runs(tmp_path):
+    runio.write_json(tmp_path / "seed1" / "experts" / "experts.json", {"task": "cheetah_vel"})
+    with pytest.raises(SystemExit, match=r"^error: .*seed1 holds a cheetah_vel run .*: add --task cheetah_vel"):
+        cli.main(["reproduce", "--seeds", "0", "1", "--stages", "experts", "--run-dir", str(tmp_path)])
+    assert not (tmp_path / "seed0").exists()
