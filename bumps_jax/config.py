@@ -161,8 +161,10 @@ def coerce(key: str, value, kind: type, current, optional: bool = False):
 def validate(cfg: ml_collections.ConfigDict) -> None:
     """Every section's range checks, then the task's own (`Task.validate`: its env, its plug-ins'
     sections, its capacities); ValueError naming the first bad value."""
+    from bumps_jax.envs import base as task_env  # noqa: PLC0415
     from bumps_jax.schema import validation  # noqa: PLC0415 (the checks import the algorithm modules)
 
+    task_env.validate_task_range(cfg.env.task_range)  # every context is checked against it
     task = tasks.get(cfg.task)
     n_steps, task_range, unit = task.env_class.n_steps_of(cfg.env), tuple(cfg.env.task_range), task.unit
     size = task.env_class.CONTEXT_SIZE  # numbers in one context

@@ -142,3 +142,17 @@ def test_the_tiny_pipeline_filters_better_than_doing_nothing(tmp_path):
         for context, task in zip(table2["chosen_contexts"].get(name, []), table2["tasks"], strict=False):
             assert np.linalg.norm(np.subtract(context, task)) <= cfg.filter.width + 1e-6
     assert "BUMPS on point_goal" in (tmp_path / "report.md").read_text()
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "refused"),
+    [
+        ("experts.tasks", (0.5, 0.5), r"experts.tasks must be a list of contexts of 2 numbers each \(m\)"),
+        ("filter.tasks", (0.3, -0.2), r"filter.tasks must be a list of contexts of 2 numbers each \(m\)"),
+        ("experts.tasks", ((0.5, 0.5), (0.0, 0.5), (0.5, 0.5)), r"experts.tasks: \(0.5, 0.5\) m given twice"),
+    ],
+)
+def test_two_dimensional_contexts_are_a_list_of_pairs_each_once(key, value, refused):
+    """A flat list where (x, y) pairs belong, or one training goal given twice, is one line."""
+    with pytest.raises(ValueError, match=refused):
+        config.make_config("tiny", {"task": "point_goal", key: value})

@@ -101,12 +101,17 @@ def validate_episode(cfg: ml_collections.ConfigDict, int_keys=()) -> None:
     """`validate_physics`, then a finite `task_range` with low < high, `ctrl_dt` > 0 and the physics
     step (`validate_physics_dt`): ValueError naming the first bad value."""
     validate_physics(cfg, int_keys)
-    lo, hi = cfg.task_range
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-        raise ValueError(f"env.task_range must be finite with low < high, got {tuple(cfg.task_range)}")
+    validate_task_range(cfg.task_range)
     if not cfg.ctrl_dt > 0:
         raise ValueError(f"env.ctrl_dt must be > 0, got {cfg.ctrl_dt!r}")
     validate_physics_dt(cfg)
+
+
+def validate_task_range(task_range) -> None:
+    """ValueError unless `env.task_range` is (low, high), finite, low < high."""
+    ok = len(task_range) == 2 and all(isinstance(v, int | float) and math.isfinite(v) for v in task_range)
+    if not (ok and task_range[0] < task_range[1]):
+        raise ValueError(f"env.task_range must be finite with low < high, got {tuple(task_range)}")
 
 
 def validate_nonnegative(name: str, value, what: str = "number") -> None:

@@ -35,10 +35,24 @@ def targets(values, task_range, key: str, unit: str = "m", size: int = 1) -> Non
 
     if len(values) == 0:
         raise ValueError(f"{key} is empty: give at least one target ({unit})")
+    if size > 1 and np.ndim(values) != 2:
+        raise ValueError(f"{key} must be a list of contexts of {size} numbers each ({unit}), got {values!r}")
     try:
         task_env.check_targets(values, task_range, unit, size)
     except ValueError as err:
         raise ValueError(f"{key}: {err}") from None
+
+
+def distinct(values, key: str, unit: str, why: str) -> None:
+    """ValueError naming the first context of `key` given twice (`why`: what that breaks)."""
+    from bumps_jax.envs import base as task_env  # noqa: PLC0415
+
+    seen = set()
+    for value in values:
+        context = tuple(np.ravel(np.asarray(value, dtype=np.float64)).tolist())
+        if context in seen:
+            raise ValueError(f"{key}: {task_env.format_context(value)} {unit} given twice ({why})")
+        seen.add(context)
 
 
 def ppo_section(c, prefix: str, n_steps: int, task_range) -> None:
@@ -49,6 +63,7 @@ def ppo_section(c, prefix: str, n_steps: int, task_range) -> None:
 
 def experts(e, task_range, n_steps: int, unit: str = "m", size: int = 1) -> None:
     targets(e.tasks, task_range, "experts.tasks", unit, size)
+    distinct(e.tasks, "experts.tasks", unit, "one expert a context")
     positive_ints(e, "experts.", ("updates_per_chunk", "keep_checkpoints"))
     positive_ints(e.eval, "experts.eval.", ("repetitions",))
     ppo_section(e.ppo, "experts.ppo.", n_steps, task_range)
