@@ -52,7 +52,6 @@ def test_a_stage_reads_its_own_keys_without_their_section():
         ("filter", "nope=1", r"unknown config key 'filter.nope'"),
         ("kick-prior", "env.impl=torch", r"env.impl must be one of"),
         ("train-experts", "tune.scheme=family", r"unknown config key 'experts.tune.scheme'"),
-        ("train-experts", "tasks=[9.0,12.0,9.0]", r"experts.tasks: 9 m given twice \(one expert a context\)"),
         ("train-experts", "env.task_range=[18.0,7.0]", r"env.task_range must be finite with low < high, got"),
     ],
 )

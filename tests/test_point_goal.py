@@ -149,10 +149,9 @@ def test_the_tiny_pipeline_filters_better_than_doing_nothing(tmp_path):
     [
         ("experts.tasks", (0.5, 0.5), r"experts.tasks must be a list of contexts of 2 numbers each \(m\)"),
         ("filter.tasks", (0.3, -0.2), r"filter.tasks must be a list of contexts of 2 numbers each \(m\)"),
-        ("experts.tasks", ((0.5, 0.5), (0.0, 0.5), (0.5, 0.5)), r"experts.tasks: \(0.5, 0.5\) m given twice"),
     ],
 )
-def test_two_dimensional_contexts_are_a_list_of_pairs_each_once(key, value, refused):
-    """A flat list where (x, y) pairs belong, or one training goal given twice, is one line."""
+def test_two_dimensional_contexts_are_a_list_of_pairs(key, value, refused):
+    """A flat list where (x, y) pairs belong is one line, not read as one context."""
     with pytest.raises(ValueError, match=refused):
         config.make_config("tiny", {"task": "point_goal", key: value})

@@ -43,18 +43,6 @@ def targets(values, task_range, key: str, unit: str = "m", size: int = 1) -> Non
         raise ValueError(f"{key}: {err}") from None
 
 
-def distinct(values, key: str, unit: str, why: str) -> None:
-    """ValueError naming the first context of `key` given twice (`why`: what that breaks)."""
-    from bumps_jax.envs import base as task_env  # noqa: PLC0415
-
-    seen = set()
-    for value in values:
-        context = tuple(np.ravel(np.asarray(value, dtype=np.float64)).tolist())
-        if context in seen:
-            raise ValueError(f"{key}: {task_env.format_context(value)} {unit} given twice ({why})")
-        seen.add(context)
-
-
 def ppo_section(c, prefix: str, n_steps: int, task_range) -> None:
     ppo_config.validate_config(c, n_steps, prefix)
     if c.sample_task_range is not None:
@@ -63,7 +51,6 @@ def ppo_section(c, prefix: str, n_steps: int, task_range) -> None:
 
 def experts(e, task_range, n_steps: int, unit: str = "m", size: int = 1) -> None:
     targets(e.tasks, task_range, "experts.tasks", unit, size)
-    distinct(e.tasks, "experts.tasks", unit, "one expert a context")
     positive_ints(e, "experts.", ("updates_per_chunk", "keep_checkpoints"))
     positive_ints(e.eval, "experts.eval.", ("repetitions",))
     ppo_section(e.ppo, "experts.ppo.", n_steps, task_range)
