@@ -227,18 +227,31 @@ def command_config(args, section: str | None = None):
     return config.make_config(args.preset, overrides)
 
 
-def check_run_task(run_dir: Path, task: str) -> None:
-    """ValueError unless the run's records (where it has some) name `task`: a command given
-    another task's run directory is refused before it reads the run under the wrong config."""
+def check_run(run_dir: Path, cfg) -> None:
+    """ValueError unless the run's records (where it has some) name `cfg`'s task, and were made
+    under its env config or name its preset: a command given another task's run directory, or a
+    run of another preset without `--preset`, is refused before it reads the run."""
+    from bumps_jax import config, records  # noqa: PLC0415
     from bumps_jax.report import task_report  # noqa: PLC0415
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
     try:
-        found = task_report.written_task(run_dir) if run_dir.is_dir() else None
+        record = task_report.first_record(run_dir) if run_dir.is_dir() else None
     except ValueError:  # an unreadable record: the stage that reads it names it
         return
-    if found is not None and found != task:
-        raise ValueError(f"{run_dir} holds a {found} run (its records say so), not {task}: add --task {found}, "
+    if record is None:
+        return
+    found = record.get("task", tasks.DEFAULT)
+    if found != cfg.task:
+        raise ValueError(f"{run_dir} holds a {found} run (its records say so), not {cfg.task}: add --task {found}, "
                          "or give another --run-dir")  # fmt: skip
+    preset, env = record.get("preset"), record.get("env")
+    if preset in (None, cfg.preset) or env is None:
+        return
+    mine = records.env_key(config.resolved_env(cfg))
+    if records.differing_keys(records.env_key(tasks.resolved(cfg.task, env)), mine):
+        raise ValueError(f"{run_dir} holds a run of preset {preset!r} (its records say so), whose env this "
+                         f"command's preset {cfg.preset!r} does not share: add --preset {preset}")  # fmt: skip
 
 
 def dispatch(args) -> None:
@@ -257,7 +270,7 @@ def dispatch(args) -> None:
         return
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, cfg.task)
     if args.command != "report":  # the report reads the run's task from its records
-        check_run_task(Path(run_dir), cfg.task)
+        check_run(Path(run_dir), cfg)
     # One command at a time writes stages into a run directory; with --distributed every host runs
     # the same command into the same directory, by design.
     lock = contextlib.nullcontext() if args.distributed else runio.run_lock(run_dir)
@@ -307,8 +320,10 @@ def run_seeds(seeds, stages, cfg, run_dir: Path, force: bool = False, lock=None)
     if repeated:
         raise ValueError(f"--seeds: {repeated[0]} given twice")
     configs = [config.seeded(cfg, s) for s in seeds]  # every seed's config checked before any work
-    for seed in seeds:  # and every seed's run directory holds this task's run, if any
-        check_run_task(run_dir / f"seed{seed}", cfg.task)
+    for seed, seeded in zip(
+        seeds, configs, strict=True
+    ):  # and every seed's folder holds a run of this config's, if any
+        check_run(run_dir / f"seed{seed}", seeded)
     runs = []
     for i, (seed, seeded) in enumerate(zip(seeds, configs, strict=True)):
         seed_dir = run_dir / f"seed{seed}"
@@ -375,6 +390,9 @@ def main(argv=None) -> None:
     except ValueError as err:
         sys.exit(f"error: --task: {err}")
     run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task)
+    if args.distributed and args.processes != 1:
+        sys.exit(f"error: --processes {args.processes} starts its own processes; --distributed is for one that a "
+                 "launcher (srun) started: give one of the two")  # fmt: skip
     try:
         if args.processes != 1 and not args.distributed:
             from bumps_jax import launch  # noqa: PLC0415

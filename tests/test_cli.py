@@ -1,6 +1,7 @@
 """The command line: help, overrides, presets, and one clear line (never a traceback) for every user mistake."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -289,3 +290,31 @@ def test_another_tasks_seed_run_is_refused_before_any_seed_runs(tmp_path):
     with pytest.raises(SystemExit, match=r"^error: .*seed1 holds a cheetah_vel run .*: add --task cheetah_vel"):
         cli.main(["reproduce", "--seeds", "0", "1", "--stages", "experts", "--run-dir", str(tmp_path)])
     assert not (tmp_path / "seed0").exists()
+
+
+def test_a_run_of_another_preset_whose_env_differs_asks_for_its_preset(tmp_path):
+    """A paper run read with the default tiny preset, where their envs differ, names the preset to
+    add; where the envs agree, the command may read it with another preset's settings."""
+    paper = config.make_config("paper", {"task": "cheetah_vel"})
+    record = {"task": "cheetah_vel", "preset": "paper", "env": config.resolved_env(paper)}
+    runio.write_json(tmp_path / "experts" / "experts.json", record)
+    refused = r"^error: .* holds a run of preset 'paper' \(its records say so\), whose env this command's preset "
+    with pytest.raises(SystemExit, match=refused + r"'tiny' does not share: add --preset paper$"):
+        cli.main(["meta-train", "--task", "cheetah_vel", "--run-dir", str(tmp_path)])
+    tiny = config.make_config("tiny", {"task": "cheetah_vel"})
+    cli.check_run(tmp_path, paper)  # its own preset
+    runio.write_json(tmp_path / "experts" / "experts.json", {**record, "env": config.resolved_env(tiny)})
+    cli.check_run(tmp_path, tiny)  # another preset's record, made under this env: read as it is
+
+
+def test_processes_beside_distributed_and_a_missing_job_are_one_line(tmp_path):
+    with pytest.raises(SystemExit, match=r"^error: --processes 2 starts its own processes; --distributed is for one"):
+        cli.main(["reproduce", "--processes", "2", "--distributed", "--run-dir", str(tmp_path / "run")])
+    assert not (tmp_path / "run").exists()
+    job_keys = ("SLURM_", "JAX_COORDINATOR", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")  # none: no job to join
+    env = {k: v for k, v in os.environ.items() if not k.startswith(job_keys)}
+    cmd = [sys.executable, "-m", "bumps_jax", "demo", "--task", "point_goal", "--distributed", "--run-dir",
+           str(tmp_path / "run")]  # fmt: skip
+    done = subprocess.run(cmd, env={**env, "JAX_PLATFORMS": "cpu"}, capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0 and "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines()[-1].startswith("error: --distributed: no multi-process job found (")

@@ -169,7 +169,13 @@ def initialize_distributed() -> None:
     if count is not None and int(count) == 1:
         return  # a job of one process (a branch of `--processes` or `--seeds`): nothing to join
     if count is None or index is None:
-        jax.distributed.initialize()
+        try:
+            jax.distributed.initialize()
+        except ValueError as err:  # no launcher's environment to find the job in
+            raise ValueError(
+                f"--distributed: no multi-process job found ({err}): start each process under srun, or set "
+                "JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and JAX_PROCESS_ID; on one host use --processes N"
+            ) from None
     else:
         jax.distributed.initialize(num_processes=int(count), process_id=int(index))
 

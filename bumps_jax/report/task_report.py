@@ -10,17 +10,23 @@ from bumps_jax.report import budgets, error_map, tables
 from bumps_jax.report.summary import EXTRAS, STAGES, load, pipeline_lines, preamble_lines, stages_table
 
 
-def written_task(run_dir: str | Path) -> str | None:
-    """The task a run's records name (`task`; records from before they named one are the default
-    task's, the only one there was): its stages', or a baseline's run alone; None where none has
-    written its record yet."""
-    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
-
+def first_record(run_dir: str | Path) -> dict | None:
+    """The first stage record a run holds (experts, meta, filter, or a baseline's run alone), None
+    where none has written its record yet."""
     for rel in (STAGES["experts"], STAGES["meta"], STAGES["filter"], EXTRAS["baseline"]):
         record = load(Path(run_dir), rel)
         if record:
-            return record.get("task", tasks.DEFAULT)
+            return record
     return None
+
+
+def written_task(run_dir: str | Path) -> str | None:
+    """The task a run's records name (`task`; records from before they named one are the default
+    task's, the only one there was); None where no stage has written its record yet."""
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
+
+    record = first_record(run_dir)
+    return None if record is None else record.get("task", tasks.DEFAULT)
 
 
 def run_task(run_dir: str | Path) -> str:
