@@ -242,16 +242,20 @@ def check_run(run_dir: Path, cfg) -> None:
     if record is None:
         return
     found = record.get("task", tasks.DEFAULT)
-    if found != cfg.task:
-        raise ValueError(f"{run_dir} holds a {found} run (its records say so), not {cfg.task}: add --task {found}, "
-                         "or give another --run-dir")  # fmt: skip
-    preset, env = record.get("preset"), record.get("env")
-    if preset in (None, cfg.preset) or env is None:
+    try:
+        tasks.check_record_task(found, cfg.task, str(run_dir))
+    except ValueError as err:
+        raise ValueError(f"{err}: add --task {found}, or give another --run-dir") from None
+    preset = record.get("preset")
+    if preset in (None, cfg.preset) or record.get("env") is None:
         return
-    mine = records.env_key(config.resolved_env(cfg))
-    if records.differing_keys(records.env_key(tasks.resolved(cfg.task, env)), mine):
-        raise ValueError(f"{run_dir} holds a run of preset {preset!r} (its records say so), whose env this "
-                         f"command's preset {cfg.preset!r} does not share: add --preset {preset}")  # fmt: skip
+    try:
+        records.check_same_env(record["env"], config.resolved_env(cfg), f"{run_dir}'s records")
+    except ValueError:
+        raise ValueError(
+            f"{run_dir} holds a run of preset {preset!r} (its records say so), whose env this command's preset "
+            f"{cfg.preset!r} does not share: add --preset {preset}"
+        ) from None
 
 
 def dispatch(args) -> None:
@@ -320,9 +324,7 @@ def run_seeds(seeds, stages, cfg, run_dir: Path, force: bool = False, lock=None)
     if repeated:
         raise ValueError(f"--seeds: {repeated[0]} given twice")
     configs = [config.seeded(cfg, s) for s in seeds]  # every seed's config checked before any work
-    for seed, seeded in zip(
-        seeds, configs, strict=True
-    ):  # and every seed's folder holds a run of this config's, if any
+    for seed, seeded in zip(seeds, configs, strict=True):  # every seed's folder: a run of this config, if any
         check_run(run_dir / f"seed{seed}", seeded)
     runs = []
     for i, (seed, seeded) in enumerate(zip(seeds, configs, strict=True)):

@@ -108,7 +108,8 @@ def test_one_seed_has_a_curve_without_a_band(tmp_path):
     """One seed: the mean curve is that seed's, with no bootstrap band (None), and it plots."""
     curve = baseline.bootstrap_curve(np.array([[1.0, 2.0, 3.0]]), 10)
     assert curve == {"env_steps": [10, 20, 30], "mean": [1.0, 2.0, 3.0], "ci_low": None, "ci_high": None}
-    payload = {"seeds": 1, "device": "cpu", "preset": "tiny", "curve": curve, "error_curve": curve}
+    payload = {"seeds": 1, "device": "cpu", "preset": "tiny", "curve": curve, "error_curve": curve, "unit": "m",
+               "sample_task_range": [7.0, 18.0]}  # fmt: skip
     assert curves.baseline(payload, tmp_path / "curve.png").exists()
     assert curves.arm_label({"learning_rate": 1e-6}, 1) == "lr 1e-06, 1 seed"
     assert curves.arm_label({"learning_rate": 1e-6}, 6) == "lr 1e-06, mean over 6 seeds"

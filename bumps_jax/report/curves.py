@@ -11,14 +11,13 @@ from bumps_jax.report import budgets
 def baseline(payload: dict, path: Path) -> Path:
     """Per arm, over env steps: the training episodes' mean final error and mean return, with the
     95 % bootstrap band over seeds where there are several; the targets' range and unit are the
-    record's (the kick's U[7, 18] m where an older record does not say)."""
+    record's."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
-    unit = payload.get("unit", "m")
-    lo, hi = payload.get("sample_task_range", (7.0, 18.0))
+    unit, (lo, hi) = payload["unit"], payload["sample_task_range"]
     seeds = int(payload["seeds"])
     arms = payload.get("arms") or [payload]
     fig, (ax_err, ax_ret) = plt.subplots(1, 2, figsize=(10, 4))

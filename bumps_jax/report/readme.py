@@ -76,23 +76,21 @@ def readme_rows(root: str | Path = ".") -> list[tuple[str, str, str, str, str, t
         else:
             rows.append((f"{what}, the stages' own wall times", f"{sum(stages.values()) / 60:.1f} min ({each})",
                          "~14 CPU-hours per expert", physics_step(pl), COMMITTED["pipeline"], ()))  # fmt: skip
-    b = rec["baseline"]
-    if b:
-        start = b.get("start", {}).get("error_mean_all_m")
-        head = f"{start:.2f} m at its start -> " if start is not None else ""
-        seeds = budgets.seeds_phrase(b["seeds"])
-        rows.append((f"multi-task PPO baseline ({seeds}, {b['env_steps'] / 1e6:.2f} M steps each), error",
-                     f"{head}{b['error_mean_m']:.2f} m, accuracy {b['accuracy_mean']:.2f}", "reward collapsed",
-                     physics_step(b), COMMITTED["baseline"], ()))  # fmt: skip
-    at = load(root, AT_BUDGET)
-    if at:
-        start = at.get("start", {}).get("error_mean_all_m")
-        head = f"{start:.2f} m at its start -> " if start is not None else ""
-        what = f"({budgets.seeds_phrase(at['seeds'])}, {at['env_steps'] / 1e6:.2f} M steps each)"
-        rows.append((f"multi-task PPO baseline at BUMPS' budget {what}, error",
-                     f"{head}{at['error_mean_m']:.2f} m, accuracy {at['accuracy_mean']:.2f}", "-",
-                     physics_step(at), AT_BUDGET, ()))  # fmt: skip
+    baselines = (
+        (rec["baseline"], "multi-task PPO baseline", "reward collapsed", COMMITTED["baseline"]),
+        (load(root, AT_BUDGET), "multi-task PPO baseline at BUMPS' budget", "-", AT_BUDGET),
+    )
+    rows += [baseline_row(b, name, paper, path) for b, name, paper, path in baselines if b]
     return rows
+
+
+def baseline_row(b: dict, name: str, paper: str, path: str) -> tuple:
+    """README's row of one baseline record: its seeds and budget, its error from its start."""
+    start = b.get("start", {}).get("error_mean_all_m")
+    head = f"{start:.2f} m at its start -> " if start is not None else ""
+    what = f"{name} ({budgets.seeds_phrase(b['seeds'])}, {b['env_steps'] / 1e6:.2f} M steps each), error"
+    error = f"{head}{b['error_mean_m']:.2f} m, accuracy {b['accuracy_mean']:.2f}"
+    return (what, error, paper, physics_step(b), path, ())
 
 
 def seeds_cell(names: tuple[str, ...], seeds: dict) -> str:

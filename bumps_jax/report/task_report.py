@@ -20,20 +20,13 @@ def first_record(run_dir: str | Path) -> dict | None:
     return None
 
 
-def written_task(run_dir: str | Path) -> str | None:
-    """The task a run's records name (`task`; records from before they named one are the default
-    task's, the only one there was); None where no stage has written its record yet."""
-    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
-
-    record = first_record(run_dir)
-    return None if record is None else record.get("task", tasks.DEFAULT)
-
-
 def run_task(run_dir: str | Path) -> str:
-    """The task a run's records name (`written_task`), the default task where none has written yet."""
+    """The task a run's records name (`task`; records from before they named one are the default
+    task's, the only one there was), the default task where no stage has written its record yet."""
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
-    return written_task(run_dir) or tasks.DEFAULT
+    record = first_record(run_dir) or {}
+    return record.get("task", tasks.DEFAULT)
 
 
 def records(run_dir: Path) -> dict:
