@@ -94,6 +94,8 @@ def _sealed_manager_class():
 
             def restore(self, step, *args, **kwargs):
                 verify_checksums(Path(self.directory) / str(step))
+                if isinstance(kwargs.get("args"), ocp.args.StandardRestore):
+                    kwargs["args"] = ocp.args.StandardRestore(restorable(kwargs["args"].item))
                 return super().restore(step, *args, **kwargs)
 
         _SEALED_MANAGER = SealedCheckpointManager
@@ -119,6 +121,18 @@ def savable(tree):
     return jax.tree.map(host, tree, is_leaf=lambda x: isinstance(x, UInt64))
 
 
+def restorable(abstract):
+    """The shapes `abstract` as orbax restores them in any number of processes: as they are in
+    one; in several, each array on this process's own device. A checkpoint keeps the devices it
+    was saved from, and one saved by a single process names a device that only process 0 holds,
+    so without this the other processes of a `--processes N` resume could not read it."""
+    jax = sys.modules.get("jax")
+    if jax is None or jax.process_count() == 1 or abstract is None:
+        return abstract
+    own = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=own), abstract)
+
+
 def keep_newest_checkpoint(directory: Path) -> None:
     """Remove every numbered checkpoint under `directory` but the newest (a finished stage's), once
     the newest is verified (`verify_checksums`): CorruptError naming its bad file, and nothing removed."""
@@ -133,7 +147,8 @@ def restore_latest(manager, restore_args, say=print):
     """(step, restored) from the newest checkpoint that reads, or (None, None) if there is none.
 
     A corrupt checkpoint (a truncated file, a broken _METADATA) is reported with its path and
-    moved aside to `<step>.corrupt`, and the next older one is tried.
+    moved aside to `<step>.corrupt`, and the next older one is tried. One whose checksums match
+    but that does not restore (another version's state) is kept: ValueError naming it.
     """
     step, restored = restore_latest_common({"": manager}, {"": restore_args}, say)
     return step, None if restored is None else restored[""]
@@ -153,11 +168,19 @@ def restore_latest_common(managers: dict, restore_args: dict, say=print) -> tupl
         step, restored = max(common), {}
         for name, manager in managers.items():
             path = Path(manager.directory) / str(step)
+            sealed = False
             try:
-                if not verify_checksums(path):
+                sealed = verify_checksums(path)
+                if not sealed:
                     say(f"checkpoint {shown(path)} carries no checksums (an older version's): restoring it unverified")
                 restored[name] = manager.restore(step, args=restore_args[name])
             except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
+                if sealed:  # its bytes are as written: the reader is at fault, and the work is kept
+                    raise ValueError(
+                        f"checkpoint {shown(path)} is intact (its checksums match) but does not restore here "
+                        f"({error_reason(err)}): resume with the version of bumps_jax that wrote it, or remove "
+                        f"{shown(path.parent)} to train afresh"
+                    ) from None
                 if isinstance(err, CorruptError):
                     say(f"corrupt checkpoint {shown(path)}: {err}; set aside as {step}.corrupt, trying an older one")
                 else:

@@ -66,6 +66,16 @@ def test_a_flipped_checkpoint_falls_back_to_an_older_one_saying_which_file(tmp_p
     assert (tmp_path / "checkpoints" / "3.corrupt").is_dir()
 
 
+def test_an_intact_checkpoint_that_does_not_restore_is_kept_and_named(tmp_path):
+    # Another version's state (here: a vector of 32 where 64 were saved): its bytes are as written,
+    # so it is not set aside as corrupt (nor the older ones after it), and training does not restart.
+    resumable.train_in_chunks(tmp_path, counting_loop(), 3, keep=3, say=Said())
+    other = counting_loop()._replace(abstract={"w": jnp.zeros(32), "n": jnp.array(0)})
+    with pytest.raises(ValueError, match=r"checkpoints/3 is intact \(its checksums match\) but does not restore"):
+        resumable.train_in_chunks(tmp_path, other, 5, keep=3, say=Said())
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["1", "2", "3"]
+
+
 def test_a_truncated_checkpoint_names_its_reason_not_a_repr(tmp_path):
     said = Said()
     resumable.train_in_chunks(tmp_path, counting_loop(), 2, keep=3, say=said)

@@ -179,6 +179,55 @@ print(jax.process_count(), jax.process_index(), sharding.gather({"i": np.array([
 """
 
 
+CHECKPOINT = """
+import json, os, sys
+from pathlib import Path
+import jax, jax.numpy as jnp, numpy as np
+import orbax.checkpoint as ocp
+from brax.training.types import UInt64
+from bumps_jax import resumable
+from bumps_jax.algo import sharding
+if "JAX_NUM_PROCESSES" in os.environ:
+    sharding.initialize_distributed()
+state = {"w": jnp.arange(12.0).reshape(3, 4), "count": UInt64(hi=1, lo=7)}
+manager = resumable.checkpoint_manager(Path(sys.argv[2]), keep=2)
+if sys.argv[1] == "save":
+    manager.save(3, args=ocp.args.StandardSave(state))
+else:
+    said = []
+    step, got = resumable.restore_latest(manager, ocp.args.StandardRestore(jax.eval_shape(lambda: state)), said.append)
+    print(json.dumps({"step": step, "w": np.asarray(got["w"]).tolist(), "count": int(got["count"]), "said": said}))
+manager.close()
+"""
+
+
+def _checkpoint_job(mode: str, directory: Path, processes: int) -> list[str]:
+    """CHECKPOINT run as `processes` processes of one job: each one's last line."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
+    port = launch.free_port()
+    procs = [
+        subprocess.Popen([sys.executable, "-c", CHECKPOINT, mode, str(directory)],
+                         env={**launch.process_env(i, processes, port, None), **env} if processes > 1 else env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        for i in range(processes)
+    ]  # fmt: skip
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert all(p.returncode == 0 for p in procs), "".join(err[-2000:] for _, err in outs)
+    return [out.strip().splitlines()[-1] if out.strip() else "" for out, _ in outs]
+
+
+@pytest.mark.parametrize(("saved_by", "resumed_by"), [(1, 2), (2, 1)])
+def test_a_checkpoint_resumes_whatever_the_process_count(tmp_path, saved_by, resumed_by):
+    # A run stopped on one GPU and resumed with --processes 4 (or the other way): a one-process
+    # checkpoint names a device only process 0 holds; the others read it all the same, and
+    # nothing valid is set aside as corrupt.
+    _checkpoint_job("save", tmp_path, saved_by)
+    restored = [json.loads(line) for line in _checkpoint_job("restore", tmp_path, resumed_by)]
+    for got in restored:
+        assert got == {"step": 3, "w": np.arange(12.0).reshape(3, 4).tolist(), "count": (1 << 32) + 7, "said": []}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["3"]
+
+
 def test_processes_started_as_srun_starts_them_join_one_job():
     # srun sets these for every task; JAX's SLURM detection derives the coordinator (the first
     # node, a port from the job id) from them: no JAX_* variable is set.
