@@ -50,7 +50,8 @@ def arm(run_dir: Path) -> dict:
         path = published if published.is_file() else run_dir / r["run"] / "experts" / "experts.json"
         experts = runio.read_json(path, "a run's experts record")
         processes.append(experts.get("n_processes", 1))
-    return {"dir": run_dir.name, "seeds": [r["seeds"] for r in seeds["runs"]], "processes": processes, "record": seeds}
+    return {"dir": run_dir.name, "seeds": [r["seeds"] for r in seeds["runs"]], "processes": processes, "record": seeds,
+            "device": seeds.get("device")}  # fmt: skip
 
 
 def compare(one: dict, other: dict) -> dict:
@@ -75,6 +76,13 @@ def compare(one: dict, other: dict) -> dict:
     return rows
 
 
+def procs(a: dict) -> str:
+    """An arm's processes a run in words: "1 process", "4 processes", "4, 2, 2 processes"."""
+    counts = sorted(set(a["processes"]))
+    shown = str(counts[0]) if len(counts) == 1 else ", ".join(map(str, a["processes"]))
+    return f"{shown} process" + ("" if shown == "1" else "es")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("one", type=Path, help="the arm of one process per run (a folder with seeds.json)")
@@ -89,8 +97,8 @@ def main() -> None:
     first = one["record"]
     record = {
         "arms": {
-            "one": {"dir": one["dir"], "processes_per_run": one["processes"]},
-            "other": {"dir": other["dir"], "processes_per_run": other["processes"]},
+            name: {"dir": a["dir"], "processes_per_run": a["processes"], "device": a["device"]}
+            for name, a in (("one", one), ("other", other))
         },
         "seeds": one["seeds"],
         "rows": rows,
@@ -102,8 +110,8 @@ def main() -> None:
     runio.write_json(args.out, record)
     unit = first.get("unit", "")
     for name, r in rows.items():
-        print(f"{name}: {r['one']['mean']:.3f} ({one['processes'][0]} process(es) a run) vs {r['other']['mean']:.3f} "
-              f"({other['processes'][0]}) {unit}; per seed {np.round(r['difference_per_seed'], 3).tolist()}, "
+        print(f"{name}: {r['one']['mean']:.3f} ({procs(one)} a run) vs {r['other']['mean']:.3f} "
+              f"({procs(other)}) {unit}; per seed {np.round(r['difference_per_seed'], 3).tolist()}, "
               f"p = {r['permutation_p']:.2f}")  # fmt: skip
     print(f"wrote {args.out}")
 

@@ -54,3 +54,10 @@ def test_a_published_task_is_an_arm():
 
     published = device_count.arm(Path(__file__).resolve().parent.parent / "results" / "cheetah_vel")
     assert published["processes"] == [1, 1, 1] and len(published["seeds"]) == 3
+    assert published["device"] == "NVIDIA H200"  # each arm's own: the kick's published seeds ran on H100s
+    assert device_count.procs(published) == "1 process"
+
+
+def test_an_arm_of_mixed_processes_names_each_run():
+    assert device_count.procs({"processes": [4, 2, 2]}) == "4, 2, 2 processes"
+    assert device_count.procs({"processes": [4, 4, 4]}) == "4 processes"
