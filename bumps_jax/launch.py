@@ -5,7 +5,8 @@ joins them through a coordinator on this host) and, on a GPU host, sees one GPU 
 (`CUDA_VISIBLE_DEVICES`: MJX's Warp physics runs on one GPU per process). Every batched program
 is then split over the processes (`sharding.over_batch`) and the first process writes the run's
 files. The first process prints to this terminal; the others to run_dir/processes/process<i>.log.
-If one process fails, the others are stopped and the failure is named with its log's last line.
+If one process fails, the others are stopped and the failure is named with its log's last line;
+none outlives the launcher (on Linux, even a kill -9 of it ends them).
 Several hosts (SLURM) start the processes themselves: `srun ... --distributed`.
 A pipeline may run in phases whose branches run side by side as jobs of their own
 (`runner.schedule`: the baseline beside the meta-policies).
@@ -95,6 +96,25 @@ def with_options(argv: list[str], options: dict) -> list[str]:
     return out
 
 
+def dies_with_this_process():
+    """A `preexec_fn` for a child process that ends when this process ends, however it ends (kill
+    -9 too; Linux): the launcher holds the run directory's lock, and processes outliving it would
+    go on writing into a directory that a rerun then takes as free. Elsewhere None (no such
+    call): there the processes outlive a killed launcher."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes  # noqa: PLC0415 (here, not in the child: nothing is imported between fork and exec)
+
+    prctl, parent = ctypes.CDLL(None, use_errno=True).prctl, os.getpid()
+
+    def preexec():
+        prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+        if os.getppid() != parent:  # the launcher died before the call above
+            os._exit(1)
+
+    return preexec
+
+
 def last_line(path: Path) -> str:
     lines = [x for x in path.read_text(errors="replace").splitlines() if x.strip()] if path.is_file() else []
     return lines[-1] if lines else "(no output)"
@@ -150,6 +170,7 @@ def run_phase(argv: list[str], branches, gpus, logs: Path, poll_s: float) -> int
     """The branches of one phase side by side: branch b's processes take the next GPUs in turn
     (process slots 0, 1, ... over every branch); slot 0 prints here, the others to their logs."""
     procs, files, names, slot = [], [], [], 0
+    tied = dies_with_this_process()  # no process outlives the launcher
     for options, count in branches:
         port = free_port()
         command = [sys.executable, "-m", "bumps_jax", *with_options(without_processes(argv), options), "--distributed"]
@@ -158,7 +179,7 @@ def run_phase(argv: list[str], branches, gpus, logs: Path, poll_s: float) -> int
             out = None if slot == 0 else (logs / f"process{slot}.log").open("a")  # one log over the phases
             env = process_env(i, count, port, None if gpus is None else gpus[first:])
             files.append(out)
-            procs.append(subprocess.Popen(command, env=env, stdout=out, stderr=out))
+            procs.append(subprocess.Popen(command, env=env, stdout=out, stderr=out, preexec_fn=tied))
             names.append((slot, branch_name(options), i, count))
             slot += 1
         if len(branches) > 1:

@@ -219,6 +219,45 @@ def test_the_launcher_runs_each_process_as_one_of_the_job_and_names_a_failure(tm
     assert "process 1 of 2 exited with 3: process 1 says no" in err
 
 
+LAUNCHER = """
+import subprocess, sys, time
+from bumps_jax import launch
+tied = launch.dies_with_this_process()
+child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"], preexec_fn=tied)
+print(child.pid, flush=True)
+time.sleep(120)
+"""
+
+
+def _running(pid: int) -> bool:
+    """Whether process `pid` runs (a zombie, ended but not yet reaped, does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a child's death signal is Linux's")
+def test_no_process_outlives_a_killed_launcher():
+    # kill -9 on the launcher (its lock on the run directory goes with it): its processes end too,
+    # not write on into a directory that a rerun takes as free
+    import signal
+    import time
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "PYTHONPATH": root}
+    launcher = subprocess.Popen([sys.executable, "-c", LAUNCHER], stdout=subprocess.PIPE, text=True, env=env)
+    child = int(launcher.stdout.readline())
+    assert _running(child)
+    os.kill(launcher.pid, signal.SIGKILL)
+    launcher.wait()
+    deadline = time.monotonic() + 20
+    while _running(child) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _running(child), "the child ran on after its launcher was killed"
+
+
 def test_the_launcher_runs_a_phase_s_branches_side_by_side_as_jobs_of_their_own(tmp_path, monkeypatch, capfd):
     from bumps_jax import launch
 
