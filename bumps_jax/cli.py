@@ -401,7 +401,11 @@ def main(argv=None) -> None:
 
             n = launch.check_count(args.processes)
             with runio.run_lock(run_dir):
-                sys.exit(launched(args, argv, n, run_dir))
+                try:
+                    code = launched(args, argv, n, run_dir)
+                except KeyboardInterrupt:  # its processes stopped, and the first said so here
+                    code = 130
+            sys.exit(code)
         if args.distributed:
             from bumps_jax.algo import sharding  # noqa: PLC0415
 
