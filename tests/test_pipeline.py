@@ -69,6 +69,24 @@ def test_a_rerun_with_other_overrides_is_refused_naming_the_keys(tmp_path, stage
     assert json.loads((tmp_path / "experts" / "out.json").read_text())["seed"] == 7
 
 
+def test_a_damaged_record_of_a_finished_stage_says_how_to_redo_it(tmp_path, stages):
+    log, _ = stages
+    pipeline.run_stage("experts", cfg(), tmp_path)
+    record = tmp_path / "experts" / "out.json"
+    record.write_text('{"broken')
+    with pytest.raises(ValueError) as err:
+        pipeline.run_stage("experts", cfg(), tmp_path)
+    message = str(err.value)
+    assert "\n" not in message and str(record) in message and "cannot read it as JSON" in message
+    assert "remove it and rerun to redo the stage" in message and log == ["experts"]
+    record.unlink()  # as told: the stage is redone
+    pipeline.run_stage("experts", cfg(), tmp_path)
+    assert log == ["experts", "experts"] and json.loads(record.read_text())["stage"] == "experts"
+    record.write_text("[]")  # the report names the file too
+    with pytest.raises(ValueError, match=f"{record}: expected a JSON object"):
+        report.load(tmp_path, "experts/out.json")
+
+
 def test_a_manifest_of_another_schema_is_refused_in_one_line(tmp_path, stages):
     """A stage manifest without `MANIFEST_SCHEMA` (an older version's, whose config tree had other
     keys) or with another is refused whole, in one line naming the file, the schemas and the two

@@ -96,7 +96,11 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
     runio.sync(f"stage {name} planned")  # every process has read the directory before any removes from it
     if status == "done":
         say(f"== {name}: up to date ({output})")
-        return runio.read_json(output)
+        try:
+            return runio.read_json(output)
+        except ValueError as err:
+            raise ValueError(f"{err}. The {name} stage's record is damaged: remove it and rerun to redo the stage "
+                             "from what it kept (the stages made from it then need --force)") from None  # fmt: skip
     if status == "forced":
         for later in DOWNSTREAM[name]:
             if (run_dir / later).exists():

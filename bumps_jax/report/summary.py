@@ -6,10 +6,10 @@ Reads whatever stages a run directory holds (prior/, experts/, meta/, filter/) a
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from bumps_jax import records as env_records
+from bumps_jax import runio
 from bumps_jax.report import budgets, tables
 
 STAGES = {
@@ -41,7 +41,7 @@ AT_BUDGET = f"results/{budgets.AT_BUDGET}"  # the kick's baseline at BUMPS' budg
 def load(run_dir: Path, rel: str) -> dict | None:
     """The JSON record at run_dir / rel, or None where there is none."""
     path = run_dir / rel
-    return json.loads(path.read_text()) if path.exists() else None
+    return runio.read_json(path, "a stage's record") if path.exists() else None
 
 
 def has_results(run_dir: Path) -> bool:
