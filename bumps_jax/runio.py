@@ -174,23 +174,23 @@ def write_json(path: str | os.PathLike, payload: dict) -> Path:
     return write_text(path, json.dumps(json_safe(payload), indent=2, allow_nan=False) + "\n")
 
 
-def update_json(path: str | os.PathLike, change) -> dict:
+def update_json(path: str | os.PathLike, change, what: str = "") -> dict:
     """Read `path` (an empty dict where it does not exist), apply `change(record)` (in place) and
     write it back, holding a lock on path + ".lock" throughout: commands that run side by side
     in one run directory (`launch`) each update their own keys of one record without losing the
-    other's. Returns the record as written."""
+    other's. Returns the record as written. what: the record in words, for `read_json`'s error."""
     import fcntl  # noqa: PLC0415 (POSIX only, as `run_lock`)
 
     path = Path(path)
     if not writes_here():  # the writer's copy is the record; the others compute the same values
-        record = read_json(path) if path.exists() else {}
+        record = read_json(path, what) if path.exists() else {}
         change(record)
         return record
     path.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(path.with_name(path.name + ".lock"), os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)
-        record = read_json(path) if path.exists() else {}
+        record = read_json(path, what) if path.exists() else {}
         change(record)
         write_json(path, record)
         return record

@@ -87,6 +87,24 @@ def test_a_damaged_record_of_a_finished_stage_says_how_to_redo_it(tmp_path, stag
         report.load(tmp_path, "experts/out.json")
 
 
+def test_a_damaged_manifest_or_timing_record_is_named_as_such(tmp_path, stages):
+    log, _ = stages
+    pipeline.run_pipeline(["experts"], cfg(), tmp_path)
+    manifest, timing = tmp_path / "experts" / pipeline.MANIFEST, tmp_path / "pipeline.json"
+    kept = manifest.read_text()
+    manifest.write_text("xx")  # damaged, not "a run of another version"
+    with pytest.raises(pipeline.StaleRunError, match=rf"{manifest} is damaged \(not JSON\): use a new --run-dir"):
+        pipeline.run_stage("experts", cfg(), tmp_path)
+    manifest.write_text(kept)
+    timing.write_text("xx")
+    with pytest.raises(ValueError, match=f"{timing}: cannot read it as JSON .*remove it to count them afresh"):
+        pipeline.run_pipeline(["experts"], cfg(), tmp_path)
+    timing.unlink()  # as told; every stage is done, so the new record times none
+    pipeline.run_pipeline(["experts"], cfg(), tmp_path)
+    assert log == ["experts"] and json.loads(timing.read_text()) == {"stages_s": {}}
+    assert report.pipeline_lines(json.loads(timing.read_text())) == []  # no timing line, and no KeyError
+
+
 def test_a_manifest_of_another_schema_is_refused_in_one_line(tmp_path, stages):
     """A stage manifest without `MANIFEST_SCHEMA` (an older version's, whose config tree had other
     keys) or with another is refused whole, in one line naming the file, the schemas and the two

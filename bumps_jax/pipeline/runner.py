@@ -153,7 +153,8 @@ def run_pipeline(stages, cfg, run_dir: Path, force: bool = False, say=print) -> 
             except ValueError:
                 pass  # an input that an earlier stage of this call writes
     timing_path = run_dir / "pipeline.json"
-    timing = runio.update_json(timing_path, lambda t: count_killed_call(run_dir, t, stages, say))
+    timing = runio.update_json(timing_path, lambda t: count_killed_call(run_dir, t, stages, say),
+                               "the run's wall times, damaged: remove it to count them afresh")  # fmt: skip
     counted = False
     t_call = time.perf_counter()
     for name in stages:
@@ -312,18 +313,19 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, finished:
             return "new"
     else:
         try:
-            have = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError):
-            have = {}
+            have, made = json.loads(path.read_text()), None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            have, made = {}, "is damaged (not JSON)"
         schema = have.get("schema") if isinstance(have, dict) else None
         if schema != MANIFEST_SCHEMA:
             if force:
                 runio.remove(stage_dir)
                 return "forced"
-            made = "no schema" if schema is None else f"schema {schema!r}"
+            made = made or ("has no schema" if schema is None else f"has schema {schema!r}") + (
+                f", this version writes schema {MANIFEST_SCHEMA} (a run of another version)"
+            )
             raise StaleRunError(
-                f"{path} has {made}, this version writes schema {MANIFEST_SCHEMA} (a run of another "
-                "version): use a new --run-dir, or --force to recompute this stage and every stage after it"
+                f"{path} {made}: use a new --run-dir, or --force to recompute this stage and every stage after it"
             )
         diff = env_records.differing_keys(
             {"config": config.without_removed(have.get("config", {})), "inputs": _hashes(have.get("inputs", {}))},

@@ -192,9 +192,10 @@ def pipeline_lines(pipeline: dict | None, own_s: dict[str, float] | None = None)
     """The pipeline record's line; `own_s` (name -> a stage's own wall time, kept with its
     checkpoints) shows up a record that missed calls killed before they could write it. Only the
     stages the record counts are compared: a stage run by its own command is not the pipeline's."""
-    if not pipeline:
+    stages = (pipeline or {}).get("stages_s", (pipeline or {}).get("stages", {}))  # "stages": before the contract
+    if not stages:  # none timed (a pipeline.json made afresh after every stage had finished)
         return []
-    stages = pipeline.get("stages_s", pipeline.get("stages", {}))  # "stages" in records before the contract's name
+    wall_s = pipeline.get("wall_s", sum(stages.values()))
     stages_total_s = sum((own_s or {}).get(name, 0.0) for name in stages)
     parts = ", ".join(f"{k} {v:.0f} s" for k, v in stages.items())
     calls = pipeline.get("calls")  # absent in records older than the count
@@ -205,18 +206,18 @@ def pipeline_lines(pipeline: dict | None, own_s: dict[str, float] | None = None)
     if killed:
         how += f"; {killed} of them killed, each counted up to its stage's last write"
     launches = pipeline.get("launches")
-    total = f"**{pipeline['wall_s'] / 60:.1f} min** in all"
+    total = f"**{wall_s / 60:.1f} min** in all"
     if launches:  # several jobs per launched call, some side by side: the launches say the wall time
         how = "one call" if len(launches) == 1 else f"resumed across {len(launches)} calls"
         how += "; stages side by side add up to more than the wall time below"
-        total = f"{pipeline['wall_s'] / 60:.1f} min of stages, added up"
+        total = f"{wall_s / 60:.1f} min of stages, added up"
     lines = [
         f"The pipeline (`demo` or `reproduce`): {total} ({parts}; "
         f"on {pipeline.get('device', 'the device above')}, {how}).",
         *([f"Note: {pipeline['note']}"] if pipeline.get("note") else []),
     ]
     lines += launch_lines(launches)
-    if stages_total_s and pipeline["wall_s"] < 0.99 * stages_total_s:
+    if stages_total_s and wall_s < 0.99 * stages_total_s:
         lines.append(
             f"This record is short of the stages' own {stages_total_s / 60:.1f} min: calls that were killed "
             "before they could write it are missing. The stages' times above are counted to their checkpoints."
