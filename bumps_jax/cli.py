@@ -258,16 +258,25 @@ def check_run(run_dir: Path, cfg) -> None:
         ) from None
 
 
+def checked_config(args, run_dir=None):
+    """The command's config once its preset, its --set values and (where it writes a run) its run
+    directory are checked: ValueError naming the first mistake, before any work or process starts."""
+    known = (PIPELINES[args.command][1],) if args.command in PIPELINES else ("tiny", "paper")
+    if args.preset not in known:
+        raise ValueError(f"--preset {args.preset!r}: {args.command} takes {' or '.join(map(repr, known))}")
+    cfg = command_config(args, STAGE_COMMANDS.get(args.command, (None,))[0])
+    if run_dir is not None and args.command not in ("config", "report"):  # the report reads the task from the run
+        check_run(Path(run_dir), cfg)
+    return cfg
+
+
 def dispatch(args) -> None:
     """Run one parsed command; ValueError for every user mistake."""
     from bumps_jax import runio  # noqa: PLC0415
     from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
 
-    known = (PIPELINES[args.command][1],) if args.command in PIPELINES else ("tiny", "paper")
-    if args.preset not in known:
-        raise ValueError(f"--preset {args.preset!r}: {args.command} takes {' or '.join(map(repr, known))}")
     section = STAGE_COMMANDS.get(args.command, (None,))[0]
-    cfg = command_config(args, section)
+    cfg = checked_config(args)
     if args.command == "config":
         for key, value in flat_keys(cfg.to_dict()).items():
             print(f"{key} = {json.dumps(value)}")
@@ -400,6 +409,7 @@ def main(argv=None) -> None:
             from bumps_jax import launch  # noqa: PLC0415
 
             n = launch.check_count(args.processes)
+            checked_config(args, run_dir)  # the processes' first checks, made once here
             with runio.run_lock(run_dir):
                 try:
                     code = launched(args, argv, n, run_dir)

@@ -181,6 +181,22 @@ def test_an_unknown_task_is_one_line_before_any_work(tmp_path, monkeypatch, comm
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["reproduce", "--task", "point_goal", "--preset", "tiny"], "--preset 'tiny': reproduce takes 'paper'"),
+        (["demo", "--task", "point_goal", "--set", "experts.ppo.num_envs=0"], "num_envs must be a positive integer"),
+    ],
+)
+def test_a_launch_checks_its_command_before_starting_processes(tmp_path, monkeypatch, argv, message):
+    from bumps_jax import launch
+
+    monkeypatch.setattr(launch, "run", lambda *a, **k: pytest.fail("processes started"))
+    with pytest.raises(SystemExit, match=message):
+        cli.main([*argv, "--run-dir", str(tmp_path / "run"), "--processes", "2"])
+    assert not (tmp_path / "run").exists()
+
+
 @pytest.mark.parametrize("value", ["0", "-2"])
 def test_a_bad_process_count_is_one_line_before_any_work(tmp_path, capsys, value):
     with pytest.raises(SystemExit, match=f"--processes must be an integer >= 1, got {value}"):
