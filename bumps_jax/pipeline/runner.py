@@ -321,9 +321,9 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, finished:
             if force:
                 runio.remove(stage_dir)
                 return "forced"
-            made = made or ("has no schema" if schema is None else f"has schema {schema!r}") + (
-                f", this version writes schema {MANIFEST_SCHEMA} (a run of another version)"
-            )
+            if made is None:
+                made = "has no schema" if schema is None else f"has schema {schema!r}"
+                made += f", this version writes schema {MANIFEST_SCHEMA} (a run of another version)"
             raise StaleRunError(
                 f"{path} {made}: use a new --run-dir, or --force to recompute this stage and every stage after it"
             )

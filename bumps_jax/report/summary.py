@@ -192,7 +192,8 @@ def pipeline_lines(pipeline: dict | None, own_s: dict[str, float] | None = None)
     """The pipeline record's line; `own_s` (name -> a stage's own wall time, kept with its
     checkpoints) shows up a record that missed calls killed before they could write it. Only the
     stages the record counts are compared: a stage run by its own command is not the pipeline's."""
-    stages = (pipeline or {}).get("stages_s", (pipeline or {}).get("stages", {}))  # "stages": before the contract
+    pipeline = pipeline or {}
+    stages = pipeline.get("stages_s", pipeline.get("stages", {}))  # "stages" in records before the contract's name
     if not stages:  # none timed (a pipeline.json made afresh after every stage had finished)
         return []
     wall_s = pipeline.get("wall_s", sum(stages.values()))
