@@ -349,6 +349,33 @@ def test_the_gl_backend_is_chosen_only_for_rendering_commands(monkeypatch, argv,
     assert os.environ["MUJOCO_GL"] == "glfw"
 
 
+def test_many_kicks_show_their_progress_with_an_eta(capsys):
+    from bumps_jax.tasks.kick import commands
+
+    assert commands.kicks_progress(16) is None  # the default: one call, no lines
+    progress = commands.kicks_progress(1000)
+    for done in range(32, 1000, 32):
+        progress(done, 1000)
+    progress(1000, 1000)
+    lines = capsys.readouterr().out.splitlines()
+    # a line once a tenth (100 kicks) more is done, calls of 32 kicks apart, and one at the end
+    assert [int(line.split()[1].split("/")[0]) for line in lines] == [128, 256, 384, 512, 640, 768, 896, 1000]
+    assert "compile included" in lines[0] and all("ETA" in line for line in lines[1:])
+
+
+def test_many_kicks_are_listed_up_to_a_limit_and_summed_up_whole():
+    import types
+
+    shipped = types.SimpleNamespace(manifest=runio.read_json(policies.ASSET_DIR / policies.MANIFEST))
+    n = policies.SHOWN_KICKS + 8
+    distance = np.linspace(11.0, 13.0, n)
+    kicks = policies.Kicks(12.0, np.array([12.0]), np.array([0.1]), distance, np.abs(distance - 12.0), np.ones(n, bool))
+    lines = policies.describe(shipped, "meta_4x256", 12.0, kicks)
+    listed = next(line for line in lines if line.startswith("each kick (m): "))
+    assert len(listed.split(": ")[1].split(" ... ")[0].split()) == policies.SHOWN_KICKS
+    assert listed.endswith(f" ... ({n} in all)") and any(f"{n} noisy kicks: resting distance 12.00" in x for x in lines)
+
+
 def test_kick_blocks_do_not_depend_on_the_number_of_kicks():
     manifest = runio.read_json(policies.ASSET_DIR / policies.MANIFEST)
     pools = {policies.kick_env_config(manifest, None, n).warp_contacts for n in (1, 2, 16, 64)}

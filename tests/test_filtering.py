@@ -289,3 +289,15 @@ def test_rows_carry_the_mean_return_where_the_env_keeps_one():
     del metrics["return"]
     assert "return_mean" not in evaluate.table_row(evaluate.summarise_tasks(metrics))
     assert "return_mean" not in filtering.table2_row(metrics, 4, np.zeros(2), 10)
+
+
+def test_blocked_episodes_report_their_progress_call_by_call():
+    def grid(params, contexts, targets, keys):  # a stand-in program: an episode "lands" at its context
+        return {"distance": np.asarray(contexts)[None, :, None]}
+
+    contexts = np.arange(10.0)
+    keys = filtering.stage_keys(filtering.noise_keys(0)[1], 1, 10)
+    calls = []
+    m = filtering.run_blocked(grid, None, contexts, contexts, keys, 2, multiple=2, progress=lambda *a: calls.append(a))
+    assert calls == [(4, 10), (8, 10), (10, 10)]  # blocks of 2 x 2 devices, the last one padded
+    np.testing.assert_array_equal(m["distance"], contexts)

@@ -604,8 +604,8 @@ def test_kick_filters_a_context_and_reports_the_resting_distances(stage_run, hel
         cli.main(["kick", "--target", "12.3", "--kicks", "16", "--selection-reps", "2", "--policies", str(directory)])
     printed = capsys.readouterr().out
     assert len(calls) == 1
-    (got_shipped, net, target, n_kicks, got_cfg, reps, seed), kwargs, out = calls[0]
-    assert (net, target, n_kicks, reps, seed, kwargs) == ("meta_4x256", 12.3, 16, 2, 0, {})
+    (got_shipped, net, target, n_kicks, got_cfg, reps, seed, progress), kwargs, out = calls[0]
+    assert (net, target, n_kicks, reps, seed, progress, kwargs) == ("meta_4x256", 12.3, 16, 2, 0, None, {})
     assert got_shipped.manifest == shipped.manifest and kick_env.resolved(got_cfg) == kick_env.resolved(env_cfg)
     assert out.context in (11.5, 12.3) and list(out.candidates) == [11.5, 12.3]
     assert out.distance.shape == (16,) and np.all(np.isfinite(out.distance))

@@ -256,7 +256,7 @@ def table2_row(metrics: dict, n_contexts: int, best_score, rollouts: int) -> dic
 # -- rollouts -------------------------------------------------------------------------------------
 
 
-def run_blocked(grid, params, contexts, targets, keys, block: int | None, multiple: int = 1) -> dict:
+def run_blocked(grid, params, contexts, targets, keys, block: int | None, multiple: int = 1, progress=None) -> dict:
     """Episodes of one policy (a `rollout.grid_fn` program, params a stack of P = 1) for flat
     contexts (B,), targets (B,), keys (B,): metrics of (B,). Vector contexts and targets: (B, K).
 
@@ -264,6 +264,7 @@ def run_blocked(grid, params, contexts, targets, keys, block: int | None, multip
     devices a sharded grid splits over); else calls of exactly `block` x `multiple` episodes,
     `block` per device (the last call padded by repeating its first episode), so one compiled
     program serves any B and each device's share stays the same whatever their number.
+    progress: called (episodes done, B) after each call, if given.
     """
     n = len(contexts)
     size = -(-n // multiple) * multiple if block is None else int(block) * multiple
@@ -275,6 +276,8 @@ def run_blocked(grid, params, contexts, targets, keys, block: int | None, multip
             params, jnp.asarray(contexts[idx], jnp.float32), jnp.asarray(targets[idx], jnp.float32), keys[idx][:, None]
         )
         out.append({k: np.asarray(v)[0, :, 0] for k, v in m.items()})
+        if progress is not None:
+            progress(min(start + size, n), n)
     return {k: np.concatenate([o[k] for o in out])[:n] for k in out[0]}
 
 
@@ -337,10 +340,13 @@ def _halving_policy(grid, params, contexts, tasks, width, key, task_range, block
     return Selection(contexts, first[achieved], first["valid"], out.scores, out.chosen, out.best_score, out.rollouts)
 
 
-def evaluate_chosen(grid, params, chosen_contexts, tasks, repetitions, key, block=None, multiple: int = 1) -> dict:
-    """Fresh noisy episodes of each task's chosen context (T,) (vectors: (T, K)): metrics of (T, repetitions)."""
+def evaluate_chosen(
+    grid, params, chosen_contexts, tasks, repetitions, key, block=None, multiple: int = 1, progress=None
+) -> dict:
+    """Fresh noisy episodes of each task's chosen context (T,) (vectors: (T, K)): metrics of (T,
+    repetitions). progress: as `run_blocked`'s."""
     tasks = np.asarray(tasks, np.float64)
     T, R = len(tasks), int(repetitions)
     flat_ctx, flat_tasks = np.repeat(np.asarray(chosen_contexts), R, axis=0), np.repeat(tasks, R, axis=0)
-    m = run_blocked(grid, params, flat_ctx, flat_tasks, stage_keys(key, T, R), block, multiple)
+    m = run_blocked(grid, params, flat_ctx, flat_tasks, stage_keys(key, T, R), block, multiple, progress)
     return {k: v.reshape(T, R, *v.shape[1:]) for k, v in m.items()}

@@ -103,7 +103,8 @@ def kick(cfg, run_dir: Path, args) -> None:
         runio.check_writable(Path(args.gif).parent)
         render.check_gl()  # before the kicks, not after them
     shipped = policies.load(directory, env_cfg)
-    out = policies.filtered_kicks(shipped, args.net, target, args.kicks, env_cfg, args.selection_reps, args.seed)
+    out = policies.filtered_kicks(shipped, args.net, target, args.kicks, env_cfg, args.selection_reps, args.seed,
+                                  kicks_progress(args.kicks))  # fmt: skip
     for line in policies.describe(shipped, args.net, target, out, time.perf_counter() - t0):
         print(line)
     if args.gif:
@@ -118,6 +119,24 @@ def kick(cfg, run_dir: Path, args) -> None:
         path = render.kick_gif(args.gif, env, apply_fn, shipped.nets[args.net], [out.context], [target],
                                keys=out.keys[shown : shown + 1])  # fmt: skip
         print(f"wrote {path}: kick {shown + 1} of the {len(out.distance)} above ({out.distance[shown]:.2f} m)")
+
+
+def kicks_progress(n_kicks: int, lines: int = 10):
+    """`filtered_kicks`' progress: a line with an ETA about every 1/`lines` of the kicks, where they
+    take more than `lines` calls (none for the default 16)."""
+    from bumps_jax import resumable  # noqa: PLC0415
+    from bumps_jax.tasks.kick import policies  # noqa: PLC0415
+
+    if n_kicks <= lines * policies.KICK_BLOCK:
+        return None
+    clock, shown = resumable.Clock(n_kicks), [0]
+
+    def progress(done: int, total: int) -> None:
+        if done - shown[0] >= total / lines or done == total:
+            shown[0] = done
+            print(f"kicks {done}/{total}  {clock.tick(done)}", flush=True)
+
+    return progress
 
 
 def picture_arguments(p) -> None:

@@ -208,10 +208,12 @@ class Kicks(NamedTuple):
 
 
 def filtered_kicks(
-    shipped: Shipped, net: str, target: float, n_kicks: int, env_cfg, selection_repetitions: int = 4, seed: int = 0
-) -> Kicks:
+    shipped: Shipped, net: str, target: float, n_kicks: int, env_cfg, selection_repetitions: int = 4, seed: int = 0,
+    progress=None,
+) -> Kicks:  # fmt: skip
     """Filter a context for `target` (m) as the run did (its grid and width; `selection_repetitions`
-    noisy kicks per candidate), then `n_kicks` fresh noisy kicks at the chosen context."""
+    noisy kicks per candidate), then `n_kicks` fresh noisy kicks at the chosen context (`progress`:
+    called (kicks done, n_kicks) after each call of them)."""
     from bumps_jax.algo import bc, sharding  # noqa: PLC0415
     from bumps_jax.pipeline import programs as meta_programs  # noqa: PLC0415
 
@@ -234,9 +236,13 @@ def filtered_kicks(
         **filtering.scoring(meta_programs.stage_env(env_cfg, "kick")),
     )  # fmt: skip
     context = float(sel.contexts[sel.chosen[0]])
-    m = filtering.evaluate_chosen(program, params, [context], targets, n_kicks, eval_key, block, sharding.ways(mesh))
+    m = filtering.evaluate_chosen(program, params, [context], targets, n_kicks, eval_key, block, sharding.ways(mesh),
+                                  progress)  # fmt: skip
     keys = filtering.stage_keys(eval_key, 1, n_kicks)  # evaluate_chosen's keys, kick by kick
     return Kicks(context, sel.contexts, sel.scores[0], m["distance"][0], m["final_error"][0], m["valid"][0] > 0, keys)
+
+
+SHOWN_KICKS = 32  # the resting distances `kick` lists one by one; more are summed up above them
 
 
 def describe(shipped: Shipped, net: str, target: float, kicks: Kicks, wall_s: float | None = None) -> list[str]:
@@ -251,7 +257,9 @@ def describe(shipped: Shipped, net: str, target: float, kicks: Kicks, wall_s: fl
         f"{len(kicks.distance)} noisy kicks: resting distance {kicks.distance.mean():.2f} +- "
         f"{kicks.distance.std():.2f} m, error {kicks.final_error.mean():.2f} +- {kicks.final_error.std():.2f} m, "
         f"valid {kicks.valid.mean():.2f}",
-        "each kick (m): " + " ".join(f"{d:.2f}" for d in kicks.distance),
+        "each kick (m): "
+        + " ".join(f"{d:.2f}" for d in kicks.distance[:SHOWN_KICKS])
+        + (f" ... ({len(kicks.distance)} in all)" if len(kicks.distance) > SHOWN_KICKS else ""),
     ]
     if wall_s is not None:
         lines.append(f"{wall_s:.1f} s, compiling included")
