@@ -423,8 +423,10 @@ def main(argv=None) -> None:
         dispatch(args)
     except ValueError as err:  # bad config values, missing or stale inputs: one clear line
         leave(args, f"error: {err}")
-    except (KeyboardInterrupt, resumable.Interrupted):  # the checkpoints are the state
-        leave(
+    except (KeyboardInterrupt, resumable.Interrupted):
+        if args.command not in (*STAGE_COMMANDS, *PIPELINES):  # no stage ran: no checkpoint to resume from
+            leave(args, f"interrupted: {args.command} stopped before it finished (run it again to do it whole)")
+        leave(  # the checkpoints are the state
             args,
             f"interrupted: rerun the same command to resume {run_dir} from what it saved (the stage in flight's "
             "last chunk or search generation; the stages before it are done)",

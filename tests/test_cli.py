@@ -131,6 +131,18 @@ def test_an_interrupted_stage_says_how_to_resume(tmp_path, monkeypatch):
         cli.main(["filter", "--run-dir", str(tmp_path)])
 
 
+def test_an_interrupted_command_of_no_stage_promises_no_resume(monkeypatch):
+    # Ctrl-C on `kick` said "rerun the same command to resume runs/tiny from what it saved"
+    from bumps_jax.tasks.kick import policies
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(policies, "load", interrupted)
+    with pytest.raises(SystemExit, match=r"^interrupted: kick stopped before it finished \(run it again"):
+        cli.main(["kick", "--target", "12"])
+
+
 def test_records_are_strict_json(tmp_path):  # defect 11
     path = runio.write_json(tmp_path / "r.json", {"error_mean_m": float("nan"), "rows": [float("inf"), 1.0]})
     assert json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"not JSON: {c}")) == {
