@@ -276,14 +276,12 @@ def dispatch(args) -> None:
     from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
 
     section = STAGE_COMMANDS.get(args.command, (None,))[0]
-    cfg = checked_config(args)
+    run_dir = args.run_dir or default_run_dir(args.command, args.preset, args.task)
+    cfg = checked_config(args, run_dir)
     if args.command == "config":
         for key, value in flat_keys(cfg.to_dict()).items():
             print(f"{key} = {json.dumps(value)}")
         return
-    run_dir = args.run_dir or default_run_dir(args.command, args.preset, cfg.task)
-    if args.command != "report":  # the report reads the run's task from its records
-        check_run(Path(run_dir), cfg)
     # One command at a time writes stages into a run directory; with --distributed every host runs
     # the same command into the same directory, by design.
     lock = contextlib.nullcontext() if args.distributed else runio.run_lock(run_dir)
@@ -424,13 +422,11 @@ def main(argv=None) -> None:
     except ValueError as err:  # bad config values, missing or stale inputs: one clear line
         leave(args, f"error: {err}")
     except (KeyboardInterrupt, resumable.Interrupted):
-        if args.command not in (*STAGE_COMMANDS, *PIPELINES):  # no stage ran: no checkpoint to resume from
+        if args.command in (*STAGE_COMMANDS, *PIPELINES):  # the checkpoints are the state
+            leave(args, f"interrupted: rerun the same command to resume {run_dir} from what it saved (the stage in "
+                  "flight's last chunk or search generation; the stages before it are done)")  # fmt: skip
+        else:  # no stage ran: no checkpoint to resume from
             leave(args, f"interrupted: {args.command} stopped before it finished (run it again to do it whole)")
-        leave(  # the checkpoints are the state
-            args,
-            f"interrupted: rerun the same command to resume {run_dir} from what it saved (the stage in flight's "
-            "last chunk or search generation; the stages before it are done)",
-        )
     except Exception:
         if not args.distributed:
             raise

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from bumps_jax.runio import (
+    CHECKSUMS,
     CorruptError,
     append_csv,
     error_reason,
@@ -168,14 +169,13 @@ def restore_latest_common(managers: dict, restore_args: dict, say=print) -> tupl
         step, restored = max(common), {}
         for name, manager in managers.items():
             path = Path(manager.directory) / str(step)
-            sealed = False
+            sealed = (path / CHECKSUMS).is_file()
             try:
-                sealed = verify_checksums(path)
                 if not sealed:
                     say(f"checkpoint {shown(path)} carries no checksums (an older version's): restoring it unverified")
-                restored[name] = manager.restore(step, args=restore_args[name])
+                restored[name] = manager.restore(step, args=restore_args[name])  # (verifies its checksums first)
             except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
-                if sealed:  # its bytes are as written: the reader is at fault, and the work is kept
+                if sealed and not isinstance(err, CorruptError):  # its bytes are as written: the reader is at fault
                     raise ValueError(
                         f"checkpoint {shown(path)} is intact (its checksums match) but does not restore here "
                         f"({error_reason(err)}): resume with the version of bumps_jax that wrote it, or remove "

@@ -41,7 +41,7 @@ AT_BUDGET = f"results/{budgets.AT_BUDGET}"  # the kick's baseline at BUMPS' budg
 def load(run_dir: Path, rel: str) -> dict | None:
     """The JSON record at run_dir / rel, or None where there is none."""
     path = run_dir / rel
-    return runio.read_json(path, "a stage's record") if path.exists() else None
+    return runio.read_json(path, "a record of the run") if path.exists() else None
 
 
 def has_results(run_dir: Path) -> bool:
