@@ -25,6 +25,8 @@ import sys
 import traceback
 from pathlib import Path
 
+PACKAGE = Path(__file__).resolve().parent  # bumps_jax/: where its own errors are raised
+
 # command -> (stage or pipeline, the presets it knows, help)
 STAGE_COMMANDS = {
     "kick-prior": ("prior", "optimise the keyframe kick prior (CMA-ES), evaluate and sweep it"),
@@ -419,8 +421,10 @@ def main(argv=None) -> None:
 
             sharding.initialize_distributed()
         dispatch(args)
-    except ValueError as err:  # bad config values, missing or stale inputs: one clear line
-        leave(args, f"error: {err}")
+    except ValueError as err:
+        if not raised_here(err):  # a library's error deep inside a stage: its traceback says where
+            raise_or_leave(args)
+        leave(args, f"error: {err}")  # bad config values, missing or stale inputs: one clear line
     except (KeyboardInterrupt, resumable.Interrupted):
         if args.command in (*STAGE_COMMANDS, *PIPELINES):  # the checkpoints are the state
             leave(args, f"interrupted: rerun the same command to resume {run_dir} from what it saved (the stage in "
@@ -428,10 +432,25 @@ def main(argv=None) -> None:
         else:  # no stage ran: no checkpoint to resume from
             leave(args, f"interrupted: {args.command} stopped before it finished (run it again to do it whole)")
     except Exception:
-        if not args.distributed:
-            raise
-        traceback.print_exc()
-        leave(args, "error: the traceback above")
+        raise_or_leave(args)
+
+
+def raised_here(err: BaseException) -> bool:
+    """Whether `err` was raised by this package's own code (a message for the user: a bad value,
+    a missing input), not by a library it called (JAX's, NumPy's: a fault whose traceback matters)."""
+    tb = err.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb is not None and Path(tb.tb_frame.f_code.co_filename).resolve().is_relative_to(PACKAGE)
+
+
+def raise_or_leave(args) -> None:
+    """The exception being handled, with its traceback: raised again in a single process; in a
+    process of a multi-process job printed, then `leave`."""
+    if not args.distributed:
+        raise
+    traceback.print_exc()
+    leave(args, "error: the traceback above")
 
 
 def launched(args, argv, n: int, run_dir) -> int:

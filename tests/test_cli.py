@@ -4,11 +4,13 @@ import json
 import os
 import subprocess
 import sys
+import traceback
 
 import pytest
 
 from bumps_jax import cli, config, resumable, runio
 from bumps_jax import records as env_records
+from bumps_jax.envs import base
 from bumps_jax.pipeline import runner as pipeline
 from bumps_jax.tasks.kick import env as kick_env
 
@@ -128,6 +130,27 @@ def test_an_interrupted_stage_says_how_to_resume(tmp_path, monkeypatch):
 
     monkeypatch.setattr(pipeline, "run_stage", interrupted)
     with pytest.raises(SystemExit, match=f"interrupted: rerun the same command to resume {tmp_path}"):
+        cli.main(["filter", "--run-dir", str(tmp_path)])
+
+
+def test_a_library_error_inside_a_stage_keeps_its_traceback(tmp_path, monkeypatch):
+    # A shape mismatch deep in JAX printed one line, "error: Incompatible shapes for broadcasting",
+    # with nothing saying where; this package's own ValueErrors stay one line.
+    import jax.numpy as jnp
+
+    def broken(*args, **kwargs):
+        return jnp.ones((1, 2)) + jnp.ones(3)
+
+    monkeypatch.setattr(pipeline, "run_stage", broken)
+    with pytest.raises(ValueError, match="Incompatible shapes for broadcasting") as err:
+        cli.main(["filter", "--run-dir", str(tmp_path)])
+    assert any("test_cli.py" in str(frame.filename) for frame in traceback.extract_tb(err.value.__traceback__))
+
+    def refused(*args, **kwargs):
+        base.validate_task_range((2.0, 1.0))
+
+    monkeypatch.setattr(pipeline, "run_stage", refused)
+    with pytest.raises(SystemExit, match=r"^error: env.task_range must be finite with low < high, got \(2.0, 1.0\)$"):
         cli.main(["filter", "--run-dir", str(tmp_path)])
 
 
