@@ -149,3 +149,84 @@ def test_the_command_line_sets_the_selected_tasks_own_sections():
     assert str(cli.default_run_dir("demo", "tiny")) == "runs/demo"
     args = cli.build_parser().parse_args(["reproduce", "--task", "cheetah_vel", "--set", "experts.seed=3"])
     assert (args.task, args.preset) == ("cheetah_vel", "paper")
+
+
+def test_an_env_class_lacking_what_the_pipeline_calls_is_named_when_its_task_is_built():
+    # A task whose env left out error_against trained its experts' whole budget, then stopped in a
+    # bare NotImplementedError; without ACHIEVED it asked for the kick's "distance".
+    from bumps_jax.envs import base
+    from bumps_jax.tasks.point_goal import config as point_config
+    from bumps_jax.tasks.protocol import Task, plain_report
+
+    bare = type("Bare", (base.ContextualEnv,), {"reset": None, "step": None, "observation_size": 1})
+    with pytest.raises(ValueError) as err:
+        Task(name="bare", env_class=bare, stages=("experts",), config=point_config, report=plain_report(("", "", "")))
+    message = str(err.value)
+    for gap in ("error_against", "with_context", "default_config()", "n_steps_of()", "ACHIEVED"):
+        assert gap in message
+    assert message.startswith("task 'bare': its env class Bare defines no ")
+
+
+def _point_env(**changes):
+    """PointGoal's env at the tiny preset, as a subclass with `changes` (attributes) over it."""
+    from bumps_jax.tasks.point_goal import env as point_env
+
+    cls = type("Changed", (point_env.PointGoalEnv,), changes)
+    return cls(config.make_config("tiny", {"task": "point_goal"}).env)
+
+
+def _without(metric):
+    from bumps_jax.tasks.point_goal import env as point_env
+
+    def step(self, state, action):
+        nxt = point_env.PointGoalEnv.step(self, state, action)
+        return nxt.replace(metrics={k: v for k, v in nxt.metrics.items() if k != metric})
+
+    return step
+
+
+def _reward_of_shape_1(self, state, action):
+    from bumps_jax.tasks.point_goal import env as point_env
+
+    nxt = point_env.PointGoalEnv.step(self, state, action)
+    return nxt.replace(reward=nxt.reward[None])
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({}, None),
+        ({"step": _without("final_error")}, r"step's metrics hold no 'final_error'"),
+        ({"step": _without("valid")}, r"step's metrics hold no 'valid'"),
+        ({"ACHIEVED": "distance"}, r"step's metrics hold no 'distance'"),
+        ({"step": _reward_of_shape_1}, r"step returns state.reward as float32\[1\], reset as float32\[\]"),
+        ({"context_observation_size": property(lambda self: self.observation_size)},
+         r"with_context's observation has shape \(6,\), its size says \(4,\)"),
+        ({"observation_size": property(lambda self: 3)}, r"reset's observation has shape \(4,\), its size says \(3,\)"),
+    ],
+)  # fmt: skip
+def test_an_env_that_steps_otherwise_than_the_pipeline_reads_is_refused_before_any_work(changes, message):
+    # Each of these trained the experts' whole budget or two stages before failing deep in JAX or flax.
+    from bumps_jax.envs import base
+
+    env = _point_env(**changes)
+    if message is None:
+        base.check_episode(env)
+        return
+    with pytest.raises(ValueError, match=r"^Changed: " + message):
+        base.check_episode(env)
+
+
+def test_a_stage_checks_its_env_before_writing_anything(tmp_path, monkeypatch):
+    from bumps_jax.envs import base
+    from bumps_jax.pipeline import programs
+
+    def refused(env):
+        raise ValueError("Changed: step's metrics hold no 'valid'")
+
+    monkeypatch.setattr(base, "check_episode", refused)
+    monkeypatch.setattr(programs, "_ENVS", {})
+    cfg = config.make_config("tiny", {"task": "point_goal"})
+    with pytest.raises(ValueError, match="hold no 'valid'"):
+        pipeline.run_stage("experts", cfg, tmp_path, say=lambda *a, **k: None)
+    assert not (tmp_path / "experts").exists()

@@ -17,6 +17,7 @@ contact pool's capacity in episodes, the target checks and the context's normali
 
 from __future__ import annotations
 
+import abc
 import copy
 import importlib.util
 import json
@@ -191,7 +192,7 @@ class ContextualEnv(Env):
 
     UNIT = "m"  # the context's unit
     CONTEXT_SIZE = 1  # numbers in one context: 1, a scalar (); K > 1, a vector (K,) (a goal position)
-    ACHIEVED = "distance"  # the final metric holding what an episode achieved, in UNIT (plots)
+    ACHIEVED: str | None = None  # the final metric holding what an episode achieved, in UNIT (plots): required
     # The actions' bound: the env clips each action to [-ACTION_BOUND, ACTION_BOUND]; None: no
     # clipping (the kick's joint targets).
     ACTION_BOUND: float | None = None
@@ -270,11 +271,63 @@ class ContextualEnv(Env):
         tells whether experts move alike (the cheetah: torso pitch and height). None by default."""
         return {}
 
+    @abc.abstractmethod
+    def with_context(self, obs: jax.Array, context) -> jax.Array:
+        """What a contextual (meta-)policy observes: obs with the normalised `context` in it,
+        (..., context_observation_size)."""
+
+    @abc.abstractmethod
     def error_against(self, metrics: dict, targets) -> np.ndarray:
         """Final errors of finished episodes against other targets: metrics (host arrays of shape
         S, as the env reports them) with targets broadcasting against S, e.g. (T, 1, 1) against
         (C, R) -> (T, C, R); a vector context's targets carry its last axis: (T, 1, 1, K)."""
-        raise NotImplementedError
+
+
+# What a task's env class holds besides `ContextualEnv`'s methods: its config's functions.
+CONFIG_FUNCTIONS = ("default_config", "resolved", "noise_free", "n_steps_of")
+
+
+def interface_gaps(env_class: type) -> list[str]:
+    """What `env_class` lacks of a task's env (docs/your_task.md §1): its abstract methods left
+    undefined, its config's static functions, a named `ACHIEVED` metric; [] when nothing."""
+    gaps = sorted(getattr(env_class, "__abstractmethods__", ()))
+    gaps += [f"{name}()" for name in CONFIG_FUNCTIONS if not callable(getattr(env_class, name, None))]
+    if not isinstance(getattr(env_class, "ACHIEVED", None), str):
+        gaps.append("ACHIEVED (the final metric holding what an episode achieved)")
+    return gaps
+
+
+def check_episode(env: ContextualEnv) -> None:
+    """ValueError naming the first way one episode step of `env`, traced and not run
+    (`jax.eval_shape`), breaks what the pipeline reads of it: the observation's and the
+    contextual observation's sizes, a scalar reward and done, a step keeping the state's shapes,
+    and the final metrics `final_error`, `valid` and `ACHIEVED`."""
+    name = type(env).__name__
+    lo, hi = env.config.task_range
+    context = jnp.full(context_shape(env.CONTEXT_SIZE), (lo + hi) / 2, jnp.float32)
+    first = jax.eval_shape(env.reset, jax.random.key(0), context)
+    after = jax.eval_shape(env.step, first, jnp.zeros(env.action_size, jnp.float32))
+    seen = jax.eval_shape(env.with_context, first.obs, context)
+    for what, shape, size in (("reset's observation", first.obs.shape, env.observation_size),
+                              ("with_context's observation", seen.shape, env.context_observation_size)):  # fmt: skip
+        if shape != (size,):
+            raise ValueError(f"{name}: {what} has shape {shape}, its size says ({size},)")
+    if first.reward.shape != () or first.done.shape != ():
+        raise ValueError(f"{name}: reset's reward and done must be scalars, got shapes {first.reward.shape} and "
+                         f"{first.done.shape}")  # fmt: skip
+    before_leaves = dict(jax.tree_util.tree_flatten_with_path(first)[0])
+    for path, leaf in jax.tree_util.tree_flatten_with_path(after)[0]:
+        was = before_leaves.get(path)
+        if was is None or (was.shape, was.dtype) != (leaf.shape, leaf.dtype):
+            where = jax.tree_util.keystr(path)
+            had = "nothing" if was is None else f"{was.dtype}{list(was.shape)}"
+            raise ValueError(f"{name}: step returns state{where} as {leaf.dtype}{list(leaf.shape)}, reset as {had}")
+    for metric in ("final_error", "valid", env.ACHIEVED):
+        if metric not in after.metrics:
+            raise ValueError(f"{name}: step's metrics hold no {metric!r} (they hold {sorted(after.metrics)})")
+    for metric in ("final_error", "valid"):
+        if after.metrics[metric].shape != ():
+            raise ValueError(f"{name}: metric {metric!r} must be a scalar, got shape {after.metrics[metric].shape}")
 
 
 class ContextObserved:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 
 from bumps_jax.algo import bc, rollout
+from bumps_jax.envs import base
 from bumps_jax.tasks import registry as tasks
 
 # The processes' caches: (task, env config[, architecture, devices]) -> env / compiled program.
@@ -18,10 +19,13 @@ _ENVS: dict = {}
 
 
 def stage_env(env_cfg, task: str):
-    """The env of `task` built from `env_cfg`, once per process and env config."""
+    """The env of `task` built from `env_cfg`, once per process and env config, and checked to
+    step as the pipeline reads it (`base.check_episode`) when first built."""
     key = (task, json.dumps(tasks.resolved(task, env_cfg), sort_keys=True))
     if key not in _ENVS:
-        _ENVS[key] = tasks.make_env(task, env_cfg)
+        env = tasks.make_env(task, env_cfg)
+        base.check_episode(env)
+        _ENVS[key] = env
     return _ENVS[key]
 
 

@@ -101,6 +101,10 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
         except ValueError as err:
             raise ValueError(f"{err}. The {name} stage's record is damaged: remove it and rerun to redo the stage "
                              "from what it kept (the stages made from it then need --force)") from None  # fmt: skip
+    if name not in tasks.get(cfg.task).own_stages:  # its env steps as the stage reads it, before any work
+        from bumps_jax.pipeline import programs  # noqa: PLC0415
+
+        programs.stage_env(cfg.env, cfg.task)
     if status == "forced":
         for later in DOWNSTREAM[name]:
             if (run_dir / later).exists():

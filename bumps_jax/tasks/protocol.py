@@ -127,9 +127,15 @@ class Task:
     own_stages: Mapping[str, str] = dataclasses.field(default_factory=dict)  # stage -> module (the kick's prior)
 
     def __post_init__(self):
+        from bumps_jax.envs import base  # noqa: PLC0415 (the env class has loaded it already)
+
         unknown = [s for s in self.stages if s not in STAGE_ORDER]
         if unknown or list(self.stages) != [s for s in STAGE_ORDER if s in self.stages]:
             raise ValueError(f"task {self.name!r}: stages {self.stages} must be in the order {STAGE_ORDER}")
+        gaps = base.interface_gaps(self.env_class)
+        if gaps:
+            raise ValueError(f"task {self.name!r}: its env class {self.env_class.__name__} defines no "
+                             f"{', '.join(gaps)} (docs/your_task.md, section 1)")  # fmt: skip
 
     def make_env(self, env_cfg, overrides: dict | None = None) -> ContextualEnv:
         """The task's env from its env config and dotted `overrides`."""
