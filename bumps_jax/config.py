@@ -74,6 +74,7 @@ def make_config(preset: str = "tiny", overrides: dict | None = None) -> ml_colle
     given = {**presets[preset], **overrides}
     for key, value in given.items():
         set_leaf(cfg, key, value)
+    tasks.get(task).env_class.validate_config(cfg.env)  # the derived keys may divide by its values
     derive(cfg, frozenset(given))
     validate(cfg)
     return cfg
@@ -159,22 +160,29 @@ def coerce(key: str, value, kind: type, current, optional: bool = False):
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
-    """Every section's range checks, then the task's own (`Task.validate`: its env, its plug-ins'
-    sections, its capacities); ValueError naming the first bad value."""
+    """The env's checks (its class's `validate_config`), every section's range checks, then the
+    task's own (`Task.validate`: its plug-ins' sections, its capacities); ValueError naming the
+    first bad value."""
     from bumps_jax.envs import base as task_env  # noqa: PLC0415
     from bumps_jax.schema import validation  # noqa: PLC0415 (the checks import the algorithm modules)
 
-    task_env.validate_task_range(cfg.env.task_range)  # every context is checked against it
     task = tasks.get(cfg.task)
+    task.env_class.validate_config(cfg.env)  # the sections' checks read the episode's length and range
+    task_env.validate_task_range(cfg.env.task_range)  # every context is checked against it
     n_steps, task_range, unit = task.env_class.n_steps_of(cfg.env), tuple(cfg.env.task_range), task.unit
     size = task.env_class.CONTEXT_SIZE  # numbers in one context
-    validation.experts(cfg.experts, task_range, n_steps, unit, size)
-    validation.meta(cfg.meta, task_range, unit, size)
-    validation.filtering(cfg.filter, task_range, unit, size)
-    validation.baseline(cfg.baseline, task_range, n_steps, unit, size)
-    if "heldout" in cfg:
-        validation.heldout(cfg.heldout, task_range)
-    if cfg.filter.net_seed >= cfg.meta.train.n_seeds:
+    checks = {"experts": lambda: validation.experts(cfg.experts, task_range, n_steps, unit, size),
+              "meta": lambda: validation.meta(cfg.meta, task_range, unit, size),
+              "filter": lambda: validation.filtering(cfg.filter, task_range, unit, size),
+              "baseline": lambda: validation.baseline(cfg.baseline, task_range, n_steps, unit, size),
+              "heldout": lambda: validation.heldout(cfg.heldout, task_range)}  # fmt: skip
+    for name, check in checks.items():
+        if name in cfg:  # a section per stage the task runs
+            check()
+    if "meta" in cfg and cfg.meta.dataset.clip_labels and task.env_class.ACTION_BOUND is None:
+        raise ValueError(f"meta.dataset.clip_labels: the {cfg.task} env clips no action (its ACTION_BOUND is None), "
+                         "so there is no bound to clip the labels to: set it false")  # fmt: skip
+    if "filter" in cfg and "meta" in cfg and cfg.filter.net_seed >= cfg.meta.train.n_seeds:
         raise ValueError(
             f"filter.net_seed {cfg.filter.net_seed} names no network: meta.train.n_seeds is {cfg.meta.train.n_seeds}"
         )

@@ -230,3 +230,46 @@ def test_a_stage_checks_its_env_before_writing_anything(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="hold no 'valid'"):
         pipeline.run_stage("experts", cfg, tmp_path, say=lambda *a, **k: None)
     assert not (tmp_path / "experts").exists()
+
+
+def test_a_task_without_a_baseline_leaves_its_section_out(monkeypatch, capsys):
+    # `stages` may be any subset, but the config's checks read cfg.baseline of every task: a task
+    # without one stopped in ml_collections' AttributeError "'baseline'".
+    import dataclasses
+    import types
+
+    import ml_collections
+
+    from bumps_jax import cli
+    from bumps_jax.tasks.point_goal import config as point_config
+
+    point = tasks.get("point_goal")
+    full = point_config.sections()
+    own = types.SimpleNamespace(
+        sections=lambda: ml_collections.ConfigDict({k: v for k, v in full.items() if k != "baseline"}),
+        PRESETS={p: {k: v for k, v in o.items() if not k.startswith("baseline.")} for p, o in point.presets.items()},
+        validate=lambda cfg: None,
+    )
+    lean = dataclasses.replace(point, stages=("experts", "meta", "filter"), config=own)
+    monkeypatch.setattr(tasks, "get", lambda name: lean if name == "point_goal" else point)
+    cfg = config.make_config("tiny", {"task": "point_goal"})
+    assert "baseline" not in cfg and cfg.experts.ppo.num_envs == point.presets["tiny"]["experts.ppo.num_envs"]
+    cli.main(["config", "--task", "point_goal"])
+    assert "baseline" not in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "item, message",
+    [
+        ("filter.context_range=[0.5,-0.5]", r"filter.context_range must be \(low, high\) with low < high"),
+        ("filter.context_step=5", r"filter.context_step 5.0 m exceeds filter.context_range's width 2 m"),
+        ("meta.dataset.clip_labels=true", r"meta.dataset.clip_labels: the point_goal env clips no action"),
+        ("env.episode_steps=0", r"env.episode_steps must be a positive integer, got 0"),
+    ],
+)
+def test_values_that_ran_wrong_or_deep_are_refused_at_once(item, message):
+    # A reversed context range filtered over no grid; clip_labels on an env without a bound did
+    # nothing while the record said "labels clipped"; episode_steps=0 divided by zero.
+    key, value = item.split("=")
+    with pytest.raises(ValueError, match=message):
+        config.make_config("tiny", {"task": "point_goal", key: json.loads(value)})

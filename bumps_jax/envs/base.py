@@ -284,7 +284,7 @@ class ContextualEnv(Env):
 
 
 # What a task's env class holds besides `ContextualEnv`'s methods: its config's functions.
-CONFIG_FUNCTIONS = ("default_config", "resolved", "noise_free", "n_steps_of")
+CONFIG_FUNCTIONS = ("default_config", "validate_config", "resolved", "noise_free", "n_steps_of")
 
 
 def interface_gaps(env_class: type) -> list[str]:

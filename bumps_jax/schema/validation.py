@@ -119,7 +119,14 @@ def filtering(f, task_range, unit: str = "m", size: int = 1) -> None:
     p = "filter."
     targets(f.tasks, task_range, f"{p}tasks", unit, size)
     targets(f.context_range, task_range, f"{p}context_range", unit)
+    low, high = (tuple(f.context_range) + (None, None))[:2]
+    if len(f.context_range) != 2 or not low < high:
+        raise ValueError(f"{p}context_range must be (low, high) with low < high, got {tuple(f.context_range)}")
     positive_floats(f, p, ("width", "context_step", "high_context_step"))
+    for key in ("context_step", "high_context_step"):
+        if f[key] > high - low:
+            raise ValueError(f"{p}{key} {f[key]!r} {unit} exceeds {p}context_range's width {high - low:g} {unit}: "
+                             "its grid would hold one context")  # fmt: skip
     positive_ints(f, p, ("selection_repetitions", "eval_repetitions"))
     if f.selection not in SELECTIONS:
         raise ValueError(f"{p}selection must be one of {SELECTIONS}, got {f.selection!r}")

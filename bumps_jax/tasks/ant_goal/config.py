@@ -121,9 +121,8 @@ DERIVED = stage_sections.equal_budget_derived(ant_env.MAX_CONTACTS[True], BASELI
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
-    """Ant-Goal's own checks: its env, every list of goals a tuple of (x, y) pairs, and Warp's
+    """Ant-Goal's own checks: every list of goals a tuple of (x, y) pairs, and Warp's
     pool holding each training program."""
-    ant_env.validate_config(cfg.env)
     goals = {"experts.tasks": cfg.experts.tasks, "meta.eval.tasks": cfg.meta.eval.tasks,
              "filter.tasks": cfg.filter.tasks, "baseline.eval_tasks": cfg.baseline.eval_tasks}  # fmt: skip
     for key, values in goals.items():

@@ -96,8 +96,7 @@ DERIVED = stage_sections.equal_budget_derived(cheetah_env.CONTACTS_PER_GEOM * 8,
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
-    """HalfCheetah-Vel's own checks: its env, and Warp's pool holding each training program."""
-    cheetah_env.validate_config(cfg.env)
+    """HalfCheetah-Vel's own checks: Warp's pool holding each training program."""
     if cfg.env.impl == "warp":
         per_episode = cheetah_env.contacts_per_episode(bool(cfg.env.all_contacts))
         programs = {"experts": len(cfg.experts.tasks) * cfg.experts.ppo.num_envs,

@@ -178,6 +178,7 @@ class CheetahVelEnv(task_env.ContextualEnv):
     resolved = staticmethod(resolved)
     noise_free = staticmethod(noise_free)
     n_steps_of = staticmethod(n_steps_of)
+    validate_config = staticmethod(validate_config)
 
     UNIT = "m/s"
     ACHIEVED = "mean_forward_vel"

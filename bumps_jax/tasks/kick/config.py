@@ -214,9 +214,8 @@ PRESETS: dict[str, dict] = {
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
-    """The kick's own checks: its env, the prior, the experts' starting kicks, Warp's capacity for
+    """The kick's own checks: the prior, the experts' starting kicks, Warp's capacity for
     the tuning, the held-out and development targets."""
-    kick_env.validate_config(cfg.env)
     prior_section(cfg.prior)
     experts_section(cfg.experts)
     positive_ints(cfg.baseline, "baseline.", ("bc_steps",))

@@ -157,6 +157,7 @@ class KickEnv(task_env.ContextualEnv):
     resolved = staticmethod(resolved)
     noise_free = staticmethod(noise_free)
     n_steps_of = staticmethod(n_steps_of)
+    validate_config = staticmethod(validate_config)
     ACHIEVED = "distance"  # (...,): the ball's resting distance from the kick spot
 
     def __init__(self, config=None, config_overrides: dict | None = None):

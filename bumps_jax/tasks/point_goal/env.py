@@ -137,6 +137,7 @@ class PointGoalEnv(task_env.ContextualEnv):
     resolved = staticmethod(resolved)
     noise_free = staticmethod(noise_free)
     n_steps_of = staticmethod(n_steps_of)
+    validate_config = staticmethod(validate_config)
 
     UNIT = "m"
     ACHIEVED = "final_position"  # (..., 2): where the mass is at the episode's end
