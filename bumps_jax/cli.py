@@ -1,6 +1,6 @@
 """Every command of the pipeline from one command line.
 
-    python -m bumps_jax <command> [--preset tiny|paper] [--task kick|cheetah_vel|point_goal] [--run-dir D]
+    python -m bumps_jax <command> [--preset tiny|paper] [--task kick|cheetah_vel|ant_goal|point_goal] [--run-dir D]
                                   [--set KEY=VALUE ...] [--force]
 
 `--task` picks the contextual task (the config's `task`: the kick by default), whose tree the
@@ -36,7 +36,7 @@ STAGE_COMMANDS = {
     "baseline": ("baseline", "the multi-task PPO baseline (the paper's Figure 1)"),
 }
 PIPELINES = {
-    "demo": (("experts", "meta", "filter"), "tiny", "the pipeline at CPU size (the prior from assets/), with a report"),
+    "demo": (("experts", "meta", "filter"), "tiny", "the pipeline at CPU size (a prior from assets/), with a report"),
     "reproduce": (
         ("prior", "experts", "meta", "filter", "heldout", "baseline"),
         "paper",

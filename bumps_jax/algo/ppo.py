@@ -398,8 +398,11 @@ def reset_metrics(env) -> dict:
     return jax.eval_shape(env.reset, jax.random.key(0), target).metrics
 
 
-def make_train(config, env: task_env.ContextualEnv, traced_learning_rate: bool = False) -> Trainer:
-    """Validate `config` (a PPO ConfigDict) and build the pure trainer for `env`.
+def make_train(
+    config, env: task_env.ContextualEnv, traced_learning_rate: bool = False, prefix: str = "ppo."
+) -> Trainer:
+    """Validate `config` (a PPO ConfigDict, its keys `prefix`... in messages) and build the pure
+    trainer for `env`.
 
     All returned functions are pure and unjitted: jit / vmap them as needed. The target is a
     traced argument, so one compiled program serves any task (and a vmapped batch of tasks).
@@ -407,10 +410,10 @@ def make_train(config, env: task_env.ContextualEnv, traced_learning_rate: bool =
     (`learning_rate`, default config.learning_rate), so a vmapped batch may mix rates.
     """
     cfg = ppo_config.make_config(config)
-    ppo_config.validate_config(cfg, env.n_steps)
+    ppo_config.validate_config(cfg, env.n_steps, prefix)
     if cfg.potential_shaping and "potential" not in reset_metrics(env):
         raise ValueError(
-            f"ppo.potential_shaping {cfg.potential_shaping!r} needs an env that reports metrics['potential']; "
+            f"{prefix}potential_shaping {cfg.potential_shaping!r} needs an env that reports metrics['potential']; "
             f"{type(env).__name__} does not: set it to 0"
         )
     networks = make_networks(cfg, env.observation_size, env.action_size)

@@ -77,7 +77,7 @@ def compile_programs(cfg, env=None, mesh=None) -> Compiled:
     start = tasks.get(cfg.task).expert_start
     env = env or tasks.make_env(cfg.task, cfg.env)
     mesh = mesh or sharding.device_mesh(impl=env.config.impl)
-    trainer = ppo.make_train(cfg.experts.ppo, env)
+    trainer = ppo.make_train(cfg.experts.ppo, env, prefix="experts.ppo.")
     make = make_fresh_init(trainer) if start is None else start.make_init(cfg, env, trainer)
     init = sharding.over_batch(jax.vmap(make), mesh, (True, True, True))
     n = int(cfg.experts.updates_per_chunk)

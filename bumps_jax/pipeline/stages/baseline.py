@@ -159,7 +159,7 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
     stage_dir = Path(run_dir) / "baseline"
     env = tasks.make_env(cfg.task, cfg.env)
     unit = env.UNIT
-    trainer = ppo.make_train(b.ppo, task_env.ContextObserved(env), traced_learning_rate=True)
+    trainer = ppo.make_train(b.ppo, task_env.ContextObserved(env), traced_learning_rate=True, prefix="baseline.ppo.")
     policy0, bc_losses = start_policy(cfg, env, trainer, run_dir, say)
     rates = learning_rates(b)
     n_runs = len(rates) * b.seeds
