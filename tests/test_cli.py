@@ -55,7 +55,7 @@ def test_a_stage_reads_its_own_keys_without_their_section():
         ("filter", "nope=1", r"unknown config key 'filter.nope'"),
         ("kick-prior", "env.impl=torch", r"env.impl must be one of"),
         ("train-experts", "tune.scheme=family", r"unknown config key 'experts.tune.scheme'"),
-        ("train-experts", "env.task_range=[18.0,7.0]", r"env.task_range must be finite with low < high, got"),
+        ("train-experts", "env.task_range=[18.0,7.0]", r"env.task_range must be 0 < low < high, got"),
     ],
 )
 def test_wrong_values_are_one_line_before_any_work(tmp_path, command, item, named):  # defect 6

@@ -118,12 +118,12 @@ def validate_config(cfg: ml_collections.ConfigDict) -> None:
     task_env.validate_physics(cfg)
     lo, hi = cfg.task_range
     if not 0.0 < lo < hi:
-        raise ValueError(f"task_range must be 0 < low < high, got {tuple(cfg.task_range)}")
+        raise ValueError(f"env.task_range must be 0 < low < high, got {tuple(cfg.task_range)}")
     task_env.validate_physics_dt(cfg)
     if cfg.ctrl_dt <= 0 or cfg.horizon_s < cfg.ctrl_dt:
-        raise ValueError(f"need 0 < ctrl_dt <= horizon_s, got {cfg.ctrl_dt}, {cfg.horizon_s}")
+        raise ValueError(f"need 0 < env.ctrl_dt <= env.horizon_s, got {cfg.ctrl_dt}, {cfg.horizon_s}")
     if len(cfg.tasks) == 0:
-        raise ValueError("tasks is empty: give at least one target distance")
+        raise ValueError("env.tasks is empty: give at least one target distance")
     check_targets(cfg.tasks, cfg.task_range)
     for name, value in cfg.noise.items():
         if value < 0:
