@@ -182,6 +182,26 @@ def test_force_recomputes_every_later_stage(tmp_path, stages):
     assert json.loads((tmp_path / "pipeline.json").read_text())["overrides"] == {"experts.seed": 3}
 
 
+def test_a_stage_that_changes_records_removes_the_report_made_from_them(tmp_path, stages):
+    """--force on an earlier stage removes the later stages and the run's report (and its error map)
+    with them, so no report shows a table whose record is gone; an up-to-date stage leaves it."""
+    log, _ = stages
+    pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)
+    report_md, figure = tmp_path / "report.md", tmp_path / "error_map.png"
+    figure.write_bytes(b"png")
+    said = []
+    pipeline.run_stage("experts", cfg(), tmp_path, say=said.append)
+    assert report_md.exists() and figure.exists() and said == [f"== experts: up to date ({tmp_path}/experts/out.json)"]
+    pipeline.run_stage("experts", cfg(**{"experts.seed": 3}), tmp_path, force=True, say=lambda *a, **k: said.extend(a))
+    assert not (tmp_path / "meta").exists() and not report_md.exists() and not figure.exists()
+    removed = "== report.md: removed (it predates the records this stage writes; the report command writes it anew)"
+    assert removed in said
+    pipeline.run_stage("meta", cfg(**{"experts.seed": 3}), tmp_path)  # a new stage: no report to remove, none written
+    assert log == ["experts", "meta", "experts", "meta"] and not report_md.exists()
+    pipeline.run_pipeline(("experts", "meta"), cfg(**{"experts.seed": 3}), tmp_path)  # written anew at the end
+    assert report_md.read_text() == "report\n"
+
+
 def test_the_pipeline_never_reports_up_to_date_over_stale_outputs(tmp_path, stages):  # defect 4
     log, _ = stages
     pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)

@@ -90,7 +90,11 @@ def check_current(cfg, run_dir: Path, stages, inputs: bool = True) -> None:
 
 
 def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print) -> dict:
-    """One stage after `plan`: reuse its record, or write its manifest and run it."""
+    """One stage after `plan`: reuse its record, or write its manifest and run it. A stage that
+    runs first removes the run's report (`publish.remove_report`), which would show the records
+    it replaces; `run_pipeline` and the report command write it anew."""
+    from bumps_jax.report import publish  # noqa: PLC0415
+
     module = stage_module(name, cfg.task)
     output = run_dir / name / module.OUTPUT
     runio.sync(f"stage {name} planned")  # every process has read the directory before any removes from it
@@ -106,6 +110,8 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
             if (run_dir / later).exists():
                 say(f"== {later}: removed (made from the {name} outputs that --force replaces)")
                 runio.remove(run_dir / later)
+    for path in publish.remove_report(run_dir):
+        say(f"== {path.name}: removed (it predates the records this stage writes; the report command writes it anew)")
     write_manifest(run_dir / name, wanted)
     runio.sync(f"stage {name} starts")  # every process reads this stage's directory as the writer left it
     say(f"== {name}" + (" (resuming)" if status == "same" else ""), flush=True)
