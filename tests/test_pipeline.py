@@ -194,8 +194,8 @@ def test_a_stage_that_changes_records_removes_the_report_made_from_them(tmp_path
     assert report_md.exists() and figure.exists() and said == [f"== experts: up to date ({tmp_path}/experts/out.json)"]
     pipeline.run_stage("experts", cfg(**{"experts.seed": 3}), tmp_path, force=True, say=lambda *a, **k: said.extend(a))
     assert not (tmp_path / "meta").exists() and not report_md.exists() and not figure.exists()
-    removed = "== report.md: removed (it predates the records this stage writes; the report command writes it anew)"
-    assert removed in said
+    removed = "removed (made before the records this stage writes; the report command writes it anew)"
+    assert f"== report.md, error_map.png: {removed}" in said
     pipeline.run_stage("meta", cfg(**{"experts.seed": 3}), tmp_path)  # a new stage: no report to remove, none written
     assert log == ["experts", "meta", "experts", "meta"] and not report_md.exists()
     pipeline.run_pipeline(("experts", "meta"), cfg(**{"experts.seed": 3}), tmp_path)  # written anew at the end

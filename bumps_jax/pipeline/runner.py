@@ -114,8 +114,10 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
             if (run_dir / later).exists():
                 say(f"== {later}: removed (made from the {name} outputs that --force replaces)")
                 runio.remove(run_dir / later)
-    for path in publish.remove_report(run_dir):
-        say(f"== {path.name}: removed (it predates the records this stage writes; the report command writes it anew)")
+    removed = publish.remove_report(run_dir)
+    if removed:
+        names = ", ".join(path.name for path in removed)
+        say(f"== {names}: removed (made before the records this stage writes; the report command writes it anew)")
     write_manifest(run_dir / name, wanted)
     runio.sync(f"stage {name} starts")  # every process reads this stage's directory as the writer left it
     say(f"== {name}" + (" (resuming)" if status == "same" else ""), flush=True)
