@@ -161,8 +161,8 @@ def add_run_options(p, name: str) -> None:
     p.add_argument("--set", action="append", nargs="+", default=[], metavar="KEY=VALUE",
                    help="config overrides (JSON values); may be repeated")  # fmt: skip
     p.add_argument("--force", action="store_true",
-                   help="recompute a stage whose outputs were made under another config or inputs, "
-                        "and every stage after it")  # fmt: skip
+                   help="recompute a stage whose outputs were made under another config or inputs, or "
+                        "before its task's code changed, and every stage after it")  # fmt: skip
     p.add_argument("--processes", type=int, default=1, metavar="N",
                    help="run as N processes on this host, one GPU each (JAX's multi-process runtime): every "
                         "batched program split over them")  # fmt: skip

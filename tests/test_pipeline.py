@@ -182,6 +182,77 @@ def test_force_recomputes_every_later_stage(tmp_path, stages):
     assert json.loads((tmp_path / "pipeline.json").read_text())["overrides"] == {"experts.seed": 3}
 
 
+def test_a_stage_that_changes_records_removes_the_report_made_from_them(tmp_path, stages):
+    """--force on an earlier stage removes the later stages and the run's report (and its error map)
+    with them, so no report shows a table whose record is gone; an up-to-date stage leaves it."""
+    log, _ = stages
+    pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)
+    report_md, figure = tmp_path / "report.md", tmp_path / "error_map.png"
+    figure.write_bytes(b"png")
+    said = []
+    pipeline.run_stage("experts", cfg(), tmp_path, say=said.append)
+    assert report_md.exists() and figure.exists() and said == [f"== experts: up to date ({tmp_path}/experts/out.json)"]
+    pipeline.run_stage("experts", cfg(**{"experts.seed": 3}), tmp_path, force=True, say=lambda *a, **k: said.extend(a))
+    assert not (tmp_path / "meta").exists() and not report_md.exists() and not figure.exists()
+    removed = "removed (made before the records this stage writes; the report command writes it anew)"
+    assert f"== report.md, error_map.png: {removed}" in said
+    pipeline.run_stage("meta", cfg(**{"experts.seed": 3}), tmp_path)  # a new stage: no report to remove, none written
+    assert log == ["experts", "meta", "experts", "meta"] and not report_md.exists()
+    pipeline.run_pipeline(("experts", "meta"), cfg(**{"experts.seed": 3}), tmp_path)  # written anew at the end
+    assert report_md.read_text() == "report\n"
+
+
+def test_a_finished_stage_notes_a_change_of_its_tasks_code_and_stands(tmp_path, stages, monkeypatch):
+    """A task's code edited since a stage ran (its folder's .py files): the stage is still up to
+    date, its record kept, with one more line naming the folder, and --force redoes it; a
+    manifest without the task's code (an older version's) gets no note, and --force leaves it."""
+    log, _ = stages
+    code = tmp_path / "code"
+    (code / "sub").mkdir(parents=True)
+    (code / "env.py").write_text("REWARD_SCALE = 1.0\n")
+    (code / "sub" / "helpers.py").write_text("")
+    monkeypatch.setattr(pipeline.tasks, "code_folder", lambda task: ("bumps_jax/tasks/kick/", code))
+    run = tmp_path / "run"
+    pipeline.run_stage("experts", cfg(), run)
+    manifest = run / "experts" / pipeline.MANIFEST
+    assert json.loads(manifest.read_text())["task_source"] == pipeline.task_source("kick")
+    said = []
+    pipeline.run_stage("experts", cfg(), run, say=said.append)
+    (code / "notes.txt").write_text("not code")  # neither a file but .py nor a compiled one counts
+    (code / "__pycache__").mkdir()
+    (code / "__pycache__" / "env.cpython-311.pyc").write_bytes(b"\0")
+    pipeline.run_stage("experts", cfg(), run, say=said.append)
+    assert said == [f"== experts: up to date ({run}/experts/out.json)"] * 2
+    (code / "env.py").write_text("REWARD_SCALE = 100.0\n")
+    said.clear()
+    assert pipeline.run_stage("experts", cfg(), run, say=said.append)["n"] == 1  # its record, not redone
+    assert said == [
+        f"== experts: up to date ({run}/experts/out.json)",
+        "   note: bumps_jax/tasks/kick/ changed since this stage ran (its record stands; --force redoes it)",
+    ]
+    pipeline.run_stage("experts", cfg(), run, force=True, say=lambda *a, **k: None)  # as the note says
+    assert json.loads(manifest.read_text())["task_source"] == pipeline.task_source("kick") and log == ["experts"] * 2
+    pipeline.run_stage("experts", cfg(), run, force=True, say=lambda *a, **k: None)  # the same code: nothing to redo
+    (code / "env.py").write_text("REWARD_SCALE = 1.0\n")
+    older = json.loads(manifest.read_text())
+    del older["task_source"]
+    manifest.write_text(json.dumps(older))
+    said.clear()
+    pipeline.run_stage("experts", cfg(), run, force=True, say=said.append)
+    assert said == [f"== experts: up to date ({run}/experts/out.json)"] and log == ["experts"] * 2
+
+
+def test_a_tasks_code_digest_covers_its_python_files_by_path():
+    """The digest of each registered task's folder: its .py files' paths and contents, so a file
+    renamed or moved changes it as an edit does."""
+    for task in pipeline.tasks.TASKS:
+        shown, folder = pipeline.tasks.code_folder(task)
+        assert shown == f"bumps_jax/tasks/{task}/" and (folder / "task.py").is_file()
+        source = pipeline.task_source(task)
+        assert source["path"] == shown and len(source["sha256"]) == 16
+    assert len({pipeline.task_source(t)["sha256"] for t in pipeline.tasks.TASKS}) == len(pipeline.tasks.TASKS)
+
+
 def test_the_pipeline_never_reports_up_to_date_over_stale_outputs(tmp_path, stages):  # defect 4
     log, _ = stages
     pipeline.run_pipeline(("experts", "meta"), cfg(), tmp_path)

@@ -18,6 +18,7 @@ and then reuses, resumes, recomputes (`force`) or refuses.
 from __future__ import annotations
 
 import datetime
+import hashlib
 import importlib
 import json
 import time
@@ -53,7 +54,7 @@ def plan(name: str, cfg, run_dir: Path, force: bool = False) -> tuple[dict, str]
     status: "new", "same" (resume), "done" (its record exists) or "forced"."""
     tasks.check_stage(cfg.task, name)
     module = stage_module(name, cfg.task)
-    wanted = manifest(config.section(cfg, name), module.inputs(cfg, run_dir), run_dir)
+    wanted = manifest(config.section(cfg, name), module.inputs(cfg, run_dir), run_dir, task=cfg.task)
     status = check_manifest(run_dir / name, wanted, force, finished=(run_dir / name / module.OUTPUT).exists())
     if status == "same" and (run_dir / name / module.OUTPUT).exists():
         status = "done"
@@ -90,12 +91,19 @@ def check_current(cfg, run_dir: Path, stages, inputs: bool = True) -> None:
 
 
 def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print) -> dict:
-    """One stage after `plan`: reuse its record, or write its manifest and run it."""
+    """One stage after `plan`: reuse its record, or write its manifest and run it. A stage that
+    runs first removes the run's report (`publish.remove_report`), which would show the records
+    it replaces; `run_pipeline` and the report command write it anew."""
+    from bumps_jax.report import publish  # noqa: PLC0415
+
     module = stage_module(name, cfg.task)
     output = run_dir / name / module.OUTPUT
     runio.sync(f"stage {name} planned")  # every process has read the directory before any removes from it
     if status == "done":
         say(f"== {name}: up to date ({output})")
+        changed = changed_source(runio.read_json(run_dir / name / MANIFEST), wanted)
+        if changed:
+            say(f"   note: {changed} changed since this stage ran (its record stands; --force redoes it)")
         try:
             return runio.read_json(output)
         except ValueError as err:
@@ -110,6 +118,10 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
             if (run_dir / later).exists():
                 say(f"== {later}: removed (made from the {name} outputs that --force replaces)")
                 runio.remove(run_dir / later)
+    removed = publish.remove_report(run_dir)
+    if removed:
+        names = ", ".join(path.name for path in removed)
+        say(f"== {names}: removed (made before the records this stage writes; the report command writes it anew)")
     write_manifest(run_dir / name, wanted)
     runio.sync(f"stage {name} starts")  # every process reads this stage's directory as the writer left it
     say(f"== {name}" + (" (resuming)" if status == "same" else ""), flush=True)
@@ -270,12 +282,15 @@ class StaleRunError(ValueError):
     """A run directory holds outputs of another config or other inputs than this call's."""
 
 
-def manifest(section: dict, inputs: dict[str, str | Path], run_dir: Path | None = None) -> dict:
+def manifest(
+    section: dict, inputs: dict[str, str | Path], run_dir: Path | None = None, task: str | None = None
+) -> dict:
     """What a stage's outputs depend on: its config (`config.section`) and its input files'
     fingerprints (name -> path), under the manifest's schema (`MANIFEST_SCHEMA`). A path is recorded
     relative to `run_dir` where it lies inside it (`runio.recorded_path`): a record never says where
-    the run directory happened to be."""
-    return {
+    the run directory happened to be. With `task`, also the task's code as it was (`task_source`):
+    noted where it has changed since (`changed_source`), never compared by `check_manifest`."""
+    wanted = {
         "schema": MANIFEST_SCHEMA,
         "config": section,
         "inputs": {
@@ -283,6 +298,31 @@ def manifest(section: dict, inputs: dict[str, str | Path], run_dir: Path | None 
             for name, path in sorted(inputs.items())
         },
     }
+    if task is not None:
+        wanted["task_source"] = task_source(task)
+    return wanted
+
+
+def task_source(task: str) -> dict:
+    """The task's own code: its folder ("bumps_jax/tasks/<task>/") and a sha256 of its .py files'
+    relative paths and contents, in the order of their paths."""
+    shown, folder = tasks.code_folder(task)
+    h = hashlib.sha256()
+    for rel, path in sorted((p.relative_to(folder).as_posix(), p) for p in folder.rglob("*.py")):
+        data = path.read_bytes()
+        h.update(f"{rel}\0{len(data)}\0".encode())
+        h.update(data)
+    return {"path": shown, "sha256": h.hexdigest()[:16]}
+
+
+def changed_source(have: dict, wanted: dict) -> str | None:
+    """The task folder whose code differs from when a stage ran (its manifest `have`'s
+    `task_source` against `wanted`'s), None where it is the same or `have` records none (an older
+    version's manifest)."""
+    have, now = have.get("task_source"), wanted.get("task_source")
+    if not isinstance(have, dict) or now is None or have.get("sha256") == now["sha256"]:
+        return None
+    return now["path"]
 
 
 # Config keys that change no result: how many checkpoints are kept, always; the chunk sizes (updates
@@ -300,7 +340,8 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, finished:
     """Compare a stage directory's manifest with `wanted` before the stage runs.
 
     Returns "new" (nothing there yet), "same" (its outputs belong to this config and inputs: reuse
-    or resume them) or "forced" (it differed and `force` wiped it). Otherwise raises
+    or resume them) or "forced" (they differ, or the task's code changed since the stage ran
+    (`changed_source`), and `force` wiped it). Otherwise raises
     StaleRunError naming the differing keys and the two ways on. Warp's buffer sizes
     (`env.warp_contacts`, `env.warp_constraints_per_world`) are not compared, nor keys that change
     no result (`NO_RESULT_KEYS`; `NO_RESULT_ONCE_FINISHED` where the stage has `finished`), nor
@@ -336,7 +377,7 @@ def check_manifest(stage_dir: Path, wanted: dict, force: bool = False, finished:
             {"config": wanted["config"], "inputs": _hashes(wanted["inputs"])},
         )
         diff = [key for key in diff if not _capacity(key) and not _changes_no_result(key, finished)]
-        if not diff:
+        if not diff and not (force and changed_source(have, wanted)):
             return "same"
     if force:
         runio.remove(stage_dir)

@@ -8,12 +8,13 @@ import shutil
 from pathlib import Path
 
 from bumps_jax import config, runio
-from bumps_jax.report import budgets, curves
+from bumps_jax.report import budgets, curves, error_map
 from bumps_jax.report import readme as readme_table
 from bumps_jax.report import summary as report
 from bumps_jax.report import task_report as report_task
 from bumps_jax.tasks import registry as tasks
 
+REPORT = "report.md"  # under the run directory
 POLICIES = "assets/policies"  # the shipped policies (`policies.write`)
 AT_BUDGET_CURVE = "baseline_at_budget_curve.png"  # the training curve of `publish_at_budget`'s baseline
 # What `publish` copies from a finished paper run into the repository: run file -> committed path.
@@ -103,7 +104,7 @@ def run_config(run_dir: str | Path, cfg):
 def write_report(run_dir: str | Path) -> Path:
     """run_dir/report.md: the kick's report (`report.build`), or another task's (`report_task.build_task`) where the
     run's records name one."""
-    path = Path(run_dir) / "report.md"
+    path = Path(run_dir) / REPORT
     task = report_task.run_task(run_dir)
     paper_rows = tasks.get(task).report.paper_rows
     if not paper_rows:
@@ -111,6 +112,16 @@ def write_report(run_dir: str | Path) -> Path:
     runio.write_text(path, report.build(run_dir) if paper_rows else report_task.build_task(run_dir, task))
     runio.sync("report")  # every process reads it back
     return path
+
+
+def remove_report(run_dir: str | Path) -> list[Path]:
+    """Remove run_dir/report.md and the figure drawn from several stages' records (`error_map`),
+    where they exist, before a stage changes its records: a report never shows records that are
+    gone or replaced. Returns the paths removed; `write_report` writes them anew."""
+    found = [p for p in (Path(run_dir) / REPORT, Path(run_dir) / error_map.NAME) if p.exists()]
+    for path in found:
+        runio.remove(path)
+    return found
 
 
 def publish_task(run_dir: str | Path, task: str, root: str | Path = ".") -> list[Path]:

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import functools
 import importlib
-from pathlib import PurePath
+import importlib.util
+from pathlib import Path, PurePath
 
 from bumps_jax.tasks.protocol import Task
 
@@ -63,6 +64,13 @@ def folder(name: str) -> PurePath:
     """Task `name`'s folder under runs/ and results/: none for the default task (its records are
     results/*.json), its name for another (results/<task>/)."""
     return PurePath() if check_task(name) == DEFAULT else PurePath(name)
+
+
+def code_folder(name: str) -> tuple[str, Path]:
+    """Task `name`'s own code: its folder as the package names it ("bumps_jax/tasks/<name>/") and
+    where that folder lies."""
+    package = _TASKS[check_task(name)].rpartition(".")[0]
+    return package.replace(".", "/") + "/", Path(importlib.util.find_spec(package).submodule_search_locations[0])
 
 
 def check_record_task(found, name: str, what: str) -> None:
