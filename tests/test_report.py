@@ -551,3 +551,19 @@ def test_the_at_budget_baseline_is_named_below_above_or_level_with_the_best_bump
     assert readme_table.than_best(0.412, best) == ", above the best BUMPS variant's 0.35 m"
     assert readme_table.than_best(0.351, best) == ", level with the best BUMPS variant's 0.35 m"
     assert readme_table.than_best(0.272, None) == ""
+
+
+def test_a_tasks_report_leaves_out_the_stages_it_does_not_have(tmp_path, monkeypatch):
+    # A task without a baseline stage was reported with "| baseline | not run |", as if it had one.
+    import dataclasses
+
+    from bumps_jax.report import task_report
+
+    committed = json.loads((ROOT / "results" / "cheetah_vel" / "experts.json").read_text())
+    runio.write_json(tmp_path / "experts" / "experts.json", committed)
+    cheetah = task_report.tasks.get("cheetah_vel")
+    assert "| baseline | not run |" in publish.write_report(tmp_path).read_text()
+    lean = dataclasses.replace(cheetah, stages=("experts", "meta", "filter"))
+    monkeypatch.setattr(task_report.tasks, "get", lambda name: lean if name == "cheetah_vel" else cheetah)
+    text = publish.write_report(tmp_path).read_text()
+    assert "| experts |" in text and "| meta | not run |" in text and "| baseline |" not in text

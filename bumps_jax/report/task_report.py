@@ -8,6 +8,7 @@ from pathlib import Path
 
 from bumps_jax.report import budgets, error_map, tables
 from bumps_jax.report.summary import EXTRAS, STAGES, load, pipeline_lines, preamble_lines, stages_table
+from bumps_jax.tasks import registry as tasks
 
 
 def first_record(run_dir: str | Path) -> dict | None:
@@ -45,7 +46,8 @@ def build_task(run_dir: str | Path, task: str) -> str:
     """The report's markdown of a run of `task` (not the kick): its stages' wall times, the
     experts, Table 1, Table 2 and the multi-task PPO baseline in the task's unit."""
     run_dir = Path(run_dir)
-    found = records(run_dir)
+    stages = tasks.get(task).stages
+    found = {name: record for name, record in records(run_dir).items() if name in stages}  # the task's own
     lines = [f"# BUMPS on {task}: run `{run_dir.name}`", ""]
     first = next((v for v in found.values() if v), None)
     if first is None:
@@ -55,14 +57,15 @@ def build_task(run_dir: str | Path, task: str) -> str:
     stage_lines, own_s = stages_table(found)
     lines += stage_lines
     lines += pipeline_lines(load(run_dir, EXTRAS["pipeline"]), own_s)
-    if found["experts"]:
-        lines += ["## Experts (each on its own training target)", "", tables.task_experts_markdown(found["experts"])]
-    if found["meta"]:
-        lines += [tables.task_table1_markdown(found["meta"]["rows"], unit)]
-    if found["filter"]:
-        lines += [tables.task_table2_markdown(found["filter"]["rows"], unit)]
-    if found["baseline"]:
-        lines += task_baseline_lines(found["baseline"], found["experts"], found["filter"], unit)
+    experts, meta, filtered, baseline = (found.get(name) for name in ("experts", "meta", "filter", "baseline"))
+    if experts:
+        lines += ["## Experts (each on its own training target)", "", tables.task_experts_markdown(experts)]
+    if meta:
+        lines += [tables.task_table1_markdown(meta["rows"], unit)]
+    if filtered:
+        lines += [tables.task_table2_markdown(filtered["rows"], unit)]
+    if baseline:
+        lines += task_baseline_lines(baseline, experts, filtered, unit)
     figures = sorted(p.relative_to(run_dir).as_posix() for p in [*run_dir.glob("*.png"), *run_dir.glob("*/*.png")])
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
