@@ -119,6 +119,15 @@ def run_tuning(cfg, parts: int = 1, say=print, check_whole: bool = True) -> dict
     def join(pieces):
         return jax.tree.map(lambda *xs: jnp.concatenate(xs), *pieces)
 
+    def in_parts(fn, batched, *whole):
+        """fn over `batched` (rows on the leading axis) as `parts` calls of equal parts, the rows
+        padded to a multiple of `parts` as processes pad them (`sharding.pad`), joined and unpadded;
+        `whole`: arguments every call takes whole."""
+        n = len(jax.tree.leaves(batched)[0])
+        k = -(-n // parts)
+        padded = sharding.pad(batched, k * parts)
+        return sharding.unpad(join([fn(*cut(padded, i, k), *whole) for i in range(parts)]), n)
+
     def gen1_episodes(search, args):
         """Generation 1's candidates, each one's R episodes' costs at the whole batch and in parts."""
         carry, key, x0, target, scale = args[:5]
@@ -130,15 +139,13 @@ def run_tuning(cfg, parts: int = 1, say=print, check_whole: bool = True) -> dict
         keys = jax.vmap(lambda k: jnp.broadcast_to(jax.random.split(k, R), (P, R) + k.shape))(ks[:, 1])
         params = kick_model.clip_params(x0[:, None] + scale[:, None] * z)
         zero = jnp.zeros(len(target))
-        k = len(target) // parts
 
-        def episodes(metrics, tgt):
+        def episodes(*batch):  # (params, keys, targets, extra) -> each episode's cost and distance
+            metrics, tgt = per_search(*batch)[1], batch[2]
             return {"cost": kick_model.fitness(metrics, tgt[:, None, None], weights), "distance": metrics["distance"]}
 
-        whole = episodes(per_search(params, keys, target, zero)[1], target)
-        pieces = [episodes(per_search(*cut((params, keys, target, zero), i, k))[1], cut(target, i, k))
-                  for i in range(parts)]  # fmt: skip
-        return {"whole": host(whole), "parts": host(join(pieces))}
+        batch = (params, keys, target, zero)
+        return {"whole": host(episodes(*batch)), "parts": host(in_parts(episodes, batch))}
 
     def kick_search(*a, **kw):
         search = real_search(*a, **kw)
@@ -146,9 +153,7 @@ def run_tuning(cfg, parts: int = 1, say=print, check_whole: bool = True) -> dict
             return search
 
         def step(*args):
-            k = len(args[2]) // parts  # x0: (T, 14)
-            pieces = [search.step(*sharding.place(cut(args, i, k), search.mesh)) for i in range(parts)]
-            carry, stats = join(pieces)
+            carry, stats = in_parts(lambda *part: search.step(*sharding.place(part, search.mesh)), args)
             if not check_whole:
                 return carry, stats
             whole_carry, whole_stats = search.step(*args)
@@ -178,10 +183,7 @@ def run_tuning(cfg, parts: int = 1, say=print, check_whole: bool = True) -> dict
             if parts == 1:
                 costs = program(params, keys, tgt)
             else:
-                k = len(tgt) // parts
-                costs = join(
-                    [program(params[i * k : (i + 1) * k], keys, tgt[i * k : (i + 1) * k]) for i in range(parts)]
-                )
+                costs = in_parts(lambda p, t, k: program(p, k, t), (params, tgt), keys)
             out["fresh_costs"].append(host(costs))
             return costs
 
