@@ -55,6 +55,7 @@ OTHER = {
 # its lock, as the stages are, and refused at once where the directory does not exist. (A task's
 # own commands say so themselves: `protocol.Command.needs_run`.)
 NEEDS_RUN = ("evaluate", "publish", "report")
+NO_DEVICE_WORK = ("config", "report", "publish")  # commands that only read and write files
 
 
 def task_commands() -> dict:
@@ -202,6 +203,19 @@ def default_run_dir(command: str, preset: str, task: str | None = None) -> Path:
     return Path("runs") / tasks.folder(task or tasks.DEFAULT) / name
 
 
+def missing_run(run_dir, args) -> str:
+    """The message for a command that reads a run where `run_dir` does not exist: the demo's run
+    named where --run-dir was left at its default and the demo's folder holds one."""
+    message = f"no run directory {str(run_dir)!r}: run its stages first"
+    demo = default_run_dir("demo", args.preset, args.task)
+    if args.run_dir is None and demo.is_dir():
+        return f"{message}, or add --run-dir {demo} (the demo's run)"
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
+
+    task = f" --task {args.task}" if args.task not in (None, tasks.DEFAULT) else ""
+    return f"{message} (e.g. python -m bumps_jax demo{task}, then --run-dir {demo})"
+
+
 def pipeline_stages(command: str, chosen) -> tuple[str, ...]:
     """The stages a pipeline command runs: all of them, or those `chosen` (--stages) in its order;
     ValueError naming a stage it does not have."""
@@ -291,7 +305,7 @@ def dispatch(args) -> None:
     needs_run = args.command in NEEDS_RUN or (spec is not None and spec.needs_run)
     if needs_run:
         if not Path(run_dir).is_dir():  # refused before the lock would create it
-            raise ValueError(f"no run directory {str(run_dir)!r}: run its stages first (e.g. python -m bumps_jax demo)")
+            raise ValueError(missing_run(run_dir, args))
     if section:
         if not Path(run_dir).is_dir():  # a stage's missing inputs refused before the lock creates the directory
             pipeline.plan(section, cfg, Path(run_dir))
@@ -405,6 +419,8 @@ def main(argv=None) -> None:
         sys.exit(f"error: --processes {args.processes} starts its own processes; --distributed is for one that a "
                  "launcher (srun) started: give one of the two")  # fmt: skip
     try:
+        if args.processes != 1 and args.command in NO_DEVICE_WORK:
+            raise ValueError(f"--processes {args.processes}: {args.command} computes nothing on a device; leave it out")
         if args.processes != 1 and not args.distributed:
             from bumps_jax import launch  # noqa: PLC0415
 

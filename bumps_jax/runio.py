@@ -363,16 +363,19 @@ def read_kept(path: str | os.PathLike | None, key: str) -> dict | None:
     return kept if isinstance(kept, dict) and kept.get("fingerprint") == key else None
 
 
-def check_writable(directory: str | os.PathLike) -> Path:
-    """Create `directory` and prove it writable, or ValueError naming it (before any long work)."""
+def check_writable(directory: str | os.PathLike, what: str = "run directory") -> Path:
+    """Create `directory` and prove it writable, or ValueError naming it as `what` (before any
+    long work)."""
     directory = Path(directory)
+    if directory.exists() and not directory.is_dir():
+        raise ValueError(f"{what} {str(directory)!r} is a file, not a folder")
     try:
         directory.mkdir(parents=True, exist_ok=True)
         probe = directory / f".write_probe{os.getpid()}"  # one per process: several may start at once
         probe.write_text("")
         probe.unlink()
     except OSError as err:
-        raise ValueError(f"run directory {str(directory)!r} is not writable: {err.strerror or err}") from None
+        raise ValueError(f"{what} {str(directory)!r} is not writable: {err.strerror or err}") from None
     return directory
 
 

@@ -161,7 +161,7 @@ def main(argv=None) -> None:
 
     try:
         cfg = config.make_config(args.preset, {"task": args.task})
-        runio.check_writable(args.out.parent)
+        runio.check_writable(args.out.parent, "the record's folder")
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     gpus = launch.visible_gpus()

@@ -148,7 +148,7 @@ def main(argv=None) -> None:
 
     try:
         cfgs = {seed: make_config(args, seed) for seed in args.seeds}
-        runio.check_writable(args.out.parent)
+        runio.check_writable(args.out.parent, "the record's folder")
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     start = time.perf_counter()

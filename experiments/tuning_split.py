@@ -371,7 +371,7 @@ def main(argv=None) -> None:
 
     try:
         cfg = make_config(args)
-        runio.check_writable(args.out.parent)
+        runio.check_writable(args.out.parent, "the record's folder")
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     start = time.perf_counter()

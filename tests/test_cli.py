@@ -408,3 +408,29 @@ def test_processes_beside_distributed_and_a_missing_job_are_one_line(tmp_path):
     done = subprocess.run(cmd, env={**env, "JAX_PLATFORMS": "cpu"}, capture_output=True, text=True, timeout=300)
     assert done.returncode != 0 and "Traceback" not in done.stderr
     assert done.stderr.strip().splitlines()[-1].startswith("error: --distributed: no multi-process job found (")
+
+
+def test_a_command_reading_the_default_run_after_a_demo_names_the_demos_run(tmp_path, monkeypatch):
+    # `demo` writes runs/demo, `report` reads runs/tiny: it said "run its stages first (e.g.
+    # python -m bumps_jax demo)", which never makes runs/tiny.
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit, match=r"^error: no run directory 'runs/tiny': .*then --run-dir runs/demo\)$"):
+        cli.main(["report"])
+    (tmp_path / "runs" / "demo").mkdir(parents=True)
+    with pytest.raises(SystemExit, match=r"or add --run-dir runs/demo \(the demo's run\)$"):
+        cli.main(["report"])
+
+
+@pytest.mark.parametrize("command", ["config", "report"])
+def test_processes_on_a_command_without_device_work_is_refused(tmp_path, command):
+    # `config --processes 3` launched three processes and left a runs/tiny/ behind.
+    with pytest.raises(SystemExit, match=rf"^error: --processes 3: {command} computes nothing on a device"):
+        cli.main([command, "--processes", "3", "--run-dir", str(tmp_path / "run")])
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("gif", ["x.png", "."])
+def test_a_gif_that_cannot_be_written_is_refused_before_the_kicks(gif):
+    # `kick --gif /tmp` selected and kicked for 70 s, then ended in PIL's "unknown file extension".
+    with pytest.raises(SystemExit, match=rf"^error: --gif '{gif}': give a file name ending in .gif$"):
+        cli.main(["kick", "--target", "12", "--gif", gif])

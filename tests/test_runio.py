@@ -75,3 +75,13 @@ def test_a_run_directory_in_use_by_another_process_is_refused_in_one_line(tmp_pa
         proc.wait()
     with runio.run_lock(tmp_path) as run_dir:  # a killed holder leaves the directory free
         assert (run_dir / ".lock").read_text().strip() == str(os.getpid())
+
+
+def test_a_file_given_as_a_folder_is_named_as_what_it_was_given_for(tmp_path):
+    # `kick --gif README.md/k.gif` said "run directory 'README.md' is not writable: File exists".
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    with pytest.raises(ValueError, match=r"^the GIF's folder '.*afile' is a file, not a folder$"):
+        runio.check_writable(blocker, "the GIF's folder")
+    with pytest.raises(ValueError, match=r"^run directory '.*afile' is a file, not a folder$"):
+        runio.check_writable(blocker)
