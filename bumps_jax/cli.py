@@ -243,10 +243,21 @@ def command_config(args, section: str | None = None):
     return config.make_config(args.preset, overrides)
 
 
-def check_run(run_dir: Path, cfg) -> None:
+def has_command(task: str, command: str) -> bool:
+    """Whether `task` runs `command`: a stage command of a stage it has, a pipeline, a command of
+    every task's, or one of its own."""
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
+
+    if command in STAGE_COMMANDS:
+        return STAGE_COMMANDS[command][0] in tasks.get(task).stages
+    return command in PIPELINES or command in NEEDS_RUN or command in tasks.own_commands(task)
+
+
+def check_run(run_dir: Path, cfg, command: str | None = None) -> None:
     """ValueError unless the run's records (where it has some) name `cfg`'s task, and were made
     under its env config or name its preset: a command given another task's run directory, or a
-    run of another preset without `--preset`, is refused before it reads the run."""
+    run of another preset without `--preset`, is refused before it reads the run (the report
+    reads any preset's)."""
     from bumps_jax import config, records  # noqa: PLC0415
     from bumps_jax.report import task_report  # noqa: PLC0415
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
@@ -261,9 +272,11 @@ def check_run(run_dir: Path, cfg) -> None:
     try:
         tasks.check_record_task(found, cfg.task, str(run_dir))
     except ValueError as err:
+        if command is not None and not has_command(found, command):
+            raise ValueError(f"{err}, and {found} has no {command} command: give another --run-dir") from None
         raise ValueError(f"{err}: add --task {found}, or give another --run-dir") from None
     preset = record.get("preset")
-    if preset in (None, cfg.preset) or record.get("env") is None:
+    if command == "report" or preset in (None, cfg.preset) or record.get("env") is None:
         return
     try:
         records.check_same_env(record["env"], config.resolved_env(cfg), f"{run_dir}'s records")
@@ -281,8 +294,11 @@ def checked_config(args, run_dir=None):
     if args.preset not in known:
         raise ValueError(f"--preset {args.preset!r}: {args.command} takes {' or '.join(map(repr, known))}")
     cfg = command_config(args, STAGE_COMMANDS.get(args.command, (None,))[0])
-    if run_dir is not None and args.command not in ("config", "report"):  # the report reads the task from the run
-        check_run(Path(run_dir), cfg)
+    if args.command == "report" and any(args.set):
+        raise ValueError("--set: report reads a run's records as they are; it takes no config values")
+    # The report reads the task from the run: only a --task given for it is checked against it.
+    if run_dir is not None and (args.command not in ("config", "report") or args.task is not None):
+        check_run(Path(run_dir), cfg, args.command)
     return cfg
 
 

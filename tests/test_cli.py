@@ -434,3 +434,15 @@ def test_a_gif_that_cannot_be_written_is_refused_before_the_kicks(gif):
     # `kick --gif /tmp` selected and kicked for 70 s, then ended in PIL's "unknown file extension".
     with pytest.raises(SystemExit, match=rf"^error: --gif '{gif}': give a file name ending in .gif$"):
         cli.main(["kick", "--target", "12", "--gif", gif])
+
+
+def test_the_report_and_the_kicks_own_commands_are_checked_against_the_runs_task(tmp_path):
+    # `report --task point_goal` on a cheetah run wrote the cheetah's report and exited 0; `video`
+    # on it said "add --task cheetah_vel", which then said the cheetah has no video command.
+    runio.write_json(tmp_path / "experts" / "experts.json", {"task": "cheetah_vel"})
+    with pytest.raises(SystemExit, match=r"records name 'cheetah_vel'\): add --task cheetah_vel, or give another"):
+        cli.main(["report", "--task", "point_goal", "--run-dir", str(tmp_path)])
+    with pytest.raises(SystemExit, match=r"^error: --set: report reads a run's records as they are"):
+        cli.main(["report", "--run-dir", str(tmp_path), "--set", "env.physics_dt=0.005"])
+    with pytest.raises(SystemExit, match=r"'cheetah_vel'\), and cheetah_vel has no video command: give another"):
+        cli.main(["video", "--run-dir", str(tmp_path)])
