@@ -214,6 +214,8 @@ def test_physics_blowup_is_a_failed_kick(env, jit_env):
     "overrides, message",
     [
         ({"task_range": (18.0, 7.0)}, "task_range"),
+        ({"task_range": (7.0,)}, r"^env.task_range must be \(low, high\), got \(7.0,\)$"),
+        ({"tasks": (20.0,)}, r"^env.tasks: target 20.0 m is outside the task range"),
         ({"tasks": ()}, "tasks is empty"),
         ({"tasks": (5.0,)}, "5.0"),
         ({"noise.friction": -0.1}, "noise.friction"),

@@ -116,6 +116,8 @@ def _scene_iterations() -> int:
 def validate_config(cfg: ml_collections.ConfigDict) -> None:
     """ValueError naming the first bad value of an env config."""
     task_env.validate_physics(cfg)
+    if len(cfg.task_range) != 2:
+        raise ValueError(f"env.task_range must be (low, high), got {tuple(cfg.task_range)}")
     lo, hi = cfg.task_range
     if not 0.0 < lo < hi:
         raise ValueError(f"env.task_range must be 0 < low < high, got {tuple(cfg.task_range)}")
@@ -124,7 +126,10 @@ def validate_config(cfg: ml_collections.ConfigDict) -> None:
         raise ValueError(f"need 0 < env.ctrl_dt <= env.horizon_s, got {cfg.ctrl_dt}, {cfg.horizon_s}")
     if len(cfg.tasks) == 0:
         raise ValueError("env.tasks is empty: give at least one target distance")
-    check_targets(cfg.tasks, cfg.task_range)
+    try:
+        check_targets(cfg.tasks, cfg.task_range)
+    except ValueError as err:
+        raise ValueError(f"env.tasks: {err}") from None
     for name, value in cfg.noise.items():
         if value < 0:
             raise ValueError(f"env.noise.{name} must be >= 0, got {value}")
