@@ -457,8 +457,10 @@ def main(argv=None) -> None:
         if not raised_here(err):  # a library's error deep inside a stage: its traceback says where
             raise_or_leave(args)
         leave(args, f"error: {err}")  # bad config values, missing or stale inputs: one clear line
-    except (KeyboardInterrupt, resumable.Interrupted):
-        if args.command in (*STAGE_COMMANDS, *PIPELINES):  # the checkpoints are the state
+    except (KeyboardInterrupt, resumable.Interrupted) as err:
+        if isinstance(err, resumable.Interrupted) and str(err):  # it says where it stopped
+            leave(args, f"interrupted: {err}")
+        elif args.command in (*STAGE_COMMANDS, *PIPELINES):  # the checkpoints are the state
             leave(args, f"interrupted: rerun the same command to resume {run_dir} from what it saved (the stage in "
                   "flight's last chunk or search generation; the stages before it are done)")  # fmt: skip
         else:  # no stage ran: no checkpoint to resume from

@@ -430,3 +430,22 @@ def test_a_launch_is_recorded_with_its_wall_time_and_phases(tmp_path, stages):
     (line,) = report.launch_lines(record["launches"])
     assert line.startswith("Launched as 3 processes (experts, meta on 2 beside baseline on 1): **2.0 min**")
     assert "2 calls, added up" in line and "did not finish" not in line
+
+
+def test_ctrl_c_in_a_stage_that_then_runs_to_its_end_says_so(tmp_path, stages, monkeypatch):
+    # Ctrl-C during filtering: the stage ran its remaining variants, wrote its record, and the run
+    # then said "rerun the same command to resume ... the stage in flight's last chunk".
+    import os
+    import signal
+
+    log, modules = stages
+    run = modules["experts"].run
+
+    def pressed_during(cfg, run_dir, say=print):
+        os.kill(os.getpid(), signal.SIGINT)  # asks the stage to stop; it has no chunks, so it ends
+        return run(cfg, run_dir, say)
+
+    monkeypatch.setattr(modules["experts"], "run", pressed_during)
+    with pytest.raises(resumable.Interrupted, match=r"^the experts stage ran to its end before it could stop \("):
+        pipeline.run_stage("experts", cfg(), tmp_path, say=lambda *a, **k: None)
+    assert (tmp_path / "experts" / "out.json").exists() and log == ["experts"]

@@ -135,7 +135,9 @@ def execute(name: str, cfg, run_dir: Path, wanted: dict, status: str, say=print)
             _forget_empty_stage(run_dir / name)
             raise
         runio.sync(f"stage {name} ends")  # the next stage reads what this one wrote
-        stop.check()
+        if stop.requested:  # the stage ran to its end: its record is written
+            raise resumable.Interrupted(f"the {name} stage ran to its end before it could stop ({output}); the stages "
+                                        "after it have not run: rerun the same command for them")  # fmt: skip
     return record
 
 
