@@ -74,7 +74,7 @@ def make_config(preset: str = "tiny", overrides: dict | None = None) -> ml_colle
     given = {**presets[preset], **overrides}
     for key, value in given.items():
         set_leaf(cfg, key, value)
-    tasks.get(task).env_class.validate_config(cfg.env)  # the derived keys may divide by its values
+    tasks.get(task).env_class.validate_config(cfg.env)  # before the derived keys, which may divide by its values
     derive(cfg, frozenset(given))
     validate(cfg)
     return cfg
@@ -160,14 +160,13 @@ def coerce(key: str, value, kind: type, current, optional: bool = False):
 
 
 def validate(cfg: ml_collections.ConfigDict) -> None:
-    """The env's checks (its class's `validate_config`), every section's range checks, then the
-    task's own (`Task.validate`: its plug-ins' sections, its capacities); ValueError naming the
-    first bad value."""
+    """Every section's range checks, then the task's own (`Task.validate`: its plug-ins' sections,
+    its capacities); ValueError naming the first bad value. The env's own checks (its class's
+    `validate_config`) ran first, in `make_config`, before the derived keys read the env."""
     from bumps_jax.envs import base as task_env  # noqa: PLC0415
     from bumps_jax.schema import validation  # noqa: PLC0415 (the checks import the algorithm modules)
 
     task = tasks.get(cfg.task)
-    task.env_class.validate_config(cfg.env)  # the sections' checks read the episode's length and range
     task_env.validate_task_range(cfg.env.task_range)  # every context is checked against it
     n_steps, task_range, unit = task.env_class.n_steps_of(cfg.env), tuple(cfg.env.task_range), task.unit
     size = task.env_class.CONTEXT_SIZE  # numbers in one context

@@ -13,7 +13,7 @@ Writes one record: per seed and arm the tuned kicks' fresh costs (each run's mea
 targets, the chosen kicks' mean), the per-seed difference (parts - whole) and a two-sided sign-flip
 permutation p-value of its mean (2^seeds sign patterns).
 
-    python experiments/tuning_batch_shape.py --preset paper --impl warp --seeds 0 1 2 3 --parts 4 \\
+    python -m experiments.tuning_batch_shape --preset paper --impl warp --seeds 0 1 2 3 --parts 4 \\
         --out experiments/results/tuning_batch_shape_gpu.json
 """
 
@@ -28,8 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import tuning_split  # noqa: E402  (the tuning with its generations in parts: `run_tuning`)
+from experiments import tuning_split  # the tuning with its generations in parts: `run_tuning`
 
 
 def parse_args(argv=None):
@@ -132,7 +131,7 @@ def side_by_side(args) -> dict:
             own = [a for a in args.argv if a != "--side-by-side"]
             own += ["--seeds", *map(str, seeds), "--rows", str(Path(tmp) / f"rows.{j}.json")]
             env = dict(os.environ) if gpu is None else {**os.environ, "CUDA_VISIBLE_DEVICES": gpu}
-            procs.append(subprocess.Popen([sys.executable, __file__, *own], env=env))
+            procs.append(subprocess.Popen([sys.executable, "-m", __spec__.name, *own], env=env))
         codes = [p.wait() for p in procs]
         if any(codes):
             raise SystemExit(f"error: a side-by-side process ended with {codes}")

@@ -16,6 +16,7 @@ import numpy as np
 from bumps_jax import resumable
 from bumps_jax.algo import evaluate, ppo, rollout, sharding
 from bumps_jax.envs import base as task_env
+from bumps_jax.pipeline.programs import stage_env
 from bumps_jax.tasks import registry as tasks
 
 
@@ -75,7 +76,7 @@ def compile_programs(cfg, env=None, mesh=None) -> Compiled:
     """The experts' programs for a pipeline config (its task's `experts` section and env); compiled
     on first call."""
     start = tasks.get(cfg.task).expert_start
-    env = env or tasks.make_env(cfg.task, cfg.env)
+    env = env or stage_env(cfg.env, cfg.task)
     mesh = mesh or sharding.device_mesh(impl=env.config.impl)
     trainer = ppo.make_train(cfg.experts.ppo, env, prefix="experts.ppo.")
     make = make_fresh_init(trainer) if start is None else start.make_init(cfg, env, trainer)

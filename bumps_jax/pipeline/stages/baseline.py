@@ -29,6 +29,7 @@ from bumps_jax import config, resumable, runio
 from bumps_jax.algo import evaluate, ppo, rollout, sharding
 from bumps_jax.envs import base as task_env
 from bumps_jax.pipeline import expert_programs
+from bumps_jax.pipeline.programs import stage_env
 from bumps_jax.pipeline.stages import experts as experts_stage
 from bumps_jax.report import curves as figures
 from bumps_jax.tasks import registry as tasks
@@ -157,7 +158,7 @@ def run(cfg, run_dir: Path, say=print, max_chunks: int | None = None) -> dict | 
     start = time.perf_counter()
     b = cfg.baseline
     stage_dir = Path(run_dir) / "baseline"
-    env = tasks.make_env(cfg.task, cfg.env)
+    env = stage_env(cfg.env, cfg.task)
     unit = env.UNIT
     trainer = ppo.make_train(b.ppo, task_env.ContextObserved(env), traced_learning_rate=True, prefix="baseline.ppo.")
     policy0, bc_losses = start_policy(cfg, env, trainer, run_dir, say)

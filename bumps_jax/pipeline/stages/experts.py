@@ -50,6 +50,7 @@ from bumps_jax.pipeline.family import (
     train_chosen,
     train_rounds,
 )
+from bumps_jax.pipeline.programs import stage_env
 from bumps_jax.records import jsonable
 from bumps_jax.schema import sections as stage_sections
 from bumps_jax.tasks import registry as tasks
@@ -176,7 +177,7 @@ def load_family(cfg, run_dir: Path) -> Family:
     (`policy_record`) and final_params, not from the trainer that made them; `cfg` gives the env."""
     stage_dir = Path(run_dir) / "experts"
     record = runio.read_json(stage_dir / OUTPUT, "the experts' record: run train-experts first")
-    env = tasks.make_env(cfg.task, cfg.env)
+    env = stage_env(cfg.env, cfg.task)
     policy = record.get("policy") or policy_record(cfg.experts.ppo, env)  # a record from before it was kept
     params = load_final_params(stage_dir, policy, len(cfg.experts.tasks))
     return Family(expert_policy(policy_networks(policy), env), params, np.asarray(cfg.experts.tasks, np.float64))
