@@ -9,9 +9,10 @@ settings) for several tuning seeds in one process, twice each: every generation 
 the whole batch, and as N calls of its N parts (what N processes compute). Same device, same code,
 same starts: any difference is the batch shape's.
 
-Writes one record: per seed and arm the tuned kicks' fresh costs (each run's mean over the
-targets, the chosen kicks' mean), the per-seed difference (parts - whole) and a two-sided sign-flip
-permutation p-value of its mean (2^seeds sign patterns).
+Writes one record, again after each seed (a stopped run keeps the seeds it finished): per seed
+and arm the tuned kicks' fresh costs (each run's mean over the targets, the chosen kicks' mean),
+the per-seed difference (parts - whole) and a two-sided sign-flip permutation p-value of its
+mean (2^seeds sign patterns).
 
     python -m experiments.tuning_batch_shape --preset paper --impl warp --seeds 0 1 2 3 --parts 4 \\
         --out experiments/results/tuning_batch_shape_gpu.json
@@ -96,8 +97,9 @@ def compare(per_seed: dict) -> dict:
     return out
 
 
-def tune_seeds(args, cfgs: dict, start: float) -> dict:
-    """Each seed's tuning, whole and in parts, one after another in this process: seed -> arms."""
+def tune_seeds(args, cfgs: dict, start: float, on_seed) -> dict:
+    """Each seed's tuning, whole and in parts, one after another in this process: seed -> arms.
+    `on_seed(per_seed)` runs after each seed (its rows so far written, so a stopped run keeps them)."""
     per_seed = {}
     for i, (seed, cfg) in enumerate(cfgs.items()):
         row = {}
@@ -107,6 +109,7 @@ def tune_seeds(args, cfgs: dict, start: float) -> dict:
                                           say=lambda m, name=name: print(f"[{name}] {m}", flush=True))  # fmt: skip
             row[name] = summary(arm)
         per_seed[str(seed)] = row
+        on_seed(per_seed)
         done = time.perf_counter() - start
         print(f"[tuning_batch_shape] seed {seed}: tuned kicks' mean fresh cost whole {row['whole']['tuned_mean']:.3f}, "
               f"{args.parts} parts {row['parts']['tuned_mean']:.3f}; ETA {done / (i + 1) * (len(cfgs) - i - 1):.0f} s",
@@ -141,20 +144,10 @@ def side_by_side(args) -> dict:
     return {str(s): rows[str(s)] for s in args.seeds}
 
 
-def main(argv=None) -> None:
-    args = parse_args(argv)
+def write_record(args, cfgs: dict, per_seed: dict, seconds: float) -> dict:
+    """The record of the seeds tuned so far (`complete` once every requested seed is in)."""
     from bumps_jax import config, runio  # noqa: PLC0415
 
-    try:
-        cfgs = {seed: make_config(args, seed) for seed in args.seeds}
-        runio.check_writable(args.out.parent, "the record's folder")
-    except ValueError as err:
-        raise SystemExit(f"error: {err}") from None
-    start = time.perf_counter()
-    per_seed = side_by_side(args) if args.side_by_side and args.rows is None else tune_seeds(args, cfgs, start)
-    if args.rows is not None:  # one of the side-by-side processes: its rows for the first to join
-        runio.write_json(args.rows, per_seed)
-        return
     cfg = cfgs[args.seeds[0]]
     tune = cfg.experts.tune
     record = {
@@ -171,12 +164,36 @@ def main(argv=None) -> None:
             "sigma": tune.sigma_init,
             "overrides": args.set,
         },  # fmt: skip
+        "seeds_requested": list(args.seeds),
+        "complete": len(per_seed) == len(args.seeds),
         "seeds": per_seed,
         **compare(per_seed),
     }
-    record.update(runio.provenance(cfg.preset, time.perf_counter() - start, config.resolved_env(cfg)),
+    record.update(runio.provenance(cfg.preset, seconds, config.resolved_env(cfg)),
                   date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"))  # fmt: skip
     runio.write_json(args.out, runio.json_safe(record))
+    return record
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    from bumps_jax import runio  # noqa: PLC0415
+
+    try:
+        cfgs = {seed: make_config(args, seed) for seed in args.seeds}
+        runio.check_writable(args.out.parent, "the record's folder")
+    except ValueError as err:
+        raise SystemExit(f"error: {err}") from None
+    start = time.perf_counter()
+    if args.rows is not None:  # one of the side-by-side processes: its rows for the first to join
+        tune_seeds(args, cfgs, start, on_seed=lambda rows: runio.write_json(args.rows, rows))
+        return
+    if args.side_by_side:
+        per_seed = side_by_side(args)
+    else:
+        save = lambda rows: write_record(args, cfgs, rows, time.perf_counter() - start)  # noqa: E731
+        per_seed = tune_seeds(args, cfgs, start, on_seed=save)
+    record = write_record(args, cfgs, per_seed, time.perf_counter() - start)
     t = record["tuned_mean"]
     print(
         f"chosen kicks' mean fresh cost, {args.parts} parts - whole, per seed: "

@@ -700,3 +700,18 @@ def test_shipped_nets_carry_their_input_map_to_kick(stage_run, tmp_path, monkeyp
     with pytest.raises(RuntimeError, match="built"):
         policies.filtered_kicks(shipped, "meta_4x256", 12.0, 2, stage_run["cfg"].env)
     assert built == [(shift, scale)]
+
+
+def test_heldout_on_a_run_of_another_preset_names_the_preset_to_add(tmp_path):
+    """A run whose env this preset shares but whose experts trained other tasks: the message names
+    the run's preset (it said only 'not experts.tasks of this config')."""
+    cfg = config.make_config("paper", {"task": "cheetah_vel"})
+    runio.write_json(tmp_path / "experts" / "experts.json",
+                     {"preset": "tiny", "env": config.resolved_env(cfg), "tasks_m": [1.0]})  # fmt: skip
+    with pytest.raises(ValueError, match=r"trained the tasks \[1\.0\], not experts\.tasks of this config \(a run of "
+                                         r"preset 'tiny': add --preset tiny\)$"):  # fmt: skip
+        heldout.inputs(cfg, tmp_path)
+    runio.write_json(tmp_path / "experts" / "experts.json",
+                     {"preset": "paper", "env": config.resolved_env(cfg), "tasks_m": [1.0]})  # fmt: skip
+    with pytest.raises(ValueError, match=r"not experts\.tasks of this config$"):
+        heldout.inputs(cfg, tmp_path)

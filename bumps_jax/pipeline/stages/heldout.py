@@ -57,7 +57,10 @@ def inputs(cfg, run_dir: Path) -> dict:
         record.get("env"), config.resolved_env(cfg), f"the experts record {experts_json}", resolve
     )
     if [float(t) for t in record.get("tasks_m", [])] != [float(t) for t in cfg.experts.tasks]:
-        raise ValueError(f"{experts_json} trained the tasks {record.get('tasks_m')}, not experts.tasks of this config")
+        made = record.get("preset")
+        hint = f" (a run of preset {made!r}: add --preset {made})" if made and made != cfg.preset else ""
+        raise ValueError(f"{experts_json} trained the tasks {record.get('tasks_m')}, not experts.tasks of this config"
+                         + hint)  # fmt: skip
     final = run_dir / "experts" / "final_params"
     if not final.is_dir():
         raise ValueError(f"{final}: no trained experts: run train-experts first")
