@@ -67,14 +67,15 @@ def provenance(preset: str, wall_s: float, env: dict, command: str | None = None
 
 
 def command_line() -> str:
-    """How this process was started, as a user would type it (no absolute paths)."""
-    script = Path(sys.argv[0]).resolve()
-    package = Path(__file__).resolve().parent
-    if script.parent == package:  # python -m bumps_jax[.module]
-        head = "python -m bumps_jax" + ("" if script.stem == "__main__" else f".{script.stem}")
+    """How this process was started, as a user would type it (no absolute paths): `python -m
+    <module>` where it ran as a module, else `python <script>`."""
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    if spec is not None and spec.name:  # python -m bumps_jax[.module], python -m experiments.<name>
+        head = f"python -m {spec.name.removesuffix('.__main__')}"
     elif sys.argv[0] in ("-c", ""):
         head = "python -c <inline>"
     else:
+        script = Path(sys.argv[0]).resolve()
         try:
             head = f"python {script.relative_to(Path.cwd()).as_posix()}"
         except ValueError:

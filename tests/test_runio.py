@@ -85,3 +85,17 @@ def test_a_file_given_as_a_folder_is_named_as_what_it_was_given_for(tmp_path):
         runio.check_writable(blocker, "the GIF's folder")
     with pytest.raises(ValueError, match=r"^run directory '.*afile' is a file, not a folder$"):
         runio.check_writable(blocker)
+
+
+def test_the_command_line_names_the_module_a_process_ran_as(tmp_path):
+    """A record's command reads as it was typed: `python -m experiments.<name>` for an experiment
+    run as a module (it said `python experiments/<name>.py`, which cannot import its package)."""
+    code = "from bumps_jax import runio; print(runio.command_line())"
+    (tmp_path / "probe").mkdir()
+    (tmp_path / "probe" / "__init__.py").write_text("")
+    (tmp_path / "probe" / "show.py").write_text(code)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    run = lambda *argv: subprocess.run([sys.executable, *argv], cwd=tmp_path, env=env, capture_output=True,  # noqa: E731
+                                       text=True, check=True).stdout.strip()  # fmt: skip
+    assert run("-m", "probe.show", "--out", "x.json") == "python -m probe.show --out x.json"
+    assert run("probe/show.py", "--seeds", "1") == "python probe/show.py --seeds 1"

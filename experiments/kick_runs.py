@@ -1,0 +1,118 @@
+"""Where do the kick's runs on one GPU and on several part? Every finished run's experts record,
+grouped by the processes its experts ran on; nothing is rerun.
+
+Per run: the starting kicks' tuning (each restart's fresh cost: the mean over the targets of
+its tuned kicks' cost on fresh episodes), the prior beside it (its error at its target) and the
+experts' mean error. Per group, for the tuning and the experts (not every run's prior is kept):
+the runs' values, and a two-sided exact permutation p-value of the groups' difference, each run
+one sample (`device_count.permutation_p`). Beside that, how far a run's restarts lie apart
+against how far the runs do: restarts share their run's prior and starts, runs do not.
+
+    python -m experiments.kick_runs results/seeds/seed*/experts.json ... --out experiments/results/kick_runs.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bumps_jax import runio
+from experiments.device_count import permutation_p
+
+PRIOR = "kick_prior.json"  # the prior's record: beside the experts' in a published run, in prior/ in a run folder
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("experts", type=Path, nargs="+", help="finished runs' experts records (experts.json)")
+    parser.add_argument("--out", type=Path, required=True, help="the record to write (.json)")
+    return parser.parse_args(argv)
+
+
+def prior_of(experts_json: Path) -> dict | None:
+    for path in (experts_json.parent / PRIOR, experts_json.parent.parent / "prior" / PRIOR):
+        if path.is_file():
+            return runio.read_json(path, "a run's prior record")
+    return None
+
+
+def run_row(experts_json: Path) -> dict:
+    """One run's row; ValueError where the record is not a finished kick experts record."""
+    record = runio.read_json(experts_json, "a run's experts record")
+    tuning = record.get("starting_kicks_tuning_runs")
+    if record.get("task", "kick") != "kick" or not tuning:  # records before the task key are the kick's
+        raise ValueError(f"{experts_json}: not a kick experts record with its starting kicks' tuning")
+    prior = prior_of(experts_json)
+    costs = [float(c) for c in tuning["fresh_costs"]]
+    return {
+        "experts_record": str(experts_json),
+        "processes": int(record.get("n_processes", 1)),
+        "device": record.get("device"),
+        "date": record.get("date"),
+        "tuning_fresh_costs": costs,
+        "tuning_mean": float(np.mean(costs)),
+        "tuning_spread": float(np.max(costs) - np.min(costs)),
+        "prior_error_m": None if prior is None else float(prior["mean_error_m"]),
+        "experts_error_m": float(record["error_mean_m"]),
+    }
+
+
+def groups(rows: list[dict]) -> dict:
+    """One process against several: each group's per-run values and means, and the p-values."""
+    one = [r for r in rows if r["processes"] == 1]
+    several = [r for r in rows if r["processes"] > 1]
+    out = {"runs": {"one_process": len(one), "several_processes": len(several)}}
+    for key in ("tuning_mean", "experts_error_m"):
+        a, b = [r[key] for r in one], [r[key] for r in several]
+        out[key] = {"one_process": a, "several_processes": b,
+                    "mean_one": float(np.mean(a)) if a else None, "mean_several": float(np.mean(b)) if b else None,
+                    "permutation_p": permutation_p(np.asarray(a), np.asarray(b)) if a and b else None}  # fmt: skip
+    means = [r["tuning_mean"] for r in rows]
+    out["tuning_within_vs_between"] = {
+        "largest_spread_in_a_run": max(r["tuning_spread"] for r in rows),
+        "runs_range": [float(np.min(means)), float(np.max(means))],
+    }
+    return out
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    start = time.perf_counter()
+    try:
+        runio.check_writable(args.out.parent, "the record's folder")
+        rows = [run_row(p) for p in args.experts]
+    except ValueError as err:
+        raise SystemExit(f"error: {err}") from None
+    first = runio.read_json(args.experts[0], "a run's experts record")
+    for path in args.experts[1:]:
+        env = runio.read_json(path, "a run's experts record").get("env")
+        if env != first.get("env"):
+            differing = sorted(k for k in set(env or {}) | set(first.get("env") or {})
+                               if (env or {}).get(k) != (first.get("env") or {}).get(k))  # fmt: skip
+            raise SystemExit(f"error: {path} ran another env than {args.experts[0]} (keys {differing})")
+    record = {
+        "task": "kick",
+        "per_run": rows,
+        **groups(rows),
+        "device": ", ".join(sorted({r["device"] for r in rows if r["device"]})),
+        "versions": first.get("versions"),
+        "env": first.get("env"),
+        "preset": first.get("preset"),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "command": runio.command_line(),
+        "wall_s": round(time.perf_counter() - start, 3),
+    }
+    runio.write_json(args.out, runio.json_safe(record))
+    t = record["tuning_mean"]
+    print(
+        f"tuned starting kicks' fresh cost, runs on one process {np.round(t['one_process'], 3).tolist()}, on several "
+        f"{np.round(t['several_processes'], 3).tolist()} (p = {t['permutation_p']:.2f}); wrote {args.out}"
+    )
+
+
+if __name__ == "__main__":
+    main()
