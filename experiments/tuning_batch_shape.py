@@ -39,6 +39,10 @@ def parse_args(argv=None):
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="experts.tune.seed values")
     parser.add_argument("--parts", type=int, default=4, help="N: the calls each generation is split into")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides (JSON values)")
+    parser.add_argument("--prior", type=Path, help="a prior stage's record (kick_prior.json) whose anchors and "
+                        "sweep give the starts (default: the shipped prior)")  # fmt: skip
+    parser.add_argument("--arms", nargs="+", default=["whole", "parts"], choices=("whole", "parts"),
+                        help="which tunings run: the whole batch, its parts, or both (compared)")  # fmt: skip
     parser.add_argument("--side-by-side", action="store_true",
                         help="one process a GPU, the seeds dealt out over them")  # fmt: skip
     parser.add_argument("--out", type=Path, required=True, help="the record to write (.json)")
@@ -49,7 +53,28 @@ def parse_args(argv=None):
         parser.error(f"--parts must be at least 2, got {args.parts}")
     if len(set(args.seeds)) != len(args.seeds) or any(s < 0 for s in args.seeds):
         parser.error(f"--seeds must be distinct integers >= 0, got {args.seeds}")
+    if len(set(args.arms)) != len(args.arms):
+        parser.error(f"--arms must be distinct, got {args.arms}")
     return args
+
+
+def read_prior(path: Path | None) -> dict | None:
+    """The starts' prior from a prior stage's record (its anchors, in the order the kick names
+    them, and its sweep); None: the shipped prior. ValueError naming what is missing."""
+    if path is None:
+        return None
+    from bumps_jax import runio  # noqa: PLC0415
+    from bumps_jax.tasks.kick import keyframes as kick_model  # noqa: PLC0415
+
+    record = runio.read_json(path, "a kick prior record")
+    anchors = record.get("anchors")
+    if isinstance(anchors, dict):
+        if set(anchors) != set(kick_model.ANCHORS):
+            raise ValueError(f"--prior {path}: anchors {sorted(anchors)}, expected {list(kick_model.ANCHORS)}")
+        anchors = [anchors[a] for a in kick_model.ANCHORS]
+    if not anchors or not record.get("sweep"):
+        raise ValueError(f"--prior {path}: not a kick prior record (it needs anchors and sweep)")
+    return {"anchors": anchors, "sweep": record["sweep"]}
 
 
 def make_config(args, seed: int):
@@ -72,7 +97,8 @@ def summary(arm: dict) -> dict:
     """An arm's fresh costs: each run's mean over the targets (as the experts' record's
     `starting_kicks_tuning_runs.fresh_costs`), and the tuned kicks' mean."""
     return {"runs_mean": [float(c) for c in arm["restart_costs"]], "tuned_mean": float(np.mean(arm["tuned_cost"])),
-            "runs_kept": arm["runs_kept"], "seconds": arm["seconds"]}  # fmt: skip
+            "start_mean": float(np.mean(arm["start_cost"])), "runs_kept": arm["runs_kept"],
+            "seconds": arm["seconds"]}  # fmt: skip
 
 
 def sign_flip_p(diffs) -> float:
@@ -97,22 +123,25 @@ def compare(per_seed: dict) -> dict:
     return out
 
 
-def tune_seeds(args, cfgs: dict, start: float, on_seed) -> dict:
+def tune_seeds(args, cfgs: dict, start: float, on_seed, prior: dict | None = None) -> dict:
     """Each seed's tuning, whole and in parts, one after another in this process: seed -> arms.
     `on_seed(per_seed)` runs after each seed (its rows so far written, so a stopped run keeps them)."""
     per_seed = {}
     for i, (seed, cfg) in enumerate(cfgs.items()):
         row = {}
         for name, parts in (("whole", 1), ("parts", args.parts)):
+            if name not in args.arms:
+                continue
             print(f"[tuning_batch_shape] seed {seed} ({i + 1}/{len(cfgs)}), {name}", flush=True)
-            arm = tuning_split.run_tuning(cfg, parts=parts, check_whole=False,
+            arm = tuning_split.run_tuning(cfg, parts=parts, check_whole=False, prior=prior,
                                           say=lambda m, name=name: print(f"[{name}] {m}", flush=True))  # fmt: skip
             row[name] = summary(arm)
         per_seed[str(seed)] = row
         on_seed(per_seed)
         done = time.perf_counter() - start
-        print(f"[tuning_batch_shape] seed {seed}: tuned kicks' mean fresh cost whole {row['whole']['tuned_mean']:.3f}, "
-              f"{args.parts} parts {row['parts']['tuned_mean']:.3f}; ETA {done / (i + 1) * (len(cfgs) - i - 1):.0f} s",
+        costs = ", ".join(f"{name} {arm['tuned_mean']:.3f}" for name, arm in row.items())
+        print(f"[tuning_batch_shape] seed {seed}: tuned kicks' mean fresh cost {costs} (starts "
+              f"{next(iter(row.values()))['start_mean']:.3f}); ETA {done / (i + 1) * (len(cfgs) - i - 1):.0f} s",
               flush=True)  # fmt: skip
     return per_seed
 
@@ -164,10 +193,12 @@ def write_record(args, cfgs: dict, per_seed: dict, seconds: float) -> dict:
             "sigma": tune.sigma_init,
             "overrides": args.set,
         },  # fmt: skip
+        "prior": str(args.prior) if args.prior else "the shipped prior",
+        "arms": list(args.arms),
         "seeds_requested": list(args.seeds),
         "complete": len(per_seed) == len(args.seeds),
         "seeds": per_seed,
-        **compare(per_seed),
+        **(compare(per_seed) if len(args.arms) == 2 else {}),
     }
     record.update(runio.provenance(cfg.preset, seconds, config.resolved_env(cfg)),
                   date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"))  # fmt: skip
@@ -181,19 +212,23 @@ def main(argv=None) -> None:
 
     try:
         cfgs = {seed: make_config(args, seed) for seed in args.seeds}
+        prior = read_prior(args.prior)
         runio.check_writable(args.out.parent, "the record's folder")
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
     start = time.perf_counter()
     if args.rows is not None:  # one of the side-by-side processes: its rows for the first to join
-        tune_seeds(args, cfgs, start, on_seed=lambda rows: runio.write_json(args.rows, rows))
+        tune_seeds(args, cfgs, start, on_seed=lambda rows: runio.write_json(args.rows, rows), prior=prior)
         return
     if args.side_by_side:
         per_seed = side_by_side(args)
     else:
         save = lambda rows: write_record(args, cfgs, rows, time.perf_counter() - start)  # noqa: E731
-        per_seed = tune_seeds(args, cfgs, start, on_seed=save)
+        per_seed = tune_seeds(args, cfgs, start, on_seed=save, prior=prior)
     record = write_record(args, cfgs, per_seed, time.perf_counter() - start)
+    if "tuned_mean" not in record:  # one arm: nothing to compare
+        print(f"wrote {args.out}")
+        return
     t = record["tuned_mean"]
     print(
         f"chosen kicks' mean fresh cost, {args.parts} parts - whole, per seed: "

@@ -84,8 +84,9 @@ def make_config(args):
     })  # fmt: skip
 
 
-def run_tuning(cfg, parts: int = 1, say=print, check_whole: bool = True) -> dict:
-    """One tuning (`cmaes.tune_for_tasks`) with what each generation and the fresh scoring computed.
+def run_tuning(cfg, parts: int = 1, say=print, check_whole: bool = True, prior: dict | None = None) -> dict:
+    """One tuning (`cmaes.tune_for_tasks`) with what each generation and the fresh scoring computed,
+    its starts from `prior` (its anchors and sweep; default the shipped prior).
 
     parts > 1: every generation and the fresh scoring computed as `parts` calls of their parts,
     joined (what `parts` processes compute); with `check_whole`, each generation also computed as
@@ -103,7 +104,7 @@ def run_tuning(cfg, parts: int = 1, say=print, check_whole: bool = True) -> dict
     tune = cfg.experts.tune
     targets = np.asarray(cfg.experts.tasks, np.float32)
     env = starting_kicks.tune_env(cfg, int(tune.restarts))
-    record = kick_model.load_record(kick_model.ASSET)
+    record = kick_model.load_record(kick_model.ASSET) if prior is None else prior
     starts, _, _ = starting_kicks.prior_kicks(cfg, record, targets, env, say=lambda *a, **k: None)
     fitness_json = kick_scoring.fitness_json_of(cfg.prior.fitness)
     out = {"generations": [], "final_mean": [], "best_cost": [], "fresh_costs": [], "one_generation": [],
