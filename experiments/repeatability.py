@@ -59,6 +59,10 @@ def main(argv=None) -> None:
         against = None if args.against is None else runio.read_json(args.against, "another run's repeatability record")
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
+    lo, hi = (float(t) for t in cfg.prior.task_range)
+    targets = np.linspace(lo, hi, args.targets + 2, dtype=np.float32)[1:-1]
+    if against is not None and (against.get("targets_m") != targets.tolist() or against.get("reps") != args.reps):
+        raise SystemExit(f"error: {args.against} holds another batch (its targets or --reps differ from these)")
 
     import jax  # noqa: PLC0415
     import jax.numpy as jnp  # noqa: PLC0415
@@ -68,8 +72,6 @@ def main(argv=None) -> None:
 
     start = time.perf_counter()
     env = starting_kicks.tune_env(cfg)
-    lo, hi = (float(t) for t in cfg.prior.task_range)
-    targets = np.linspace(lo, hi, args.targets + 2, dtype=np.float32)[1:-1]
     record = kick_model.load_record(kick_model.ASSET)
     anchors, table = jnp.asarray(record["anchors"], jnp.float32), jnp.asarray(kick_model.calibration(record))
     params = np.asarray(jax.vmap(lambda t: kick_model.kick_for(anchors, table, t))(jnp.asarray(targets)))
@@ -92,8 +94,6 @@ def main(argv=None) -> None:
     }
     if against is not None:
         theirs = np.asarray(against.get("distance_m"), np.float64)
-        if theirs.shape != calls[0].shape or against.get("targets_m") != out["targets_m"]:
-            raise SystemExit(f"error: {args.against} holds another batch (targets or reps differ)")
         out["against"] = {"record": str(args.against), "device": against.get("device"),
                           **differences(theirs, calls[0])}  # fmt: skip
     out.update(runio.provenance(cfg.preset, time.perf_counter() - start, config.resolved_env(cfg)),

@@ -26,3 +26,12 @@ def test_too_few_calls_reps_or_targets_are_one_line(option, value, least, capsys
         repeatability.parse_args([option, value, "--out", "x.json"])
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.endswith(f"error: {option} must be at least {least}, got {value}")
+
+
+def test_a_record_of_another_batch_is_refused_before_any_replay(tmp_path):
+    from bumps_jax import runio
+
+    other = tmp_path / "other.json"
+    runio.write_json(other, {"targets_m": [8.0, 12.0], "reps": 4, "distance_m": [[8.0] * 4, [12.0] * 4]})
+    with pytest.raises(SystemExit, match=r"holds another batch \(its targets or --reps differ from these\)$"):
+        repeatability.main(["--targets", "3", "--reps", "4", "--against", str(other), "--out", str(tmp_path / "o")])
