@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments import tuning_split  # `episode_differences`
+
 TOLERANCE_M = 1e-3  # an episode "differs" when its resting distance moves more than this
 
 
@@ -41,11 +43,10 @@ def parse_args(argv=None):
 
 
 def differences(first: np.ndarray, other: np.ndarray) -> dict:
-    """How `other`'s resting distances (N, R) lie from `first`'s."""
-    diff = np.abs(np.asarray(other, np.float64) - np.asarray(first, np.float64))
-    return {"identical": bool(np.array_equal(first, other)), "max_abs_m": float(diff.max()),
-            "median_abs_m": float(np.median(diff)), "episodes": int(diff.size),
-            "over_tolerance": int(np.sum(diff > TOLERANCE_M)), "tolerance_m": TOLERANCE_M}  # fmt: skip
+    """How `other`'s resting distances (N, R) lie from `first`'s (m): bit for bit or not, and
+    `tuning_split.episode_differences` over the episodes."""
+    return {"identical": bool(np.array_equal(first, other)),
+            **tuning_split.episode_differences(first, other, TOLERANCE_M)}  # fmt: skip
 
 
 def main(argv=None) -> None:
@@ -65,7 +66,6 @@ def main(argv=None) -> None:
         raise SystemExit(f"error: {args.against} holds another batch (its targets or --reps differ from these)")
 
     import jax  # noqa: PLC0415
-    import jax.numpy as jnp  # noqa: PLC0415
 
     from bumps_jax.tasks.kick import keyframes as kick_model  # noqa: PLC0415
     from bumps_jax.tasks.kick import scoring, starting_kicks  # noqa: PLC0415
@@ -73,8 +73,7 @@ def main(argv=None) -> None:
     start = time.perf_counter()
     env = starting_kicks.tune_env(cfg)
     record = kick_model.load_record(kick_model.ASSET)
-    anchors, table = jnp.asarray(record["anchors"], jnp.float32), jnp.asarray(kick_model.calibration(record))
-    params = np.asarray(jax.vmap(lambda t: kick_model.kick_for(anchors, table, t))(jnp.asarray(targets)))
+    params = kick_model.family_kicks(record, targets)
     keys = jax.random.split(jax.random.key(0), len(targets) * args.reps).reshape(len(targets), args.reps)
     calls, seconds = [], []
     for i in range(args.calls):

@@ -78,18 +78,11 @@ def read_prior(path: Path | None) -> dict | None:
 
 
 def make_config(args, seed: int):
-    import json  # noqa: PLC0415
+    from bumps_jax import cli, config  # noqa: PLC0415
 
-    from bumps_jax import config  # noqa: PLC0415
-
-    overrides = {"task": "kick", "experts.tune.seed": seed}
+    overrides = {"task": "kick", **cli.parse_overrides([args.set]), "experts.tune.seed": seed}
     if args.impl is not None:
         overrides["env.impl"] = args.impl
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"--set {item!r}: give KEY=VALUE")
-        overrides[key] = json.loads(value)
     return config.make_config(args.preset, overrides)
 
 

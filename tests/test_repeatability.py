@@ -10,14 +10,14 @@ from experiments import repeatability
 def test_equal_calls_are_identical_and_a_moved_ball_is_counted():
     first = np.array([[10.0, 12.0], [14.0, 16.0]], np.float32)
     assert repeatability.differences(first, first.copy()) == {
-        "identical": True, "max_abs_m": 0.0, "median_abs_m": 0.0, "episodes": 4, "over_tolerance": 0,
-        "tolerance_m": repeatability.TOLERANCE_M,
+        "identical": True, "max_abs": 0.0, "median_abs": 0.0, "episodes": 4, "over_tolerance": 0,
+        "tolerance": repeatability.TOLERANCE_M, "differing": 0,
     }  # fmt: skip
     moved = first.copy()
     moved[1, 0] += 0.5  # one ball rests half a metre away
     moved[0, 1] += 1e-5  # one by rounding
     out = repeatability.differences(first, moved)
-    assert not out["identical"] and out["over_tolerance"] == 1 and out["max_abs_m"] == pytest.approx(0.5)
+    assert not out["identical"] and out["over_tolerance"] == 1 and out["max_abs"] == pytest.approx(0.5)
 
 
 @pytest.mark.parametrize("option, value, least", [("--calls", "1", 2), ("--reps", "0", 1), ("--targets", "0", 1)])

@@ -173,6 +173,13 @@ def kick_for(anchors, table, target) -> jax.Array:
     return blend_params(anchors, strength)
 
 
+def family_kicks(record: dict, targets) -> np.ndarray:
+    """The prior `record`'s blended family (its anchors at the strengths its sweep calibrates,
+    `kick_for`) at `targets` (T,) m: (T, 14)."""
+    anchors, table = jnp.asarray(record["anchors"], jnp.float32), jnp.asarray(calibration(record))
+    return np.asarray(jax.vmap(lambda t: kick_for(anchors, table, t))(jnp.asarray(targets, jnp.float32)))
+
+
 def largest_jump(params, targets) -> dict:
     """The roughness of a family of kicks: the largest change of one parameter between kicks of
     neighbouring targets, in `PARAM_SCALE` units.

@@ -51,9 +51,8 @@ def prior_kicks(cfg, record: dict, targets, env, say=print) -> tuple[np.ndarray,
         starts[:, kick_model.PARAM_NAMES.index("strength")] = np.interp(targets, table[:, 1], table[:, 0])
         info["common_start_sweep"] = rows
         return starts, info, len(COMMON_START_STRENGTHS) * reps
-    anchors = jnp.asarray(record["anchors"], jnp.float32)
-    table = jnp.asarray(kick_model.calibration(record))
-    starts = np.asarray(jax.vmap(lambda t: kick_model.kick_for(anchors, table, t))(jnp.asarray(targets)))
+    anchors = np.asarray(record["anchors"], np.float32)
+    starts = kick_model.family_kicks(record, targets)
     if not e.tune.anchor_starts:
         return starts, info, 0
     candidates = np.concatenate([starts[:, None], np.broadcast_to(anchors, (len(targets), *anchors.shape))], 1)
