@@ -71,12 +71,33 @@ def groups(rows: list[dict]) -> dict:
         out[key] = {"one_process": a, "several_processes": b,
                     "mean_one": float(np.mean(a)) if a else None, "mean_several": float(np.mean(b)) if b else None,
                     "permutation_p": permutation_p(np.asarray(a), np.asarray(b)) if a and b else None}  # fmt: skip
+    out["experts_given_tuning"] = given_tuning(one, several)
     means = [r["tuning_mean"] for r in rows]
     out["tuning_within_vs_between"] = {
         "largest_spread_in_a_run": max(r["tuning_spread"] for r in rows),
         "runs_range": [float(np.min(means)), float(np.max(means))],
     }
     return out
+
+
+def given_tuning(one: list[dict], several: list[dict]) -> dict | None:
+    """How far the groups' experts part once their tunings are accounted for: one straight line
+    of the experts' error on the tuning's mean fresh cost fitted over every run, each run's
+    residual from it, each group's mean residual and the permutation p-value of their difference
+    (the line fitted on the pooled runs, so the p-value is approximate). None with fewer than two
+    runs in a group."""
+    if len(one) < 2 or len(several) < 2:
+        return None
+    rows = one + several
+    x, y = (np.array([r[k] for r in rows]) for k in ("tuning_mean", "experts_error_m"))
+    slope, intercept = np.polyfit(x, y, 1)
+    residual = y - (intercept + slope * x)
+    a, b = residual[: len(one)], residual[len(one) :]
+    return {"slope_m_per_cost": float(slope), "intercept_m": float(intercept),
+            "correlation": float(np.corrcoef(x, y)[0, 1]),
+            "residual_one_process": a.tolist(), "residual_several_processes": b.tolist(),
+            "mean_residual_one": float(a.mean()), "mean_residual_several": float(b.mean()),
+            "permutation_p": permutation_p(a, b)}  # fmt: skip
 
 
 def main(argv=None) -> None:
@@ -112,6 +133,12 @@ def main(argv=None) -> None:
         f"tuned starting kicks' fresh cost, runs on one process {np.round(t['one_process'], 3).tolist()}, on several "
         f"{np.round(t['several_processes'], 3).tolist()} (p = {t['permutation_p']:.2f}); wrote {args.out}"
     )
+    g = record["experts_given_tuning"]
+    if g is not None:
+        print(
+            f"experts' error beside the line through the tunings: one process {g['mean_residual_one']:+.3f} m, "
+            f"several {g['mean_residual_several']:+.3f} m (p = {g['permutation_p']:.2f})"
+        )
 
 
 if __name__ == "__main__":

@@ -37,3 +37,20 @@ def test_a_record_without_the_tuning_or_of_another_env_is_one_line(tmp_path):
     other = experts_record(tmp_path / "b", 2, [0.4], 0.3, env={"impl": "jax"})
     with pytest.raises(SystemExit, match=r"ran another env than .* \(keys \['impl'\]\)$"):
         kick_runs.main([str(one), str(other), "--out", str(tmp_path / "out.json")])
+
+
+def test_the_experts_are_compared_beside_the_line_through_the_tunings():
+    def rows(points):  # (processes, tuning mean, experts' error)
+        return [{"processes": p, "tuning_mean": t, "experts_error_m": e} for p, t, e in points]
+
+    # Every run on one line: whatever the groups' raw errors, nothing is left beside it.
+    on_line = rows([(1, 0.3, 0.19), (1, 0.4, 0.22), (4, 0.6, 0.28), (2, 0.7, 0.31)])
+    g = kick_runs.given_tuning(on_line[:2], on_line[2:])
+    assert g["slope_m_per_cost"] == pytest.approx(0.3) and g["intercept_m"] == pytest.approx(0.1)
+    assert g["residual_one_process"] + g["residual_several_processes"] == pytest.approx([0.0] * 4, abs=1e-12)
+    assert g["permutation_p"] == 1.0
+    # The several-process runs 0.05 m above the one-process runs at the same tunings.
+    apart = rows([(1, 0.3, 0.19), (1, 0.5, 0.25), (2, 0.3, 0.24), (2, 0.5, 0.30)])
+    g = kick_runs.given_tuning(apart[:2], apart[2:])
+    assert g["mean_residual_several"] - g["mean_residual_one"] == pytest.approx(0.05)
+    assert kick_runs.given_tuning(apart[:1], apart[1:]) is None
