@@ -285,23 +285,23 @@ def test_unknown_key_is_refused():
 
 def test_ppo_improves_the_return_on_the_warp_backend():
     """PPO from a fresh policy raises the collected return on MuJoCo Warp, the backend every
-    result uses: HalfCheetah-Vel at 1.5 m/s, 30 updates of 16 twenty-step episodes. From the first
-    three updates to the last three (CPU, seeds 0-3): return +5.1 to +11.0, velocity error -0.28
-    to -0.58 m/s. Over 10 updates the gain was within the noise (seed 3: -1.1), and a CPU of
+    result uses: HalfCheetah-Vel at 1.5 m/s, 30 updates of 16 ten-step episodes (on a CPU each
+    physics step costs the same whatever the batch). From the first three updates to the last
+    three (CPU, seeds 0-3): return +3.6 to +5.3, velocity error -0.41 to -0.57 m/s. Over 10
+    updates (of twenty-step episodes) the gain was within the noise (seed 3: -1.1), and a CPU of
     another kind rounds the contacts otherwise: the margins below hold for every seed tried."""
-    n = 30
+    n, steps = 30, 10
     overrides = {
         "env.impl": "warp",
         "experts.tasks": (1.5,),
-        "env.episode_steps": 20,
+        "env.episode_steps": steps,
         "experts.ppo.num_envs": 16,
         "experts.ppo.num_minibatches": 4,
         "experts.ppo.num_epochs": 4,
-        "experts.ppo.total_env_steps": 16 * 20 * n,
+        "experts.ppo.total_env_steps": 16 * steps * n,
         "experts.ppo.learning_rate": 3e-3,
         "experts.updates_per_chunk": n,
         "experts.family.centre_updates": 0,  # PPO from a fresh policy
-        "baseline.updates_per_chunk": 1,  # the tiny baseline's 240 steps are 3 updates of these episodes
     }
     view = config.make_config("tiny", {"task": "cheetah_vel", **overrides})
     programs = expert_programs.compile_programs(view)
@@ -311,5 +311,5 @@ def test_ppo_improves_the_return_on_the_warp_backend():
     _, metrics = expert_programs.run_chunk(programs, state, tasks)
     returns, errors = np.asarray(metrics.episode_return)[0], np.asarray(metrics.final_error)[0]
     assert np.isfinite(returns).all() and returns.shape == (n,)
-    assert returns[-3:].mean() > returns[:3].mean() + 3.0
+    assert returns[-3:].mean() > returns[:3].mean() + 2.0
     assert errors[-3:].mean() < errors[:3].mean() - 0.15
