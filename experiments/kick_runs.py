@@ -5,8 +5,10 @@ Per run: the starting kicks' tuning (each restart's fresh cost: the mean over th
 its tuned kicks' cost on fresh episodes), the prior beside it (its error at its target) and the
 experts' mean error. Per group, for the tuning and the experts (not every run's prior is kept):
 the runs' values, and a two-sided exact permutation p-value of the groups' difference, each run
-one sample (`device_count.permutation_p`). Beside that, how far a run's restarts lie apart
-against how far the runs do: restarts share their run's prior and starts, runs do not.
+one sample (`device_count.permutation_p`); the experts also beside the line through every run's
+tuning (`given_tuning`: a run's experts follow its tuning, which its prior sets). Beside that, how
+far a run's restarts lie apart against how far the runs do: restarts share their run's prior and
+starts, runs do not.
 
     python -m experiments.kick_runs results/seeds/seed*/experts.json ... --out experiments/results/kick_runs.json
 """
