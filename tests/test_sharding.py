@@ -28,21 +28,40 @@ def sharded_vs_single(tmp_path_factory):
     run_env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {devices}".strip(), JAX_PLATFORMS="cpu")
     run_env["PYTHONPATH"] = os.pathsep.join([str(ROOT), run_env.get("PYTHONPATH", "")])
     run_dir, port = tmp_path_factory.mktemp("processes"), launch.free_port()
+    logs = tmp_path_factory.mktemp("logs")
     command = [sys.executable, str(ROOT / "tests" / "sharded_run.py"), str(run_dir)]
-    procs = [
-        # each its own hash seed: nothing the processes agree on may follow Python's hash order
-        subprocess.Popen(command, env={**launch.process_env(i, sharded_run.PROCESSES, port, None), **run_env,
-                                       "PYTHONHASHSEED": str(1 + i)},
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
-        for i in range(sharded_run.PROCESSES)
-    ]  # fmt: skip
-    outs = [p.communicate(timeout=900) for p in procs]
+    procs = []
+    for i in range(sharded_run.PROCESSES):
+        # each its own hash seed: nothing the processes agree on may follow Python's hash order;
+        # output to files, read once they end (this process works meanwhile, so pipes could fill)
+        env = {**launch.process_env(i, sharded_run.PROCESSES, port, None), **run_env, "PYTHONHASHSEED": str(1 + i)}
+        with (logs / f"{i}.out").open("w") as out, (logs / f"{i}.err").open("w") as err:
+            procs.append(subprocess.Popen(command, stdout=out, stderr=err, cwd=ROOT, env=env))
+    try:
+        # The single-device side runs here while the processes run: the same experts uninterrupted,
+        # the selection in one call of 8 episodes (the split one's 2 on each device of each process).
+        single, one_device = _single_device(tmp_path_factory)
+        for p in procs:
+            p.wait(timeout=900)
+    finally:
+        for p in procs:
+            if p.poll() is None:  # the single side failed: no process is left behind
+                p.kill()
+    outs = [((logs / f"{i}.out").read_text(), (logs / f"{i}.err").read_text()) for i in range(len(procs))]
     for p, (_, err) in zip(procs, outs, strict=True):
         assert p.returncode == 0, err[-4000:]
     sharded = json.loads(outs[0][0].strip().splitlines()[-1])
     assert not any(line.startswith("{") for line in outs[1][0].splitlines()), "only the first process reports"
-    # The single-device side runs here: the same experts uninterrupted, the selection in one call
-    # of 8 episodes (the split one's 2 on each device of each process).
+    # Both sides trained a family: candidates, a choice (on both sides the same one), the chosen alone.
+    choices = [
+        json.loads((d / "experts" / "centre" / "choice.json").read_text())["chosen"] for d in (one_device, run_dir)
+    ]
+    assert choices[0] == choices[1] and (run_dir / "experts" / "centre_chosen" / "progress.csv").exists()
+    return single, sharded
+
+
+def _single_device(tmp_path_factory) -> tuple[dict, Path]:
+    """What one process on one device makes of sharded_run's work, and its run directory."""
     cfg = sharded_run.experts_config()
     env = sharded_run.make_env(cfg)
     programs = expert_programs.compile_programs(cfg, env)
@@ -50,17 +69,11 @@ def sharded_vs_single(tmp_path_factory):
     out = experts.train(cfg, one_device, programs, say=lambda *a, **k: None)
     leaves = jax.tree.leaves(expert_programs.expert_params(out["state"]))
     grid, params = sharded_run.contextual_grid(env)
-    single = {
+    return {
         "experts": {"params": [np.asarray(x) for x in leaves], "finished": out["finished"]},
         "filter": sharded_run.filter_synthetic(env, grid, params, 1),
         "nets": sharded_run.train_nets(tmp_path_factory.mktemp("nets")),
-    }
-    # Both sides trained a family: candidates, a choice (on both sides the same one), the chosen alone.
-    choices = [
-        json.loads((d / "experts" / "centre" / "choice.json").read_text())["chosen"] for d in (one_device, run_dir)
-    ]
-    assert choices[0] == choices[1] and (run_dir / "experts" / "centre_chosen" / "progress.csv").exists()
-    return single, sharded
+    }, one_device
 
 
 def test_sharded_experts_equal_single_device_experts(sharded_vs_single):
