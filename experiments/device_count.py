@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import itertools
+import time
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +38,21 @@ def permutation_p(a, b) -> float:
         mask[list(idx)] = True
         diffs.append(abs(pooled[mask].mean() - pooled[~mask].mean()))
     return float(np.mean(np.asarray(diffs) >= observed - 1e-12))
+
+
+def summary_provenance(first: dict, devices, start: float) -> dict:
+    """The results-contract keys of a record made from other records: the devices they ran on, the
+    first one's versions, env and preset, and this command's date, command line and wall time
+    since `start` (`time.perf_counter()`)."""
+    return {
+        "device": ", ".join(sorted({d for d in devices if d})),
+        "versions": first.get("versions"),
+        "env": first.get("env"),
+        "preset": first.get("preset"),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "command": runio.command_line(),
+        "wall_s": round(time.perf_counter() - start, 3),
+    }
 
 
 def arm(run_dir: Path) -> dict:

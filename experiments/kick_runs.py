@@ -16,14 +16,13 @@ starts, runs do not.
 from __future__ import annotations
 
 import argparse
-import datetime
 import time
 from pathlib import Path
 
 import numpy as np
 
 from bumps_jax import runio
-from experiments.device_count import permutation_p
+from experiments.device_count import permutation_p, summary_provenance
 
 PRIOR = "kick_prior.json"  # the prior's record: beside the experts' in a published run, in prior/ in a run folder
 
@@ -121,13 +120,7 @@ def main(argv=None) -> None:
         "task": "kick",
         "per_run": rows,
         **groups(rows),
-        "device": ", ".join(sorted({r["device"] for r in rows if r["device"]})),
-        "versions": first.get("versions"),
-        "env": first.get("env"),
-        "preset": first.get("preset"),
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "command": runio.command_line(),
-        "wall_s": round(time.perf_counter() - start, 3),
+        **summary_provenance(first, [r["device"] for r in rows], start),
     }
     runio.write_json(args.out, runio.json_safe(record))
     t = record["tuning_mean"]

@@ -16,14 +16,13 @@ path the tuning record names (a prior made on another machine and kept in the re
 from __future__ import annotations
 
 import argparse
-import datetime
 import time
 from pathlib import Path
 
 import numpy as np
 
 from bumps_jax import runio
-from experiments.device_count import permutation_p
+from experiments.device_count import permutation_p, summary_provenance
 
 
 def parse_args(argv=None):
@@ -91,13 +90,7 @@ def main(argv=None) -> None:
         "task": "kick",
         "per_prior": rows,
         **compare(rows),
-        "device": ", ".join(sorted({r["tuning_device"] for r in rows if r["tuning_device"]})),
-        "versions": first.get("versions"),
-        "env": first.get("env"),
-        "preset": first.get("preset"),
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "command": runio.command_line(),
-        "wall_s": round(time.perf_counter() - start, 3),
+        **summary_provenance(first, [r["tuning_device"] for r in rows], start),
     }
     runio.write_json(args.out, runio.json_safe(record))
     t = record["tuning_mean"]
