@@ -14,7 +14,6 @@ batch (another process, GPU or version).
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import time
 from pathlib import Path
@@ -95,8 +94,7 @@ def main(argv=None) -> None:
         theirs = np.asarray(against.get("distance_m"), np.float64)
         out["against"] = {"record": str(args.against), "device": against.get("device"),
                           **differences(theirs, calls[0])}  # fmt: skip
-    out.update(runio.provenance(cfg.preset, time.perf_counter() - start, config.resolved_env(cfg)),
-               date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"))  # fmt: skip
+    out.update(runio.provenance(cfg.preset, time.perf_counter() - start, config.resolved_env(cfg)))
     runio.write_json(args.out, runio.json_safe(out))
     print(json.dumps({"repeat_vs_first": out["repeat_vs_first"], "against": out.get("against")}, indent=1))
     print(f"wrote {args.out}")
