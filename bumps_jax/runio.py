@@ -67,8 +67,8 @@ def provenance(preset: str, wall_s: float, env: dict, command: str | None = None
 
 
 def command_line() -> str:
-    """How this process was started, as a user would type it (no absolute paths): `python -m
-    <module>` where it ran as a module, else `python <script>`."""
+    """How this process was started, as a user would type it (no absolute paths: `portable_argument`):
+    `python -m <module>` where it ran as a module, else `python <script>`."""
     spec = getattr(sys.modules.get("__main__"), "__spec__", None)
     if spec is not None and spec.name:  # python -m bumps_jax[.module], python -m experiments.<name>
         head = f"python -m {spec.name.removesuffix('.__main__')}"
@@ -80,7 +80,22 @@ def command_line() -> str:
             head = f"python {script.relative_to(Path.cwd()).as_posix()}"
         except ValueError:
             head = f"python {script.name}"
-    return " ".join([head, *sys.argv[1:]])
+    return " ".join([head, *(portable_argument(a) for a in sys.argv[1:])])
+
+
+def portable_argument(argument: str, cwd: Path | None = None) -> str:
+    """A command-line argument as a record keeps it: an absolute path (alone or after `--opt=`)
+    relative to the working directory where it lies under it, else by its name alone, so that a
+    record names no folder of the machine that made it."""
+    flag, eq, value = argument.partition("=") if argument.startswith("-") else ("", "", argument)
+    if not value.startswith("/"):
+        return argument
+    path, here = Path(value), (cwd or Path.cwd()).resolve()
+    try:
+        shown = path.resolve().relative_to(here).as_posix()
+    except ValueError:
+        shown = path.name or value
+    return f"{flag}{eq}{shown}"
 
 
 # -- files -------------------------------------------------------------------------------------

@@ -92,7 +92,7 @@ def main(argv=None) -> None:
     }
     if against is not None:
         theirs = np.asarray(against.get("distance_m"), np.float64)
-        out["against"] = {"record": str(args.against), "device": against.get("device"),
+        out["against"] = {"record": runio.portable_argument(str(args.against)), "device": against.get("device"),
                           **differences(theirs, calls[0])}  # fmt: skip
     out.update(runio.provenance(cfg.preset, time.perf_counter() - start, config.resolved_env(cfg)))
     runio.write_json(args.out, runio.json_safe(out))

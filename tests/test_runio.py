@@ -99,3 +99,19 @@ def test_the_command_line_names_the_module_a_process_ran_as(tmp_path):
                                        text=True, check=True).stdout.strip()  # fmt: skip
     assert run("-m", "probe.show", "--out", "x.json") == "python -m probe.show --out x.json"
     assert run("probe/show.py", "--seeds", "1") == "python probe/show.py --seeds 1"
+    inside, outside = tmp_path / "runs" / "r.json", tmp_path.parent / "elsewhere" / "out"
+    assert run("-m", "probe.show", "--out", str(inside), f"--out-dir={outside}", "--prior", "/") == (
+        "python -m probe.show --out runs/r.json --out-dir=out --prior /"
+    )
+
+
+def test_a_records_command_names_no_folder_outside_the_working_directory(tmp_path):
+    """Absolute paths: under the working directory relative to it, elsewhere by name alone;
+    anything else (relative paths, numbers, flags, a negative number) as typed."""
+    shown = lambda a: runio.portable_argument(a, cwd=tmp_path)  # noqa: E731
+    assert shown(str(tmp_path / "a" / "b.json")) == "a/b.json"
+    assert shown("/srv/out/b.json") == "b.json"
+    assert shown("--out=/srv/out/b.json") == "--out=b.json"
+    assert shown("--out=" + str(tmp_path / "c.json")) == "--out=c.json"
+    for typed in ("runs/x.json", "-3", "--seeds", "0.5", "--set=a.b=/c"):
+        assert shown(typed) == typed
