@@ -5,7 +5,8 @@ the experts' starting kicks tune (`docs/scaling.md`). This groups priors, each t
 `experiments.tuning_batch_shape --arms whole --prior <its record>`, by the processes their prior
 stage ran on, and compares the groups' tunings, each prior one sample: per prior its error at its
 target, its processes, device and date, and its tuning's per-restart fresh costs and their mean;
-per group the means and a two-sided exact permutation p-value (`device_count.permutation_p`).
+per group the means and a two-sided exact permutation p-value (`device_count.permutation_p`); and
+the same grouped by the GPU each prior was made on.
 
 Each argument is a tuning record, or TUNING=PRIOR where the prior's record lies elsewhere than the
 path the tuning record names (a prior made on another machine and kept in the repository).
@@ -72,6 +73,17 @@ def compare(rows: list[dict]) -> dict:
     }  # fmt: skip
 
 
+def by_device(rows: list[dict]) -> dict:
+    """The same tunings grouped by the GPU their prior was made on (the other thing that may set
+    the groups of `compare` apart): per device its tunings and mean, and with two devices the
+    permutation p-value between them."""
+    devices = sorted({r["prior_device"] or "unknown" for r in rows})
+    groups = {d: [r["tuning_mean"] for r in rows if (r["prior_device"] or "unknown") == d] for d in devices}
+    out = {d: {"tuning_mean": g, "mean": float(np.mean(g))} for d, g in groups.items()}
+    p = permutation_p(*(np.asarray(g) for g in groups.values())) if len(groups) == 2 else None
+    return {"by_prior_device": {"devices": out, "permutation_p": p}}
+
+
 def main(argv=None) -> None:
     args = parse_args(argv)
     start = time.perf_counter()
@@ -90,6 +102,7 @@ def main(argv=None) -> None:
         "task": "kick",
         "per_prior": rows,
         **compare(rows),
+        **by_device(rows),
         **summary_provenance(first, [r["tuning_device"] for r in rows], start),
     }
     runio.write_json(args.out, runio.json_safe(record))
@@ -99,6 +112,11 @@ def main(argv=None) -> None:
         f"tunings of priors made on one process {np.round(t['one_process'], 3).tolist()}, on several "
         f"{np.round(t['several_processes'], 3).tolist()} (p = {p}); wrote {args.out}"
     )
+    d = record["by_prior_device"]
+    for device, group in d["devices"].items():
+        print(f"  priors made on {device}: {np.round(group['tuning_mean'], 3).tolist()}")
+    if d["permutation_p"] is not None:
+        print(f"  between the two devices p = {d['permutation_p']:.2f}")
 
 
 if __name__ == "__main__":

@@ -9,10 +9,10 @@ from bumps_jax import runio
 from experiments import prior_draws
 
 
-def write_pair(folder, processes, costs, error=0.25, **tuning_extra):
+def write_pair(folder, processes, costs, error=0.25, device="gpu", **tuning_extra):
     """A prior's record and a whole-batch tuning record from it; the tuning's path."""
     prior = folder / "prior" / "kick_prior.json"
-    runio.write_json(prior, {"mean_error_m": error, "n_processes": processes, "device": "gpu", "date": "d"})
+    runio.write_json(prior, {"mean_error_m": error, "n_processes": processes, "device": device, "date": "d"})
     tuning = {"prior": str(prior), "seeds": {"0": {"whole": {"runs_mean": costs}}}, "env": {"impl": "warp"},
               "settings": {"generations": 60}, "preset": "paper", "device": "gpu", **tuning_extra}  # fmt: skip
     runio.write_json(folder / "tuning.json", tuning)
@@ -33,6 +33,20 @@ def test_priors_are_grouped_by_their_processes_each_one_sample(tmp_path):
     record = tmp_path / "out.json"
     prior_draws.main([*map(str, paths), "--out", str(record)])
     assert json.loads(record.read_text())["tuning_mean"]["permutation_p"] == pytest.approx(2 / 6)
+
+
+def test_the_tunings_are_also_grouped_by_the_gpu_each_prior_was_made_on(tmp_path):
+    made = [(1, [0.3], "A"), (1, [0.4], "B"), (2, [0.8], "A"), (2, [0.5], "A"), (1, [0.2], "B")]
+    rows = [prior_draws.prior_row(str(write_pair(tmp_path / f"p{i}", n, c, device=d)))
+            for i, (n, c, d) in enumerate(made)]  # fmt: skip
+    out = prior_draws.by_device(rows)["by_prior_device"]
+    assert out["devices"]["A"]["tuning_mean"] == pytest.approx([0.3, 0.8, 0.5])
+    assert out["devices"]["B"]["mean"] == pytest.approx(0.3)
+    # A's mean 0.533 against B's 0.3 (0.233 apart); of the 10 splits of the five into 3 + 2, four lie
+    # as far apart or further: B = {0.4, 0.2} itself, {0.3, 0.2} (0.317), {0.8, 0.5} (0.35), {0.8, 0.4} (0.267)
+    assert out["permutation_p"] == pytest.approx(4 / 10)
+    three = prior_draws.by_device([*rows, {**rows[0], "prior_device": "C"}])["by_prior_device"]
+    assert three["permutation_p"] is None and set(three["devices"]) == {"A", "B", "C"}
 
 
 def test_a_prior_kept_elsewhere_is_named_after_an_equals_sign(tmp_path):
