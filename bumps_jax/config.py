@@ -34,6 +34,7 @@ from bumps_jax.records import differing_keys, jsonable
 from bumps_jax.tasks import registry as tasks
 
 PRESETS = ("tiny", "paper")
+PAPER = "paper"  # the preset whose runs `publish` commits (the paper's budgets)
 
 
 def default_config(task: str = tasks.DEFAULT) -> ml_collections.ConfigDict:

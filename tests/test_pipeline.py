@@ -449,3 +449,28 @@ def test_ctrl_c_in_a_stage_that_then_runs_to_its_end_says_so(tmp_path, stages, m
     with pytest.raises(resumable.Interrupted, match=r"^the experts stage ran to its end before it could stop \("):
         pipeline.run_stage("experts", cfg(), tmp_path, say=lambda *a, **k: None)
     assert (tmp_path / "experts" / "out.json").exists() and log == ["experts"]
+
+
+@pytest.mark.parametrize("task", ["kick", "point_goal"])
+def test_publishing_refuses_a_run_of_another_preset_than_the_papers(tmp_path, task):
+    """The committed results are the paper preset's: a tiny run (a demo) of any task, or a tiny
+    seed's run beside a paper one, is refused in one line before anything is read or written."""
+    from bumps_jax.pipeline import commands
+
+    tiny, paper = tmp_path / "demo", tmp_path / "paper"
+    runio.write_json(tiny / "pipeline.json", {"preset": "tiny", "overrides": {"task": task}})
+    runio.write_json(paper / "pipeline.json", {"preset": "paper", "overrides": {"task": task}})
+    args = types.SimpleNamespace(seed_runs=[], baseline_at_budget=False, records_only=False)
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    for run, seeds in ((tiny, []), (paper, [str(tiny)])):
+        with pytest.raises(
+            ValueError, match=r"^not published: .*demo is a tiny run; the committed results are the paper"
+        ):
+            commands.publish(
+                config.make_config("tiny", {"task": task}),
+                run,
+                types.SimpleNamespace(**{**vars(args), "seed_runs": seeds}),
+            )
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before
+    with pytest.raises(ValueError, match="no run directory"):
+        commands.publish(config.make_config("tiny", {"task": task}), tmp_path / "none", args)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bumps_jax import runio
+from bumps_jax import config, runio
 
 
 def run(command: str, cfg, run_dir: Path, args) -> None:
@@ -47,6 +47,8 @@ def publish(cfg, run_dir: Path, args) -> None:
     from bumps_jax.report import seeds  # noqa: PLC0415
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
+    for d in [run_dir, *(Path(x) for x in getattr(args, "seed_runs", []))]:
+        check_paper_run(d, cfg)  # before anything is read further or written
     if getattr(args, "baseline_at_budget", False):  # the run's baseline alone, beside the preset's own
         if getattr(args, "seed_runs", []) or getattr(args, "records_only", False):
             raise ValueError("--baseline-at-budget publishes one baseline run: not with --seed-runs or --records-only")
@@ -89,6 +91,25 @@ def publish(cfg, run_dir: Path, args) -> None:
         print(f"wrote {path}")
     if records_only:
         print(f"assets/ kept: the prior later runs start from and the shipped policies are not {run_dir}'s")
+
+
+def check_paper_run(run_dir: Path, cfg) -> None:
+    """ValueError naming a run `publish` must not copy: the committed results and the pages that
+    describe them are the paper preset's, so a run of another preset (a tiny demo) would replace
+    them with numbers of another budget."""
+    from bumps_jax.report import publish as publish_mod  # noqa: PLC0415
+
+    if not run_dir.is_dir():
+        raise ValueError(f"not published: no run directory {runio.shown(run_dir)}")
+    try:
+        preset = publish_mod.run_config(run_dir, cfg).preset
+    except ValueError:  # no record that names a preset: the copy itself says what is missing
+        return
+    if preset != config.PAPER:
+        raise ValueError(
+            f"not published: {runio.shown(run_dir)} is a {preset} run; the committed results are the "
+            f"{config.PAPER} preset's (publish a run of `reproduce --preset {config.PAPER}`)"
+        )
 
 
 def evaluate(cfg, run_dir: Path, args) -> None:
