@@ -77,6 +77,8 @@ def parse_overrides(groups, section: str | None = None, task: str | None = None)
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
+        if key in ("task", "preset"):  # they choose the tree; set, they would relabel another one
+            raise ValueError(f"--set {item}: {key} is not a config value to set; use --{key} {value}")
         try:
             parsed = json.loads(value)
         except json.JSONDecodeError:

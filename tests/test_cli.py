@@ -44,6 +44,20 @@ def test_a_stage_reads_its_own_keys_without_their_section():
         cli.parse_overrides([["novalue"]])
 
 
+@pytest.mark.parametrize("item", ["preset=paper", "task=kick"])
+def test_the_task_and_preset_are_chosen_by_their_options_not_set(item, tmp_path):
+    """`--set preset=paper` labelled a tiny run "paper" and `--set task=kick` ran the kick under
+    another --task: both are refused in one line pointing to the option."""
+    key, value = item.split("=")
+    with pytest.raises(ValueError, match=rf"^--set {item}: {key} is not a config value to set; use --{key} {value}$"):
+        cli.parse_overrides([[item]], "experts", "point_goal")
+    with pytest.raises(
+        SystemExit, match=rf"^error: --set {item}: {key} is not a config value to set; use --{key} {value}$"
+    ):
+        cli.main(["demo", "--task", "point_goal", "--set", item, "--run-dir", str(tmp_path / "run")])
+    assert not (tmp_path / "run").exists()  # refused before the run directory is made
+
+
 @pytest.mark.parametrize(
     ("command", "item", "named"),
     [
