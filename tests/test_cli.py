@@ -460,3 +460,26 @@ def test_the_report_and_the_kicks_own_commands_are_checked_against_the_runs_task
         cli.main(["report", "--run-dir", str(tmp_path), "--set", "env.physics_dt=0.005"])
     with pytest.raises(SystemExit, match=r"'cheetah_vel'\), and cheetah_vel has no video command: give another"):
         cli.main(["video", "--run-dir", str(tmp_path)])
+
+
+def test_evaluate_on_a_task_without_the_held_out_stage_or_dev_targets_is_one_line(tmp_path):
+    """`evaluate --dev` runs the held-out stage's evaluation on the dev targets: a task without
+    that stage (point_goal: a KeyError or a TypeError before) or a config without the dev section
+    is refused in one line, before the run directory gets a dev/ folder."""
+    import types
+
+    import ml_collections
+
+    from bumps_jax import config
+    from bumps_jax.pipeline import commands
+
+    run = tmp_path / "run"
+    run.mkdir()
+    for flag in ("--dev", "--heldout"):
+        with pytest.raises(SystemExit, match=r"^error: the point_goal task has no heldout stage; its stages are"):
+            cli.main(["evaluate", flag, "--task", "point_goal", "--run-dir", str(run)])
+    tree = config.make_config("tiny").to_dict()
+    del tree["dev"]
+    with pytest.raises(ValueError, match=r"^evaluate --dev: the kick task's config has no dev section"):
+        commands.evaluate(ml_collections.ConfigDict(tree), run, types.SimpleNamespace(heldout=False, dev=True))
+    assert not (run / "dev").exists() and not (run / "heldout").exists()

@@ -117,9 +117,13 @@ def evaluate(cfg, run_dir: Path, args) -> None:
     or on the development targets (`--dev`: run_dir/dev/dev.json, outside the pipeline)."""
     from bumps_jax.pipeline import runner as pipeline  # noqa: PLC0415
     from bumps_jax.pipeline.stages import heldout  # noqa: PLC0415
+    from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
     if args.heldout == args.dev:
         raise ValueError("evaluate needs one of --heldout (reporting) or --dev (design choices)")
+    tasks.check_stage(cfg.task, "heldout")  # --dev runs the held-out stage's evaluation on other targets
+    if args.dev and "dev" not in cfg:
+        raise ValueError(f"evaluate --dev: the {cfg.task} task's config has no dev section (development targets)")
     if args.heldout:
         pipeline.run_stage("heldout", cfg, run_dir, force=args.force)
         print(f"wrote {run_dir / 'heldout' / heldout.OUTPUT}")
