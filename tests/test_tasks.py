@@ -167,6 +167,25 @@ def test_an_env_class_lacking_what_the_pipeline_calls_is_named_when_its_task_is_
     assert message.startswith("task 'bare': its env class Bare defines no ")
 
 
+def test_a_config_module_lacking_what_the_config_tree_reads_is_named_when_its_task_is_built():
+    # A task whose config module left out `validate` stopped in an AttributeError once a command
+    # built its config.
+    import types
+
+    from bumps_jax.tasks.point_goal import config as point_config
+    from bumps_jax.tasks.point_goal import env as point_env
+    from bumps_jax.tasks.protocol import Task, plain_report
+
+    partial = types.ModuleType("my_task.config")
+    partial.sections, partial.PRESETS = point_config.sections, point_config.PRESETS
+    with pytest.raises(
+        ValueError,
+        match=r"^task 'mine': its config 'my_task.config' defines no validate \(docs/your_task.md, section 2\)$",
+    ):
+        Task(name="mine", env_class=point_env.PointGoalEnv, stages=("experts",), config=partial,
+             report=plain_report(("", "", "")))  # fmt: skip
+
+
 def _point_env(**changes):
     """PointGoal's env at the tiny preset, as a subclass with `changes` (attributes) over it."""
     from bumps_jax.tasks.point_goal import env as point_env
@@ -273,3 +292,27 @@ def test_values_that_ran_wrong_or_deep_are_refused_at_once(item, message):
     key, value = item.split("=")
     with pytest.raises(ValueError, match=message):
         config.make_config("tiny", {"task": "point_goal", key: json.loads(value)})
+
+
+def test_an_env_that_ignores_the_config_it_is_given_is_refused_naming_the_key(monkeypatch):
+    """An env whose __init__ builds its config from its defaults (as `locked_config(default_config(),
+    overrides)` does) ignored every `--set env.*`: a run with gear 0 trained as if with gear 1 and
+    recorded gear 0. Building it through the registry names the first key it did not keep."""
+    import dataclasses
+
+    from bumps_jax import config
+    from bumps_jax.tasks import registry
+    from bumps_jax.tasks.point_goal import env as point_env
+
+    class Ignoring(point_env.PointGoalEnv):
+        def __init__(self, config=None, config_overrides=None):
+            super().__init__(None, config_overrides)  # its defaults, not the config it was given
+
+    cfg = config.make_config("tiny", {"task": "point_goal", "env.gear": 0.0})
+    registry.make_env("point_goal", cfg.env)  # the task's own env keeps it
+    task = dataclasses.replace(registry.get("point_goal"), env_class=Ignoring)
+    monkeypatch.setattr(registry, "get", lambda name: task)
+    with pytest.raises(
+        ValueError, match=r"^the point_goal env does not keep the config it is given: env.gear is 0.0 there, "
+    ):
+        registry.make_env("point_goal", cfg.env)

@@ -136,6 +136,10 @@ class Task:
         if gaps:
             raise ValueError(f"task {self.name!r}: its env class {self.env_class.__name__} defines no "
                              f"{', '.join(gaps)} (docs/your_task.md, section 1)")  # fmt: skip
+        missing = [n for n in ("sections", "PRESETS", "validate") if not hasattr(self.config, n)]
+        if missing:
+            raise ValueError(f"task {self.name!r}: its config {getattr(self.config, '__name__', self.config)!r} "
+                             f"defines no {', '.join(missing)} (docs/your_task.md, section 2)")  # fmt: skip
 
     def make_env(self, env_cfg, overrides: dict | None = None) -> ContextualEnv:
         """The task's env from its env config and dotted `overrides`."""
