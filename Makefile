@@ -21,8 +21,7 @@ install: $(STAMP)
 # pytest exits 5 when it collects nothing: that must fail, and it does (no `|| true`).
 # Two workers (one core each); every test file runs whole on one worker, the slowest files first
 # (tests/conftest.py: SLOWEST_FIRST).
-test: $(STAMP)
-	$(PY) -m ruff check bumps_jax tests benchmarks experiments
+test: lint
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder tests
 
 lint: $(STAMP)
