@@ -223,6 +223,19 @@ class ContextualEnv(Env):
         data, overflow, _ = physics.read_flags(mjx.forward(self.mjx_model, data))
         return data, overflow
 
+    def physics_steps(self, data, overflow: jax.Array, limit_steps: jax.Array) -> tuple:
+        """One control step's physics: `n_substeps` MJX steps of `data` (its ctrl set), with
+        Warp's flags carried: (data, whether a buffer overflowed in this or an earlier step,
+        `limit_steps` plus the steps whose solver stopped at its iteration limit)."""
+
+        def substep(carry, _):
+            data, overflow, limit_steps = carry
+            data, overflowed, hit_limit = physics.read_flags(mjx.step(self.mjx_model, data))
+            return (data, overflow | overflowed, limit_steps + hit_limit.astype(jnp.int32)), None
+
+        (data, overflow, limit_steps), _ = jax.lax.scan(substep, (data, overflow, limit_steps), None, self.n_substeps)
+        return data, overflow, limit_steps
+
     def gym_start(self, rng_q: jax.Array, rng_v: jax.Array) -> tuple:
         """`start_data` as Gym's MuJoCo envs start an episode: the model's qpos0 + U[-s, s], joint
         velocities s * N(0, 1), s the config's `reset_noise`."""

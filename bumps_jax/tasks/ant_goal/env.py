@@ -46,7 +46,6 @@ from brax.envs.base import State
 from mujoco import mjx
 
 from bumps_jax.envs import base as task_env
-from bumps_jax.envs.physics import read_flags
 
 TORSO = "torso"
 # The torso's free joint is the model's first: qpos[0:3] its position, qpos[3:7] its quaternion (w, x, y, z).
@@ -290,13 +289,9 @@ class AntGoalEnv(task_env.ContextualEnv):
         info = dict(state.info)
         action = jnp.clip(action, self._ctrl_lo, self._ctrl_hi)
 
-        def substep(carry, _):
-            data, overflow, limit_steps = carry
-            data, overflowed, hit_limit = read_flags(mjx.step(self.mjx_model, data))
-            return (data, overflow | overflowed, limit_steps + hit_limit.astype(jnp.int32)), None
-
-        carry = (state.pipeline_state.replace(ctrl=action), info["overflow"], info["solver_limit_steps"])
-        (data, overflow, limit_steps), _ = jax.lax.scan(substep, carry, None, self.n_substeps)
+        data, overflow, limit_steps = self.physics_steps(
+            state.pipeline_state.replace(ctrl=action), info["overflow"], info["solver_limit_steps"]
+        )
         if self.contact_forces and self._warp_data is None:
             # cfrc_ext of the last physics step's contacts (Warp's step computes it itself).
             data = mjx.rne_postconstraint(self.mjx_model, data)

@@ -28,10 +28,8 @@ import ml_collections
 import mujoco
 import numpy as np
 from brax.envs.base import State
-from mujoco import mjx
 
 from bumps_jax.envs import base as task_env
-from bumps_jax.envs.physics import read_flags
 
 # The cheetah's total mass (kg): what the model's `settotalmass` sets (`load_model`).
 TOTAL_MASS = 14.0
@@ -247,14 +245,10 @@ class CheetahVelEnv(task_env.ContextualEnv):
         info = dict(state.info)
         action = jnp.clip(action, self._ctrl_lo, self._ctrl_hi)
 
-        def substep(carry, _):
-            data, overflow, limit_steps = carry
-            data, overflowed, hit_limit = read_flags(mjx.step(self.mjx_model, data))
-            return (data, overflow | overflowed, limit_steps + hit_limit.astype(jnp.int32)), None
-
         before = state.pipeline_state
-        carry = (before.replace(ctrl=action), info["overflow"], info["solver_limit_steps"])
-        (data, overflow, limit_steps), _ = jax.lax.scan(substep, carry, None, self.n_substeps)
+        data, overflow, limit_steps = self.physics_steps(
+            before.replace(ctrl=action), info["overflow"], info["solver_limit_steps"]
+        )
 
         forward_vel = (data.qpos[ROOT_X_QPOS] - before.qpos[ROOT_X_QPOS]) / self.config.ctrl_dt
         w = self.config.reward

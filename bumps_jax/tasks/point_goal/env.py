@@ -25,10 +25,8 @@ import ml_collections
 import mujoco
 import numpy as np
 from brax.envs.base import State
-from mujoco import mjx
 
 from bumps_jax.envs import base as task_env
-from bumps_jax.envs.physics import read_flags
 
 # The model: a 1 kg sphere on slide joints x and y (damped), one motor per joint, no contacts.
 XML = """
@@ -197,13 +195,9 @@ class PointGoalEnv(task_env.ContextualEnv):
         info = dict(state.info)
         action = jnp.clip(action, -1.0, 1.0)
 
-        def substep(carry, _):
-            data, overflow = carry
-            data, overflowed, _ = read_flags(mjx.step(self.mjx_model, data))
-            return (data, overflow | overflowed), None
-
-        carry = (state.pipeline_state.replace(ctrl=action), info["overflow"])
-        (data, overflow), _ = jax.lax.scan(substep, carry, None, self.n_substeps)
+        data, overflow, _ = self.physics_steps(
+            state.pipeline_state.replace(ctrl=action), info["overflow"], jnp.zeros((), jnp.int32)
+        )
         w = self.config.reward
         reward_distance = -w.distance * jnp.linalg.norm(data.qpos - info["target"])
         reward_ctrl = -w.ctrl * jnp.sum(jnp.square(action))
