@@ -65,6 +65,7 @@ def test_wrong_values_are_one_line_before_any_work(tmp_path, command, item, name
 
 
 def test_presets_cannot_mismatch(tmp_path, monkeypatch):  # defect 5
+    monkeypatch.chdir(tmp_path)  # the default run directories (runs/...) are made relative to it
     with pytest.raises(SystemExit, match="--preset 'tiny': reproduce takes 'paper'"):
         cli.main(["reproduce", "--preset", "tiny", "--run-dir", str(tmp_path)])
     with pytest.raises(SystemExit, match="--preset 'paper': demo takes 'tiny'"):
@@ -80,6 +81,7 @@ def test_presets_cannot_mismatch(tmp_path, monkeypatch):  # defect 5
 
 
 def test_a_pipeline_runs_the_chosen_stages_in_its_order(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the default run directories (runs/...) are made relative to it
     seen = {}
     monkeypatch.setattr(pipeline, "run_pipeline", lambda stages, cfg, run_dir, force: seen.update(stages=stages))
     cli.main(["reproduce", "--stages", "heldout", "baseline", "meta"])
