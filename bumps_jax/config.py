@@ -178,6 +178,12 @@ def validate(cfg: ml_collections.ConfigDict) -> None:
     for name, check in checks.items():
         if name in cfg:  # a section per stage the task runs
             check()
+    if "meta" in cfg and "experts" in cfg:  # the pairs the meta stage records (`meta.collect_dataset`)
+        from bumps_jax.algo import bc  # noqa: PLC0415
+
+        e, k = len(cfg.experts.tasks), cfg.meta.dataset.repetitions
+        how = f" ({e} experts x {k} episode(s) x {n_steps} steps)"
+        bc.check_batch_size(cfg.meta.train, e * k * n_steps, "meta.train.batch_size", how)
     if "meta" in cfg and cfg.meta.dataset.clip_labels and task.env_class.ACTION_BOUND is None:
         raise ValueError(f"meta.dataset.clip_labels: the {cfg.task} env clips no action (its ACTION_BOUND is None), "
                          "so there is no bound to clip the labels to: set it false")  # fmt: skip

@@ -244,6 +244,11 @@ def test_nets_run_in_the_papers_order_first():
     [
         ({"meta.train.epochs": 1000, "meta.train.chunk": 300}, "1000"),
         ({"meta.train.batch_size": 0}, "meta.train.batch_size"),
+        # every batch is padded to its size: 100000 trained for many minutes on a dataset of 225 pairs
+        (
+            {"meta.train.batch_size": 226},
+            r"^meta.train.batch_size 226 exceeds the dataset's 225 pairs \(3 experts x 1 episode\(s\) x 75",
+        ),
         ({"meta.eval.tasks": (5.0,)}, "5.0"),
         ({"meta.dataset.repetitions": 0}, "meta.dataset.repetitions"),
         ({"meta.nets.meta_4x256": (0, 256)}, "meta.nets.meta_4x256"),

@@ -273,3 +273,11 @@ def test_values_that_ran_wrong_or_deep_are_refused_at_once(item, message):
     key, value = item.split("=")
     with pytest.raises(ValueError, match=message):
         config.make_config("tiny", {"task": "point_goal", key: json.loads(value)})
+
+
+@pytest.mark.parametrize(("task", "preset"), [(t, p) for t in tasks.TASKS for p in sorted(tasks.get(t).presets)])
+def test_every_preset_of_every_task_passes_its_checks(task, preset):
+    # The cheetah's and the ant's tiny presets asked for batches larger than their datasets
+    # (64 of 40 pairs, 32 of 30), refused since an oversized meta.train.batch_size is.
+    cfg = config.make_config(preset, {"task": task})
+    assert cfg.task == task and cfg.preset == preset

@@ -108,6 +108,15 @@ def steps_per_epoch(train_cfg, n_rows: int) -> int:
     return -(-int(n_rows) // int(train_cfg.batch_size))
 
 
+def check_batch_size(train_cfg, n_rows: int, key: str = "meta.train.batch_size", how: str = "") -> None:
+    """ValueError naming `key` where train_cfg.batch_size exceeds the `n_rows` pairs (`how`: how
+    they are counted, in words): every batch is padded to batch_size slots (`epoch_batches`), so
+    an oversized one trains as one partial batch that costs the whole size every step."""
+    if int(train_cfg.batch_size) > int(n_rows):
+        raise ValueError(f"{key} {train_cfg.batch_size} exceeds the dataset's {int(n_rows)} pairs{how}: "
+                         f"set it to at most {int(n_rows)}")  # fmt: skip
+
+
 def steps_unrolled(epoch_steps: int) -> int:
     """Gradient steps per iteration of an epoch's compiled loop: `UNROLL`, at most the epoch's."""
     return min(UNROLL, epoch_steps)
@@ -453,6 +462,7 @@ def train_nets(models: dict, data: Dataset, train_cfg, out_dirs: dict, say=print
     """
     import orbax.checkpoint as ocp  # noqa: PLC0415
 
+    check_batch_size(train_cfg, len(data.obs))
     names = list(models)
     out_dirs = {name: Path(out_dirs[name]).resolve() for name in names}
     for d in out_dirs.values():

@@ -171,7 +171,7 @@ PRESETS: dict[str, dict] = {
         "meta.train.epochs": 20,
         "meta.train.chunk": 10,
         "meta.train.decay_every": 10,
-        "meta.train.batch_size": 32,
+        "meta.train.batch_size": 30,  # every pair of its dataset (3 experts x 2 episodes x 5 steps) in one batch
         "meta.eval.tasks": TINY_TEST,
         "meta.eval.repetitions": 2,
         "filter.tasks": TINY_TEST,

@@ -136,7 +136,7 @@ PRESETS: dict[str, dict] = {
         "meta.train.epochs": 20,
         "meta.train.chunk": 10,
         "meta.train.decay_every": 10,
-        "meta.train.batch_size": 64,
+        "meta.train.batch_size": 40,  # every pair of its dataset (2 experts x 2 episodes x 10 steps) in one batch
         "meta.eval.tasks": (1.2,),
         "meta.eval.repetitions": 2,
         "filter.tasks": (1.2,),
