@@ -438,6 +438,16 @@ def test_a_gif_that_cannot_be_written_is_refused_before_the_kicks(gif):
         cli.main(["kick", "--target", "12", "--gif", gif])
 
 
+def test_a_gif_in_a_missing_folder_is_refused_not_made(tmp_path):
+    # `kick --gif /nonexistent_dir/k.gif` made the folder /nonexistent_dir and kicked on.
+    gif = tmp_path / "nonexistent_dir" / "k.gif"
+    with pytest.raises(
+        SystemExit, match=r"^error: the GIF's folder '.*nonexistent_dir' does not exist: create it first$"
+    ):
+        cli.main(["kick", "--target", "12", "--gif", str(gif)])
+    assert not gif.parent.exists()
+
+
 def test_the_report_and_the_kicks_own_commands_are_checked_against_the_runs_task(tmp_path):
     # `report --task point_goal` on a cheetah run wrote the cheetah's report and exited 0; `video`
     # on it said "add --task cheetah_vel", which then said the cheetah has no video command.
