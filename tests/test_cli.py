@@ -458,3 +458,16 @@ def test_the_report_and_the_kicks_own_commands_are_checked_against_the_runs_task
         cli.main(["report", "--run-dir", str(tmp_path), "--set", "env.physics_dt=0.005"])
     with pytest.raises(SystemExit, match=r"'cheetah_vel'\), and cheetah_vel has no video command: give another"):
         cli.main(["video", "--run-dir", str(tmp_path)])
+
+
+def test_the_demos_help_and_an_unfinished_runs_refusal_hold_for_every_task(tmp_path, capsys):
+    # `demo --help` said "(a prior from assets/)", true of the kick only; publishing a demo run
+    # without its baseline said "rerun the same reproduce to finish it".
+    with pytest.raises(SystemExit):
+        cli.main(["demo", "--help"])
+    assert "the experts, meta and filter stages at CPU size" in " ".join(capsys.readouterr().out.split())
+    from bumps_jax.pipeline import commands
+
+    (tmp_path / "experts").mkdir()
+    with pytest.raises(ValueError, match=r"has not finished .*; run those stages into it before publishing$"):
+        commands.publish(config.make_config("tiny", {"task": "point_goal"}), tmp_path, None)
