@@ -36,7 +36,11 @@ STAGE_COMMANDS = {
     "baseline": ("baseline", "the multi-task PPO baseline (the paper's Figure 1)"),
 }
 PIPELINES = {
-    "demo": (("experts", "meta", "filter"), "tiny", "the pipeline at CPU size (a prior from assets/), with a report"),
+    "demo": (
+        ("experts", "meta", "filter"),
+        "tiny",
+        "the experts, meta and filter stages at CPU size, with a report (the kick starts from the prior in assets/)",
+    ),
     "reproduce": (
         ("prior", "experts", "meta", "filter", "heldout", "baseline"),
         "paper",

@@ -379,12 +379,15 @@ def read_kept(path: str | os.PathLike | None, key: str) -> dict | None:
     return kept if isinstance(kept, dict) and kept.get("fingerprint") == key else None
 
 
-def check_writable(directory: str | os.PathLike, what: str = "run directory") -> Path:
+def check_writable(directory: str | os.PathLike, what: str = "run directory", create: bool = True) -> Path:
     """Create `directory` and prove it writable, or ValueError naming it as `what` (before any
-    long work)."""
+    long work). create=False: a folder that does not exist is refused, not made (a file the user
+    named, whose folder a typo would otherwise create)."""
     directory = Path(directory)
     if directory.exists() and not directory.is_dir():
         raise ValueError(f"{what} {str(directory)!r} is a file, not a folder")
+    if not create and not directory.is_dir():
+        raise ValueError(f"{what} {str(directory)!r} does not exist: create it first")
     try:
         directory.mkdir(parents=True, exist_ok=True)
         probe = directory / f".write_probe{os.getpid()}"  # one per process: several may start at once

@@ -1,6 +1,7 @@
 """Shared fixtures: compiled environments are expensive on the CPU, so build them once."""
 
 import os
+from pathlib import Path
 
 # The tests' programs compile with LLVM's cheap pipeline and XLA's loop emitters: on a CPU
 # compiling is about 40 % of the suite's time, and what their runs cost is Warp's physics (its own
@@ -21,6 +22,23 @@ import tiny_experts  # noqa: E402
 from bumps_jax import config  # noqa: E402
 from bumps_jax.algo import rollout  # noqa: E402
 from bumps_jax.tasks.kick import env as kick_env  # noqa: E402
+
+
+def _run_entries() -> set[Path]:
+    """What the working directory's runs/ holds two levels deep (a run and its .lock)."""
+    runs = Path("runs")
+    return {*runs.glob("*"), *runs.glob("*/.*")} if runs.is_dir() else set()
+
+
+@pytest.fixture(autouse=True)
+def _leaves_no_run_behind():
+    """A test writes no run into the working directory: a command's default run directory
+    (runs/demo, runs/paper) belongs under tmp_path (`monkeypatch.chdir(tmp_path)`)."""
+    before = _run_entries()
+    yield
+    left = sorted(str(p) for p in _run_entries() - before)
+    if left:
+        pytest.fail(f"left {', '.join(left)} in the working directory (this test, or one running beside it)")
 
 
 @pytest.fixture(scope="session")

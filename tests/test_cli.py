@@ -79,6 +79,7 @@ def test_wrong_values_are_one_line_before_any_work(tmp_path, command, item, name
 
 
 def test_presets_cannot_mismatch(tmp_path, monkeypatch):  # defect 5
+    monkeypatch.chdir(tmp_path)  # the default run directories (runs/...) are made relative to it
     with pytest.raises(SystemExit, match="--preset 'tiny': reproduce takes 'paper'"):
         cli.main(["reproduce", "--preset", "tiny", "--run-dir", str(tmp_path)])
     with pytest.raises(SystemExit, match="--preset 'paper': demo takes 'tiny'"):
@@ -94,6 +95,7 @@ def test_presets_cannot_mismatch(tmp_path, monkeypatch):  # defect 5
 
 
 def test_a_pipeline_runs_the_chosen_stages_in_its_order(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the default run directories (runs/...) are made relative to it
     seen = {}
     monkeypatch.setattr(pipeline, "run_pipeline", lambda stages, cfg, run_dir, force: seen.update(stages=stages))
     cli.main(["reproduce", "--stages", "heldout", "baseline", "meta"])
@@ -450,6 +452,16 @@ def test_a_gif_that_cannot_be_written_is_refused_before_the_kicks(gif):
         cli.main(["kick", "--target", "12", "--gif", gif])
 
 
+def test_a_gif_in_a_missing_folder_is_refused_not_made(tmp_path):
+    # `kick --gif /nonexistent_dir/k.gif` made the folder /nonexistent_dir and kicked on.
+    gif = tmp_path / "nonexistent_dir" / "k.gif"
+    with pytest.raises(
+        SystemExit, match=r"^error: the GIF's folder '.*nonexistent_dir' does not exist: create it first$"
+    ):
+        cli.main(["kick", "--target", "12", "--gif", str(gif)])
+    assert not gif.parent.exists()
+
+
 def test_the_report_and_the_kicks_own_commands_are_checked_against_the_runs_task(tmp_path):
     # `report --task point_goal` on a cheetah run wrote the cheetah's report and exited 0; `video`
     # on it said "add --task cheetah_vel", which then said the cheetah has no video command.
@@ -483,3 +495,16 @@ def test_evaluate_on_a_task_without_the_held_out_stage_or_dev_targets_is_one_lin
     with pytest.raises(ValueError, match=r"^evaluate --dev: the kick task's config has no dev section"):
         commands.evaluate(ml_collections.ConfigDict(tree), run, types.SimpleNamespace(heldout=False, dev=True))
     assert not (run / "dev").exists() and not (run / "heldout").exists()
+
+
+def test_the_demos_help_and_an_unfinished_runs_refusal_hold_for_every_task(tmp_path, capsys):
+    # `demo --help` said "(a prior from assets/)", true of the kick only; publishing a demo run
+    # without its baseline said "rerun the same reproduce to finish it".
+    with pytest.raises(SystemExit):
+        cli.main(["demo", "--help"])
+    assert "the experts, meta and filter stages at CPU size" in " ".join(capsys.readouterr().out.split())
+    from bumps_jax.pipeline import commands
+
+    (tmp_path / "experts").mkdir()
+    with pytest.raises(ValueError, match=r"has not finished .*; run those stages into it before publishing$"):
+        commands.publish(config.make_config("tiny", {"task": "point_goal"}), tmp_path, None)

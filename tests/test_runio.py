@@ -87,6 +87,15 @@ def test_a_file_given_as_a_folder_is_named_as_what_it_was_given_for(tmp_path):
         runio.check_writable(blocker)
 
 
+def test_a_folder_that_must_exist_is_refused_not_made(tmp_path):
+    missing = tmp_path / "missing"
+    with pytest.raises(ValueError, match=r"^the GIF's folder '.*missing' does not exist: create it first$"):
+        runio.check_writable(missing, "the GIF's folder", create=False)
+    assert not missing.exists()
+    assert runio.check_writable(tmp_path, "the GIF's folder", create=False) == tmp_path
+    assert runio.check_writable(missing).is_dir()  # a run directory is made
+
+
 def test_the_command_line_names_the_module_a_process_ran_as(tmp_path):
     """A record's command reads as it was typed: `python -m experiments.<name>` for an experiment
     run as a module (it said `python experiments/<name>.py`, which cannot import its package)."""

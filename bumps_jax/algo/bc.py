@@ -349,7 +349,8 @@ def make_trainer(models: dict, train_cfg, n_rows: int, obs_size: int = 2):
     epoch_steps = steps_per_epoch(train_cfg, n_rows)
     optimizer = optax.flatten(optax.adam(lr_schedule(train_cfg, epoch_steps)))
     loss_and_grads = make_loss_and_grads(models)
-    batch_size, chunk_epochs = int(train_cfg.batch_size), int(train_cfg.chunk)
+    # A batch holds at most the whole dataset: a larger batch_size would pad every step to its size.
+    batch_size, chunk_epochs = min(int(train_cfg.batch_size), int(n_rows)), int(train_cfg.chunk)
     unroll = steps_unrolled(epoch_steps)
 
     def init_one(key):

@@ -62,7 +62,7 @@ def publish(cfg, run_dir: Path, args) -> None:
         records = ", ".join(f"{m}/{pipeline.stage_module(m, cfg.task).OUTPUT}" for m in missing)
         raise ValueError(
             f"not published: {runio.shown(run_dir)} has not finished {', '.join(missing)} (no {records}); "
-            "rerun the same reproduce to finish it"
+            "run those stages into it before publishing"
         )
     seed_runs = [Path(d) for d in getattr(args, "seed_runs", [])]
     for d in seed_runs:  # every seed's run checked before anything is written

@@ -192,14 +192,19 @@ def evaluate_on_own(cfg, programs: Compiled, params: ExpertParams) -> tuple[dict
 
 
 # An expert whose training error fell by more than this fraction from one tenth of its updates to
-# the last tenth was still learning when its budget ended.
+# the last tenth, and by more than STILL_FALLING_FLOOR, was still learning when its budget ended.
 STILL_FALLING = 0.05
+# In the task's unit (1 cm; 1 cm/s): the last digit the stages print errors to (two decimals), so
+# that an expert solved to millimetres, whose error still wobbles by a millimetre, is not learning.
+STILL_FALLING_FLOOR = 0.01
 
 
 def training_tail(progress: Path, unit: str = "m") -> dict | None:
     """Whether each expert was still learning at the end: from progress.csv (targets in `unit`),
     every expert's mean training `final_error` over its last tenth of updates (at least one) against
-    the tenth before. None where there are fewer than two updates (or no log)."""
+    the tenth before: learning where it fell by more than `STILL_FALLING` of it and more than
+    `STILL_FALLING_FLOOR` (an absolute floor: a relative drop of a millimetre-sized error is noise).
+    None where there are fewer than two updates (or no log)."""
     import csv  # noqa: PLC0415
 
     if not progress.exists():
@@ -215,10 +220,11 @@ def training_tail(progress: Path, unit: str = "m") -> dict | None:
     k = max(1, n // 10)
     before = np.array([np.mean(c[n - 2 * k : n - k]) for c in curves.values()])
     last = np.array([np.mean(c[n - k : n]) for c in curves.values()])
-    falling = before - last > STILL_FALLING * np.abs(before)
+    falling = before - last > np.maximum(STILL_FALLING * np.abs(before), STILL_FALLING_FLOOR)
     return {
         "updates_compared": k,
         "threshold": STILL_FALLING,
+        "floor": STILL_FALLING_FLOOR,
         "still_falling": int(falling.sum()),
         "n_experts": len(curves),
         "per_task_drop": (before - last).tolist(),  # in the order of progress.csv's first appearance
@@ -230,8 +236,9 @@ def tail_line(tail: dict | None, unit: str) -> str:
     if not tail:
         return ""
     k, pct = tail["updates_compared"], f"{tail['threshold']:.0%}"
+    floor = f" and {tail['floor']:g} {unit}" if "floor" in tail else ""  # a record from before the floor has none
     return (f"{tail['still_falling']} of {tail['n_experts']} experts were still learning when their budget ended "
-            f"(training error over their last {k} updates below the {k} before by more than {pct}; "
+            f"(training error over their last {k} updates below the {k} before by more than {pct}{floor}; "
             f"largest drop {max(tail['per_task_drop']):.3g} {unit}).\n")  # fmt: skip
 
 

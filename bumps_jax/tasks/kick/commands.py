@@ -82,6 +82,13 @@ def kick(cfg, run_dir: Path, args) -> None:
     for name, value in (("--kicks", args.kicks), ("--selection-reps", args.selection_reps)):
         if value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value}")
+    if args.gif:
+        from bumps_jax.tasks.kick import render  # noqa: PLC0415
+
+        if Path(args.gif).suffix.lower() != ".gif" or Path(args.gif).is_dir():
+            raise ValueError(f"--gif {args.gif!r}: give a file name ending in .gif")
+        runio.check_writable(Path(args.gif).parent, "the GIF's folder", create=False)
+        render.check_gl()  # before the kicks, not after them
     directory = args.policies or policies.ASSET_DIR
     if not (Path(directory) / policies.MANIFEST).is_file():
         raise ValueError(f"no shipped policies in {directory}: {policies.HOW_TO_MAKE}")
@@ -97,13 +104,6 @@ def kick(cfg, run_dir: Path, args) -> None:
     from bumps_jax.tasks.kick import env as kick_env  # noqa: PLC0415
 
     target = float(kick_env.check_targets([args.target], tuple(env_cfg.task_range))[0])
-    if args.gif:
-        from bumps_jax.tasks.kick import render  # noqa: PLC0415
-
-        if Path(args.gif).suffix.lower() != ".gif" or Path(args.gif).is_dir():
-            raise ValueError(f"--gif {args.gif!r}: give a file name ending in .gif")
-        runio.check_writable(Path(args.gif).parent, "the GIF's folder")
-        render.check_gl()  # before the kicks, not after them
     shipped = policies.load(directory, env_cfg)
     out = policies.filtered_kicks(shipped, args.net, target, args.kicks, env_cfg, args.selection_reps, args.seed,
                                   kicks_progress(args.kicks))  # fmt: skip
