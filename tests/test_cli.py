@@ -460,6 +460,11 @@ def test_a_gif_in_a_missing_folder_is_refused_not_made(tmp_path):
     ):
         cli.main(["kick", "--target", "12", "--gif", str(gif)])
     assert not gif.parent.exists()
+    # `render --out` likewise (its default lies in the run directory; `video --out` is checked so too).
+    out = tmp_path / "missing" / "s.png"
+    with pytest.raises(SystemExit, match=r"^error: output folder '.*missing' does not exist: create it first$"):
+        cli.main(["render", "--run-dir", str(tmp_path), "--out", str(out)])
+    assert not out.parent.exists()
 
 
 def test_the_report_and_the_kicks_own_commands_are_checked_against_the_runs_task(tmp_path):

@@ -20,7 +20,7 @@ def render(cfg, run_dir: Path, args) -> None:
     from bumps_jax.tasks.kick import render as render_mod  # noqa: PLC0415
 
     out = Path(args.out) if args.out else run_dir / "stance.png"
-    runio.check_writable(out.parent, "output folder")
+    runio.check_writable(out.parent, "output folder", create=not args.out)  # a folder the user named must exist
     render_mod.check_gl()
     print(f"wrote {render_mod.stance_picture(out)}")
 
@@ -37,7 +37,7 @@ def video(cfg, run_dir: Path, args) -> None:
     table2 = runio.read_json(run_dir / "filter" / "table2.json", "run the filter stage first")
     obs_norm = meta_stage.run_obs_norm(run_dir)
     out = Path(args.out) if args.out else run_dir / "filtered_kicks.gif"
-    runio.check_writable(out.parent, "output folder")
+    runio.check_writable(out.parent, "output folder", create=not args.out)
     render.check_gl()
     tasks, chosen = np.asarray(table2["tasks"]), np.asarray(table2["chosen_contexts"]["filtered_4x256"])
     picks = sorted({int(np.argmin(np.abs(tasks - t))) for t in (8.0, 12.0, 16.0)})
