@@ -54,6 +54,22 @@ def locked_config(config: ml_collections.ConfigDict, overrides: dict | None = No
     return cfg
 
 
+def physics_config(ctrl_dt: float, impl: str = "jax", warp_contacts: int = 4096,
+                   warp_constraints_per_world: int = 4) -> ml_collections.ConfigDict:  # fmt: skip
+    """The env config keys every task's physics reads, for a task's `default_config()` to add its
+    own to; the defaults suit a task without collisions on MJX's JAX backend."""
+    cfg = ml_collections.ConfigDict()
+    cfg.ctrl_dt = ctrl_dt  # control step (s)
+    # Physics step (s), a divisor of ctrl_dt; None: the model's own.
+    cfg.physics_dt = ml_collections.FieldReference(None, field_type=float)
+    cfg.impl = impl  # MJX backend that steps the physics: "jax" (MJX's JAX backend) or "warp" (MuJoCo Warp)
+    # Constraint-solver iterations; None: the model's own.
+    cfg.solver_iterations = ml_collections.FieldReference(None, field_type=int)
+    cfg.warp_contacts = warp_contacts  # Warp only: contact slots of one physics call, over all its episodes
+    cfg.warp_constraints_per_world = warp_constraints_per_world  # Warp only: constraint rows per episode
+    return cfg
+
+
 def with_model_options(env_cfg, timestep: float, iterations: int) -> dict:
     """An env config as plain data, as records carry it, with its physics step and solver iterations
     resolved: where they are None, the model's own `timestep` and `iterations`."""

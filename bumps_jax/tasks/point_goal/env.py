@@ -51,16 +51,8 @@ CONTEXT_SIZE = 2
 
 def default_config() -> ml_collections.ConfigDict:
     """Every number of the task, in one place."""
-    cfg = ml_collections.ConfigDict()
-    cfg.ctrl_dt = 0.1  # control step (s)
-    # Physics step (s), a divisor of ctrl_dt; None: the model's own (0.02 s).
-    cfg.physics_dt = ml_collections.FieldReference(None, field_type=float)
-    # MJX backend: "jax" (nothing collides: MJX's JAX backend is all it needs) or "warp".
-    cfg.impl = "jax"
-    # Constraint-solver iterations; None: the model's own (there are no constraints).
-    cfg.solver_iterations = ml_collections.FieldReference(None, field_type=int)
-    cfg.warp_contacts = 4096  # Warp only: contact slots (none are used)
-    cfg.warp_constraints_per_world = 4  # Warp only: constraint rows per episode (none are used)
+    # A 0.1 s control step; the model's 0.02 s physics step; MJX's JAX backend (nothing collides).
+    cfg = task_env.physics_config(ctrl_dt=0.1, impl="jax")
     cfg.episode_steps = 30  # control steps per episode (3 s)
     cfg.task_range = (-1.0, 1.0)  # m: each goal coordinate's range (the box around the disc)
     cfg.goal_radius = 1.0  # m: goals drawn by `reset` without one lie uniformly on this disc
