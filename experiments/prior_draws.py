@@ -34,10 +34,16 @@ def parse_args(argv=None):
     return parser.parse_args(argv)
 
 
-def prior_row(argument: str) -> dict:
-    """One prior's row from `TUNING[=PRIOR]`; ValueError naming the record that does not fit."""
+def read_tuning(argument: str) -> dict:
+    """The tuning record `TUNING[=PRIOR]` names."""
+    return runio.read_json(Path(argument.partition("=")[0]), "a tuning record (experiments.tuning_batch_shape)")
+
+
+def prior_row(argument: str, tuning: dict | None = None) -> dict:
+    """One prior's row from `TUNING[=PRIOR]` (its tuning record, read if not given); ValueError
+    naming the record that does not fit."""
     tuning_path, _, prior_path = argument.partition("=")
-    tuning = runio.read_json(Path(tuning_path), "a tuning record (experiments.tuning_batch_shape)")
+    tuning = read_tuning(argument) if tuning is None else tuning
     seeds = tuning.get("seeds") or {}
     if not tuning.get("prior") or len(seeds) != 1 or "whole" not in next(iter(seeds.values())):
         raise ValueError(f"{tuning_path}: not one seed's whole-batch tuning from a prior (--arms whole --prior P)")
@@ -89,12 +95,12 @@ def main(argv=None) -> None:
     start = time.perf_counter()
     try:
         runio.check_writable(args.out.parent, "the record's folder")
-        rows = [prior_row(a) for a in args.tunings]
+        tunings = [read_tuning(a) for a in args.tunings]
+        rows = [prior_row(a, t) for a, t in zip(args.tunings, tunings, strict=True)]
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
-    first = runio.read_json(Path(args.tunings[0].partition("=")[0]), "a tuning record")
-    for argument, row in zip(args.tunings[1:], rows[1:], strict=True):
-        other = runio.read_json(Path(row["tuning_record"]), "a tuning record")
+    first = tunings[0]
+    for argument, other in zip(args.tunings[1:], tunings[1:], strict=True):
         for key in ("env", "settings", "preset"):
             if other.get(key) != first.get(key):
                 raise SystemExit(f"error: {argument} tuned under another {key} than {args.tunings[0]}")

@@ -102,8 +102,8 @@ def check_paper_run(run_dir: Path, cfg) -> None:
     if not run_dir.is_dir():
         raise ValueError(f"not published: no run directory {runio.shown(run_dir)}")
     try:
-        preset = publish_mod.run_config(run_dir, cfg).preset
-    except ValueError:  # no record that names a preset: the copy itself says what is missing
+        preset, _ = publish_mod.made_with(run_dir, cfg)
+    except ValueError:  # neither record that names a preset: the copy itself says what is missing
         return
     if preset != config.PAPER:
         raise ValueError(

@@ -83,19 +83,22 @@ def publish(run_dir: str | Path, root: str | Path = ".", cfg=None, assets: bool 
     return written
 
 
-def run_config(run_dir: str | Path, cfg):
-    """The config `run_dir` was made with: its preset and overrides as its pipeline.json records
-    them (a run of single stages: its experts record's preset, with `cfg`'s overrides). The
-    policies shipped from a run are shaped by its own config, not by the publishing command's
-    default preset."""
+def made_with(run_dir: str | Path, cfg) -> tuple[str, dict]:
+    """(preset, overrides) `run_dir` was made with, as its pipeline.json records them (a run of
+    single stages: its experts record's preset, with `cfg`'s overrides); ValueError where it
+    holds neither record."""
     run_dir = Path(run_dir)
     if (run_dir / "pipeline.json").exists():
         record = runio.read_json(run_dir / "pipeline.json")
-        overrides = record.get("overrides", {})
-    else:
-        record = runio.read_json(run_dir / "experts" / "experts.json", "the experts' record: run train-experts first")
-        overrides = config.overrides_of(cfg)
-    preset = record.get("preset", cfg.preset)
+        return record.get("preset", cfg.preset), record.get("overrides", {})
+    record = runio.read_json(run_dir / "experts" / "experts.json", "the experts' record: run train-experts first")
+    return record.get("preset", cfg.preset), config.overrides_of(cfg)
+
+
+def run_config(run_dir: str | Path, cfg):
+    """The config `run_dir` was made with (`made_with`). The policies shipped from a run are shaped
+    by its own config, not by the publishing command's default preset."""
+    preset, overrides = made_with(run_dir, cfg)
     if preset == cfg.preset and overrides == config.overrides_of(cfg):
         return cfg
     return config.make_config(preset, {key: tuple(v) if isinstance(v, list) else v for key, v in overrides.items()})

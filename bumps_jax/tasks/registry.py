@@ -84,26 +84,20 @@ def make_env(name: str, env_cfg, overrides: dict | None = None):
     naming the first key where the env's own config differs from the one it was given (an env
     that builds its config anew ignores every `--set env.*`)."""
     from bumps_jax.envs import base  # noqa: PLC0415
-    from bumps_jax.records import differing_keys  # noqa: PLC0415
+    from bumps_jax.records import differing_keys, lookup  # noqa: PLC0415
 
     env = get(name).make_env(env_cfg, overrides)
     if env_cfg is not None:
         given = get(name).resolved_env(base.locked_config(env_cfg, overrides))
-        differ = differing_keys(given, get(name).resolved_env(env.config))
+        kept = get(name).resolved_env(env.config)
+        differ = differing_keys(given, kept)
         if differ:
-            key = differ[0]
             raise ValueError(
-                f"the {name} env does not keep the config it is given: env.{key} is "
-                f"{_at(given, key)!r} there, {_at(get(name).resolved_env(env.config), key)!r} in the env (its "
-                "__init__ must start from its `config` argument: docs/your_task.md)"
+                f"the {name} env does not keep the config it is given: env.{differ[0]} is "
+                f"{lookup(given, differ[0])!r} there, {lookup(kept, differ[0])!r} in the env (its __init__ must "
+                "start from its `config` argument: docs/your_task.md)"
             )
     return env
-
-
-def _at(tree: dict, dotted: str):
-    for part in dotted.split("."):
-        tree = tree.get(part) if isinstance(tree, dict) else None
-    return tree
 
 
 def resolved(name: str, env_cfg) -> dict:
