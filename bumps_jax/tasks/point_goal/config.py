@@ -78,6 +78,7 @@ def sections() -> ml_collections.ConfigDict:
 
 # Each preset: dotted overrides of the defaults. "tiny": a few minutes on a CPU core; four experts
 # at the disc's compass points learn to reach their goals in 60 PPO updates.
+TINY_TEST = ((0.5, 0.2), (-0.2, 0.5), (-0.4, -0.3))  # m: the tiny preset's test goals, between its experts'
 PRESETS: dict[str, dict] = {
     "paper": {},
     "tiny": {
@@ -93,9 +94,9 @@ PRESETS: dict[str, dict] = {
         "meta.train.chunk": 50,
         "meta.train.decay_every": 50,
         "meta.train.batch_size": 128,
-        "meta.eval.tasks": ((0.5, 0.2), (-0.2, 0.5), (-0.4, -0.3)),
+        "meta.eval.tasks": TINY_TEST,
         "meta.eval.repetitions": 4,
-        "filter.tasks": ((0.5, 0.2), (-0.2, 0.5), (-0.4, -0.3)),
+        "filter.tasks": TINY_TEST,
         "filter.context_step": 0.25,
         "filter.high_context_step": 0.125,
         "filter.width": 0.3,
@@ -107,7 +108,7 @@ PRESETS: dict[str, dict] = {
         "baseline.seeds": 2,
         "baseline.updates_per_chunk": 20,
         "baseline.keep_checkpoints": 2,
-        "baseline.eval_tasks": ((0.5, 0.2), (-0.2, 0.5), (-0.4, -0.3)),
+        "baseline.eval_tasks": TINY_TEST,
         "baseline.eval_repetitions": 4,
         "baseline.ppo.num_envs": 4 * 32,
         "baseline.ppo.num_minibatches": 4,
