@@ -43,13 +43,24 @@ def parse_args(argv=None):
 
 def asset(stage_record: dict, source: Path, prior_cfg) -> dict:
     """The prior asset a prior stage writes beside its record (`kick_model.make_record`), made from
-    the record: its main anchor, anchors, sweep, env and episodes; `made_from` names the record."""
+    the record: its main anchor, anchors, sweep, env and episodes; `made_from` names the record.
+    Its config is `prior_cfg` (the preset's prior section), refused where it differs from what the
+    record says the stage ran (its target, extremes and search sizes)."""
     from bumps_jax.tasks.kick import keyframes as kick_model  # noqa: PLC0415
 
     anchors = stage_record.get("anchors")
     if not isinstance(anchors, dict) or set(anchors) != set(kick_model.ANCHORS) or not stage_record.get("sweep"):
         raise ValueError(f"--prior {source}: not a kick prior stage's record (it needs anchors "
                          f"{list(kick_model.ANCHORS)} and a sweep)")  # fmt: skip
+    extremes = stage_record.get("extremes", {})
+    ran = {"target": stage_record.get("target_m"), "eval_repetitions": stage_record.get("n_reps"),
+           "generations": stage_record.get("generations"), "population_size": stage_record.get("population_size"),
+           "repetitions": stage_record.get("repetitions_per_candidate"),
+           **{f"extremes.{n}": extremes.get(n, {}).get("target_m") for n in prior_cfg.extremes}}  # fmt: skip
+    for key, value in ran.items():
+        mine = prior_cfg.extremes[key.split(".")[1]] if key.startswith("extremes.") else prior_cfg[key]
+        if value != mine:
+            raise ValueError(f"--prior {source}: made with prior.{key} {value!r}, this preset has {mine!r}")
     evaluation = {"target": stage_record["target_m"], "repetitions": stage_record["n_reps"],
                   **{k: stage_record[f"{k}_m"] for k in ("mean_error", "std_error")},
                   **{k: stage_record[k] for k in ("valid_fraction", "struck_fraction", "fallen_fraction")}}  # fmt: skip

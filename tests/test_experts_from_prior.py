@@ -57,3 +57,14 @@ def test_a_record_that_is_no_prior_stages_is_one_line_before_any_work(tmp_path):
     with pytest.raises(SystemExit, match=r"not a kick experts record"):
         experts_from_prior.main(["--prior", str(PUBLISHED), "--against", str(tmp_path / "bare.json"),
                                  "--run-dir", str(tmp_path / "run"), "--out", str(tmp_path / "out.json")])  # fmt: skip
+
+
+def test_a_prior_made_under_other_prior_settings_is_refused_naming_the_setting(tmp_path):
+    stage = runio.read_json(PUBLISHED, "the published prior")
+    for key, value, named in (("generations", 3, "prior.generations 3"),
+                              ("extremes", {"short": {"target_m": 5.5}, "long": {"target_m": 21.0}},
+                               "prior.extremes.short 5.5")):  # fmt: skip
+        with pytest.raises(ValueError, match=rf"made with {named}, this preset has"):
+            experts_from_prior.asset(
+                {**stage, key: value}, PUBLISHED, config.make_config("paper", {"task": "kick"}).prior
+            )
