@@ -77,6 +77,7 @@ def place(args, cfg) -> Path:
     from bumps_jax.tasks.kick import prior as prior_stage  # noqa: PLC0415
 
     record = asset(runio.read_json(args.prior, "a kick prior stage's record"), args.prior, cfg.prior)
+    runio.check_writable(args.run_dir, "--run-dir")
     prior_dir = args.run_dir / f"seed{args.seed}" / "prior"
     if (prior_dir / prior_stage.OUTPUT).exists():
         raise ValueError(f"--run-dir {args.run_dir}: seed {args.seed} has a prior stage of its own ({prior_dir})")

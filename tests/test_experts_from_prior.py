@@ -68,3 +68,11 @@ def test_a_prior_made_under_other_prior_settings_is_refused_naming_the_setting(t
             experts_from_prior.asset(
                 {**stage, key: value}, PUBLISHED, config.make_config("paper", {"task": "kick"}).prior
             )
+
+
+def test_a_run_folder_that_cannot_be_made_is_one_line(tmp_path):
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SystemExit, match=r"--run-dir .* is not writable"):
+        experts_from_prior.main(["--prior", str(PUBLISHED), "--against", str(ROOT / "results/experts.json"),
+                                 "--run-dir", str(tmp_path / "file" / "run"),
+                                 "--out", str(tmp_path / "out.json")])  # fmt: skip
