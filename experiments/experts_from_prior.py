@@ -18,9 +18,8 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
-
 from experiments.device_count import summary_provenance
+from experiments.kick_runs import run_row
 
 
 def parse_args(argv=None):
@@ -88,22 +87,6 @@ def place(args, cfg) -> Path:
     return path
 
 
-def row(path: Path) -> dict:
-    """A kick experts record's device count, starting kicks' tuning (None where it ran once, as
-    at the tiny size) and error."""
-    from bumps_jax import runio  # noqa: PLC0415
-
-    record = runio.read_json(path, "a run's experts record")
-    if record.get("task", "kick") != "kick" or "error_mean_m" not in record:
-        raise ValueError(f"{path}: not a kick experts record")
-    tuning = record.get("starting_kicks_tuning_runs")
-    costs = None if not tuning else [float(c) for c in tuning["fresh_costs"]]
-    return {"experts_record": str(path), "processes": int(record.get("n_processes", 1)),
-            "device": record.get("device"), "date": record.get("date"), "tuning_fresh_costs": costs,
-            "tuning_mean": None if costs is None else float(np.mean(costs)),
-            "experts_error_m": float(record["error_mean_m"])}  # fmt: skip
-
-
 def main(argv=None) -> None:
     args = parse_args(argv)
     start = time.perf_counter()
@@ -112,10 +95,10 @@ def main(argv=None) -> None:
 
     try:
         runio.check_writable(args.out.parent, "the record's folder", create=False)
-        against = row(args.against)
+        against = run_row(args.against, tuned=False)
         cfg = config.make_config(args.preset, {"task": "kick"})
         records.check_same_env(
-            runio.read_json(args.against, "")["env"], cfg.env, f"--against {args.against}", kick_env.resolved
+            runio.read_json(args.against).get("env"), cfg.env, f"--against {args.against}", kick_env.resolved
         )
         asset_path = place(args, cfg)
     except ValueError as err:
@@ -125,7 +108,7 @@ def main(argv=None) -> None:
                "--stages", "experts", "--seeds", str(args.seed), "--run-dir", str(args.run_dir)]  # fmt: skip
     cli.main(command + ([] if args.processes is None else ["--processes", str(args.processes)]))
     made = args.run_dir / f"seed{args.seed}" / "experts" / "experts.json"
-    this = row(made)
+    this = run_row(made, tuned=False)
     rows = {"this_run": this, "against": against}
     record = {
         "task": "kick",

@@ -41,22 +41,24 @@ def prior_of(experts_json: Path) -> dict | None:
     return None
 
 
-def run_row(experts_json: Path) -> dict:
-    """One run's row; ValueError where the record is not a finished kick experts record."""
+def run_row(experts_json: Path, tuned: bool = True) -> dict:
+    """One run's row; ValueError where the record is not a finished kick experts record with its
+    starting kicks' tuning runs (tuned=False: a run without them, as at the tiny size, is taken
+    with its tuning fields None)."""
     record = runio.read_json(experts_json, "a run's experts record")
     tuning = record.get("starting_kicks_tuning_runs")
-    if record.get("task", "kick") != "kick" or not tuning:  # records before the task key are the kick's
+    if record.get("task", "kick") != "kick" or "error_mean_m" not in record or (tuned and not tuning):
         raise ValueError(f"{experts_json}: not a kick experts record with its starting kicks' tuning")
     prior = prior_of(experts_json)
-    costs = [float(c) for c in tuning["fresh_costs"]]
+    costs = [float(c) for c in tuning["fresh_costs"]] if tuning else None
     return {
         "experts_record": str(experts_json),
         "processes": int(record.get("n_processes", 1)),
         "device": record.get("device"),
         "date": record.get("date"),
         "tuning_fresh_costs": costs,
-        "tuning_mean": float(np.mean(costs)),
-        "tuning_spread": float(np.max(costs) - np.min(costs)),
+        "tuning_mean": None if costs is None else float(np.mean(costs)),
+        "tuning_spread": None if costs is None else float(np.max(costs) - np.min(costs)),
         "prior_error_m": None if prior is None else float(prior["mean_error_m"]),
         "experts_error_m": float(record["error_mean_m"]),
     }

@@ -8,7 +8,7 @@ from experiments import kick_runs
 
 def experts_record(path, processes, costs, error, **extra):
     record = {"task": "kick", "n_processes": processes, "error_mean_m": error, "env": {"impl": "warp"},
-              "starting_kicks_tuning_runs": {"fresh_costs": costs}, **extra}  # fmt: skip
+              **({} if costs is None else {"starting_kicks_tuning_runs": {"fresh_costs": costs}}), **extra}  # fmt: skip
     runio.write_json(path / "experts.json", record)
     return path / "experts.json"
 
@@ -33,6 +33,11 @@ def test_a_record_without_the_tuning_or_of_another_env_is_one_line(tmp_path):
     runio.write_json(bare / "experts.json", {"task": "cheetah_vel", "error_mean_m": 0.1})
     with pytest.raises(ValueError, match=r"not a kick experts record with its starting kicks' tuning$"):
         kick_runs.run_row(bare / "experts.json")
+    untuned = experts_record(tmp_path / "untuned", 1, None, 0.4)  # a tiny run: one tuning, no restarts' costs
+    with pytest.raises(ValueError, match=r"not a kick experts record with its starting kicks' tuning$"):
+        kick_runs.run_row(untuned)
+    row = kick_runs.run_row(untuned, tuned=False)
+    assert row["experts_error_m"] == 0.4 and row["tuning_mean"] is None and row["tuning_spread"] is None
     one = experts_record(tmp_path / "a", 1, [0.3], 0.2)
     other = experts_record(tmp_path / "b", 2, [0.4], 0.3, env={"impl": "jax"})
     with pytest.raises(SystemExit, match=r"ran another env than .* \(keys \['impl'\]\)$"):

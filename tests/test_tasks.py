@@ -320,7 +320,8 @@ def test_an_env_that_ignores_the_config_it_is_given_is_refused_naming_the_key(mo
 
 @pytest.mark.parametrize(("task", "preset"), [(t, p) for t in tasks.TASKS for p in sorted(tasks.get(t).presets)])
 def test_every_preset_of_every_task_passes_its_checks(task, preset):
-    # The cheetah's and the ant's tiny presets asked for batches larger than their datasets
-    # (64 of 40 pairs, 32 of 30), refused since an oversized meta.train.batch_size is.
+    # Each preset is a valid config of its task (the cheetah's and the ant's tiny presets ask for
+    # meta batches larger than their datasets, 64 of 40 pairs and 32 of 30: bc.make_trainer clamps
+    # a batch to the dataset, so that is no error).
     cfg = config.make_config(preset, {"task": task})
     assert cfg.task == task and cfg.preset == preset

@@ -47,10 +47,11 @@ def publish(cfg, run_dir: Path, args) -> None:
     from bumps_jax.report import seeds  # noqa: PLC0415
     from bumps_jax.tasks import registry as tasks  # noqa: PLC0415
 
-    for d in [run_dir, *(Path(x) for x in getattr(args, "seed_runs", []))]:
+    seed_runs = [Path(d) for d in getattr(args, "seed_runs", [])]
+    for d in [run_dir, *seed_runs]:
         check_paper_run(d, cfg)  # before anything is read further or written
     if getattr(args, "baseline_at_budget", False):  # the run's baseline alone, beside the preset's own
-        if getattr(args, "seed_runs", []) or getattr(args, "records_only", False):
+        if seed_runs or getattr(args, "records_only", False):
             raise ValueError("--baseline-at-budget publishes one baseline run: not with --seed-runs or --records-only")
         for path in publish_mod.publish_at_budget(run_dir, cfg.task):
             print(f"wrote {path}")
@@ -64,7 +65,6 @@ def publish(cfg, run_dir: Path, args) -> None:
             f"not published: {runio.shown(run_dir)} has not finished {', '.join(missing)} (no {records}); "
             "run those stages into it before publishing"
         )
-    seed_runs = [Path(d) for d in getattr(args, "seed_runs", [])]
     for d in seed_runs:  # every seed's run checked before anything is written
         missing = pipeline.unfinished(d, ("experts", "meta", "filter"), cfg.task)
         if missing:

@@ -142,8 +142,23 @@ class Task:
                              f"defines no {', '.join(missing)} (docs/your_task.md, section 2)")  # fmt: skip
 
     def make_env(self, env_cfg, overrides: dict | None = None) -> ContextualEnv:
-        """The task's env from its env config and dotted `overrides`."""
-        return self.env_class(env_cfg, overrides)
+        """The task's env from its env config and dotted `overrides`; ValueError naming the first
+        key where the env's own config differs from the one it was given (an env that builds its
+        config anew ignores every `--set env.*`)."""
+        from bumps_jax.envs.base import locked_config  # noqa: PLC0415
+        from bumps_jax.records import differing_keys, lookup  # noqa: PLC0415
+
+        env = self.env_class(env_cfg, overrides)
+        if env_cfg is not None:
+            given, kept = self.resolved_env(locked_config(env_cfg, overrides)), self.resolved_env(env.config)
+            differ = differing_keys(given, kept)
+            if differ:
+                raise ValueError(
+                    f"the {self.name} env does not keep the config it is given: env.{differ[0]} is "
+                    f"{lookup(given, differ[0])!r} there, {lookup(kept, differ[0])!r} in the env (its __init__ "
+                    "must start from its `config` argument: docs/your_task.md)"
+                )
+        return env
 
     def sections(self) -> ml_collections.ConfigDict:
         """Its config tree but `preset` and `task`, at the `paper` preset's values."""

@@ -80,24 +80,8 @@ def check_record_task(found, name: str, what: str) -> None:
 
 
 def make_env(name: str, env_cfg, overrides: dict | None = None):
-    """The env of task `name` built from its env config (and dotted `overrides`); ValueError
-    naming the first key where the env's own config differs from the one it was given (an env
-    that builds its config anew ignores every `--set env.*`)."""
-    from bumps_jax.envs import base  # noqa: PLC0415
-    from bumps_jax.records import differing_keys, lookup  # noqa: PLC0415
-
-    env = get(name).make_env(env_cfg, overrides)
-    if env_cfg is not None:
-        given = get(name).resolved_env(base.locked_config(env_cfg, overrides))
-        kept = get(name).resolved_env(env.config)
-        differ = differing_keys(given, kept)
-        if differ:
-            raise ValueError(
-                f"the {name} env does not keep the config it is given: env.{differ[0]} is "
-                f"{lookup(given, differ[0])!r} there, {lookup(kept, differ[0])!r} in the env (its __init__ must "
-                "start from its `config` argument: docs/your_task.md)"
-            )
-    return env
+    """The env of task `name` built from its env config (and dotted `overrides`; `Task.make_env`)."""
+    return get(name).make_env(env_cfg, overrides)
 
 
 def resolved(name: str, env_cfg) -> dict:
