@@ -107,6 +107,14 @@ def test_without_per_task_strength_every_task_starts_from_the_long_kick_at_its_o
     np.testing.assert_allclose(kicks[:, strength], np.asarray(tasks) / 30.0, rtol=1e-5)
     assert info["common_start"] == "long" and len(info["common_start_sweep"]) == n
     assert info["episodes"] == n * cfg.experts.tune.eval_repetitions
+    # The long kick is all they read of the prior: its other anchors and its family's sweep (the
+    # part of a prior stage that several processes split) changed, the same kicks, bit for bit.
+    other = {**record, "sweep": [{**r, "distance_m": 2.0 * r["distance_m"]} for r in record["sweep"]]}
+    other["anchors"] = [
+        a if name == "long" else np.zeros_like(a) for name, a in zip(kick_model.ANCHORS, record["anchors"], strict=True)
+    ]
+    again, _ = starting_kicks.starting_kicks(cfg, other, say=lambda *a, **k: None)
+    np.testing.assert_array_equal(again, kicks)
 
 
 def test_kept_starts_are_read_back_bit_for_bit_under_the_same_config(monkeypatch, tmp_path):
