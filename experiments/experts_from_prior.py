@@ -45,6 +45,7 @@ def asset(stage_record: dict, source: Path, prior_cfg) -> dict:
     the record: its main anchor, anchors, sweep, env and episodes; `made_from` names the record.
     Its config is `prior_cfg` (the preset's prior section), refused where it differs from what the
     record says the stage ran (its target, extremes and search sizes)."""
+    from bumps_jax import records  # noqa: PLC0415
     from bumps_jax.tasks.kick import keyframes as kick_model  # noqa: PLC0415
 
     anchors = stage_record.get("anchors")
@@ -56,8 +57,9 @@ def asset(stage_record: dict, source: Path, prior_cfg) -> dict:
            "generations": stage_record.get("generations"), "population_size": stage_record.get("population_size"),
            "repetitions": stage_record.get("repetitions_per_candidate"),
            **{f"extremes.{n}": extremes.get(n, {}).get("target_m") for n in prior_cfg.extremes}}  # fmt: skip
+    preset = prior_cfg.to_dict()
     for key, value in ran.items():
-        mine = prior_cfg.extremes[key.split(".")[1]] if key.startswith("extremes.") else prior_cfg[key]
+        mine = records.lookup(preset, key)
         if value != mine:
             raise ValueError(f"--prior {source}: made with prior.{key} {value!r}, this preset has {mine!r}")
     evaluation = {"target": stage_record["target_m"], "repetitions": stage_record["n_reps"],

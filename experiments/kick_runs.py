@@ -48,7 +48,8 @@ def run_row(experts_json: Path, tuned: bool = True) -> dict:
     record = runio.read_json(experts_json, "a run's experts record")
     tuning = record.get("starting_kicks_tuning_runs")
     if record.get("task", "kick") != "kick" or "error_mean_m" not in record or (tuned and not tuning):
-        raise ValueError(f"{experts_json}: not a kick experts record with its starting kicks' tuning")
+        wanted = " with its starting kicks' tuning" if tuned else ""
+        raise ValueError(f"{experts_json}: not a kick experts record{wanted}")
     prior = prior_of(experts_json)
     costs = [float(c) for c in tuning["fresh_costs"]] if tuning else None
     return {

@@ -37,6 +37,8 @@ def test_a_record_without_the_tuning_or_of_another_env_is_one_line(tmp_path):
     with pytest.raises(ValueError, match=r"not a kick experts record with its starting kicks' tuning$"):
         kick_runs.run_row(untuned)
     row = kick_runs.run_row(untuned, tuned=False)
+    with pytest.raises(ValueError, match=r"not a kick experts record$"):  # nothing asked of a tuning it may lack
+        kick_runs.run_row(bare / "experts.json", tuned=False)
     assert row["experts_error_m"] == 0.4 and row["tuning_mean"] is None and row["tuning_spread"] is None
     one = experts_record(tmp_path / "a", 1, [0.3], 0.2)
     other = experts_record(tmp_path / "b", 2, [0.4], 0.3, env={"impl": "jax"})
